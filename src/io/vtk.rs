@@ -1,0 +1,85 @@
+//! VTK unstructured grids (`.vtu` XML, `.vtk` legacy) through vtkio.
+
+use std::path::Path;
+
+use nalgebra::Vector3;
+use vtkio::model::{
+    Attribute, Attributes, ByteOrder, CellType, Cells, DataArray, DataSet, ElementType, UnstructuredGridPiece, Version, VertexNumbers,
+};
+use vtkio::Vtk;
+
+use super::{malformed, IoError};
+
+pub(super) type MeshParts = (Vec<Vector3<f64>>, Vec<[u32; 4]>, Option<Vec<f32>>);
+
+pub(super) fn read(path: &Path) -> Result<MeshParts, IoError> {
+    if !path.exists() {
+        return Err(IoError::Io { path: path.to_owned(), source: std::io::Error::new(std::io::ErrorKind::NotFound, "file not found") });
+    }
+    let vtk = Vtk::import(path).map_err(|e| malformed(path, format!("not a readable VTK file: {e}")))?;
+    let DataSet::UnstructuredGrid { pieces, .. } = vtk.data else {
+        return Err(malformed(path, "not an unstructured grid"));
+    };
+    let Some(piece) = pieces.into_iter().next() else {
+        return Err(malformed(path, "unstructured grid has no pieces"));
+    };
+    let piece = piece.into_loaded_piece_data(None).map_err(|e| malformed(path, format!("cannot load the grid: {e}")))?;
+    let Some(coords) = piece.points.cast_into::<f64>() else {
+        return Err(malformed(path, "points are not numeric"));
+    };
+    if coords.len() % 3 != 0 {
+        return Err(malformed(path, format!("{} point coordinates is not a multiple of 3", coords.len())));
+    }
+    let nodes: Vec<Vector3<f64>> = coords.chunks_exact(3).map(|c| Vector3::new(c[0], c[1], c[2])).collect();
+    let types = piece.cells.types;
+    let (connectivity, offsets) = piece.cells.cell_verts.into_xml();
+    let mut tets = Vec::new();
+    let mut start = 0usize;
+    for (cell, (&end, ty)) in offsets.iter().zip(&types).enumerate() {
+        let verts = &connectivity[start..end as usize];
+        start = end as usize;
+        match ty {
+            CellType::Tetra => {
+                let Ok(t) = <[u64; 4]>::try_from(verts) else {
+                    return Err(malformed(path, format!("cell {cell} is a tetra with {} vertices", verts.len())));
+                };
+                let idx = t.map(|v| u32::try_from(v).unwrap_or(u32::MAX));
+                tets.push(idx);
+            }
+            CellType::Vertex | CellType::PolyVertex | CellType::Line | CellType::PolyLine | CellType::Triangle | CellType::TriangleStrip | CellType::Polygon | CellType::Pixel | CellType::Quad => {}
+            other => return Err(malformed(path, format!("cell {cell} has type {other:?}; only linear tetrahedra are supported"))),
+        }
+    }
+    let scalars = piece.data.point.into_iter().find_map(|a| match a {
+        Attribute::DataArray(DataArray { elem: ElementType::Scalars { num_comp: 1, .. }, data, .. }) => data.cast_into::<f32>(),
+        _ => None,
+    });
+    Ok((nodes, tets, scalars))
+}
+
+pub(super) fn write(path: &Path, nodes: &[Vector3<f64>], tets: &[[u32; 4]], scalars: Option<&[f32]>) -> Result<(), IoError> {
+    let points: Vec<f64> = nodes.iter().flat_map(|p| [p.x, p.y, p.z]).collect();
+    let xml = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("vtu"));
+    let cell_verts = if xml {
+        VertexNumbers::XML {
+            connectivity: tets.iter().flat_map(|t| t.map(u64::from)).collect(),
+            offsets: (1..=tets.len() as u64).map(|c| 4 * c).collect(),
+        }
+    } else {
+        VertexNumbers::Legacy { num_cells: tets.len() as u32, vertices: tets.iter().flat_map(|t| [4, t[0], t[1], t[2], t[3]]).collect() }
+    };
+    let mut data = Attributes::new();
+    if let Some(s) = scalars {
+        data.point.push(Attribute::DataArray(DataArray::scalars("scalar", 1).with_data(s.to_vec())));
+    }
+    let piece = UnstructuredGridPiece { points: points.into(), cells: Cells { cell_verts, types: vec![CellType::Tetra; tets.len()] }, data };
+    let vtk = Vtk {
+        version: if xml { Version::new((1, 0)) } else { Version::new((4, 2)) },
+        title: "defvol tetrahedral mesh".into(),
+        // Legacy binary VTK is big-endian by specification.
+        byte_order: if xml { ByteOrder::LittleEndian } else { ByteOrder::BigEndian },
+        file_path: None,
+        data: DataSet::inline(piece),
+    };
+    vtk.export(path).map_err(|e| malformed(path, format!("cannot write VTK: {e}")))
+}

@@ -1,0 +1,335 @@
+//! Tetrahedral meshes: nodes, tets and the topology every stage derives from them
+//! (unique edges for springs, face neighbours for ray walking, the boundary surface).
+
+pub mod generate;
+
+use std::collections::HashMap;
+
+use nalgebra::Vector3;
+
+/// A problem found while checking a mesh; `source` names the file (or generator).
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum MeshError {
+    #[error("{file}: mesh has no tetrahedra")]
+    Empty { file: String },
+    #[error("{file}: node {node} has a non-finite coordinate {coords:?}")]
+    NonFiniteNode { file: String, node: usize, coords: [f64; 3] },
+    #[error("{file}: tet {tet} references node {node}, but the mesh has {nodes} nodes")]
+    IndexOutOfRange { file: String, tet: usize, node: u32, nodes: usize },
+    #[error("{file}: tet {tet} repeats node {node}")]
+    RepeatedNode { file: String, tet: usize, node: u32 },
+    #[error("{file}: tet {tet} is degenerate (volume {volume:e}, quality {quality:e} below {min_quality:e})")]
+    Degenerate { file: String, tet: usize, volume: f64, quality: f64, min_quality: f64 },
+    #[error("{file}: tet {tet} is inverted (signed volume {volume:e}) while {positive} other tets are positive")]
+    Inverted { file: String, tet: usize, volume: f64, positive: usize },
+    #[error("{file}: face {face:?} is shared by {count} tets (at most 2 allowed), e.g. tet {tet}")]
+    NonManifoldFace { file: String, face: [u32; 3], count: usize, tet: usize },
+    #[error("{file}: boundary edge ({a}, {b}) belongs to {count} boundary triangles (a manifold surface needs 2)")]
+    NonManifoldBoundary { file: String, a: u32, b: u32, count: usize },
+    #[error("{file}: {what} has {got} entries, expected {expected} (one per node)")]
+    ScalarCount { file: String, what: String, got: usize, expected: usize },
+}
+
+/// Below this ratio of |volume| to (longest edge)^3 a tet is degenerate. A regular tet has
+/// ratio 0.118; a sliver of 1e-6 would make the spring and barycentric maths meaningless.
+pub const MIN_TET_QUALITY: f64 = 1e-6;
+
+/// A validated tetrahedral mesh with its derived topology.
+///
+/// Tets are stored positively oriented: `det[x1-x0, x2-x0, x3-x0] > 0`.
+#[derive(Debug, Clone)]
+pub struct TetMesh {
+    nodes: Vec<Vector3<f64>>,
+    tets: Vec<[u32; 4]>,
+    scalars: Option<Vec<f32>>,
+    edges: Vec<[u32; 2]>,
+    neighbours: Vec<[i32; 4]>,
+    boundary: Vec<[u32; 3]>,
+}
+
+/// Face of a tet opposite vertex k, ordered so that its normal points out of the tet.
+pub const TET_FACES: [[usize; 3]; 4] = [[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]];
+
+impl TetMesh {
+    /// Validates `nodes`/`tets` and derives edges, neighbours and the boundary.
+    ///
+    /// A mesh whose tets are *all* negatively oriented follows the other handedness
+    /// convention (some writers do): it is flipped consistently instead of rejected.
+    pub fn new(
+        nodes: Vec<Vector3<f64>>,
+        mut tets: Vec<[u32; 4]>,
+        scalars: Option<Vec<f32>>,
+        source: &str,
+    ) -> Result<Self, MeshError> {
+        let source_name = || source.to_owned();
+        if tets.is_empty() {
+            return Err(MeshError::Empty { file: source_name() });
+        }
+        if let Some((node, p)) = nodes.iter().enumerate().find(|(_, p)| !p.iter().all(|c| c.is_finite())) {
+            return Err(MeshError::NonFiniteNode { file: source_name(), node, coords: [p.x, p.y, p.z] });
+        }
+        for (tet, t) in tets.iter().enumerate() {
+            for (a, &node) in t.iter().enumerate() {
+                if node as usize >= nodes.len() {
+                    return Err(MeshError::IndexOutOfRange { file: source_name(), tet, node, nodes: nodes.len() });
+                }
+                if t[..a].contains(&node) {
+                    return Err(MeshError::RepeatedNode { file: source_name(), tet, node });
+                }
+            }
+        }
+        if let Some(s) = &scalars {
+            if s.len() != nodes.len() {
+                return Err(MeshError::ScalarCount {
+                    file: source_name(),
+                    what: "per-node scalar".into(),
+                    got: s.len(),
+                    expected: nodes.len(),
+                });
+            }
+        }
+        let volumes: Vec<f64> = tets.iter().map(|t| signed_volume(&nodes, t)).collect();
+        let positive = volumes.iter().filter(|v| **v > 0.0).count();
+        if positive == 0 {
+            for t in &mut tets {
+                t.swap(1, 2);
+            }
+        } else if let Some((tet, &volume)) = volumes.iter().enumerate().find(|(_, v)| **v < 0.0) {
+            return Err(MeshError::Inverted { file: source_name(), tet, volume, positive });
+        }
+        for (tet, t) in tets.iter().enumerate() {
+            let quality = tet_quality(&nodes, t);
+            if quality < MIN_TET_QUALITY {
+                return Err(MeshError::Degenerate {
+                    file: source_name(),
+                    tet,
+                    volume: signed_volume(&nodes, t),
+                    quality,
+                    min_quality: MIN_TET_QUALITY,
+                });
+            }
+        }
+        let edges = unique_edges(&tets);
+        let (neighbours, boundary) = face_topology(&tets, source)?;
+        check_boundary_manifold(&boundary, source)?;
+        Ok(Self { nodes, tets, scalars, edges, neighbours, boundary })
+    }
+
+    pub fn nodes(&self) -> &[Vector3<f64>] {
+        &self.nodes
+    }
+    pub fn tets(&self) -> &[[u32; 4]] {
+        &self.tets
+    }
+    /// Unique tet edges, `a < b`, sorted: the springs of the mass-spring model.
+    pub fn edges(&self) -> &[[u32; 2]] {
+        &self.edges
+    }
+    /// `neighbours[t][k]`: the tet across the face opposite vertex k, or -1 on the boundary.
+    pub fn neighbours(&self) -> &[[i32; 4]] {
+        &self.neighbours
+    }
+    /// Boundary triangles, outward-oriented.
+    pub fn boundary(&self) -> &[[u32; 3]] {
+        &self.boundary
+    }
+    pub fn scalars(&self) -> Option<&[f32]> {
+        self.scalars.as_deref()
+    }
+
+    /// Replaces the per-node scalar (e.g. intensities sampled from a volume).
+    pub fn set_scalars(&mut self, scalars: Vec<f32>) -> Result<(), MeshError> {
+        if scalars.len() != self.nodes.len() {
+            return Err(MeshError::ScalarCount {
+                file: "set_scalars".into(),
+                what: "per-node scalar".into(),
+                got: scalars.len(),
+                expected: self.nodes.len(),
+            });
+        }
+        self.scalars = Some(scalars);
+        Ok(())
+    }
+
+    /// Same topology, other node positions (a deformed state); not re-validated,
+    /// since deformed states may legitimately contain inverted tets.
+    pub fn with_nodes(&self, nodes: Vec<Vector3<f64>>) -> Option<Self> {
+        (nodes.len() == self.nodes.len()).then(|| Self { nodes, ..self.clone() })
+    }
+
+    /// Applies `f` to every node (unit conversion, placement), keeping the topology.
+    pub fn map_nodes(&mut self, f: impl Fn(&Vector3<f64>) -> Vector3<f64>) {
+        for p in &mut self.nodes {
+            *p = f(p);
+        }
+    }
+
+    pub fn tet_volume(&self, t: usize) -> f64 {
+        signed_volume(&self.nodes, &self.tets[t])
+    }
+
+    /// Axis-aligned bounds (min, max) of the nodes.
+    pub fn bounds(&self) -> (Vector3<f64>, Vector3<f64>) {
+        bounds(&self.nodes)
+    }
+}
+
+pub fn bounds(points: &[Vector3<f64>]) -> (Vector3<f64>, Vector3<f64>) {
+    let mut lo = Vector3::repeat(f64::INFINITY);
+    let mut hi = Vector3::repeat(f64::NEG_INFINITY);
+    for p in points {
+        lo = lo.inf(p);
+        hi = hi.sup(p);
+    }
+    (lo, hi)
+}
+
+pub fn signed_volume(nodes: &[Vector3<f64>], t: &[u32; 4]) -> f64 {
+    let p0 = nodes[t[0] as usize];
+    let a = nodes[t[1] as usize] - p0;
+    let b = nodes[t[2] as usize] - p0;
+    let c = nodes[t[3] as usize] - p0;
+    a.dot(&b.cross(&c)) / 6.0
+}
+
+fn tet_quality(nodes: &[Vector3<f64>], t: &[u32; 4]) -> f64 {
+    let mut longest: f64 = 0.0;
+    for a in 0..4 {
+        for b in a + 1..4 {
+            longest = longest.max((nodes[t[a] as usize] - nodes[t[b] as usize]).norm());
+        }
+    }
+    if longest == 0.0 {
+        return 0.0;
+    }
+    signed_volume(nodes, t).abs() / longest.powi(3)
+}
+
+fn unique_edges(tets: &[[u32; 4]]) -> Vec<[u32; 2]> {
+    let mut edges: Vec<[u32; 2]> = tets
+        .iter()
+        .flat_map(|t| {
+            [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)].map(|(a, b)| [t[a].min(t[b]), t[a].max(t[b])])
+        })
+        .collect();
+    edges.sort_unstable();
+    edges.dedup();
+    edges
+}
+
+fn face_topology(tets: &[[u32; 4]], source: &str) -> Result<(Vec<[i32; 4]>, Vec<[u32; 3]>), MeshError> {
+    let mut owners: HashMap<[u32; 3], (usize, usize, u32)> = HashMap::with_capacity(tets.len() * 2);
+    let mut neighbours = vec![[-1i32; 4]; tets.len()];
+    for (t, tet) in tets.iter().enumerate() {
+        for (k, face) in TET_FACES.iter().enumerate() {
+            let mut key = face.map(|i| tet[i]);
+            key.sort_unstable();
+            let entry = owners.entry(key).or_insert((t, k, 0));
+            entry.2 += 1;
+            match entry.2 {
+                1 => {}
+                2 => {
+                    let (other, other_k, _) = *entry;
+                    neighbours[t][k] = other as i32;
+                    neighbours[other][other_k] = t as i32;
+                }
+                count => {
+                    return Err(MeshError::NonManifoldFace { file: source.to_owned(), face: key, count: count as usize, tet: t })
+                }
+            }
+        }
+    }
+    let mut boundary = Vec::new();
+    for (t, tet) in tets.iter().enumerate() {
+        for (k, face) in TET_FACES.iter().enumerate() {
+            if neighbours[t][k] < 0 {
+                boundary.push(face.map(|i| tet[i]));
+            }
+        }
+    }
+    Ok((neighbours, boundary))
+}
+
+fn check_boundary_manifold(boundary: &[[u32; 3]], source: &str) -> Result<(), MeshError> {
+    let mut count: HashMap<(u32, u32), usize> = HashMap::with_capacity(boundary.len() * 2);
+    for tri in boundary {
+        for e in 0..3 {
+            let (a, b) = (tri[e], tri[(e + 1) % 3]);
+            *count.entry((a.min(b), a.max(b))).or_default() += 1;
+        }
+    }
+    let mut bad: Vec<_> = count.into_iter().filter(|(_, c)| *c != 2).collect();
+    bad.sort_unstable();
+    match bad.first() {
+        Some(&((a, b), count)) => Err(MeshError::NonManifoldBoundary { file: source.to_owned(), a, b, count }),
+        None => Ok(()),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn unit_tet() -> (Vec<Vector3<f64>>, Vec<[u32; 4]>) {
+        (
+            vec![Vector3::zeros(), Vector3::x(), Vector3::y(), Vector3::z()],
+            vec![[0, 1, 2, 3]],
+        )
+    }
+
+    #[test]
+    fn single_tet_topology() {
+        let (n, t) = unit_tet();
+        let m = TetMesh::new(n, t, None, "unit").unwrap();
+        assert_eq!(m.edges().len(), 6);
+        assert_eq!(m.boundary().len(), 4);
+        assert!((m.tet_volume(0) - 1.0 / 6.0).abs() < 1e-15);
+        // Outward normals: each face normal points away from the opposite vertex.
+        for (k, f) in TET_FACES.iter().enumerate() {
+            let p = |i: usize| m.nodes()[m.tets()[0][i] as usize];
+            let normal = (p(f[1]) - p(f[0])).cross(&(p(f[2]) - p(f[0])));
+            assert!(normal.dot(&(p(k) - p(f[0]))) < 0.0, "face {k} points inwards");
+        }
+    }
+
+    #[test]
+    fn all_negative_mesh_is_flipped_not_rejected() {
+        let (n, _) = unit_tet();
+        let m = TetMesh::new(n, vec![[0, 2, 1, 3]], None, "neg").unwrap();
+        assert!(m.tet_volume(0) > 0.0);
+    }
+
+    #[test]
+    fn errors_name_the_element() {
+        let (mut n, t) = unit_tet();
+        let e = TetMesh::new(n.clone(), vec![[0, 1, 2, 7]], None, "f.vtu").unwrap_err();
+        assert!(matches!(e, MeshError::IndexOutOfRange { tet: 0, node: 7, .. }), "{e}");
+        assert!(e.to_string().starts_with("f.vtu: tet 0"));
+        n.push(Vector3::new(1.0, 1.0, 1.0));
+        let e = TetMesh::new(n.clone(), vec![[0, 1, 2, 3], [1, 2, 3, 4], [0, 2, 1, 4]], None, "m").unwrap_err();
+        assert!(matches!(e, MeshError::Inverted { .. }), "{e}");
+        let flat = vec![Vector3::zeros(), Vector3::x(), Vector3::y(), Vector3::new(0.3, 0.3, 1e-9)];
+        let e = TetMesh::new(flat, t.clone(), None, "m").unwrap_err();
+        assert!(matches!(e, MeshError::Degenerate { tet: 0, .. }), "{e}");
+        let mut nan = n.clone();
+        nan[2].y = f64::NAN;
+        let e = TetMesh::new(nan, t, None, "m").unwrap_err();
+        assert!(matches!(e, MeshError::NonFiniteNode { node: 2, .. }), "{e}");
+    }
+
+    #[test]
+    fn tets_sharing_only_an_edge_are_non_manifold() {
+        // Two tets glued along the edge (0,1) only.
+        let n = vec![
+            Vector3::zeros(),
+            Vector3::x(),
+            Vector3::y(),
+            Vector3::z(),
+            Vector3::new(0.0, -1.0, 0.0),
+            Vector3::new(0.0, 0.0, -1.0),
+        ];
+        let e = TetMesh::new(n, vec![[0, 1, 2, 3], [0, 1, 4, 5]], None, "bowtie").unwrap_err();
+        assert!(matches!(e, MeshError::NonManifoldBoundary { a: 0, b: 1, count: 4, .. }), "{e}");
+    }
+}

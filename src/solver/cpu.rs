@@ -1,0 +1,516 @@
+//! The CPU path (rayon). Reductions sum fixed-size chunks in index order, so a run is
+//! bit-for-bit repeatable whatever the thread scheduling (replays depend on it).
+
+use nalgebra::{Matrix3, Vector3};
+use rayon::prelude::*;
+
+use super::kernels::{self, ContactTool, SpringTerms};
+use super::model::MassSpringModel;
+use super::tool::{spread_weights, Tool};
+use super::{Integrator, Real, SolverError, SolverParams, StepReport};
+
+/// Nodes per parallel chunk; also the unit of the deterministic reductions.
+const CHUNK: usize = 1024;
+
+/// Outcome of one linear solve.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CgStats {
+    pub iterations: u32,
+    pub relative_residual: f64,
+}
+
+/// A running mass-spring simulation on the CPU in precision `T`.
+pub struct Simulation<T: Real> {
+    params: SolverParams,
+    springs: Vec<[u32; 2]>,
+    rest_length: Vec<T>,
+    stiffness: Vec<T>,
+    damping: Vec<T>,
+    offsets: Vec<u32>,
+    adjacency: Vec<[u32; 2]>,
+    mass: Vec<T>,
+    fixed: Vec<bool>,
+    rest: Vec<Vector3<T>>,
+    divergence_energy: f64,
+    divergence_distance: f64,
+    x: Vec<Vector3<T>>,
+    v: Vec<Vector3<T>>,
+    /// Previous positions (position Verlet) or accelerations (velocity Verlet).
+    history: Vec<Vector3<T>>,
+    history_valid: bool,
+    external: Vec<Vector3<T>>,
+    tools: Vec<Tool>,
+    step: u64,
+    time: f64,
+    // Workspace of the implicit solve.
+    terms: Vec<SpringTerms<T>>,
+    diag: Vec<Matrix3<T>>,
+    precond: Vec<Matrix3<T>>,
+    rhs: Vec<Vector3<T>>,
+    dv: Vec<Vector3<T>>,
+    r: Vec<Vector3<T>>,
+    z: Vec<Vector3<T>>,
+    p: Vec<Vector3<T>>,
+    q: Vec<Vector3<T>>,
+    last_cg: CgStats,
+}
+
+impl<T: Real> Simulation<T> {
+    pub fn new(model: &MassSpringModel, params: SolverParams, tools: Vec<Tool>) -> Result<Self, SolverError> {
+        params.validate()?;
+        let n = model.node_count();
+        let conv = |v: &[f64]| v.iter().map(|x| T::of(*x)).collect::<Vec<T>>();
+        let rest: Vec<Vector3<T>> = model.rest.iter().map(|p| p.map(T::of)).collect();
+        let (lo, hi) = crate::mesh::bounds(&model.rest);
+        Ok(Self {
+            params,
+            springs: model.springs.clone(),
+            rest_length: conv(&model.rest_length),
+            stiffness: conv(&model.stiffness),
+            damping: conv(&model.damping),
+            offsets: model.offsets.clone(),
+            adjacency: model.adjacency.clone(),
+            mass: conv(&model.mass),
+            fixed: model.fixed.clone(),
+            divergence_energy: model.divergence_energy(),
+            divergence_distance: 2.0 * (hi - lo).norm(),
+            x: rest.clone(),
+            v: vec![Vector3::zeros(); n],
+            history: vec![Vector3::zeros(); n],
+            history_valid: false,
+            external: vec![Vector3::zeros(); n],
+            tools,
+            step: 0,
+            time: 0.0,
+            terms: vec![SpringTerms { force: Vector3::zeros(), kv: Vector3::zeros(), block: Matrix3::zeros() }; model.springs.len()],
+            diag: vec![Matrix3::zeros(); n],
+            precond: vec![Matrix3::zeros(); n],
+            rhs: vec![Vector3::zeros(); n],
+            dv: vec![Vector3::zeros(); n],
+            r: vec![Vector3::zeros(); n],
+            z: vec![Vector3::zeros(); n],
+            p: vec![Vector3::zeros(); n],
+            q: vec![Vector3::zeros(); n],
+            last_cg: CgStats { iterations: 0, relative_residual: 0.0 },
+            rest,
+        })
+    }
+
+    pub fn params(&self) -> &SolverParams {
+        &self.params
+    }
+    pub fn positions(&self) -> &[Vector3<T>] {
+        &self.x
+    }
+    pub fn velocities(&self) -> &[Vector3<T>] {
+        &self.v
+    }
+    pub fn time(&self) -> f64 {
+        self.time
+    }
+    pub fn step_index(&self) -> u64 {
+        self.step
+    }
+    pub fn tools(&self) -> &[Tool] {
+        &self.tools
+    }
+    pub fn last_cg(&self) -> CgStats {
+        self.last_cg
+    }
+
+    /// Positions in f64 (for output and comparisons).
+    pub fn positions_f64(&self) -> Vec<Vector3<f64>> {
+        self.x.iter().map(|p| p.map(T::to_f64)).collect()
+    }
+
+    /// Mutable access to a tool (pose, applied force) between steps.
+    pub fn tool_mut(&mut self, index: usize) -> Result<&mut Tool, SolverError> {
+        let count = self.tools.len();
+        self.tools.get_mut(index).ok_or(SolverError::NoSuchTool { index, count })
+    }
+
+    /// Sets the state (e.g. to restart from a recorded one).
+    pub fn set_state(&mut self, x: &[Vector3<f64>], v: &[Vector3<f64>]) {
+        self.x = x.iter().map(|p| p.map(T::of)).collect();
+        self.v = v.iter().map(|p| p.map(T::of)).collect();
+        self.history_valid = false;
+    }
+
+    /// Back to the rest shape at t = 0.
+    pub fn reset(&mut self) {
+        self.x.clone_from(&self.rest);
+        self.v.iter_mut().for_each(|v| *v = Vector3::zeros());
+        self.dv.iter_mut().for_each(|v| *v = Vector3::zeros());
+        self.history_valid = false;
+        self.step = 0;
+        self.time = 0.0;
+    }
+
+    fn contact_tools(&self) -> Result<Vec<ContactTool<T>>, SolverError> {
+        self.tools
+            .iter()
+            .enumerate()
+            .map(|(index, tool)| {
+                let c = tool.contact_params();
+                if !(c.a.iter().chain(c.b.iter()).all(|v| v.is_finite())) {
+                    return Err(SolverError::NonFiniteToolInput { index, what: "pose" });
+                }
+                Ok(ContactTool { a: c.a.map(T::of), b: c.b.map(T::of), radius: T::of(c.radius), stiffness: T::of(c.stiffness) })
+            })
+            .collect()
+    }
+
+    /// Spreads every tool's commanded force over the nodes near its tip.
+    fn spread_external_forces(&mut self) -> Result<(), SolverError> {
+        self.external.iter_mut().for_each(|f| *f = Vector3::zeros());
+        for (index, tool) in self.tools.iter().enumerate() {
+            if !tool.applied_force.iter().all(|f| f.is_finite()) {
+                return Err(SolverError::NonFiniteToolInput { index, what: "applied force" });
+            }
+            if tool.applied_force == Vector3::zeros() {
+                continue;
+            }
+            let nodes: Vec<Vector3<f64>> = self.x.iter().map(|p| p.map(T::to_f64)).collect();
+            for (i, w) in spread_weights(&nodes, &tool.tip(), tool.spread_radius) {
+                self.external[i as usize] += (tool.applied_force * w).map(T::of);
+            }
+        }
+        Ok(())
+    }
+
+    /// Advances one step with the configured integrator.
+    pub fn step(&mut self) -> Result<StepReport, SolverError> {
+        let tools = self.contact_tools()?;
+        self.spread_external_forces()?;
+        let saved = (self.x.clone(), self.v.clone(), self.history.clone(), self.history_valid);
+        match self.params.integrator {
+            Integrator::ExplicitEuler => self.explicit_euler(&tools),
+            Integrator::Verlet => self.verlet(&tools),
+            Integrator::VelocityVerlet => self.velocity_verlet(&tools),
+            Integrator::ImplicitEuler => self.implicit_euler(&tools),
+        }
+        self.step += 1;
+        self.time += self.params.dt;
+        let report = self.report(&tools);
+        if let Some(reason) = self.divergence(&report) {
+            (self.x, self.v, self.history, self.history_valid) = saved;
+            self.step -= 1;
+            self.time -= self.params.dt;
+            return Err(SolverError::Diverged { step: self.step + 1, time: self.time + self.params.dt, reason });
+        }
+        Ok(report)
+    }
+
+    fn divergence(&self, report: &StepReport) -> Option<String> {
+        if !self.x.iter().chain(self.v.iter()).all(|p| p.iter().all(|c| c.is_finite())) {
+            return Some("non-finite positions or velocities".into());
+        }
+        let internal = report.kinetic_energy + self.spring_energy();
+        if internal > self.divergence_energy {
+            return Some(format!(
+                "energy grew to {internal:.3e} J, beyond {:.3e} J (every spring stretched by its own length)",
+                self.divergence_energy
+            ));
+        }
+        if report.max_displacement > self.divergence_distance {
+            return Some(format!("a node moved {:.3e} m, twice the mesh's size", report.max_displacement));
+        }
+        None
+    }
+
+    /// Forces on every node at the current (x, v); `v_eval` overrides the velocities.
+    fn forces(&self, tools: &[ContactTool<T>], v_eval: &[Vector3<T>]) -> Vec<Vector3<T>> {
+        let g = Vector3::from(self.params.gravity).map(T::of);
+        let h = T::of(self.params.dt);
+        let spring_forces: Vec<Vector3<T>> = (0..self.springs.len())
+            .into_par_iter()
+            .with_min_len(CHUNK)
+            .map(|e| {
+                let [a, b] = self.springs[e];
+                let (a, b) = (a as usize, b as usize);
+                kernels::spring_force(&self.x[a], &self.x[b], &v_eval[a], &v_eval[b], self.rest_length[e], self.stiffness[e], self.damping[e])
+            })
+            .collect();
+        let terms: Vec<SpringTerms<T>> = spring_forces.into_iter().map(|force| SpringTerms { force, kv: Vector3::zeros(), block: Matrix3::zeros() }).collect();
+        (0..self.x.len())
+            .into_par_iter()
+            .with_min_len(CHUNK)
+            .map(|i| {
+                let adj = &self.adjacency[self.offsets[i] as usize..self.offsets[i + 1] as usize];
+                kernels::node_terms(i, adj, &self.springs, &terms, self.mass[i], self.fixed[i], &self.x[i], &v_eval[i], &self.external[i], &g, tools, h).force
+            })
+            .collect()
+    }
+
+    fn explicit_euler(&mut self, tools: &[ContactTool<T>]) {
+        let h = T::of(self.params.dt);
+        let f = self.forces(tools, &self.v);
+        let (mass, fixed) = (&self.mass, &self.fixed);
+        self.x.par_iter_mut().zip(self.v.par_iter_mut()).enumerate().for_each(|(i, (x, v))| {
+            if fixed[i] {
+                *v = Vector3::zeros();
+                return;
+            }
+            *x += *v * h;
+            *v += f[i] * (h / mass[i]);
+        });
+    }
+
+    /// Position (Störmer) Verlet; velocity is the backward difference, used for damping.
+    fn verlet(&mut self, tools: &[ContactTool<T>]) {
+        let h = T::of(self.params.dt);
+        if !self.history_valid {
+            self.history = self.x.iter().zip(&self.v).map(|(x, v)| x - v * h).collect();
+            self.history_valid = true;
+        }
+        let f = self.forces(tools, &self.v);
+        let (mass, fixed) = (&self.mass, &self.fixed);
+        let two = T::of(2.0);
+        (self.x.par_iter_mut(), self.v.par_iter_mut(), self.history.par_iter_mut()).into_par_iter().enumerate().for_each(|(i, (x, v, prev))| {
+            if fixed[i] {
+                *v = Vector3::zeros();
+                *prev = *x;
+                return;
+            }
+            let next = *x * two - *prev + f[i] * (h * h / mass[i]);
+            *v = (next - *x) / h;
+            *prev = *x;
+            *x = next;
+        });
+    }
+
+    /// Velocity Verlet; the damping force at the new positions uses the predicted velocity.
+    fn velocity_verlet(&mut self, tools: &[ContactTool<T>]) {
+        let h = T::of(self.params.dt);
+        let half = T::of(0.5);
+        if !self.history_valid {
+            let f = self.forces(tools, &self.v);
+            self.history = f.iter().zip(&self.mass).map(|(f, m)| f / *m).collect();
+            self.history_valid = true;
+        }
+        let fixed = &self.fixed;
+        let accel = &self.history;
+        self.x.par_iter_mut().zip(self.v.par_iter()).enumerate().for_each(|(i, (x, v))| {
+            if !fixed[i] {
+                *x += v * h + accel[i] * (half * h * h);
+            }
+        });
+        let predicted: Vec<Vector3<T>> = self.v.iter().zip(accel).map(|(v, a)| v + a * h).collect();
+        let f = self.forces(tools, &predicted);
+        let mass = &self.mass;
+        self.v.par_iter_mut().zip(self.history.par_iter_mut()).enumerate().for_each(|(i, (v, a))| {
+            let a_new = f[i] / mass[i];
+            *v = if fixed[i] { Vector3::zeros() } else { *v + (*a + a_new) * (half * h) };
+            *a = a_new;
+        });
+    }
+
+    /// Assembles A Δv = b at the current state (spring pass, then node gather).
+    pub(crate) fn assemble(&mut self, tools: &[ContactTool<T>]) {
+        let h = T::of(self.params.dt);
+        let g = Vector3::from(self.params.gravity).map(T::of);
+        let (x, v) = (&self.x, &self.v);
+        let (springs, rest, k, d) = (&self.springs, &self.rest_length, &self.stiffness, &self.damping);
+        self.terms.par_iter_mut().with_min_len(CHUNK).enumerate().for_each(|(e, t)| {
+            let [a, b] = springs[e];
+            let (a, b) = (a as usize, b as usize);
+            *t = kernels::spring_terms(&x[a], &x[b], &v[a], &v[b], rest[e], k[e], d[e], h);
+        });
+        let terms = &self.terms;
+        let (offsets, adjacency, mass, fixed, external) = (&self.offsets, &self.adjacency, &self.mass, &self.fixed, &self.external);
+        (self.rhs.par_iter_mut(), self.diag.par_iter_mut(), self.precond.par_iter_mut())
+            .into_par_iter()
+            .with_min_len(CHUNK)
+            .enumerate()
+            .for_each(|(i, (rhs, diag, precond))| {
+                let adj = &adjacency[offsets[i] as usize..offsets[i + 1] as usize];
+                let t = kernels::node_terms(i, adj, springs, terms, mass[i], fixed[i], &x[i], &v[i], &external[i], &g, tools, h);
+                *rhs = t.rhs;
+                *diag = t.diag;
+                *precond = t.precond;
+            });
+    }
+
+    fn implicit_euler(&mut self, tools: &[ContactTool<T>]) {
+        self.assemble(tools);
+        self.last_cg = self.solve();
+        let h = T::of(self.params.dt);
+        let (dv, fixed) = (&self.dv, &self.fixed);
+        self.x.par_iter_mut().zip(self.v.par_iter_mut()).enumerate().for_each(|(i, (x, v))| {
+            if fixed[i] {
+                *v = Vector3::zeros();
+                return;
+            }
+            *v += dv[i];
+            *x += *v * h;
+        });
+    }
+
+    fn spmv_into(&self, p: &[Vector3<T>], out: &mut [Vector3<T>]) {
+        out.par_iter_mut().with_min_len(CHUNK).enumerate().for_each(|(i, q)| {
+            let adj = &self.adjacency[self.offsets[i] as usize..self.offsets[i + 1] as usize];
+            *q = kernels::spmv_row(i, adj, &self.terms, &self.diag[i], self.fixed[i], p);
+        });
+    }
+
+    /// Preconditioned CG on the assembled system, warm-started from the previous Δv.
+    /// Fixed nodes are filtered out (their rows of r, z and p stay zero).
+    pub(crate) fn solve(&mut self) -> CgStats {
+        let tol = T::of(self.params.cg_tolerance);
+        for (dv, &fixed) in self.dv.iter_mut().zip(&self.fixed) {
+            if fixed {
+                *dv = Vector3::zeros();
+            }
+        }
+        let b_norm2 = dot(&self.rhs, &self.rhs);
+        if b_norm2 == T::zero() {
+            self.dv.iter_mut().for_each(|v| *v = Vector3::zeros());
+            return CgStats { iterations: 0, relative_residual: 0.0 };
+        }
+        let mut q = std::mem::take(&mut self.q);
+        self.spmv_into(&self.dv, &mut q);
+        let (rhs, precond) = (&self.rhs, &self.precond);
+        (self.r.par_iter_mut(), self.z.par_iter_mut(), self.p.par_iter_mut(), q.par_iter())
+            .into_par_iter()
+            .with_min_len(CHUNK)
+            .enumerate()
+            .for_each(|(i, (r, z, p, q))| {
+                *r = rhs[i] - q;
+                *z = precond[i] * *r;
+                *p = *z;
+            });
+        let mut rz = dot(&self.r, &self.z);
+        let mut rr = dot(&self.r, &self.r);
+        let target = tol * tol * b_norm2;
+        let mut iterations = 0;
+        while rr > target && iterations < self.params.cg_max_iterations {
+            // q = A p and p·q in one pass.
+            self.spmv_into(&self.p, &mut q);
+            let pq = dot(&self.p, &q);
+            if pq <= T::zero() {
+                break; // cannot happen for SPD A; guards against round-off at convergence
+            }
+            let alpha = rz / pq;
+            // x, r, z updates and both dots in one pass.
+            let partials: Vec<(T, T)> = (self.dv.par_chunks_mut(CHUNK), self.r.par_chunks_mut(CHUNK), self.z.par_chunks_mut(CHUNK), self.p.par_chunks(CHUNK), q.par_chunks(CHUNK), precond.par_chunks(CHUNK))
+                .into_par_iter()
+                .map(|(dv, r, z, p, q, m)| {
+                    let (mut rz, mut rr) = (T::zero(), T::zero());
+                    for k in 0..dv.len() {
+                        dv[k] += p[k] * alpha;
+                        r[k] -= q[k] * alpha;
+                        z[k] = m[k] * r[k];
+                        rz += r[k].dot(&z[k]);
+                        rr += r[k].dot(&r[k]);
+                    }
+                    (rz, rr)
+                })
+                .collect();
+            let (rz_new, rr_new) = partials.iter().fold((T::zero(), T::zero()), |(a, b), (c, d)| (a + *c, b + *d));
+            let beta = rz_new / rz;
+            rz = rz_new;
+            rr = rr_new;
+            self.p.par_iter_mut().zip(self.z.par_iter()).with_min_len(CHUNK).for_each(|(p, z)| *p = z + *p * beta);
+            iterations += 1;
+        }
+        self.q = q;
+        CgStats { iterations, relative_residual: (rr / b_norm2).sqrt().to_f64() }
+    }
+
+    fn spring_energy(&self) -> f64 {
+        let (springs, x, rest, k) = (&self.springs, &self.x, &self.rest_length, &self.stiffness);
+        chunked_sum(springs.len(), |e| {
+            let [a, b] = springs[e];
+            let stretch = (x[b as usize] - x[a as usize]).norm().to_f64() - rest[e].to_f64();
+            0.5 * k[e].to_f64() * stretch * stretch
+        })
+    }
+
+    fn report(&self, tools: &[ContactTool<T>]) -> StepReport {
+        let g = Vector3::from(self.params.gravity);
+        let kinetic = chunked_sum(self.x.len(), |i| 0.5 * self.mass[i].to_f64() * self.v[i].norm_squared().to_f64());
+        let gravity = chunked_sum(self.x.len(), |i| -self.mass[i].to_f64() * g.dot(&(self.x[i] - self.rest[i]).map(T::to_f64)));
+        let mut contact_energy = 0.0;
+        let mut reaction_force = Vector3::zeros();
+        let mut reaction_torque = Vector3::zeros();
+        for (index, tool) in tools.iter().enumerate() {
+            for p in &self.x {
+                if let Some((f, _)) = kernels::contact(p, &tool.a, &tool.b, tool.radius, tool.stiffness) {
+                    let f = f.map(T::to_f64);
+                    contact_energy += 0.5 * f.norm_squared() / tool.stiffness.to_f64();
+                    if index == 0 {
+                        reaction_force -= f;
+                        reaction_torque -= (p.map(T::to_f64) - tool.a.map(T::to_f64)).cross(&f);
+                    }
+                }
+            }
+        }
+        if let Some(tool) = self.tools.first() {
+            reaction_force -= tool.applied_force;
+        }
+        let max_displacement = self.x.iter().zip(&self.rest).map(|(x, r)| (x - r).norm().to_f64()).fold(0.0, f64::max);
+        StepReport {
+            step: self.step,
+            time: self.time,
+            cg_iterations: self.last_cg.iterations,
+            residual: self.last_cg.relative_residual,
+            kinetic_energy: kinetic,
+            potential_energy: self.spring_energy() + gravity + contact_energy,
+            max_displacement,
+            reaction_force: reaction_force.into(),
+            reaction_torque: reaction_torque.into(),
+        }
+    }
+
+    /// The assembled system as f64 triplets (row, col, value), for checks against direct solvers.
+    pub fn assembled_system(&mut self) -> Result<(Vec<(usize, usize, f64)>, Vec<f64>), SolverError> {
+        let tools = self.contact_tools()?;
+        self.spread_external_forces()?;
+        self.assemble(&tools);
+        let mut triplets = Vec::new();
+        for i in 0..self.x.len() {
+            if self.fixed[i] {
+                for c in 0..3 {
+                    triplets.push((3 * i + c, 3 * i + c, 1.0));
+                }
+                continue;
+            }
+            for r in 0..3 {
+                for c in 0..3 {
+                    triplets.push((3 * i + r, 3 * i + c, self.diag[i][(r, c)].to_f64()));
+                }
+            }
+            for &[j, e] in &self.adjacency[self.offsets[i] as usize..self.offsets[i + 1] as usize] {
+                if self.fixed[j as usize] {
+                    continue;
+                }
+                for r in 0..3 {
+                    for c in 0..3 {
+                        triplets.push((3 * i + r, 3 * j as usize + c, -self.terms[e as usize].block[(r, c)].to_f64()));
+                    }
+                }
+            }
+        }
+        let rhs = self.rhs.iter().flat_map(|v| v.iter().map(|c| c.to_f64()).collect::<Vec<_>>()).collect();
+        Ok((triplets, rhs))
+    }
+
+    /// Solves the currently assembled system from a zero start and returns Δv (for tests).
+    pub fn solve_assembled(&mut self) -> (Vec<Vector3<f64>>, CgStats) {
+        self.dv.iter_mut().for_each(|v| *v = Vector3::zeros());
+        let stats = self.solve();
+        (self.dv.iter().map(|v| v.map(T::to_f64)).collect(), stats)
+    }
+}
+
+/// Deterministic parallel dot product of two vector fields.
+fn dot<T: Real>(a: &[Vector3<T>], b: &[Vector3<T>]) -> T {
+    let partials: Vec<T> = a.par_chunks(CHUNK).zip(b.par_chunks(CHUNK)).map(|(a, b)| a.iter().zip(b).fold(T::zero(), |s, (x, y)| s + x.dot(y))).collect();
+    partials.into_iter().fold(T::zero(), |s, x| s + x)
+}
+
+/// Deterministic parallel sum of `f(0..n)` in f64.
+fn chunked_sum(n: usize, f: impl Fn(usize) -> f64 + Sync) -> f64 {
+    let partials: Vec<f64> = (0..n.div_ceil(CHUNK)).into_par_iter().map(|c| (c * CHUNK..((c + 1) * CHUNK).min(n)).map(&f).sum()).collect();
+    partials.into_iter().sum()
+}

@@ -1,0 +1,142 @@
+//! Mass-spring dynamics on tetrahedral meshes (seed 000, sections 3-4): explicit Euler,
+//! Verlet, velocity Verlet, and implicit Euler in the Baraff-Witkin form solved by
+//! preconditioned conjugate gradient. [`cpu::Simulation`] is the CPU path (f32, or f64 as the
+//! reference); `crate::gpu::solver` runs the same kernels in WGSL.
+
+pub mod cpu;
+pub mod kernels;
+pub mod model;
+pub mod tool;
+
+use serde::{Deserialize, Serialize};
+
+pub use cpu::Simulation;
+pub use model::{FixedNodes, MassSpringModel, Material, TissueRow};
+pub use tool::{Tool, ToolShape};
+
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum SolverError {
+    #[error("parameter `{name}` = {value} cannot work: {why}")]
+    BadParameter { name: String, value: f64, why: String },
+    #[error("simulation diverged at step {step} (t = {time:.4} s): {reason}; the last stable state was kept")]
+    Diverged { step: u64, time: f64, reason: String },
+    #[error("tool {index} does not exist ({count} tools)")]
+    NoSuchTool { index: usize, count: usize },
+    #[error("tool {index}: {what} is not finite")]
+    NonFiniteToolInput { index: usize, what: &'static str },
+}
+
+/// Time integration scheme.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "snake_case")]
+pub enum Integrator {
+    ExplicitEuler,
+    Verlet,
+    VelocityVerlet,
+    ImplicitEuler,
+}
+
+impl Integrator {
+    pub const ALL: [Integrator; 4] = [Integrator::ExplicitEuler, Integrator::Verlet, Integrator::VelocityVerlet, Integrator::ImplicitEuler];
+    pub fn name(self) -> &'static str {
+        match self {
+            Integrator::ExplicitEuler => "explicit_euler",
+            Integrator::Verlet => "verlet",
+            Integrator::VelocityVerlet => "velocity_verlet",
+            Integrator::ImplicitEuler => "implicit_euler",
+        }
+    }
+}
+
+/// Time stepping and linear-solver settings.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct SolverParams {
+    pub integrator: Integrator,
+    /// Time step h (s).
+    pub dt: f64,
+    /// Gravity (m/s²), world frame.
+    pub gravity: [f64; 3],
+    /// CG stops when |r| <= tolerance · |b| ...
+    pub cg_tolerance: f64,
+    /// ... or after this many iterations.
+    pub cg_max_iterations: u32,
+    /// GPU only: iterations recorded between two residual read-backs.
+    pub cg_check_interval: u32,
+}
+
+impl Default for SolverParams {
+    fn default() -> Self {
+        Self {
+            integrator: Integrator::ImplicitEuler,
+            dt: 0.01,
+            gravity: [0.0, 0.0, -9.81],
+            cg_tolerance: 1e-4,
+            cg_max_iterations: 1000,
+            cg_check_interval: 16,
+        }
+    }
+}
+
+impl SolverParams {
+    pub fn validate(&self) -> Result<(), SolverError> {
+        let bad = |name: &str, value: f64, why: &str| Err(SolverError::BadParameter { name: name.into(), value, why: why.into() });
+        if !(self.dt.is_finite() && self.dt > 0.0) {
+            return bad("dt", self.dt, "the time step must be positive and finite");
+        }
+        if let Some(g) = self.gravity.iter().find(|g| !g.is_finite()) {
+            return bad("gravity", *g, "gravity must be finite");
+        }
+        if !(self.cg_tolerance.is_finite() && self.cg_tolerance > 0.0 && self.cg_tolerance < 1.0) {
+            return bad("cg_tolerance", self.cg_tolerance, "a relative residual in (0, 1)");
+        }
+        if self.cg_max_iterations == 0 {
+            return bad("cg_max_iterations", 0.0, "at least one iteration");
+        }
+        if self.cg_check_interval == 0 {
+            return bad("cg_check_interval", 0.0, "at least one iteration between checks");
+        }
+        Ok(())
+    }
+}
+
+/// What one step did: the CSV row of `defvol simulate` and the node's diagnostics.
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct StepReport {
+    pub step: u64,
+    pub time: f64,
+    pub cg_iterations: u32,
+    /// Relative residual |r|/|b| of the last solve (0 for explicit schemes).
+    pub residual: f64,
+    pub kinetic_energy: f64,
+    /// Spring + contact + gravity potential (gravity relative to the rest shape).
+    pub potential_energy: f64,
+    pub max_displacement: f64,
+    /// Reaction on tool 0 (N, world), i.e. what a haptic device should render.
+    pub reaction_force: [f64; 3],
+    /// Reaction torque on tool 0 about its tip (N·m, world).
+    pub reaction_torque: [f64; 3],
+}
+
+/// Floating-point type of a CPU simulation: f32 (fast path, matches the GPU) or f64 (reference).
+pub trait Real: nalgebra::RealField + Copy + Default + Send + Sync + 'static {
+    fn of(x: f64) -> Self;
+    fn to_f64(self) -> f64;
+}
+impl Real for f32 {
+    fn of(x: f64) -> Self {
+        x as f32
+    }
+    fn to_f64(self) -> f64 {
+        self as f64
+    }
+}
+impl Real for f64 {
+    fn of(x: f64) -> Self {
+        x
+    }
+    fn to_f64(self) -> f64 {
+        self
+    }
+}

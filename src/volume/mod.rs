@@ -1,0 +1,189 @@
+//! Voxel volumes: a regular grid with ITK's geometry (values at voxel centres,
+//! voxel (i,j,k) at `origin + direction · (i·sx, j·sy, k·sz)`), samples stored x-fastest as f32.
+
+pub mod phantom;
+
+use nalgebra::{Matrix3, Vector3};
+
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum VolumeError {
+    #[error("{file}: dimension {axis} is {dim}; every dimension must be at least 1")]
+    ZeroDim { file: String, axis: usize, dim: usize },
+    #[error("{file}: spacing {spacing:?} must be finite and positive on every axis")]
+    BadSpacing { file: String, spacing: [f64; 3] },
+    #[error("{file}: origin {origin:?} is not finite")]
+    BadOrigin { file: String, origin: [f64; 3] },
+    #[error("{file}: direction matrix is not a finite rotation (|det| = {det})")]
+    BadDirection { file: String, det: f64 },
+    #[error("{file}: {got} samples for dims {dims:?} ({expected} expected)")]
+    SampleCount { file: String, got: usize, expected: usize, dims: [usize; 3] },
+    #[error("{file}: sample {index} (voxel {voxel:?}) is not finite")]
+    NonFiniteSample { file: String, index: usize, voxel: [usize; 3] },
+}
+
+/// A scalar voxel volume in file units (millimetres for medical formats).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Volume {
+    dims: [usize; 3],
+    spacing: [f64; 3],
+    origin: [f64; 3],
+    direction: Matrix3<f64>,
+    data: Vec<f32>,
+}
+
+impl Volume {
+    /// Validates the geometry and the samples; `source` names the file for errors.
+    pub fn new(
+        dims: [usize; 3],
+        spacing: [f64; 3],
+        origin: [f64; 3],
+        direction: Matrix3<f64>,
+        data: Vec<f32>,
+        source: &str,
+    ) -> Result<Self, VolumeError> {
+        let src = || source.to_owned();
+        if let Some(axis) = dims.iter().position(|d| *d == 0) {
+            return Err(VolumeError::ZeroDim { file: src(), axis, dim: 0 });
+        }
+        if !spacing.iter().all(|s| s.is_finite() && *s > 0.0) {
+            return Err(VolumeError::BadSpacing { file: src(), spacing });
+        }
+        if !origin.iter().all(|o| o.is_finite()) {
+            return Err(VolumeError::BadOrigin { file: src(), origin });
+        }
+        let det = direction.determinant();
+        if !det.is_finite() || (det.abs() - 1.0).abs() > 1e-3 {
+            return Err(VolumeError::BadDirection { file: src(), det });
+        }
+        let expected = dims[0] * dims[1] * dims[2];
+        if data.len() != expected {
+            return Err(VolumeError::SampleCount { file: src(), got: data.len(), expected, dims });
+        }
+        if let Some(index) = data.iter().position(|v| !v.is_finite()) {
+            let voxel = [index % dims[0], (index / dims[0]) % dims[1], index / (dims[0] * dims[1])];
+            return Err(VolumeError::NonFiniteSample { file: src(), index, voxel });
+        }
+        Ok(Self { dims, spacing, origin, direction, data })
+    }
+
+    pub fn dims(&self) -> [usize; 3] {
+        self.dims
+    }
+    pub fn spacing(&self) -> [f64; 3] {
+        self.spacing
+    }
+    pub fn origin(&self) -> [f64; 3] {
+        self.origin
+    }
+    pub fn direction(&self) -> &Matrix3<f64> {
+        &self.direction
+    }
+    pub fn data(&self) -> &[f32] {
+        &self.data
+    }
+    pub fn len(&self) -> usize {
+        self.data.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.data.is_empty()
+    }
+
+    pub fn index(&self, i: usize, j: usize, k: usize) -> usize {
+        i + self.dims[0] * (j + self.dims[1] * k)
+    }
+
+    /// Physical position of voxel (i, j, k) (continuous indices allowed).
+    pub fn world_from_index(&self, ijk: Vector3<f64>) -> Vector3<f64> {
+        Vector3::from(self.origin) + self.direction * ijk.component_mul(&Vector3::from(self.spacing))
+    }
+
+    /// Continuous voxel index of a physical position.
+    pub fn index_from_world(&self, p: Vector3<f64>) -> Vector3<f64> {
+        // direction is a rotation (checked on construction): its inverse is its transpose.
+        (self.direction.transpose() * (p - Vector3::from(self.origin))).component_div(&Vector3::from(self.spacing))
+    }
+
+    /// Physical bounds of the voxel centres (min, max) over the 8 corners.
+    pub fn bounds(&self) -> (Vector3<f64>, Vector3<f64>) {
+        let d = self.dims.map(|d| (d - 1) as f64);
+        let corners: Vec<Vector3<f64>> = (0..8)
+            .map(|c| self.world_from_index(Vector3::new(d[0] * (c & 1) as f64, d[1] * ((c >> 1) & 1) as f64, d[2] * ((c >> 2) & 1) as f64)))
+            .collect();
+        crate::mesh::bounds(&corners)
+    }
+
+    /// Trilinear sample at a continuous voxel index; `None` outside the voxel-centre box.
+    pub fn sample_index(&self, ijk: Vector3<f64>) -> Option<f32> {
+        let [nx, ny, nz] = self.dims;
+        let inside = |c: f64, n: usize| c >= 0.0 && c <= (n - 1) as f64;
+        if !(inside(ijk.x, nx) && inside(ijk.y, ny) && inside(ijk.z, nz)) {
+            return None;
+        }
+        let base = |c: f64, n: usize| (c.floor() as usize).min(n.saturating_sub(2));
+        let (i, j, k) = (base(ijk.x, nx), base(ijk.y, ny), base(ijk.z, nz));
+        let (fx, fy, fz) = (ijk.x - i as f64, ijk.y - j as f64, ijk.z - k as f64);
+        let at = |di: usize, dj: usize, dk: usize| {
+            let ii = (i + di).min(nx - 1);
+            let jj = (j + dj).min(ny - 1);
+            let kk = (k + dk).min(nz - 1);
+            self.data[self.index(ii, jj, kk)] as f64
+        };
+        let lerp = |a: f64, b: f64, t: f64| a + (b - a) * t;
+        let c00 = lerp(at(0, 0, 0), at(1, 0, 0), fx);
+        let c10 = lerp(at(0, 1, 0), at(1, 1, 0), fx);
+        let c01 = lerp(at(0, 0, 1), at(1, 0, 1), fx);
+        let c11 = lerp(at(0, 1, 1), at(1, 1, 1), fx);
+        Some(lerp(lerp(c00, c10, fy), lerp(c01, c11, fy), fz) as f32)
+    }
+
+    /// Trilinear sample at a physical position.
+    pub fn sample_world(&self, p: Vector3<f64>) -> Option<f32> {
+        self.sample_index(self.index_from_world(p))
+    }
+
+    /// (min, max) of the samples.
+    pub fn range(&self) -> (f32, f32) {
+        self.data.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), v| (lo.min(*v), hi.max(*v)))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn ramp() -> Volume {
+        let dims = [4, 3, 2];
+        let data = (0..24).map(|n| (n % 4) as f32 + 10.0 * ((n / 4) % 3) as f32 + 100.0 * (n / 12) as f32).collect();
+        Volume::new(dims, [0.5, 1.0, 2.0], [1.0, 2.0, 3.0], Matrix3::identity(), data, "ramp").unwrap()
+    }
+
+    #[test]
+    fn trilinear_reproduces_linear_fields() {
+        let v = ramp();
+        let s = v.sample_index(Vector3::new(1.25, 0.5, 0.75)).unwrap();
+        assert!((s - (1.25 + 5.0 + 75.0)).abs() < 1e-5);
+        let p = v.world_from_index(Vector3::new(3.0, 2.0, 1.0));
+        assert_eq!(p, Vector3::new(2.5, 4.0, 5.0));
+        assert!((v.sample_world(p).unwrap() - 123.0).abs() < 1e-5);
+        assert!(v.sample_index(Vector3::new(3.01, 0.0, 0.0)).is_none());
+    }
+
+    #[test]
+    fn rotated_direction_round_trips() {
+        let rot = nalgebra::Rotation3::from_euler_angles(0.3, -0.2, 1.1).into_inner();
+        let v = Volume::new([2, 2, 2], [1.0, 2.0, 3.0], [5.0, 0.0, -1.0], rot, vec![0.0; 8], "r").unwrap();
+        let ijk = Vector3::new(0.3, 1.7, 0.9);
+        assert!((v.index_from_world(v.world_from_index(ijk)) - ijk).norm() < 1e-12);
+    }
+
+    #[test]
+    fn bad_geometry_is_named() {
+        let e = Volume::new([2, 2, 1], [1.0, 0.0, 1.0], [0.0; 3], Matrix3::identity(), vec![0.0; 4], "a.mha").unwrap_err();
+        assert!(e.to_string().contains("a.mha") && e.to_string().contains("spacing"), "{e}");
+        let e = Volume::new([2, 2, 1], [1.0; 3], [0.0; 3], Matrix3::identity(), vec![0.0; 3], "a").unwrap_err();
+        assert!(matches!(e, VolumeError::SampleCount { got: 3, expected: 4, .. }));
+        let e = Volume::new([2, 2, 1], [1.0; 3], [0.0; 3], Matrix3::identity(), vec![0.0, 0.0, f32::NAN, 0.0], "a").unwrap_err();
+        assert!(matches!(e, VolumeError::NonFiniteSample { index: 2, voxel: [0, 1, 0], .. }));
+    }
+}
