@@ -4,6 +4,8 @@
 //! [`io`] reads and writes it, [`solver`] deforms meshes, [`gpu`] runs the same kernels
 //! through wgpu, [`scene`] describes a run and [`bench`] measures it.
 
+#[cfg(feature = "gpu")]
+pub mod gpu;
 pub mod io;
 pub mod mesh;
 pub mod scene;

@@ -1,1 +1,178 @@
+//! Scene descriptions (YAML): what to load or generate, the material, the solver and the
+//! tools. The default scene is `config/default_scene.yaml`, compiled in.
 
+use std::path::{Path, PathBuf};
+
+use nalgebra::{Isometry3, Vector3};
+use serde::{Deserialize, Serialize};
+
+use crate::io::{self, IoError};
+use crate::mesh::generate::{self, CellSplit};
+use crate::mesh::{MeshError, TetMesh};
+use crate::solver::{FixedNodes, MassSpringModel, Material, SolverError, SolverParams, Tool, ToolShape};
+use crate::volume::{phantom, Volume, VolumeError};
+
+pub const DEFAULT_SCENE: &str = include_str!("../config/default_scene.yaml");
+
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum SceneError {
+    #[error("{path}: {message}")]
+    Parse { path: String, message: String },
+    #[error(transparent)]
+    Io(#[from] IoError),
+    #[error(transparent)]
+    Mesh(#[from] MeshError),
+    #[error(transparent)]
+    Volume(#[from] VolumeError),
+    #[error(transparent)]
+    Solver(#[from] SolverError),
+    #[error("scene: {0}")]
+    Invalid(String),
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case", tag = "kind", deny_unknown_fields)]
+pub enum MeshSource {
+    File { path: PathBuf },
+    /// A lattice of about `target_tets` tets embedding the volume's box.
+    VolumeLattice { target_tets: usize, split: CellSplit },
+    /// A lattice over an explicit box (world units).
+    Lattice { min: [f64; 3], max: [f64; 3], target_tets: usize, split: CellSplit },
+    /// The seed's 80-tet bar of the given length, along x from the origin.
+    Bar { length: f64 },
+    Ellipsoid { centre: [f64; 3], radii: [f64; 3], cells_per_axis: usize },
+}
+
+/// A straight tool path: `from` to `to` over `duration` seconds, then held.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ToolPath {
+    pub from: [f64; 3],
+    pub to: [f64; 3],
+    pub duration: f64,
+}
+
+impl ToolPath {
+    pub fn position(&self, t: f64) -> Vector3<f64> {
+        let s = if self.duration > 0.0 { (t / self.duration).clamp(0.0, 1.0) } else { 1.0 };
+        Vector3::from(self.from) * (1.0 - s) + Vector3::from(self.to) * s
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ToolConfig {
+    pub name: String,
+    pub shape: ToolShape,
+    pub contact_stiffness: f64,
+    pub spread_radius: f64,
+    #[serde(default)]
+    pub path: Option<ToolPath>,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Scene {
+    /// "phantom" or a volume file.
+    pub volume: String,
+    /// World units per file unit (0.001: millimetre files, metre world).
+    pub file_to_world: f64,
+    pub mesh: MeshSource,
+    pub material: Material,
+    pub density: f64,
+    pub fixed: Option<FixedNodes>,
+    pub solver: SolverParams,
+    #[serde(default)]
+    pub tools: Vec<ToolConfig>,
+}
+
+/// Everything a run needs, loaded and validated.
+pub struct LoadedScene {
+    pub scene: Scene,
+    /// The volume, in file units.
+    pub volume: Volume,
+    /// The mesh, in world units.
+    pub mesh: TetMesh,
+    pub model: MassSpringModel,
+}
+
+impl Scene {
+    pub fn default_scene() -> Result<Self, SceneError> {
+        Self::parse(DEFAULT_SCENE, "embedded default scene")
+    }
+
+    pub fn parse(text: &str, origin: &str) -> Result<Self, SceneError> {
+        serde_yaml_ng::from_str(text).map_err(|e| SceneError::Parse { path: origin.to_owned(), message: e.to_string() })
+    }
+
+    pub fn from_file(path: &Path) -> Result<Self, SceneError> {
+        let text = std::fs::read_to_string(path).map_err(|source| IoError::Io { path: path.to_owned(), source })?;
+        Self::parse(&text, &path.display().to_string())
+    }
+
+    pub fn load(self) -> Result<LoadedScene, SceneError> {
+        if !(self.file_to_world.is_finite() && self.file_to_world > 0.0) {
+            return Err(SceneError::Invalid(format!("file_to_world = {} must be positive", self.file_to_world)));
+        }
+        self.solver.validate()?;
+        let volume = if self.volume == "phantom" { phantom::phantom(phantom::DEFAULT_DIMS, 1.0)? } else { io::read_volume(Path::new(&self.volume))? };
+        let scale = self.file_to_world;
+        let mesh = match &self.mesh {
+            MeshSource::File { path } => io::read_mesh(path)?,
+            MeshSource::VolumeLattice { target_tets, split } => {
+                let (lo, hi) = volume.bounds();
+                generate::lattice_for_box(lo * scale, hi * scale, *target_tets, *split)?
+            }
+            MeshSource::Lattice { min, max, target_tets, split } => generate::lattice_for_box(Vector3::from(*min), Vector3::from(*max), *target_tets, *split)?,
+            MeshSource::Bar { length } => generate::bar(*length)?,
+            MeshSource::Ellipsoid { centre, radii, cells_per_axis } => generate::ellipsoid(Vector3::from(*centre), Vector3::from(*radii), *cells_per_axis)?,
+        };
+        let fixed = match &self.fixed {
+            Some(f) => f.select(mesh.nodes())?,
+            None => vec![false; mesh.nodes().len()],
+        };
+        let sample = |p: &Vector3<f64>| volume.sample_world(p / scale);
+        let model = MassSpringModel::new(&mesh, &self.material, self.density, &fixed, Some(&sample))?;
+        Ok(LoadedScene { scene: self, volume, mesh, model })
+    }
+}
+
+impl LoadedScene {
+    /// The scene's tools at time `t` (scripted paths applied).
+    pub fn tools_at(&self, t: f64) -> Vec<Tool> {
+        self.scene
+            .tools
+            .iter()
+            .map(|c| {
+                let mut tool = Tool::new(c.shape, c.contact_stiffness);
+                tool.spread_radius = c.spread_radius;
+                if let Some(path) = &c.path {
+                    tool.world_from_tool = Isometry3::translation(path.position(t).x, path.position(t).y, path.position(t).z);
+                }
+                tool
+            })
+            .collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn default_scene_parses_and_rejects_unknown_fields() {
+        let s = Scene::default_scene().unwrap();
+        assert_eq!(s.tools.len(), 1);
+        let bad = DEFAULT_SCENE.replace("density: 1000.0", "densty: 1000.0");
+        let e = Scene::parse(&bad, "s.yaml").unwrap_err().to_string();
+        assert!(e.contains("s.yaml") && e.contains("densty"), "{e}");
+    }
+
+    #[test]
+    fn tool_path_interpolates_then_holds() {
+        let p = ToolPath { from: [0.0; 3], to: [1.0, 0.0, 0.0], duration: 2.0 };
+        assert_eq!(p.position(1.0).x, 0.5);
+        assert_eq!(p.position(5.0).x, 1.0);
+    }
+}

@@ -19,6 +19,13 @@ pub struct CgStats {
     pub relative_residual: f64,
 }
 
+struct Snapshot<T: Real> {
+    x: Vec<Vector3<T>>,
+    v: Vec<Vector3<T>>,
+    history: Vec<Vector3<T>>,
+    history_valid: bool,
+}
+
 /// A running mass-spring simulation on the CPU in precision `T`.
 pub struct Simulation<T: Real> {
     params: SolverParams,
@@ -180,23 +187,55 @@ impl<T: Real> Simulation<T> {
 
     /// Advances one step with the configured integrator.
     pub fn step(&mut self) -> Result<StepReport, SolverError> {
-        let tools = self.contact_tools()?;
-        self.spread_external_forces()?;
-        let saved = (self.x.clone(), self.v.clone(), self.history.clone(), self.history_valid);
+        let tools = self.prepare_step()?;
+        let saved = self.snapshot();
         match self.params.integrator {
             Integrator::ExplicitEuler => self.explicit_euler(&tools),
             Integrator::Verlet => self.verlet(&tools),
             Integrator::VelocityVerlet => self.velocity_verlet(&tools),
             Integrator::ImplicitEuler => self.implicit_euler(&tools),
         }
+        self.finish_step(&tools, saved)
+    }
+
+    /// Validates tool inputs and spreads commanded forces; returns the contact tools.
+    pub(crate) fn prepare_step(&mut self) -> Result<Vec<ContactTool<T>>, SolverError> {
+        let tools = self.contact_tools()?;
+        self.spread_external_forces()?;
+        Ok(tools)
+    }
+
+    pub(crate) fn external_forces(&self) -> &[Vector3<T>] {
+        &self.external
+    }
+
+    fn snapshot(&self) -> Snapshot<T> {
+        Snapshot { x: self.x.clone(), v: self.v.clone(), history: self.history.clone(), history_valid: self.history_valid }
+    }
+
+    /// Takes a state computed elsewhere (the GPU) as this step's result, with the same
+    /// reporting and divergence check as a CPU step.
+    pub(crate) fn accept_step(&mut self, tools: &[ContactTool<T>], x: Vec<Vector3<T>>, v: Vec<Vector3<T>>, cg: CgStats) -> Result<StepReport, SolverError> {
+        let saved = self.snapshot();
+        self.x = x;
+        self.v = v;
+        self.last_cg = cg;
+        self.finish_step(tools, saved)
+    }
+
+    fn finish_step(&mut self, tools: &[ContactTool<T>], saved: Snapshot<T>) -> Result<StepReport, SolverError> {
         self.step += 1;
         self.time += self.params.dt;
-        let report = self.report(&tools);
+        let report = self.report(tools);
         if let Some(reason) = self.divergence(&report) {
-            (self.x, self.v, self.history, self.history_valid) = saved;
+            let failed = (self.step, self.time);
+            self.x = saved.x;
+            self.v = saved.v;
+            self.history = saved.history;
+            self.history_valid = saved.history_valid;
             self.step -= 1;
             self.time -= self.params.dt;
-            return Err(SolverError::Diverged { step: self.step + 1, time: self.time + self.params.dt, reason });
+            return Err(SolverError::Diverged { step: failed.0, time: failed.1, reason });
         }
         Ok(report)
     }

@@ -1,0 +1,127 @@
+//! wgpu plumbing shared by every GPU stage: adapter choice, buffers, read-back.
+//!
+//! Adapter policy: a hardware GPU runs the GPU path; a CPU adapter (llvmpipe/lavapipe) only
+//! when the caller allows it (tests do); with neither, callers fall back to the CPU path.
+//! Only Vulkan, Metal and DX12 are asked for: the GL backend lacks what compute needs here.
+
+pub mod solver;
+
+use wgpu::util::DeviceExt;
+
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum GpuError {
+    #[error("no GPU adapter found (Vulkan, Metal or DX12){0}")]
+    NoAdapter(String),
+    #[error("cannot open the GPU device {adapter}: {message}")]
+    Device { adapter: String, message: String },
+    #[error("the GPU adapter {adapter} allows {got} storage buffers per shader stage; {needed} are needed")]
+    Limits { adapter: String, got: u32, needed: u32 },
+    #[error("reading results back from the GPU failed: {0}")]
+    Readback(String),
+}
+
+/// Which adapters may run the GPU path.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum AdapterPolicy {
+    /// Hardware GPUs only.
+    HardwareOnly,
+    /// Hardware first, a software (CPU) adapter if that is all there is.
+    AllowSoftware,
+}
+
+/// A device and queue with the adapter's description.
+pub struct GpuContext {
+    pub device: wgpu::Device,
+    pub queue: wgpu::Queue,
+    pub adapter_info: wgpu::AdapterInfo,
+}
+
+impl GpuContext {
+    pub fn new(policy: AdapterPolicy) -> Result<Self, GpuError> {
+        pollster::block_on(Self::new_async(policy))
+    }
+
+    async fn new_async(policy: AdapterPolicy) -> Result<Self, GpuError> {
+        let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
+        desc.backends = wgpu::Backends::VULKAN | wgpu::Backends::METAL | wgpu::Backends::DX12;
+        desc.flags = wgpu::InstanceFlags::empty().with_env();
+        let instance = wgpu::Instance::new(desc);
+        let adapters = instance.enumerate_adapters(desc_backends()).await;
+        let rank = |a: &wgpu::Adapter| match a.get_info().device_type {
+            wgpu::DeviceType::DiscreteGpu => 0,
+            wgpu::DeviceType::IntegratedGpu => 1,
+            wgpu::DeviceType::VirtualGpu | wgpu::DeviceType::Other => 2,
+            wgpu::DeviceType::Cpu => 3,
+        };
+        let seen: Vec<String> = adapters.iter().map(|a| format!("{} ({:?})", a.get_info().name, a.get_info().device_type)).collect();
+        let Some(adapter) = adapters
+            .into_iter()
+            .filter(|a| policy == AdapterPolicy::AllowSoftware || a.get_info().device_type != wgpu::DeviceType::Cpu)
+            .min_by_key(rank)
+        else {
+            let detail = if seen.is_empty() { String::new() } else { format!("; only software adapters, not allowed: {}", seen.join(", ")) };
+            return Err(GpuError::NoAdapter(detail));
+        };
+        let info = adapter.get_info();
+        let limits = adapter.limits();
+        if limits.max_storage_buffers_per_shader_stage < solver::STORAGE_BUFFERS {
+            return Err(GpuError::Limits { adapter: info.name, got: limits.max_storage_buffers_per_shader_stage, needed: solver::STORAGE_BUFFERS });
+        }
+        let (device, queue) = adapter
+            .request_device(&wgpu::DeviceDescriptor {
+                label: Some("defvol"),
+                required_features: wgpu::Features::empty(),
+                required_limits: limits,
+                experimental_features: wgpu::ExperimentalFeatures::disabled(),
+                memory_hints: wgpu::MemoryHints::Performance,
+                trace: wgpu::Trace::Off,
+            })
+            .await
+            .map_err(|e| GpuError::Device { adapter: info.name.clone(), message: e.to_string() })?;
+        Ok(Self { device, queue, adapter_info: info })
+    }
+
+    /// "name (type, backend)", for logs and benchmark rows.
+    pub fn describe(&self) -> String {
+        format!("{} ({:?}, {:?})", self.adapter_info.name, self.adapter_info.device_type, self.adapter_info.backend)
+    }
+
+    pub fn storage_buffer(&self, label: &str, contents: &[u8]) -> wgpu::Buffer {
+        self.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some(label),
+            contents,
+            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST,
+        })
+    }
+
+    /// Copies `size` bytes of `buffer` back to the host (blocking).
+    pub fn read_back(&self, buffer: &wgpu::Buffer, size: u64) -> Result<Vec<u8>, GpuError> {
+        let staging = self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("read-back"),
+            size,
+            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let mut encoder = self.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("read-back") });
+        encoder.copy_buffer_to_buffer(buffer, 0, &staging, 0, size);
+        self.queue.submit([encoder.finish()]);
+        let (tx, rx) = std::sync::mpsc::channel();
+        staging.map_async(wgpu::MapMode::Read, .., move |r| {
+            let _ = tx.send(r);
+        });
+        self.device.poll(wgpu::PollType::wait_indefinitely()).map_err(|e| GpuError::Readback(e.to_string()))?;
+        match rx.recv() {
+            Ok(Ok(())) => {}
+            Ok(Err(e)) => return Err(GpuError::Readback(e.to_string())),
+            Err(e) => return Err(GpuError::Readback(e.to_string())),
+        }
+        let bytes = staging.get_mapped_range(..).map_err(|e| GpuError::Readback(e.to_string()))?.to_vec();
+        staging.unmap();
+        Ok(bytes)
+    }
+}
+
+fn desc_backends() -> wgpu::Backends {
+    wgpu::Backends::VULKAN | wgpu::Backends::METAL | wgpu::Backends::DX12
+}

@@ -1,0 +1,394 @@
+//! The solver on the GPU: `shaders/solver.wgsl` run through wgpu. A host-side
+//! [`Simulation<f32>`] mirrors the state: it validates tool inputs, spreads commanded forces,
+//! and checks and reports each step exactly as the CPU path does, so both paths report alike.
+//!
+//! CG runs `cg_check_interval` iterations per submission; the reductions and the stopping
+//! test stay on the GPU (a `done` flag makes the remaining kernels of a batch return at
+//! once), so the host reads back one small struct per batch instead of syncing every iteration.
+
+use std::sync::Arc;
+
+use bytemuck::{Pod, Zeroable};
+use nalgebra::Vector3;
+
+use super::{GpuContext, GpuError};
+use crate::solver::cpu::CgStats;
+use crate::solver::kernels::ContactTool;
+use crate::solver::{Integrator, MassSpringModel, Simulation, SolverError, SolverParams, StepReport, Tool};
+
+/// Storage buffers the solver shader binds at once.
+pub const STORAGE_BUFFERS: u32 = 23;
+/// Tools the GPU kernels take per step.
+pub const MAX_TOOLS: usize = 4;
+const WORKGROUP: u32 = 256;
+
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum GpuSolverError {
+    #[error(transparent)]
+    Solver(#[from] SolverError),
+    #[error(transparent)]
+    Gpu(#[from] GpuError),
+    #[error("{0} tools given; the GPU solver takes at most {MAX_TOOLS}")]
+    TooManyTools(usize),
+}
+
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable)]
+struct GpuTool {
+    a: [f32; 4],
+    b: [f32; 4],
+}
+
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable)]
+struct GpuParams {
+    gravity_h: [f32; 4],
+    counts: [u32; 4],
+    cg: [f32; 4],
+    tools: [GpuTool; MAX_TOOLS],
+}
+
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable)]
+struct CgScalars {
+    rz: f32,
+    rr: f32,
+    bb: f32,
+    alpha: f32,
+    beta: f32,
+    pq: f32,
+    iterations: u32,
+    done: u32,
+}
+
+const KERNELS: [&str; 19] = [
+    "spring_terms",
+    "spring_forces",
+    "spring_forces_predicted",
+    "node_terms",
+    "cg_start_spmv",
+    "cg_init",
+    "cg_init_reduce",
+    "cg_spmv",
+    "cg_alpha",
+    "cg_update",
+    "cg_beta",
+    "cg_direction",
+    "implicit_update",
+    "node_forces",
+    "explicit_euler_update",
+    "verlet_update",
+    "velocity_verlet_positions",
+    "velocity_verlet_velocities",
+    "acceleration_from_force",
+];
+
+/// Read-only bindings of the shader (the rest are read-write storage, 0 is the uniform).
+const READ_ONLY: [u32; 6] = [1, 2, 3, 4, 5, 8];
+
+struct Buffers {
+    params: wgpu::Buffer,
+    x: wgpu::Buffer,
+    v: wgpu::Buffer,
+    external: wgpu::Buffer,
+    dv: wgpu::Buffer,
+    p: wgpu::Buffer,
+    scalars: wgpu::Buffer,
+    aux: wgpu::Buffer,
+}
+
+pub struct GpuSimulation {
+    ctx: Arc<GpuContext>,
+    mirror: Simulation<f32>,
+    nodes: u32,
+    springs: u32,
+    pipelines: Vec<wgpu::ComputePipeline>,
+    bind_group: wgpu::BindGroup,
+    buffers: Buffers,
+    history_valid: bool,
+}
+
+fn vec4s(v: &[Vector3<f32>]) -> Vec<[f32; 4]> {
+    v.iter().map(|p| [p.x, p.y, p.z, 0.0]).collect()
+}
+
+fn groups(count: u32) -> u32 {
+    count.div_ceil(WORKGROUP).max(1)
+}
+
+impl GpuSimulation {
+    pub fn new(ctx: Arc<GpuContext>, model: &MassSpringModel, params: SolverParams, tools: Vec<Tool>) -> Result<Self, GpuSolverError> {
+        if tools.len() > MAX_TOOLS {
+            return Err(GpuSolverError::TooManyTools(tools.len()));
+        }
+        let mirror = Simulation::<f32>::new(model, params, tools)?;
+        let n = model.node_count();
+        let e = model.springs.len();
+        let device = &ctx.device;
+        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("solver.wgsl"),
+            source: wgpu::ShaderSource::Wgsl(include_str!("../../shaders/solver.wgsl").into()),
+        });
+        let entries: Vec<wgpu::BindGroupLayoutEntry> = (0..=STORAGE_BUFFERS)
+            .map(|binding| wgpu::BindGroupLayoutEntry {
+                binding,
+                visibility: wgpu::ShaderStages::COMPUTE,
+                ty: wgpu::BindingType::Buffer {
+                    ty: if binding == 0 {
+                        wgpu::BufferBindingType::Uniform
+                    } else {
+                        wgpu::BufferBindingType::Storage { read_only: READ_ONLY.contains(&binding) }
+                    },
+                    has_dynamic_offset: false,
+                    min_binding_size: None,
+                },
+                count: None,
+            })
+            .collect();
+        let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor { label: Some("solver"), entries: &entries });
+        let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some("solver"),
+            bind_group_layouts: &[Some(&layout)],
+            immediate_size: 0,
+        });
+        let pipelines = KERNELS
+            .iter()
+            .map(|entry| {
+                device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                    label: Some(entry),
+                    layout: Some(&pipeline_layout),
+                    module: &module,
+                    entry_point: Some(entry),
+                    compilation_options: Default::default(),
+                    cache: None,
+                })
+            })
+            .collect();
+
+        let zeros4 = |count: usize| vec![[0f32; 4]; count.max(1)];
+        let mat3 = |count: usize| vec![0f32; 12 * count.max(1)];
+        let springs: Vec<[u32; 2]> = model.springs.clone();
+        let spring_params: Vec<[f32; 4]> = (0..e).map(|s| [model.rest_length[s] as f32, model.stiffness[s] as f32, model.damping[s] as f32, 0.0]).collect();
+        let node_params: Vec<[f32; 4]> = (0..n).map(|i| [model.mass[i] as f32, if model.fixed[i] { 1.0 } else { 0.0 }, 0.0, 0.0]).collect();
+        let adjacency: Vec<[u32; 2]> = model.adjacency.clone();
+        let buf = |label: &str, bytes: &[u8]| ctx.storage_buffer(label, bytes);
+        let b = Buffers {
+            params: device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("params"),
+                size: std::mem::size_of::<GpuParams>() as u64,
+                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            }),
+            x: buf("x", bytemuck::cast_slice(&vec4s(mirror.positions()))),
+            v: buf("v", bytemuck::cast_slice(&zeros4(n))),
+            external: buf("external", bytemuck::cast_slice(&zeros4(n))),
+            dv: buf("dv", bytemuck::cast_slice(&zeros4(n))),
+            p: buf("p", bytemuck::cast_slice(&zeros4(n))),
+            scalars: buf("scalars", bytemuck::bytes_of(&CgScalars::zeroed())),
+            aux: buf("aux", bytemuck::cast_slice(&zeros4(n))),
+        };
+        let others = [
+            buf("springs", bytemuck::cast_slice(&springs)),
+            buf("spring_params", bytemuck::cast_slice(&spring_params)),
+            buf("offsets", bytemuck::cast_slice(&model.offsets)),
+            buf("adjacency", bytemuck::cast_slice(&adjacency)),
+            buf("node_params", bytemuck::cast_slice(&node_params)),
+            buf("spring_force", bytemuck::cast_slice(&zeros4(e))),
+            buf("spring_kv", bytemuck::cast_slice(&zeros4(e))),
+            buf("spring_block", bytemuck::cast_slice(&mat3(e))),
+            buf("diag", bytemuck::cast_slice(&mat3(n))),
+            buf("precond", bytemuck::cast_slice(&mat3(n))),
+            buf("rhs", bytemuck::cast_slice(&zeros4(n))),
+            buf("r", bytemuck::cast_slice(&zeros4(n))),
+            buf("z", bytemuck::cast_slice(&zeros4(n))),
+            buf("q", bytemuck::cast_slice(&zeros4(n))),
+            buf("partials", bytemuck::cast_slice(&zeros4(groups(n as u32) as usize))),
+            buf("force", bytemuck::cast_slice(&zeros4(n))),
+        ];
+        let [springs_b, spring_params_b, offsets_b, adjacency_b, node_params_b, spring_force_b, spring_kv_b, spring_block_b, diag_b, precond_b, rhs_b, r_b, z_b, q_b, partials_b, force_b] = &others;
+        let order: [&wgpu::Buffer; 24] = [
+            &b.params, springs_b, spring_params_b, offsets_b, adjacency_b, node_params_b, &b.x, &b.v, &b.external, spring_force_b, spring_kv_b, spring_block_b,
+            diag_b, precond_b, rhs_b, &b.dv, r_b, z_b, &b.p, q_b, partials_b, &b.scalars, &b.aux, force_b,
+        ];
+        let bind_entries: Vec<wgpu::BindGroupEntry> =
+            order.iter().enumerate().map(|(binding, buffer)| wgpu::BindGroupEntry { binding: binding as u32, resource: buffer.as_entire_binding() }).collect();
+        let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor { label: Some("solver"), layout: &layout, entries: &bind_entries });
+        Ok(Self { ctx, mirror, nodes: n as u32, springs: e as u32, pipelines, bind_group, buffers: b, history_valid: false })
+    }
+
+    pub fn context(&self) -> &GpuContext {
+        &self.ctx
+    }
+    /// The host mirror: last accepted state, tools, parameters.
+    pub fn mirror(&self) -> &Simulation<f32> {
+        &self.mirror
+    }
+    pub fn tool_mut(&mut self, index: usize) -> Result<&mut Tool, SolverError> {
+        self.mirror.tool_mut(index)
+    }
+
+    fn pipeline(&self, name: &str) -> &wgpu::ComputePipeline {
+        let index = KERNELS.iter().position(|k| *k == name).unwrap_or(0);
+        &self.pipelines[index]
+    }
+
+    fn dispatch(&self, pass: &mut wgpu::ComputePass<'_>, kernel: &str, invocations: u32) {
+        pass.set_pipeline(self.pipeline(kernel));
+        pass.dispatch_workgroups(groups(invocations), 1, 1);
+    }
+
+    fn run(&self, kernels: &[(&str, u32)]) {
+        let mut encoder = self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("solver") });
+        {
+            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("solver"), timestamp_writes: None });
+            pass.set_bind_group(0, &self.bind_group, &[]);
+            for (kernel, invocations) in kernels {
+                self.dispatch(&mut pass, kernel, *invocations);
+            }
+        }
+        self.ctx.queue.submit([encoder.finish()]);
+    }
+
+    fn upload_params(&self, tools: &[ContactTool<f32>]) {
+        let p = self.mirror.params();
+        let mut gpu_tools = [GpuTool::zeroed(); MAX_TOOLS];
+        for (slot, t) in gpu_tools.iter_mut().zip(tools) {
+            *slot = GpuTool { a: [t.a.x, t.a.y, t.a.z, t.radius], b: [t.b.x, t.b.y, t.b.z, t.stiffness] };
+        }
+        let params = GpuParams {
+            gravity_h: [p.gravity[0] as f32, p.gravity[1] as f32, p.gravity[2] as f32, p.dt as f32],
+            counts: [self.nodes, self.springs, tools.len() as u32, groups(self.nodes)],
+            cg: [(p.cg_tolerance * p.cg_tolerance) as f32, p.cg_max_iterations as f32, 0.0, 0.0],
+            tools: gpu_tools,
+        };
+        self.ctx.queue.write_buffer(&self.buffers.params, 0, bytemuck::bytes_of(&params));
+        self.ctx.queue.write_buffer(&self.buffers.external, 0, bytemuck::cast_slice(&vec4s(self.mirror.external_forces())));
+    }
+
+    fn read_vec(&self, buffer: &wgpu::Buffer) -> Result<Vec<Vector3<f32>>, GpuError> {
+        let bytes = self.ctx.read_back(buffer, self.nodes as u64 * 16)?;
+        let v: &[[f32; 4]] = bytemuck::try_cast_slice(&bytes).map_err(|e| GpuError::Readback(e.to_string()))?;
+        Ok(v.iter().map(|p| Vector3::new(p[0], p[1], p[2])).collect())
+    }
+
+    fn solve(&self) -> Result<CgStats, GpuError> {
+        let (n, q) = (self.nodes, &self.ctx.queue);
+        q.write_buffer(&self.buffers.scalars, 0, bytemuck::bytes_of(&CgScalars::zeroed()));
+        let mut encoder = self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("cg start") });
+        encoder.copy_buffer_to_buffer(&self.buffers.dv, 0, &self.buffers.p, 0, n as u64 * 16);
+        self.ctx.queue.submit([encoder.finish()]);
+        self.run(&[("spring_terms", self.springs), ("node_terms", n), ("cg_start_spmv", n), ("cg_init", n), ("cg_init_reduce", 1)]);
+        let params = self.mirror.params();
+        let batch: Vec<(&str, u32)> = (0..params.cg_check_interval)
+            .flat_map(|_| [("cg_spmv", n), ("cg_alpha", 1), ("cg_update", n), ("cg_beta", 1), ("cg_direction", n)])
+            .collect();
+        loop {
+            let bytes = self.ctx.read_back(&self.buffers.scalars, std::mem::size_of::<CgScalars>() as u64)?;
+            let s: CgScalars = bytemuck::pod_read_unaligned(&bytes);
+            if s.done != 0 || s.iterations >= params.cg_max_iterations {
+                let residual = if s.bb > 0.0 { (s.rr / s.bb).max(0.0).sqrt() as f64 } else { 0.0 };
+                return Ok(CgStats { iterations: s.iterations, relative_residual: residual });
+            }
+            self.run(&batch);
+        }
+    }
+
+    /// Advances one step on the GPU; reads positions and velocities back for the report.
+    pub fn step(&mut self) -> Result<StepReport, GpuSolverError> {
+        let tools = self.mirror.prepare_step()?;
+        self.upload_params(&tools);
+        let (n, e) = (self.nodes, self.springs);
+        let integrator = self.mirror.params().integrator;
+        let mut cg = CgStats { iterations: 0, relative_residual: 0.0 };
+        match integrator {
+            Integrator::ImplicitEuler => {
+                cg = self.solve()?;
+                self.run(&[("implicit_update", n)]);
+            }
+            Integrator::ExplicitEuler => self.run(&[("spring_forces", e), ("node_forces", n), ("explicit_euler_update", n)]),
+            Integrator::Verlet => {
+                if !self.history_valid {
+                    let h = self.mirror.params().dt as f32;
+                    let prev: Vec<Vector3<f32>> = self.mirror.positions().iter().zip(self.mirror.velocities()).map(|(x, v)| x - v * h).collect();
+                    self.ctx.queue.write_buffer(&self.buffers.aux, 0, bytemuck::cast_slice(&vec4s(&prev)));
+                }
+                self.run(&[("spring_forces", e), ("node_forces", n), ("verlet_update", n)]);
+            }
+            Integrator::VelocityVerlet => {
+                if !self.history_valid {
+                    self.run(&[("spring_forces", e), ("node_forces", n), ("acceleration_from_force", n)]);
+                }
+                self.run(&[("velocity_verlet_positions", n), ("spring_forces_predicted", e), ("node_forces", n), ("velocity_verlet_velocities", n)]);
+            }
+        }
+        self.history_valid = true;
+        let x = self.read_vec(&self.buffers.x)?;
+        let v = self.read_vec(&self.buffers.v)?;
+        match self.mirror.accept_step(&tools, x, v, cg) {
+            Ok(report) => Ok(report),
+            Err(err) => {
+                // Put the last stable state back on the GPU too.
+                self.ctx.queue.write_buffer(&self.buffers.x, 0, bytemuck::cast_slice(&vec4s(self.mirror.positions())));
+                self.ctx.queue.write_buffer(&self.buffers.v, 0, bytemuck::cast_slice(&vec4s(self.mirror.velocities())));
+                self.history_valid = false;
+                Err(err.into())
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::gpu::AdapterPolicy;
+    use crate::mesh::generate;
+    use crate::solver::{FixedNodes, Material, ToolShape};
+    use nalgebra::Isometry3;
+
+    fn context() -> Option<Arc<GpuContext>> {
+        match GpuContext::new(AdapterPolicy::AllowSoftware) {
+            Ok(ctx) => Some(Arc::new(ctx)),
+            Err(e) if std::env::var_os("DEFVOL_REQUIRE_GPU").is_some() => panic!("GPU required but unavailable: {e}"),
+            Err(e) => {
+                eprintln!("skipping GPU test: {e}");
+                None
+            }
+        }
+    }
+
+    fn cantilever() -> MassSpringModel {
+        let mesh = generate::lattice(Vector3::zeros(), Vector3::new(0.12, 0.03, 0.03), [8, 2, 2], generate::CellSplit::Five).unwrap();
+        let fixed = FixedNodes::Plane { normal: [1.0, 0.0, 0.0], offset: 0.0 }.select(mesh.nodes()).unwrap();
+        MassSpringModel::new(&mesh, &Material::Uniform { stiffness: 800.0, damping: 0.5 }, 1000.0, &fixed, None).unwrap()
+    }
+
+    /// Every integrator, with a tool pressing in: GPU and CPU (f32) agree after 100 steps.
+    #[test]
+    fn gpu_matches_cpu_for_every_integrator() {
+        let Some(ctx) = context() else { return };
+        let model = cantilever();
+        for integrator in Integrator::ALL {
+            let dt = if integrator == Integrator::ImplicitEuler { 0.005 } else { 2e-4 };
+            let params = SolverParams { integrator, dt, cg_tolerance: 1e-6, cg_check_interval: 4, ..Default::default() };
+            let mut tool = Tool::new(ToolShape::Sphere { radius: 0.01 }, 500.0);
+            tool.world_from_tool = Isometry3::translation(0.1, 0.015, 0.038);
+            tool.applied_force = Vector3::new(0.0, 0.0, -0.05);
+            let mut cpu = Simulation::<f32>::new(&model, params.clone(), vec![tool.clone()]).unwrap();
+            let mut gpu = GpuSimulation::new(ctx.clone(), &model, params, vec![tool]).unwrap();
+            let (mut rc, mut rg) = (StepReport::default(), StepReport::default());
+            for _ in 0..100 {
+                rc = cpu.step().unwrap();
+                rg = gpu.step().unwrap();
+            }
+            let scale = rc.max_displacement;
+            assert!(scale > 1e-4, "{integrator:?} moved: {scale}");
+            let worst = cpu.positions().iter().zip(gpu.mirror().positions()).map(|(a, b)| (a - b).norm() as f64).fold(0.0, f64::max);
+            assert!(worst <= 2e-3 * scale, "{integrator:?}: GPU differs from CPU by {worst:e} m (max displacement {scale:e} m)");
+            if integrator == Integrator::ImplicitEuler {
+                assert!(rg.cg_iterations > 0 && rg.residual <= 1e-5, "{rg:?}");
+                assert!((rc.reaction_force[2] - rg.reaction_force[2]).abs() <= 1e-2 * rc.reaction_force[2].abs().max(1e-3));
+            }
+        }
+    }
+}
