@@ -4,6 +4,8 @@
 //! [`io`] reads and writes it, [`solver`] deforms meshes, [`gpu`] runs the same kernels
 //! through wgpu, [`scene`] describes a run and [`bench`] measures it.
 
+pub mod bench;
+pub mod engine;
 #[cfg(feature = "gpu")]
 pub mod gpu;
 pub mod io;

@@ -1,0 +1,180 @@
+//! `defvol bench`: run time against error, one JSON object per measurement
+//! (format in `../shared/conventions.md`), plus a human table.
+
+use std::time::Instant;
+
+use nalgebra::Vector3;
+use serde::Serialize;
+use serde_json::json;
+
+use crate::engine::{BackendChoice, Engine, EngineError};
+use crate::mesh::generate::{self, CellSplit};
+use crate::solver::{FixedNodes, Integrator, MassSpringModel, Material, SolverError, SolverParams};
+
+#[derive(Debug, Clone, Serialize)]
+pub struct TimeMs {
+    pub min: f64,
+    pub median: f64,
+    pub max: f64,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct ErrorMeasure {
+    pub metric: &'static str,
+    pub value: f64,
+    pub reference: &'static str,
+}
+
+/// One benchmark measurement, as the conventions fix it.
+#[derive(Debug, Clone, Serialize)]
+pub struct BenchRow {
+    pub stage: &'static str,
+    pub case: String,
+    pub backend: String,
+    pub device: String,
+    pub params: serde_json::Value,
+    pub runs: usize,
+    pub time_ms: TimeMs,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub error: Option<ErrorMeasure>,
+    pub work: serde_json::Value,
+}
+
+pub fn time_stats(mut samples: Vec<f64>) -> TimeMs {
+    samples.sort_by(f64::total_cmp);
+    let median = if samples.is_empty() { 0.0 } else { samples[samples.len() / 2] };
+    TimeMs { min: samples.first().copied().unwrap_or(0.0), median, max: samples.last().copied().unwrap_or(0.0) }
+}
+
+/// The seed's Table 1 sizes (tets).
+pub const SEED_SIZES: [usize; 5] = [80, 14_000, 35_000, 112_000, 157_000];
+
+/// The benchmark cantilever: a 0.3 x 0.06 x 0.06 m beam clamped at x = 0, soft tissue
+/// density, k = 1000 N/m per spring, under gravity. 80 tets gives the seed's Bar.
+pub fn cantilever(target_tets: usize) -> Result<MassSpringModel, SolverError> {
+    let mesh = if target_tets <= 80 {
+        generate::bar(0.3)
+    } else {
+        generate::lattice_for_box(Vector3::zeros(), Vector3::new(0.3, 0.06, 0.06), target_tets, CellSplit::Five)
+    }
+    .map_err(|e| SolverError::BadParameter { name: "mesh".into(), value: target_tets as f64, why: e.to_string() })?;
+    let fixed = FixedNodes::Plane { normal: [1.0, 0.0, 0.0], offset: 0.0 }.select(mesh.nodes())?;
+    MassSpringModel::new(&mesh, &Material::Uniform { stiffness: 1000.0, damping: 0.5 }, 1000.0, &fixed, None)
+}
+
+pub fn cpu_description() -> String {
+    let model = std::fs::read_to_string("/proc/cpuinfo")
+        .ok()
+        .and_then(|s| s.lines().find(|l| l.starts_with("model name")).and_then(|l| l.split(':').nth(1)).map(|s| s.trim().to_owned()))
+        .unwrap_or_else(|| std::env::consts::ARCH.to_owned());
+    format!("{model}, {} threads", rayon::current_num_threads())
+}
+
+pub struct SolverBenchOptions {
+    pub sizes: Vec<usize>,
+    pub steps: usize,
+    pub backends: Vec<BackendChoice>,
+    pub allow_software_gpu: bool,
+    pub tolerances: Vec<f64>,
+    pub dts: Vec<f64>,
+    pub explicit_dt: f64,
+}
+
+struct Run {
+    positions: Vec<Vector3<f64>>,
+    step_ms: Vec<f64>,
+    cg_iterations: f64,
+    backend: String,
+}
+
+fn run(choice: BackendChoice, allow_software_gpu: bool, model: &MassSpringModel, params: SolverParams, steps: usize) -> Result<Run, EngineError> {
+    let mut engine = Engine::new(choice, allow_software_gpu, model, params, Vec::new())?;
+    // Settle: the first step pays for allocation, pipeline compilation and warm caches.
+    engine.step()?;
+    let mut step_ms = Vec::with_capacity(steps);
+    let mut iterations = 0u64;
+    for _ in 1..steps {
+        let start = Instant::now();
+        let report = engine.step()?;
+        step_ms.push(start.elapsed().as_secs_f64() * 1e3);
+        iterations += report.cg_iterations as u64;
+    }
+    Ok(Run { positions: engine.positions(), step_ms, cg_iterations: iterations as f64 / (steps.max(2) - 1) as f64, backend: engine.name() })
+}
+
+/// Relative error of `positions` against `reference`: max node distance / max displacement.
+pub fn relative_error(model: &MassSpringModel, positions: &[Vector3<f64>], reference: &[Vector3<f64>]) -> f64 {
+    let scale = reference.iter().zip(&model.rest).map(|(r, x0)| (r - x0).norm()).fold(0.0, f64::max);
+    let worst = positions.iter().zip(reference).map(|(p, r)| (p - r).norm()).fold(0.0, f64::max);
+    worst / scale.max(f64::MIN_POSITIVE)
+}
+
+/// Implicit Euler over CG tolerances and time steps, and the explicit schemes at their
+/// stable step, each against an f64 run of the same scheme and step converged to 1e-10.
+pub fn solver(opts: &SolverBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result<(), EngineError> {
+    let device = cpu_description();
+    for &size in &opts.sizes {
+        let model = cantilever(size)?;
+        let case = format!("cantilever{}", model.node_count());
+        let tets = size;
+        let mut configs: Vec<SolverParams> = Vec::new();
+        for &dt in &opts.dts {
+            for &tol in &opts.tolerances {
+                configs.push(SolverParams { integrator: Integrator::ImplicitEuler, dt, cg_tolerance: tol, cg_max_iterations: 5000, ..Default::default() });
+            }
+        }
+        for integrator in [Integrator::ExplicitEuler, Integrator::Verlet, Integrator::VelocityVerlet] {
+            configs.push(SolverParams { integrator, dt: opts.explicit_dt, ..Default::default() });
+        }
+        let mut references: Vec<((Integrator, u64), Vec<Vector3<f64>>)> = Vec::new();
+        for params in configs {
+            let key = (params.integrator, params.dt.to_bits());
+            if !references.iter().any(|(k, _)| *k == key) {
+                let tight = SolverParams { cg_tolerance: 1e-10, cg_max_iterations: 20_000, ..params.clone() };
+                let reference = run(BackendChoice::CpuF64, false, &model, tight, opts.steps)?;
+                references.push((key, reference.positions));
+            }
+            let Some((_, reference)) = references.iter().find(|(k, _)| *k == key) else { continue };
+            for &backend in &opts.backends {
+                let result = match run(backend, opts.allow_software_gpu, &model, params.clone(), opts.steps) {
+                    Ok(r) => r,
+                    Err(EngineError::Solver(e)) => {
+                        tracing::warn!("{case} {}: {e}", params.integrator.name());
+                        continue;
+                    }
+                    Err(e) => return Err(e),
+                };
+                let device_name = if result.backend.starts_with("gpu") { result.backend.clone() } else { device.clone() };
+                emit(&BenchRow {
+                    stage: "solver",
+                    case: case.clone(),
+                    backend: if result.backend.starts_with("gpu") { "gpu".into() } else { result.backend.clone() },
+                    device: device_name,
+                    params: json!({"integrator": params.integrator.name(), "dt": params.dt, "cg_tolerance": params.cg_tolerance, "steps": opts.steps, "preconditioner": "block_jacobi"}),
+                    runs: result.step_ms.len(),
+                    time_ms: time_stats(result.step_ms),
+                    error: Some(ErrorMeasure { metric: "max_node_distance_over_max_displacement", value: relative_error(&model, &result.positions, reference), reference: "f64" }),
+                    work: json!({"tets": tets, "nodes": model.node_count(), "springs": model.springs.len(), "cg_iterations_mean": result.cg_iterations}),
+                });
+            }
+        }
+    }
+    Ok(())
+}
+
+/// The human table row for one measurement.
+pub fn table_row(row: &BenchRow) -> String {
+    let steps_per_s = if row.time_ms.median > 0.0 { 1e3 / row.time_ms.median } else { f64::INFINITY };
+    format!(
+        "{:<18} {:<8} {:<60} {:>10.3} {:>9.1} {:>10.2e} {:>8}",
+        row.case,
+        row.backend,
+        row.params.to_string(),
+        row.time_ms.median,
+        steps_per_s,
+        row.error.as_ref().map_or(f64::NAN, |e| e.value),
+        row.work.get("cg_iterations_mean").and_then(|v| v.as_f64()).map_or("-".into(), |v| format!("{v:.1}"))
+    )
+}
+
+pub const TABLE_HEADER: &str = "case               backend  params                                                        median ms   steps/s      error  CG its";
