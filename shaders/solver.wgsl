@@ -453,8 +453,9 @@ fn verlet_update(@builtin(global_invocation_id) gid: vec3<u32>) {
         return;
     }
     let h = params.gravity_h.w;
-    let next = xi * 2.0 - aux[i].xyz + force[i].xyz * (h * h / node_params[i].x);
-    v[i] = vec4<f32>((next - xi) / h, 0.0);
+    let accel = force[i].xyz / node_params[i].x;
+    let next = xi * 2.0 - aux[i].xyz + accel * (h * h);
+    v[i] = vec4<f32>((next - xi) / h + accel * (h * 0.5), 0.0);
     aux[i] = vec4<f32>(xi, 0.0);
     x[i] = vec4<f32>(next, 0.0);
 }

@@ -76,7 +76,8 @@ enum BenchStage {
         tolerances: Vec<f64>,
         #[arg(long, value_delimiter = ',', default_value = "0.01")]
         dts: Vec<f64>,
-        #[arg(long, default_value_t = 1e-4)]
+        /// Time step of the explicit schemes (they diverge at the implicit one).
+        #[arg(long, default_value_t = 1e-5)]
         explicit_dt: f64,
         /// One JSON object per line instead of the table.
         #[arg(long)]

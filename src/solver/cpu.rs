@@ -295,7 +295,8 @@ impl<T: Real> Simulation<T> {
         });
     }
 
-    /// Position (Störmer) Verlet; velocity is the backward difference, used for damping.
+    /// Position (Störmer) Verlet. The velocity (for damping and reports) is the half-step
+    /// difference plus half a step of acceleration: second order, like the positions.
     fn verlet(&mut self, tools: &[ContactTool<T>]) {
         let h = T::of(self.params.dt);
         if !self.history_valid {
@@ -311,8 +312,9 @@ impl<T: Real> Simulation<T> {
                 *prev = *x;
                 return;
             }
-            let next = *x * two - *prev + f[i] * (h * h / mass[i]);
-            *v = (next - *x) / h;
+            let accel = f[i] / mass[i];
+            let next = *x * two - *prev + accel * (h * h);
+            *v = (next - *x) / h + accel * (h * T::of(0.5));
             *prev = *x;
             *x = next;
         });

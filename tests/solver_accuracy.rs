@@ -1,0 +1,170 @@
+//! Accuracy and stability of the mass-spring integrators against independent references:
+//! an f64 path, a direct sparse Cholesky solve, a tiny-step run, and the seed's Bar limits.
+
+use defvol::bench::{cantilever, relative_error};
+use defvol::mesh::generate;
+use defvol::solver::{FixedNodes, Integrator, MassSpringModel, Material, Simulation, SolverError, SolverParams};
+use nalgebra::Vector3;
+use nalgebra_sparse::{factorization::CscCholesky, CooMatrix, CscMatrix};
+
+fn run<T: defvol::solver::Real>(model: &MassSpringModel, params: SolverParams, steps: usize) -> Result<Simulation<T>, SolverError> {
+    let mut sim = Simulation::<T>::new(model, params, Vec::new())?;
+    for _ in 0..steps {
+        sim.step()?;
+    }
+    Ok(sim)
+}
+
+#[test]
+fn f32_path_matches_the_f64_reference_after_100_steps() {
+    let model = cantilever(1500).unwrap();
+    for (integrator, dt) in [(Integrator::ImplicitEuler, 0.01), (Integrator::VelocityVerlet, 2e-4), (Integrator::Verlet, 2e-4), (Integrator::ExplicitEuler, 5e-5)] {
+        let params = SolverParams { integrator, dt, cg_tolerance: 1e-6, ..Default::default() };
+        let fast = run::<f32>(&model, params.clone(), 100).unwrap();
+        let reference = run::<f64>(&model, SolverParams { cg_tolerance: 1e-12, ..params }, 100).unwrap();
+        let err = relative_error(&model, &fast.positions_f64(), &reference.positions_f64());
+        // f32 round-off (1e-7 relative on positions ~0.3 m) against displacements of ~1e-3 m.
+        assert!(err < 2e-3, "{integrator:?}: relative error {err:e}");
+    }
+}
+
+#[test]
+fn converged_cg_matches_a_direct_sparse_cholesky_solve() {
+    let model = cantilever(700).unwrap();
+    let mut sim = run::<f64>(&model, SolverParams { cg_tolerance: 1e-12, ..Default::default() }, 5).unwrap();
+    let (triplets, rhs) = sim.assembled_system().unwrap();
+    let n = rhs.len();
+    let mut coo = CooMatrix::new(n, n);
+    for (r, c, v) in triplets {
+        coo.push(r, c, v);
+    }
+    let csc = CscMatrix::from(&coo);
+    let chol = CscCholesky::factor(&csc).expect("A is symmetric positive-definite");
+    let direct = chol.solve(&nalgebra::DMatrix::from_column_slice(n, 1, &rhs));
+    let (cg, stats) = sim.solve_assembled();
+    assert!(stats.relative_residual <= 1e-12, "{stats:?}");
+    let cg_flat: Vec<f64> = cg.iter().flat_map(|v| [v.x, v.y, v.z]).collect();
+    let diff: f64 = cg_flat.iter().zip(direct.iter()).map(|(a, b)| (a - b).powi(2)).sum::<f64>().sqrt();
+    let norm: f64 = direct.iter().map(|b| b * b).sum::<f64>().sqrt();
+    assert!(norm > 0.0 && diff / norm < 1e-6, "relative difference {:e}", diff / norm);
+}
+
+#[test]
+fn cg_always_sees_a_symmetric_positive_definite_matrix() {
+    // A crumpled state: every node jittered, many springs compressed.
+    let model = cantilever(80).unwrap();
+    let mut sim = Simulation::<f64>::new(&model, SolverParams { dt: 0.05, ..Default::default() }, Vec::new()).unwrap();
+    let mut seed = 12345u64;
+    let mut jitter = || {
+        seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        ((seed >> 33) as f64 / (1u64 << 31) as f64 - 0.5) * 0.06
+    };
+    let x: Vec<Vector3<f64>> = model.rest.iter().map(|p| p * 0.7 + Vector3::new(jitter(), jitter(), jitter())).collect();
+    let v: Vec<Vector3<f64>> = model.rest.iter().map(|_| Vector3::new(jitter(), jitter(), jitter())).collect();
+    sim.set_state(&x, &v);
+    let (triplets, rhs) = sim.assembled_system().unwrap();
+    let n = rhs.len();
+    let mut dense = nalgebra::DMatrix::<f64>::zeros(n, n);
+    for (r, c, val) in triplets {
+        dense[(r, c)] += val;
+    }
+    assert!((&dense - dense.transpose()).amax() < 1e-9 * dense.amax(), "symmetric");
+    let min_eig = dense.symmetric_eigenvalues().min();
+    assert!(min_eig > 0.0, "smallest eigenvalue {min_eig:e}");
+}
+
+#[test]
+fn implicit_euler_is_first_order() {
+    let model = cantilever(80).unwrap();
+    let end = 0.08;
+    let at = |dt: f64| {
+        let params = SolverParams { dt, cg_tolerance: 1e-12, cg_max_iterations: 10_000, ..Default::default() };
+        run::<f64>(&model, params, (end / dt).round() as usize).unwrap().positions_f64()
+    };
+    let reference = at(end / 6400.0);
+    let errors: Vec<f64> = [0.01, 0.005, 0.0025].iter().map(|&dt| relative_error(&model, &at(dt), &reference)).collect();
+    for w in errors.windows(2) {
+        let ratio = w[0] / w[1];
+        assert!((1.6..2.4).contains(&ratio), "halving h should halve the error: {errors:?}");
+    }
+}
+
+/// The seed's Bar (80 tets), sized and weighted so that its stiffest mode sits near the
+/// seed's explicit limit: h = 0.001 s at k = 3000 N/m.
+fn seed_bar(k: f64) -> MassSpringModel {
+    let mesh = generate::bar(0.25).unwrap();
+    let fixed = FixedNodes::Plane { normal: [1.0, 0.0, 0.0], offset: 0.0 }.select(mesh.nodes()).unwrap();
+    MassSpringModel::new(&mesh, &Material::Uniform { stiffness: k, damping: 0.05 }, 1000.0, &fixed, None).unwrap()
+}
+
+fn bounded(model: &MassSpringModel, integrator: Integrator, dt: f64, seconds: f64) -> Result<(), SolverError> {
+    let params = SolverParams { integrator, dt, ..Default::default() };
+    run::<f64>(model, params, (seconds / dt).round() as usize).map(|_| ())
+}
+
+#[test]
+fn explicit_schemes_fail_past_the_seed_limit_and_it_is_detected() {
+    for integrator in [Integrator::Verlet, Integrator::VelocityVerlet] {
+        assert!(bounded(&seed_bar(3000.0), integrator, 0.001, 1.0).is_ok(), "{integrator:?} at the seed's limit");
+        for (k, dt) in [(3000.0, 0.003), (30_000.0, 0.001)] {
+            match bounded(&seed_bar(k), integrator, dt, 1.0) {
+                Err(SolverError::Diverged { reason, .. }) => assert!(!reason.is_empty()),
+                other => panic!("{integrator:?} k={k} h={dt}: expected a detected divergence, got {other:?}"),
+            }
+        }
+    }
+    // Forward Euler is unstable for undamped oscillation at any step; it fails first.
+    assert!(matches!(bounded(&seed_bar(3000.0), Integrator::ExplicitEuler, 0.002, 1.0), Err(SolverError::Diverged { .. })));
+}
+
+#[test]
+fn implicit_euler_stays_bounded_up_to_h_005_and_k_1e6() {
+    for k in [3000.0, 30_000.0, 1e6] {
+        for dt in [0.01, 0.05] {
+            let model = seed_bar(k);
+            let params = SolverParams { dt, cg_tolerance: 1e-6, cg_max_iterations: 5000, ..Default::default() };
+            let sim = run::<f64>(&model, params, (2.0 / dt) as usize).unwrap_or_else(|e| panic!("k={k} h={dt}: {e}"));
+            let sag = sim.positions_f64().iter().zip(&model.rest).map(|(x, r)| (x - r).norm()).fold(0.0, f64::max);
+            assert!(sag < 0.05, "k={k} h={dt}: sag {sag}");
+        }
+    }
+}
+
+fn energy_after(integrator: Integrator, dt: f64, seconds: f64) -> (f64, f64) {
+    let mesh = generate::bar(0.25).unwrap();
+    let model = MassSpringModel::new(&mesh, &Material::Uniform { stiffness: 3000.0, damping: 0.0 }, 1000.0, &vec![false; mesh.nodes().len()], None).unwrap();
+    let params = SolverParams { integrator, dt, gravity: [0.0; 3], cg_tolerance: 1e-12, ..Default::default() };
+    let mut sim = Simulation::<f64>::new(&model, params, Vec::new()).unwrap();
+    // Start stretched along x by 2 % at rest: pure elastic energy, no momentum.
+    let x: Vec<Vector3<f64>> = model.rest.iter().map(|p| Vector3::new(p.x * 1.02, p.y, p.z)).collect();
+    sim.set_state(&x, &vec![Vector3::zeros(); x.len()]);
+    let e0: f64 = model.springs.iter().enumerate().map(|(e, [a, b])| 0.5 * model.stiffness[e] * ((x[*b as usize] - x[*a as usize]).norm() - model.rest_length[e]).powi(2)).sum();
+    let mut report = None;
+    for _ in 0..(seconds / dt).round() as usize {
+        report = Some(sim.step().unwrap());
+    }
+    let r = report.unwrap();
+    (e0, r.kinetic_energy + r.potential_energy)
+}
+
+#[test]
+fn energy_drift_follows_each_scheme_order() {
+    let seconds = 0.05;
+    // Verlet and velocity Verlet: second order, bounded; the error drops ~4x when h halves.
+    for integrator in [Integrator::Verlet, Integrator::VelocityVerlet] {
+        let (e0, e1) = energy_after(integrator, 1e-4, seconds);
+        let (_, e2) = energy_after(integrator, 5e-5, seconds);
+        let (d1, d2) = ((e1 - e0).abs() / e0, (e2 - e0).abs() / e0);
+        assert!(d1 < 0.05, "{integrator:?}: drift {d1}");
+        assert!(d1 / d2 > 2.5, "{integrator:?}: drift {d1:e} then {d2:e}");
+    }
+    // Forward Euler gains energy, about in proportion to h.
+    let (e0, e1) = energy_after(Integrator::ExplicitEuler, 2e-5, seconds);
+    let (_, e2) = energy_after(Integrator::ExplicitEuler, 1e-5, seconds);
+    assert!(e1 > e2 && e2 > e0, "{e0} {e1} {e2}");
+    let ratio = (e1 - e0) / (e2 - e0);
+    assert!((1.6..2.6).contains(&ratio), "forward Euler growth ratio {ratio}");
+    // Implicit Euler dissipates.
+    let (e0, e1) = energy_after(Integrator::ImplicitEuler, 1e-3, seconds);
+    assert!(e1 < 0.5 * e0, "implicit Euler keeps {e1} of {e0}");
+}
