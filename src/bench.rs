@@ -150,7 +150,7 @@ pub fn solver(opts: &SolverBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Res
                     case: case.clone(),
                     backend: if result.backend.starts_with("gpu") { "gpu".into() } else { result.backend.clone() },
                     device: device_name,
-                    params: json!({"integrator": params.integrator.name(), "dt": params.dt, "cg_tolerance": params.cg_tolerance, "steps": opts.steps, "preconditioner": "block_jacobi"}),
+                    params: json!({"integrator": params.integrator.name(), "dt": params.dt, "cg_tolerance": params.cg_tolerance, "steps": opts.steps, "preconditioner": format!("{:?}", params.preconditioner)}),
                     runs: result.step_ms.len(),
                     time_ms: time_stats(result.step_ms),
                     error: Some(ErrorMeasure { metric: "max_node_distance_over_max_displacement", value: relative_error(&model, &result.positions, reference), reference: "f64" }),

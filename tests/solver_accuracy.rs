@@ -168,3 +168,34 @@ fn energy_drift_follows_each_scheme_order() {
     let (e0, e1) = energy_after(Integrator::ImplicitEuler, 1e-3, seconds);
     assert!(e1 < 0.5 * e0, "implicit Euler keeps {e1} of {e0}");
 }
+
+#[test]
+fn amg_preconditioned_cg_matches_the_direct_solve_in_far_fewer_iterations() {
+    use defvol::solver::Preconditioner;
+    let model = cantilever(14_000).unwrap();
+    let mut solutions = Vec::new();
+    let mut iterations = Vec::new();
+    for preconditioner in [Preconditioner::BlockJacobi, Preconditioner::Amg] {
+        let params = SolverParams { preconditioner, cg_tolerance: 1e-10, cg_max_iterations: 20_000, ..Default::default() };
+        let mut sim = run::<f64>(&model, params, 3).unwrap();
+        sim.assembled_system().unwrap();
+        sim.prepare_preconditioner();
+        let (dv, stats) = sim.solve_assembled();
+        assert!(stats.relative_residual <= 1e-10, "{preconditioner:?}: {stats:?}");
+        solutions.push(dv);
+        iterations.push(stats.iterations);
+    }
+    let diff = solutions[0].iter().zip(&solutions[1]).map(|(a, b)| (a - b).norm_squared()).sum::<f64>().sqrt();
+    let norm = solutions[0].iter().map(|a| a.norm_squared()).sum::<f64>().sqrt();
+    assert!(diff / norm < 1e-7, "same solution: {:e}", diff / norm);
+    assert!(iterations[1] * 5 < iterations[0], "AMG {} vs block Jacobi {} iterations", iterations[1], iterations[0]);
+}
+
+#[test]
+fn cpu_runs_repeat_bit_for_bit() {
+    let model = cantilever(1500).unwrap();
+    let params = SolverParams { cg_tolerance: 1e-3, ..Default::default() };
+    let a = run::<f32>(&model, params.clone(), 30).unwrap();
+    let b = run::<f32>(&model, params, 30).unwrap();
+    assert!(a.positions().iter().zip(b.positions()).all(|(x, y)| x.iter().zip(y.iter()).all(|(u, v)| u.to_bits() == v.to_bits())));
+}

@@ -7,7 +7,8 @@ use rayon::prelude::*;
 use super::kernels::{self, ContactTool, SpringTerms};
 use super::model::MassSpringModel;
 use super::tool::{spread_weights, Tool};
-use super::{Integrator, Real, SolverError, SolverParams, StepReport};
+use super::amg::{Amg, Csr};
+use super::{Integrator, Preconditioner, Real, SolverError, SolverParams, StepReport};
 
 /// Nodes per parallel chunk; also the unit of the deterministic reductions.
 const CHUNK: usize = 1024;
@@ -55,11 +56,24 @@ pub struct Simulation<T: Real> {
     precond: Vec<Matrix3<T>>,
     rhs: Vec<Vector3<T>>,
     dv: Vec<Vector3<T>>,
+    /// Δv of the step before the last, for the extrapolated CG start.
+    dv_previous: Vec<Vector3<T>>,
+    solves: u64,
     r: Vec<Vector3<T>>,
     z: Vec<Vector3<T>>,
     p: Vec<Vector3<T>>,
     q: Vec<Vector3<T>>,
     last_cg: CgStats,
+    amg: Option<AmgState>,
+}
+
+/// A multigrid hierarchy built at some step, reused while it keeps CG fast.
+struct AmgState {
+    amg: Amg,
+    /// Iterations of the first solve with this hierarchy; a rebuild follows when a solve
+    /// needs twice as many.
+    iterations_at_build: u32,
+    stale: bool,
 }
 
 impl<T: Real> Simulation<T> {
@@ -94,11 +108,14 @@ impl<T: Real> Simulation<T> {
             precond: vec![Matrix3::zeros(); n],
             rhs: vec![Vector3::zeros(); n],
             dv: vec![Vector3::zeros(); n],
+            dv_previous: vec![Vector3::zeros(); n],
+            solves: 0,
             r: vec![Vector3::zeros(); n],
             z: vec![Vector3::zeros(); n],
             p: vec![Vector3::zeros(); n],
             q: vec![Vector3::zeros(); n],
             last_cg: CgStats { iterations: 0, relative_residual: 0.0 },
+            amg: None,
             rest,
         })
     }
@@ -141,6 +158,7 @@ impl<T: Real> Simulation<T> {
         self.x = x.iter().map(|p| p.map(T::of)).collect();
         self.v = v.iter().map(|p| p.map(T::of)).collect();
         self.history_valid = false;
+        self.solves = 0;
     }
 
     /// Back to the rest shape at t = 0.
@@ -148,6 +166,7 @@ impl<T: Real> Simulation<T> {
         self.x.clone_from(&self.rest);
         self.v.iter_mut().for_each(|v| *v = Vector3::zeros());
         self.dv.iter_mut().for_each(|v| *v = Vector3::zeros());
+        self.solves = 0;
         self.history_valid = false;
         self.step = 0;
         self.time = 0.0;
@@ -374,7 +393,26 @@ impl<T: Real> Simulation<T> {
 
     fn implicit_euler(&mut self, tools: &[ContactTool<T>]) {
         self.assemble(tools);
+        // Start CG from Δv extrapolated linearly from the last two steps: the motion is
+        // smooth in time, so this guess is closer than the last Δv alone.
+        let last = self.dv.clone();
+        if self.solves >= 2 {
+            let two = T::of(2.0);
+            self.dv.par_iter_mut().zip(self.dv_previous.par_iter()).with_min_len(CHUNK).for_each(|(dv, prev)| *dv = *dv * two - prev);
+        }
+        if self.params.preconditioner == Preconditioner::Amg && self.amg.as_ref().is_none_or(|a| a.stale) {
+            self.build_amg();
+        }
         self.last_cg = self.solve();
+        if let Some(state) = &mut self.amg {
+            if state.iterations_at_build == 0 {
+                state.iterations_at_build = self.last_cg.iterations.max(1);
+            } else if self.last_cg.iterations > 2 * state.iterations_at_build + 4 {
+                state.stale = true;
+            }
+        }
+        self.dv_previous = last;
+        self.solves += 1;
         let h = T::of(self.params.dt);
         let (dv, fixed) = (&self.dv, &self.fixed);
         self.x.par_iter_mut().zip(self.v.par_iter_mut()).enumerate().for_each(|(i, (x, v))| {
@@ -411,15 +449,18 @@ impl<T: Real> Simulation<T> {
         let mut q = std::mem::take(&mut self.q);
         self.spmv_into(&self.dv, &mut q);
         let (rhs, precond) = (&self.rhs, &self.precond);
-        (self.r.par_iter_mut(), self.z.par_iter_mut(), self.p.par_iter_mut(), q.par_iter())
+        (self.r.par_iter_mut(), self.z.par_iter_mut(), q.par_iter())
             .into_par_iter()
             .with_min_len(CHUNK)
             .enumerate()
-            .for_each(|(i, (r, z, p, q))| {
+            .for_each(|(i, (r, z, q))| {
                 *r = rhs[i] - q;
                 *z = precond[i] * *r;
-                *p = *z;
             });
+        if self.amg.is_some() {
+            self.z = self.apply_amg(&self.r);
+        }
+        self.p.clone_from(&self.z);
         let mut rz = dot(&self.r, &self.z);
         let mut rr = dot(&self.r, &self.r);
         let target = tol * tol * b_norm2;
@@ -447,7 +488,11 @@ impl<T: Real> Simulation<T> {
                     (rz, rr)
                 })
                 .collect();
-            let (rz_new, rr_new) = partials.iter().fold((T::zero(), T::zero()), |(a, b), (c, d)| (a + *c, b + *d));
+            let (mut rz_new, rr_new) = partials.iter().fold((T::zero(), T::zero()), |(a, b), (c, d)| (a + *c, b + *d));
+            if self.amg.is_some() && rr_new > target {
+                self.z = self.apply_amg(&self.r);
+                rz_new = dot(&self.r, &self.z);
+            }
             let beta = rz_new / rz;
             rz = rz_new;
             rr = rr_new;
@@ -456,6 +501,100 @@ impl<T: Real> Simulation<T> {
         }
         self.q = q;
         CgStats { iterations, relative_residual: (rr / b_norm2).sqrt().to_f64() }
+    }
+
+    /// Assembled A as f64 triplets; fixed nodes keep an identity row and no couplings.
+    fn system_triplets(&self) -> Vec<(usize, usize, f64)> {
+        let mut triplets = Vec::with_capacity(self.adjacency.len() * 9 + self.x.len() * 9);
+        for i in 0..self.x.len() {
+            if self.fixed[i] {
+                for c in 0..3 {
+                    triplets.push((3 * i + c, 3 * i + c, 1.0));
+                }
+                continue;
+            }
+            for r in 0..3 {
+                for c in 0..3 {
+                    triplets.push((3 * i + r, 3 * i + c, self.diag[i][(r, c)].to_f64()));
+                }
+            }
+            for &[j, e] in &self.adjacency[self.offsets[i] as usize..self.offsets[i + 1] as usize] {
+                if self.fixed[j as usize] {
+                    continue;
+                }
+                for r in 0..3 {
+                    for c in 0..3 {
+                        triplets.push((3 * i + r, 3 * j as usize + c, -self.terms[e as usize].block[(r, c)].to_f64()));
+                    }
+                }
+            }
+        }
+        triplets
+    }
+
+    /// (Re)builds the multigrid hierarchy from the assembled matrix of this step.
+    fn build_amg(&mut self) {
+        let started = std::time::Instant::now();
+        let n = self.x.len();
+        let a = Csr::from_triplets(3 * n, 3 * n, self.system_triplets());
+        let neighbours: Vec<Vec<u32>> = (0..n)
+            .map(|i| self.adjacency[self.offsets[i] as usize..self.offsets[i + 1] as usize].iter().map(|[j, _]| *j).filter(|j| !self.fixed[*j as usize]).collect())
+            .collect();
+        let positions = self.positions_f64();
+        self.amg = Amg::new(&a, &positions, &self.fixed, &neighbours).map(|mut amg| {
+            amg.fine_omega = self.block_jacobi_omega();
+            tracing::debug!(
+                "AMG hierarchy in {:.0} ms: fine {} unknowns, coarse levels {:?}, prolongator nonzeros per level: {:?}",
+                started.elapsed().as_secs_f64() * 1e3,
+                3 * n,
+                amg.coarse_sizes,
+                amg.nonzeros()
+            );
+            AmgState { amg, iterations_at_build: 0, stale: false }
+        });
+    }
+
+    /// Damping 4/(3 λmax) of the fine block-Jacobi smoother, λmax of D⁻¹A by power iteration.
+    fn block_jacobi_omega(&self) -> f64 {
+        let n = self.x.len();
+        let mut x: Vec<Vector3<T>> = (0..n).map(|i| if self.fixed[i] { Vector3::zeros() } else { Vector3::repeat(T::one() + T::of(((i * 7919) % 13) as f64 / 13.0)) }).collect();
+        let mut y = vec![Vector3::zeros(); n];
+        let mut lambda = 1.0;
+        for _ in 0..12 {
+            self.spmv_into(&x, &mut y);
+            for (yi, m) in y.iter_mut().zip(&self.precond) {
+                *yi = m * *yi;
+            }
+            let (yn, xn) = (dot(&y, &y).to_f64().sqrt(), dot(&x, &x).to_f64().sqrt());
+            if yn == 0.0 || xn == 0.0 {
+                break;
+            }
+            lambda = yn / xn;
+            let inv = T::of(1.0 / yn);
+            for (xi, yi) in x.iter_mut().zip(&y) {
+                *xi = yi * inv;
+            }
+        }
+        4.0 / (3.0 * lambda)
+    }
+
+    /// z = M⁻¹ r: one symmetric V-cycle, the fine level on the current block operator.
+    fn apply_amg(&self, r: &[Vector3<T>]) -> Vec<Vector3<T>> {
+        let Some(state) = &self.amg else { return r.to_vec() };
+        let omega = T::of(state.amg.fine_omega);
+        let n = r.len();
+        let mut z: Vec<Vector3<T>> = r.par_iter().zip(self.precond.par_iter()).with_min_len(CHUNK).map(|(r, m)| m * r * omega).collect();
+        let mut az = vec![Vector3::zeros(); n];
+        self.spmv_into(&z, &mut az);
+        let residual: Vec<f64> = r.iter().zip(&az).flat_map(|(r, a)| {
+            let d = r - a;
+            [d.x.to_f64(), d.y.to_f64(), d.z.to_f64()]
+        }).collect();
+        let e = state.amg.coarse_correction(&residual);
+        z.par_iter_mut().with_min_len(CHUNK).enumerate().for_each(|(i, zi)| *zi += Vector3::new(T::of(e[3 * i]), T::of(e[3 * i + 1]), T::of(e[3 * i + 2])));
+        self.spmv_into(&z, &mut az);
+        z.par_iter_mut().zip(az.par_iter()).with_min_len(CHUNK).enumerate().for_each(|(i, (zi, a))| *zi += self.precond[i] * (r[i] - a) * omega);
+        z
     }
 
     fn spring_energy(&self) -> f64 {
@@ -508,32 +647,17 @@ impl<T: Real> Simulation<T> {
         let tools = self.contact_tools()?;
         self.spread_external_forces()?;
         self.assemble(&tools);
-        let mut triplets = Vec::new();
-        for i in 0..self.x.len() {
-            if self.fixed[i] {
-                for c in 0..3 {
-                    triplets.push((3 * i + c, 3 * i + c, 1.0));
-                }
-                continue;
-            }
-            for r in 0..3 {
-                for c in 0..3 {
-                    triplets.push((3 * i + r, 3 * i + c, self.diag[i][(r, c)].to_f64()));
-                }
-            }
-            for &[j, e] in &self.adjacency[self.offsets[i] as usize..self.offsets[i + 1] as usize] {
-                if self.fixed[j as usize] {
-                    continue;
-                }
-                for r in 0..3 {
-                    for c in 0..3 {
-                        triplets.push((3 * i + r, 3 * j as usize + c, -self.terms[e as usize].block[(r, c)].to_f64()));
-                    }
-                }
-            }
+        let rhs = self.rhs.iter().flat_map(|v| [v.x.to_f64(), v.y.to_f64(), v.z.to_f64()]).collect();
+        Ok((self.system_triplets(), rhs))
+    }
+
+    /// Prepares the configured preconditioner for the assembled system (tests).
+    pub fn prepare_preconditioner(&mut self) {
+        if self.params.preconditioner == Preconditioner::Amg {
+            self.build_amg();
+        } else {
+            self.amg = None;
         }
-        let rhs = self.rhs.iter().flat_map(|v| v.iter().map(|c| c.to_f64()).collect::<Vec<_>>()).collect();
-        Ok((triplets, rhs))
     }
 
     /// Solves the currently assembled system from a zero start and returns Δv (for tests).
