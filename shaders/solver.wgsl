@@ -1,4 +1,6 @@
 // Mass-spring solver kernels: the GPU twin of src/solver/kernels.rs and src/solver/cpu.rs.
+// The state is displacements u from rest (f32 resolution follows the deformation, not the
+// distance from the origin); a spring's current edge is rest_edge + u_b - u_a.
 // Spring e joins (a, b); spring_force[e] is the force on a; spring_kv[e] = K_e (v_b - v_a);
 // spring_block[e] = h D_e + h^2 K_e (the off-diagonal block of A is its negative).
 // Nodes gather their springs through the adjacency lists: no atomics anywhere.
@@ -32,7 +34,7 @@ struct CgScalars {
 @group(0) @binding(3) var<storage, read> offsets: array<u32>;
 @group(0) @binding(4) var<storage, read> adjacency: array<vec2<u32>>;      // neighbour, spring
 @group(0) @binding(5) var<storage, read> node_params: array<vec4<f32>>;    // mass, fixed, -, -
-@group(0) @binding(6) var<storage, read_write> x: array<vec4<f32>>;
+@group(0) @binding(6) var<storage, read_write> u: array<vec4<f32>>;
 @group(0) @binding(7) var<storage, read_write> v: array<vec4<f32>>;
 @group(0) @binding(8) var<storage, read> external_force: array<vec4<f32>>;
 @group(0) @binding(9) var<storage, read_write> spring_force: array<vec4<f32>>;
@@ -48,8 +50,10 @@ struct CgScalars {
 @group(0) @binding(19) var<storage, read_write> q: array<vec4<f32>>;
 @group(0) @binding(20) var<storage, read_write> partials: array<vec4<f32>>;
 @group(0) @binding(21) var<storage, read_write> scalars: CgScalars;
-@group(0) @binding(22) var<storage, read_write> aux: array<vec4<f32>>;   // previous x (Verlet) or acceleration (velocity Verlet)
+@group(0) @binding(22) var<storage, read_write> aux: array<vec4<f32>>;   // previous u (Verlet) or acceleration (velocity Verlet)
 @group(0) @binding(23) var<storage, read_write> force: array<vec4<f32>>; // node forces of the explicit schemes
+@group(0) @binding(24) var<storage, read> rest_edge: array<vec4<f32>>;  // x_b - x_a at rest, per spring
+@group(0) @binding(25) var<storage, read> rest_pos: array<vec4<f32>>;   // rest positions, for contact
 
 const WG: u32 = 256u;
 var<workgroup> shared_sum: array<vec4<f32>, 256>;
@@ -71,7 +75,7 @@ fn is_fixed(i: u32) -> bool {
 fn spring_force_of(e: u32, va: vec3<f32>, vb: vec3<f32>) -> vec3<f32> {
     let ab = springs[e];
     let sp = spring_params[e];
-    let d = x[ab.y].xyz - x[ab.x].xyz;
+    let d = rest_edge[e].xyz + u[ab.y].xyz - u[ab.x].xyz;
     let l = length(d);
     if (l <= 1.1920929e-7) {
         return vec3<f32>(0.0);
@@ -92,7 +96,7 @@ fn spring_terms(@builtin(global_invocation_id) gid: vec3<u32>) {
     let rest = sp.x;
     let k = sp.y;
     let damping = sp.z;
-    let d = x[ab.y].xyz - x[ab.x].xyz;
+    let d = rest_edge[e].xyz + u[ab.y].xyz - u[ab.x].xyz;
     let l = length(d);
     if (l <= 1.1920929e-7) {
         spring_force[e] = vec4<f32>(0.0);
@@ -178,7 +182,7 @@ fn gathered_force(i: u32) -> vec3<f32> {
         }
     }
     for (var t = 0u; t < params.counts.z; t = t + 1u) {
-        let c = contact(x[i].xyz, params.tools[t]);
+        let c = contact(rest_pos[i].xyz + u[i].xyz, params.tools[t]);
         if (c.inside) {
             f = f + c.f;
         }
@@ -209,7 +213,7 @@ fn node_terms(@builtin(global_invocation_id) gid: vec3<u32>) {
         dg = dg + spring_block[e];
     }
     for (var t = 0u; t < params.counts.z; t = t + 1u) {
-        let c = contact(x[i].xyz, params.tools[t]);
+        let c = contact(rest_pos[i].xyz + u[i].xyz, params.tools[t]);
         if (c.inside) {
             f = f + c.f;
             dg = dg + c.nn * (h * h);
@@ -413,7 +417,7 @@ fn implicit_update(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
     let vi = v[i].xyz + dv[i].xyz;
     v[i] = vec4<f32>(vi, 0.0);
-    x[i] = vec4<f32>(x[i].xyz + vi * params.gravity_h.w, 0.0);
+    u[i] = vec4<f32>(u[i].xyz + vi * params.gravity_h.w, 0.0);
 }
 
 @compute @workgroup_size(256)
@@ -436,7 +440,7 @@ fn explicit_euler_update(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
     let h = params.gravity_h.w;
     let vi = v[i].xyz;
-    x[i] = vec4<f32>(x[i].xyz + vi * h, 0.0);
+    u[i] = vec4<f32>(u[i].xyz + vi * h, 0.0);
     v[i] = vec4<f32>(vi + force[i].xyz * (h / node_params[i].x), 0.0);
 }
 
@@ -446,7 +450,7 @@ fn verlet_update(@builtin(global_invocation_id) gid: vec3<u32>) {
     if (i >= params.counts.x) {
         return;
     }
-    let xi = x[i].xyz;
+    let xi = u[i].xyz;
     if (is_fixed(i)) {
         v[i] = vec4<f32>(0.0);
         aux[i] = vec4<f32>(xi, 0.0);
@@ -457,7 +461,7 @@ fn verlet_update(@builtin(global_invocation_id) gid: vec3<u32>) {
     let next = xi * 2.0 - aux[i].xyz + accel * (h * h);
     v[i] = vec4<f32>((next - xi) / h + accel * (h * 0.5), 0.0);
     aux[i] = vec4<f32>(xi, 0.0);
-    x[i] = vec4<f32>(next, 0.0);
+    u[i] = vec4<f32>(next, 0.0);
 }
 
 // Velocity Verlet, first half: positions, and the predicted velocities (in q) for damping.
@@ -470,7 +474,7 @@ fn velocity_verlet_positions(@builtin(global_invocation_id) gid: vec3<u32>) {
     let h = params.gravity_h.w;
     let a = aux[i].xyz;
     if (!is_fixed(i)) {
-        x[i] = vec4<f32>(x[i].xyz + v[i].xyz * h + a * (0.5 * h * h), 0.0);
+        u[i] = vec4<f32>(u[i].xyz + v[i].xyz * h + a * (0.5 * h * h), 0.0);
     }
     q[i] = vec4<f32>(v[i].xyz + a * h, 0.0);
 }

@@ -17,7 +17,7 @@ use crate::solver::kernels::ContactTool;
 use crate::solver::{Integrator, MassSpringModel, Simulation, SolverError, SolverParams, StepReport, Tool};
 
 /// Storage buffers the solver shader binds at once.
-pub const STORAGE_BUFFERS: u32 = 23;
+pub const STORAGE_BUFFERS: u32 = 25;
 /// Tools the GPU kernels take per step.
 pub const MAX_TOOLS: usize = 4;
 const WORKGROUP: u32 = 256;
@@ -85,10 +85,11 @@ const KERNELS: [&str; 19] = [
 ];
 
 /// Read-only bindings of the shader (the rest are read-write storage, 0 is the uniform).
-const READ_ONLY: [u32; 6] = [1, 2, 3, 4, 5, 8];
+const READ_ONLY: [u32; 8] = [1, 2, 3, 4, 5, 8, 24, 25];
 
 struct Buffers {
     params: wgpu::Buffer,
+    /// Displacements from rest.
     x: wgpu::Buffer,
     v: wgpu::Buffer,
     external: wgpu::Buffer,
@@ -172,6 +173,11 @@ impl GpuSimulation {
         let spring_params: Vec<[f32; 4]> = (0..e).map(|s| [model.rest_length[s] as f32, model.stiffness[s] as f32, model.damping[s] as f32, 0.0]).collect();
         let node_params: Vec<[f32; 4]> = (0..n).map(|i| [model.mass[i] as f32, if model.fixed[i] { 1.0 } else { 0.0 }, 0.0, 0.0]).collect();
         let adjacency: Vec<[u32; 2]> = model.adjacency.clone();
+        let rest_edge: Vec<[f32; 4]> = model.springs.iter().map(|[a, b]| {
+            let d = model.rest[*b as usize] - model.rest[*a as usize];
+            [d.x as f32, d.y as f32, d.z as f32, 0.0]
+        }).collect();
+        let rest_pos: Vec<[f32; 4]> = model.rest.iter().map(|p| [p.x as f32, p.y as f32, p.z as f32, 0.0]).collect();
         let buf = |label: &str, bytes: &[u8]| ctx.storage_buffer(label, bytes);
         let b = Buffers {
             params: device.create_buffer(&wgpu::BufferDescriptor {
@@ -180,7 +186,7 @@ impl GpuSimulation {
                 usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
                 mapped_at_creation: false,
             }),
-            x: buf("x", bytemuck::cast_slice(&vec4s(mirror.positions()))),
+            x: buf("u", bytemuck::cast_slice(&zeros4(n))),
             v: buf("v", bytemuck::cast_slice(&zeros4(n))),
             external: buf("external", bytemuck::cast_slice(&zeros4(n))),
             dv: buf("dv", bytemuck::cast_slice(&zeros4(n))),
@@ -205,11 +211,13 @@ impl GpuSimulation {
             buf("q", bytemuck::cast_slice(&zeros4(n))),
             buf("partials", bytemuck::cast_slice(&zeros4(groups(n as u32) as usize))),
             buf("force", bytemuck::cast_slice(&zeros4(n))),
+            buf("rest_edge", bytemuck::cast_slice(&rest_edge)),
+            buf("rest_pos", bytemuck::cast_slice(&rest_pos)),
         ];
-        let [springs_b, spring_params_b, offsets_b, adjacency_b, node_params_b, spring_force_b, spring_kv_b, spring_block_b, diag_b, precond_b, rhs_b, r_b, z_b, q_b, partials_b, force_b] = &others;
-        let order: [&wgpu::Buffer; 24] = [
+        let [springs_b, spring_params_b, offsets_b, adjacency_b, node_params_b, spring_force_b, spring_kv_b, spring_block_b, diag_b, precond_b, rhs_b, r_b, z_b, q_b, partials_b, force_b, rest_edge_b, rest_pos_b] = &others;
+        let order: [&wgpu::Buffer; 26] = [
             &b.params, springs_b, spring_params_b, offsets_b, adjacency_b, node_params_b, &b.x, &b.v, &b.external, spring_force_b, spring_kv_b, spring_block_b,
-            diag_b, precond_b, rhs_b, &b.dv, r_b, z_b, &b.p, q_b, partials_b, &b.scalars, &b.aux, force_b,
+            diag_b, precond_b, rhs_b, &b.dv, r_b, z_b, &b.p, q_b, partials_b, &b.scalars, &b.aux, force_b, rest_edge_b, rest_pos_b,
         ];
         let bind_entries: Vec<wgpu::BindGroupEntry> =
             order.iter().enumerate().map(|(binding, buffer)| wgpu::BindGroupEntry { binding: binding as u32, resource: buffer.as_entire_binding() }).collect();
@@ -310,7 +318,7 @@ impl GpuSimulation {
             Integrator::Verlet => {
                 if !self.history_valid {
                     let h = self.mirror.params().dt as f32;
-                    let prev: Vec<Vector3<f32>> = self.mirror.positions().iter().zip(self.mirror.velocities()).map(|(x, v)| x - v * h).collect();
+                    let prev: Vec<Vector3<f32>> = self.mirror.displacements().iter().zip(self.mirror.velocities()).map(|(x, v)| x - v * h).collect();
                     self.ctx.queue.write_buffer(&self.buffers.aux, 0, bytemuck::cast_slice(&vec4s(&prev)));
                 }
                 self.run(&[("spring_forces", e), ("node_forces", n), ("verlet_update", n)]);
@@ -329,7 +337,7 @@ impl GpuSimulation {
             Ok(report) => Ok(report),
             Err(err) => {
                 // Put the last stable state back on the GPU too.
-                self.ctx.queue.write_buffer(&self.buffers.x, 0, bytemuck::cast_slice(&vec4s(self.mirror.positions())));
+                self.ctx.queue.write_buffer(&self.buffers.x, 0, bytemuck::cast_slice(&vec4s(self.mirror.displacements())));
                 self.ctx.queue.write_buffer(&self.buffers.v, 0, bytemuck::cast_slice(&vec4s(self.mirror.velocities())));
                 self.history_valid = false;
                 Err(err.into())
@@ -383,7 +391,7 @@ mod tests {
             }
             let scale = rc.max_displacement;
             assert!(scale > 1e-4, "{integrator:?} moved: {scale}");
-            let worst = cpu.positions().iter().zip(gpu.mirror().positions()).map(|(a, b)| (a - b).norm() as f64).fold(0.0, f64::max);
+            let worst = cpu.displacements().iter().zip(gpu.mirror().displacements()).map(|(a, b)| (a - b).norm() as f64).fold(0.0, f64::max);
             assert!(worst <= 2e-3 * scale, "{integrator:?}: GPU differs from CPU by {worst:e} m (max displacement {scale:e} m)");
             if integrator == Integrator::ImplicitEuler {
                 assert!(rg.cg_iterations > 0 && rg.residual <= 1e-5, "{rg:?}");

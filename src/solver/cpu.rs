@@ -21,7 +21,7 @@ pub struct CgStats {
 }
 
 struct Snapshot<T: Real> {
-    x: Vec<Vector3<T>>,
+    u: Vec<Vector3<T>>,
     v: Vec<Vector3<T>>,
     history: Vec<Vector3<T>>,
     history_valid: bool,
@@ -38,12 +38,16 @@ pub struct Simulation<T: Real> {
     adjacency: Vec<[u32; 2]>,
     mass: Vec<T>,
     fixed: Vec<bool>,
-    rest: Vec<Vector3<T>>,
+    /// Rest positions (f64, for output) and rest edge vectors (per spring, precision T).
+    rest: Vec<Vector3<f64>>,
+    rest_edge: Vec<Vector3<T>>,
     divergence_energy: f64,
     divergence_distance: f64,
-    x: Vec<Vector3<T>>,
+    /// Displacements from rest. Storing them instead of positions keeps f32 resolution
+    /// relative to the deformation, not to the body's distance from the origin.
+    u: Vec<Vector3<T>>,
     v: Vec<Vector3<T>>,
-    /// Previous positions (position Verlet) or accelerations (velocity Verlet).
+    /// Previous displacements (position Verlet) or accelerations (velocity Verlet).
     history: Vec<Vector3<T>>,
     history_valid: bool,
     external: Vec<Vector3<T>>,
@@ -81,7 +85,7 @@ impl<T: Real> Simulation<T> {
         params.validate()?;
         let n = model.node_count();
         let conv = |v: &[f64]| v.iter().map(|x| T::of(*x)).collect::<Vec<T>>();
-        let rest: Vec<Vector3<T>> = model.rest.iter().map(|p| p.map(T::of)).collect();
+        let rest_edge = model.springs.iter().map(|[a, b]| (model.rest[*b as usize] - model.rest[*a as usize]).map(T::of)).collect();
         let (lo, hi) = crate::mesh::bounds(&model.rest);
         Ok(Self {
             params,
@@ -95,7 +99,7 @@ impl<T: Real> Simulation<T> {
             fixed: model.fixed.clone(),
             divergence_energy: model.divergence_energy(),
             divergence_distance: 2.0 * (hi - lo).norm(),
-            x: rest.clone(),
+            u: vec![Vector3::zeros(); n],
             v: vec![Vector3::zeros(); n],
             history: vec![Vector3::zeros(); n],
             history_valid: false,
@@ -116,15 +120,17 @@ impl<T: Real> Simulation<T> {
             q: vec![Vector3::zeros(); n],
             last_cg: CgStats { iterations: 0, relative_residual: 0.0 },
             amg: None,
-            rest,
+            rest: model.rest.clone(),
+            rest_edge,
         })
     }
 
     pub fn params(&self) -> &SolverParams {
         &self.params
     }
-    pub fn positions(&self) -> &[Vector3<T>] {
-        &self.x
+    /// Displacements from the rest shape.
+    pub fn displacements(&self) -> &[Vector3<T>] {
+        &self.u
     }
     pub fn velocities(&self) -> &[Vector3<T>] {
         &self.v
@@ -142,9 +148,14 @@ impl<T: Real> Simulation<T> {
         self.last_cg
     }
 
-    /// Positions in f64 (for output and comparisons).
+    /// Positions in f64 (rest + displacement, for output and comparisons).
     pub fn positions_f64(&self) -> Vec<Vector3<f64>> {
-        self.x.iter().map(|p| p.map(T::to_f64)).collect()
+        self.rest.iter().zip(&self.u).map(|(r, u)| r + u.map(T::to_f64)).collect()
+    }
+
+    /// World position of node i in precision T (contact tests).
+    fn world(&self, i: usize) -> Vector3<T> {
+        self.rest[i].map(T::of) + self.u[i]
     }
 
     /// Mutable access to a tool (pose, applied force) between steps.
@@ -155,7 +166,7 @@ impl<T: Real> Simulation<T> {
 
     /// Sets the state (e.g. to restart from a recorded one).
     pub fn set_state(&mut self, x: &[Vector3<f64>], v: &[Vector3<f64>]) {
-        self.x = x.iter().map(|p| p.map(T::of)).collect();
+        self.u = x.iter().zip(&self.rest).map(|(p, r)| (p - r).map(T::of)).collect();
         self.v = v.iter().map(|p| p.map(T::of)).collect();
         self.history_valid = false;
         self.solves = 0;
@@ -163,7 +174,7 @@ impl<T: Real> Simulation<T> {
 
     /// Back to the rest shape at t = 0.
     pub fn reset(&mut self) {
-        self.x.clone_from(&self.rest);
+        self.u.iter_mut().for_each(|u| *u = Vector3::zeros());
         self.v.iter_mut().for_each(|v| *v = Vector3::zeros());
         self.dv.iter_mut().for_each(|v| *v = Vector3::zeros());
         self.solves = 0;
@@ -196,7 +207,7 @@ impl<T: Real> Simulation<T> {
             if tool.applied_force == Vector3::zeros() {
                 continue;
             }
-            let nodes: Vec<Vector3<f64>> = self.x.iter().map(|p| p.map(T::to_f64)).collect();
+            let nodes = self.positions_f64();
             for (i, w) in spread_weights(&nodes, &tool.tip(), tool.spread_radius) {
                 self.external[i as usize] += (tool.applied_force * w).map(T::of);
             }
@@ -229,14 +240,14 @@ impl<T: Real> Simulation<T> {
     }
 
     fn snapshot(&self) -> Snapshot<T> {
-        Snapshot { x: self.x.clone(), v: self.v.clone(), history: self.history.clone(), history_valid: self.history_valid }
+        Snapshot { u: self.u.clone(), v: self.v.clone(), history: self.history.clone(), history_valid: self.history_valid }
     }
 
     /// Takes a state computed elsewhere (the GPU) as this step's result, with the same
     /// reporting and divergence check as a CPU step.
-    pub(crate) fn accept_step(&mut self, tools: &[ContactTool<T>], x: Vec<Vector3<T>>, v: Vec<Vector3<T>>, cg: CgStats) -> Result<StepReport, SolverError> {
+    pub(crate) fn accept_step(&mut self, tools: &[ContactTool<T>], u: Vec<Vector3<T>>, v: Vec<Vector3<T>>, cg: CgStats) -> Result<StepReport, SolverError> {
         let saved = self.snapshot();
-        self.x = x;
+        self.u = u;
         self.v = v;
         self.last_cg = cg;
         self.finish_step(tools, saved)
@@ -248,7 +259,7 @@ impl<T: Real> Simulation<T> {
         let report = self.report(tools);
         if let Some(reason) = self.divergence(&report) {
             let failed = (self.step, self.time);
-            self.x = saved.x;
+            self.u = saved.u;
             self.v = saved.v;
             self.history = saved.history;
             self.history_valid = saved.history_valid;
@@ -260,7 +271,7 @@ impl<T: Real> Simulation<T> {
     }
 
     fn divergence(&self, report: &StepReport) -> Option<String> {
-        if !self.x.iter().chain(self.v.iter()).all(|p| p.iter().all(|c| c.is_finite())) {
+        if !self.u.iter().chain(self.v.iter()).all(|p| p.iter().all(|c| c.is_finite())) {
             return Some("non-finite positions or velocities".into());
         }
         let internal = report.kinetic_energy + self.spring_energy();
@@ -286,16 +297,17 @@ impl<T: Real> Simulation<T> {
             .map(|e| {
                 let [a, b] = self.springs[e];
                 let (a, b) = (a as usize, b as usize);
-                kernels::spring_force(&self.x[a], &self.x[b], &v_eval[a], &v_eval[b], self.rest_length[e], self.stiffness[e], self.damping[e])
+                let d = self.rest_edge[e] + self.u[b] - self.u[a];
+                kernels::spring_force(&d, &v_eval[a], &v_eval[b], self.rest_length[e], self.stiffness[e], self.damping[e])
             })
             .collect();
         let terms: Vec<SpringTerms<T>> = spring_forces.into_iter().map(|force| SpringTerms { force, kv: Vector3::zeros(), block: Matrix3::zeros() }).collect();
-        (0..self.x.len())
+        (0..self.u.len())
             .into_par_iter()
             .with_min_len(CHUNK)
             .map(|i| {
                 let adj = &self.adjacency[self.offsets[i] as usize..self.offsets[i + 1] as usize];
-                kernels::node_terms(i, adj, &self.springs, &terms, self.mass[i], self.fixed[i], &self.x[i], &v_eval[i], &self.external[i], &g, tools, h).force
+                kernels::node_terms(i, adj, &self.springs, &terms, self.mass[i], self.fixed[i], &self.world(i), &v_eval[i], &self.external[i], &g, tools, h).force
             })
             .collect()
     }
@@ -304,7 +316,7 @@ impl<T: Real> Simulation<T> {
         let h = T::of(self.params.dt);
         let f = self.forces(tools, &self.v);
         let (mass, fixed) = (&self.mass, &self.fixed);
-        self.x.par_iter_mut().zip(self.v.par_iter_mut()).enumerate().for_each(|(i, (x, v))| {
+        self.u.par_iter_mut().zip(self.v.par_iter_mut()).enumerate().for_each(|(i, (x, v))| {
             if fixed[i] {
                 *v = Vector3::zeros();
                 return;
@@ -319,13 +331,13 @@ impl<T: Real> Simulation<T> {
     fn verlet(&mut self, tools: &[ContactTool<T>]) {
         let h = T::of(self.params.dt);
         if !self.history_valid {
-            self.history = self.x.iter().zip(&self.v).map(|(x, v)| x - v * h).collect();
+            self.history = self.u.iter().zip(&self.v).map(|(u, v)| u - v * h).collect();
             self.history_valid = true;
         }
         let f = self.forces(tools, &self.v);
         let (mass, fixed) = (&self.mass, &self.fixed);
         let two = T::of(2.0);
-        (self.x.par_iter_mut(), self.v.par_iter_mut(), self.history.par_iter_mut()).into_par_iter().enumerate().for_each(|(i, (x, v, prev))| {
+        (self.u.par_iter_mut(), self.v.par_iter_mut(), self.history.par_iter_mut()).into_par_iter().enumerate().for_each(|(i, (x, v, prev))| {
             if fixed[i] {
                 *v = Vector3::zeros();
                 *prev = *x;
@@ -350,7 +362,7 @@ impl<T: Real> Simulation<T> {
         }
         let fixed = &self.fixed;
         let accel = &self.history;
-        self.x.par_iter_mut().zip(self.v.par_iter()).enumerate().for_each(|(i, (x, v))| {
+        self.u.par_iter_mut().zip(self.v.par_iter()).enumerate().for_each(|(i, (x, v))| {
             if !fixed[i] {
                 *x += v * h + accel[i] * (half * h * h);
             }
@@ -369,13 +381,15 @@ impl<T: Real> Simulation<T> {
     pub(crate) fn assemble(&mut self, tools: &[ContactTool<T>]) {
         let h = T::of(self.params.dt);
         let g = Vector3::from(self.params.gravity).map(T::of);
-        let (x, v) = (&self.x, &self.v);
+        let (u, v, rest_edge) = (&self.u, &self.v, &self.rest_edge);
         let (springs, rest, k, d) = (&self.springs, &self.rest_length, &self.stiffness, &self.damping);
         self.terms.par_iter_mut().with_min_len(CHUNK).enumerate().for_each(|(e, t)| {
             let [a, b] = springs[e];
             let (a, b) = (a as usize, b as usize);
-            *t = kernels::spring_terms(&x[a], &x[b], &v[a], &v[b], rest[e], k[e], d[e], h);
+            let edge = rest_edge[e] + u[b] - u[a];
+            *t = kernels::spring_terms(&edge, &v[a], &v[b], rest[e], k[e], d[e], h);
         });
+        let x: Vec<Vector3<T>> = (0..u.len()).map(|i| self.world(i)).collect();
         let terms = &self.terms;
         let (offsets, adjacency, mass, fixed, external) = (&self.offsets, &self.adjacency, &self.mass, &self.fixed, &self.external);
         (self.rhs.par_iter_mut(), self.diag.par_iter_mut(), self.precond.par_iter_mut())
@@ -415,7 +429,7 @@ impl<T: Real> Simulation<T> {
         self.solves += 1;
         let h = T::of(self.params.dt);
         let (dv, fixed) = (&self.dv, &self.fixed);
-        self.x.par_iter_mut().zip(self.v.par_iter_mut()).enumerate().for_each(|(i, (x, v))| {
+        self.u.par_iter_mut().zip(self.v.par_iter_mut()).enumerate().for_each(|(i, (x, v))| {
             if fixed[i] {
                 *v = Vector3::zeros();
                 return;
@@ -505,8 +519,8 @@ impl<T: Real> Simulation<T> {
 
     /// Assembled A as f64 triplets; fixed nodes keep an identity row and no couplings.
     fn system_triplets(&self) -> Vec<(usize, usize, f64)> {
-        let mut triplets = Vec::with_capacity(self.adjacency.len() * 9 + self.x.len() * 9);
-        for i in 0..self.x.len() {
+        let mut triplets = Vec::with_capacity(self.adjacency.len() * 9 + self.u.len() * 9);
+        for i in 0..self.u.len() {
             if self.fixed[i] {
                 for c in 0..3 {
                     triplets.push((3 * i + c, 3 * i + c, 1.0));
@@ -535,7 +549,7 @@ impl<T: Real> Simulation<T> {
     /// (Re)builds the multigrid hierarchy from the assembled matrix of this step.
     fn build_amg(&mut self) {
         let started = std::time::Instant::now();
-        let n = self.x.len();
+        let n = self.u.len();
         let a = Csr::from_triplets(3 * n, 3 * n, self.system_triplets());
         let neighbours: Vec<Vec<u32>> = (0..n)
             .map(|i| self.adjacency[self.offsets[i] as usize..self.offsets[i + 1] as usize].iter().map(|[j, _]| *j).filter(|j| !self.fixed[*j as usize]).collect())
@@ -556,7 +570,7 @@ impl<T: Real> Simulation<T> {
 
     /// Damping 4/(3 λmax) of the fine block-Jacobi smoother, λmax of D⁻¹A by power iteration.
     fn block_jacobi_omega(&self) -> f64 {
-        let n = self.x.len();
+        let n = self.u.len();
         let mut x: Vec<Vector3<T>> = (0..n).map(|i| if self.fixed[i] { Vector3::zeros() } else { Vector3::repeat(T::one() + T::of(((i * 7919) % 13) as f64 / 13.0)) }).collect();
         let mut y = vec![Vector3::zeros(); n];
         let mut lambda = 1.0;
@@ -598,23 +612,24 @@ impl<T: Real> Simulation<T> {
     }
 
     fn spring_energy(&self) -> f64 {
-        let (springs, x, rest, k) = (&self.springs, &self.x, &self.rest_length, &self.stiffness);
+        let (springs, u, rest, k) = (&self.springs, &self.u, &self.rest_length, &self.stiffness);
         chunked_sum(springs.len(), |e| {
             let [a, b] = springs[e];
-            let stretch = (x[b as usize] - x[a as usize]).norm().to_f64() - rest[e].to_f64();
+            let stretch = (self.rest_edge[e] + u[b as usize] - u[a as usize]).norm().to_f64() - rest[e].to_f64();
             0.5 * k[e].to_f64() * stretch * stretch
         })
     }
 
     fn report(&self, tools: &[ContactTool<T>]) -> StepReport {
         let g = Vector3::from(self.params.gravity);
-        let kinetic = chunked_sum(self.x.len(), |i| 0.5 * self.mass[i].to_f64() * self.v[i].norm_squared().to_f64());
-        let gravity = chunked_sum(self.x.len(), |i| -self.mass[i].to_f64() * g.dot(&(self.x[i] - self.rest[i]).map(T::to_f64)));
+        let kinetic = chunked_sum(self.u.len(), |i| 0.5 * self.mass[i].to_f64() * self.v[i].norm_squared().to_f64());
+        let gravity = chunked_sum(self.u.len(), |i| -self.mass[i].to_f64() * g.dot(&self.u[i].map(T::to_f64)));
         let mut contact_energy = 0.0;
         let mut reaction_force = Vector3::zeros();
         let mut reaction_torque = Vector3::zeros();
         for (index, tool) in tools.iter().enumerate() {
-            for p in &self.x {
+            for i in 0..self.u.len() {
+                let p = &self.world(i);
                 if let Some((f, _)) = kernels::contact(p, &tool.a, &tool.b, tool.radius, tool.stiffness) {
                     let f = f.map(T::to_f64);
                     contact_energy += 0.5 * f.norm_squared() / tool.stiffness.to_f64();
@@ -628,7 +643,7 @@ impl<T: Real> Simulation<T> {
         if let Some(tool) = self.tools.first() {
             reaction_force -= tool.applied_force;
         }
-        let max_displacement = self.x.iter().zip(&self.rest).map(|(x, r)| (x - r).norm().to_f64()).fold(0.0, f64::max);
+        let max_displacement = self.u.iter().map(|u| u.norm().to_f64()).fold(0.0, f64::max);
         StepReport {
             step: self.step,
             time: self.time,

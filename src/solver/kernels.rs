@@ -24,10 +24,11 @@ pub struct SpringTerms<T: Real> {
     pub block: Matrix3<T>,
 }
 
-/// Spring force on node a (elastic + damping along the spring).
+/// Spring force on node a (elastic + damping along the spring); `edge` is x_b - x_a,
+/// formed by the caller as rest edge + (u_b - u_a).
 #[inline]
-pub fn spring_force<T: Real>(xa: &Vector3<T>, xb: &Vector3<T>, va: &Vector3<T>, vb: &Vector3<T>, rest: T, k: T, damping: T) -> Vector3<T> {
-    let d = xb - xa;
+pub fn spring_force<T: Real>(edge: &Vector3<T>, va: &Vector3<T>, vb: &Vector3<T>, rest: T, k: T, damping: T) -> Vector3<T> {
+    let d = *edge;
     let l = d.norm();
     if l <= T::default_epsilon() {
         return Vector3::zeros();
@@ -38,8 +39,8 @@ pub fn spring_force<T: Real>(xa: &Vector3<T>, xb: &Vector3<T>, va: &Vector3<T>, 
 
 #[inline]
 #[allow(clippy::too_many_arguments)]
-pub fn spring_terms<T: Real>(xa: &Vector3<T>, xb: &Vector3<T>, va: &Vector3<T>, vb: &Vector3<T>, rest: T, k: T, damping: T, h: T) -> SpringTerms<T> {
-    let d = xb - xa;
+pub fn spring_terms<T: Real>(edge: &Vector3<T>, va: &Vector3<T>, vb: &Vector3<T>, rest: T, k: T, damping: T, h: T) -> SpringTerms<T> {
+    let d = *edge;
     let l = d.norm();
     if l <= T::default_epsilon() {
         return SpringTerms { force: Vector3::zeros(), kv: Vector3::zeros(), block: Matrix3::zeros() };
@@ -160,14 +161,14 @@ mod tests {
         let xb = Vector3::new(1.3, 0.2, -0.1);
         let z = Vector3::zeros();
         let (rest, k) = (1.0, 50.0);
-        let t = spring_terms(&xa, &xb, &z, &z, rest, k, 0.0, 1.0);
+        let t = spring_terms(&(xb - xa), &z, &z, rest, k, 0.0, 1.0);
         let eps = 1e-6;
         for c in 0..3 {
             let mut p = xb;
             p[c] += eps;
-            let fp = spring_force(&xa, &p, &z, &z, rest, k, 0.0);
+            let fp = spring_force(&(p - xa), &z, &z, rest, k, 0.0);
             p[c] -= 2.0 * eps;
-            let fm = spring_force(&xa, &p, &z, &z, rest, k, 0.0);
+            let fm = spring_force(&(p - xa), &z, &z, rest, k, 0.0);
             let col = (fp - fm) / (2.0 * eps);
             // h = 1: block = K; ∂f_a/∂x_b = K.
             assert_relative_eq!(col, t.block.column(c).into_owned(), epsilon = 1e-6);
@@ -176,7 +177,7 @@ mod tests {
 
     #[test]
     fn compressed_spring_block_stays_positive_semidefinite() {
-        let t = spring_terms(&Vector3::zeros(), &Vector3::new(0.5f64, 0.1, 0.0), &Vector3::zeros(), &Vector3::zeros(), 1.0, 100.0, 0.0, 1.0);
+        let t = spring_terms(&Vector3::new(0.5f64, 0.1, 0.0), &Vector3::zeros(), &Vector3::zeros(), 1.0, 100.0, 0.0, 1.0);
         let eig = t.block.symmetric_eigenvalues();
         assert!(eig.iter().all(|e| *e >= -1e-12), "{eig}");
         assert_relative_eq!(t.block, t.block.transpose());
