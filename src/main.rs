@@ -9,7 +9,7 @@ use defvol::bench;
 use defvol::engine::{BackendChoice, Engine};
 use defvol::io;
 use defvol::scene::{MeshSource, Scene};
-use defvol::solver::{Integrator, StepReport};
+use defvol::solver::{Integrator, Preconditioner, StepReport};
 
 #[derive(Parser)]
 #[command(name = "defvol", version, about = "Deformable volumes: implicit mass-spring meshes on the CPU and the GPU")]
@@ -47,6 +47,8 @@ struct SimulateArgs {
     dt: Option<f64>,
     #[arg(long)]
     cg_tolerance: Option<f64>,
+    #[arg(long, value_enum)]
+    preconditioner: Option<Preconditioner>,
     #[arg(long, default_value_t = 100)]
     steps: u64,
     #[arg(long, value_enum, default_value = "auto")]
@@ -77,8 +79,10 @@ enum BenchStage {
         #[arg(long, value_delimiter = ',', default_value = "0.01")]
         dts: Vec<f64>,
         /// Time step of the explicit schemes (they diverge at the implicit one).
-        #[arg(long, default_value_t = 1e-5)]
+        #[arg(long, default_value_t = 5e-6)]
         explicit_dt: f64,
+        #[arg(long, value_delimiter = ',', default_value = "amg,block-jacobi")]
+        preconditioners: Vec<Preconditioner>,
         /// One JSON object per line instead of the table.
         #[arg(long)]
         json: bool,
@@ -139,6 +143,9 @@ fn simulate(args: SimulateArgs) -> Result<()> {
     if let Some(tol) = args.cg_tolerance {
         scene.solver.cg_tolerance = tol;
     }
+    if let Some(p) = args.preconditioner {
+        scene.solver.preconditioner = p;
+    }
     let loaded = scene.load().context("loading the scene")?;
     tracing::info!("mesh: {} nodes, {} tets, {} springs", loaded.mesh.nodes().len(), loaded.mesh.tets().len(), loaded.model.springs.len());
     let mut engine = Engine::new(args.backend, args.allow_software_gpu, &loaded.model, loaded.scene.solver.clone(), loaded.tools_at(0.0))?;
@@ -187,8 +194,8 @@ fn main() -> Result<()> {
     tracing_subscriber::fmt().with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into())).with_target(false).init();
     match Cli::parse().command {
         Command::Simulate(args) => simulate(args),
-        Command::Bench { stage: BenchStage::Solver { sizes, steps, backends, allow_software_gpu, tolerances, dts, explicit_dt, json } } => {
-            let opts = bench::SolverBenchOptions { sizes: sizes.unwrap_or(bench::SEED_SIZES.to_vec()), steps, backends, allow_software_gpu, tolerances, dts, explicit_dt };
+        Command::Bench { stage: BenchStage::Solver { sizes, steps, backends, allow_software_gpu, tolerances, dts, explicit_dt, preconditioners, json } } => {
+            let opts = bench::SolverBenchOptions { sizes: sizes.unwrap_or(bench::SEED_SIZES.to_vec()), steps, backends, allow_software_gpu, tolerances, dts, explicit_dt, preconditioners };
             if !json {
                 println!("{}", bench::TABLE_HEADER);
             }
