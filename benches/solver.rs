@@ -19,7 +19,7 @@ fn solver(c: &mut Criterion) {
     for size in sizes {
         let Ok(model) = cantilever(size) else { continue };
         for integrator in Integrator::ALL {
-            let dt = if integrator == Integrator::ImplicitEuler { 0.01 } else { 1e-4 };
+            let dt = if integrator == Integrator::ImplicitEuler { 0.01 } else { 5e-6 };
             let params = SolverParams { integrator, dt, ..Default::default() };
             for backend in [BackendChoice::Cpu, BackendChoice::Gpu] {
                 let Ok(mut engine) = Engine::new(backend, software, &model, params.clone(), Vec::new()) else { continue };
