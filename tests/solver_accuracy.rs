@@ -23,8 +23,9 @@ fn f32_path_matches_the_f64_reference_after_100_steps() {
         let fast = run::<f32>(&model, params.clone(), 100).unwrap();
         let reference = run::<f64>(&model, SolverParams { cg_tolerance: 1e-12, ..params }, 100).unwrap();
         let err = relative_error(&model, &fast.positions_f64(), &reference.positions_f64());
-        // f32 round-off (1e-7 relative on positions ~0.3 m) against displacements of ~1e-3 m.
-        assert!(err < 2e-3, "{integrator:?}: relative error {err:e}");
+        // Measured 2e-7 (implicit) to 1.3e-5 (forward Euler): the displacement state keeps
+        // f32 round-off relative to the deformation.
+        assert!(err < 1e-4, "{integrator:?}: relative error {err:e}");
     }
 }
 

@@ -392,7 +392,8 @@ mod tests {
             let scale = rc.max_displacement;
             assert!(scale > 1e-4, "{integrator:?} moved: {scale}");
             let worst = cpu.displacements().iter().zip(gpu.mirror().displacements()).map(|(a, b)| (a - b).norm() as f64).fold(0.0, f64::max);
-            assert!(worst <= 2e-3 * scale, "{integrator:?}: GPU differs from CPU by {worst:e} m (max displacement {scale:e} m)");
+            // lavapipe: 0 (explicit) to 4e-7 (implicit, CG to 1e-6); hardware FMA rounding differs more.
+            assert!(worst <= 2e-5 * scale, "{integrator:?}: GPU differs from CPU by {worst:e} m (max displacement {scale:e} m)");
             if integrator == Integrator::ImplicitEuler {
                 assert!(rg.cg_iterations > 0 && rg.residual <= 1e-5, "{rg:?}");
                 assert!((rc.reaction_force[2] - rg.reaction_force[2]).abs() <= 1e-2 * rc.reaction_force[2].abs().max(1e-3));
