@@ -13,3 +13,4 @@ pub mod mesh;
 pub mod scene;
 pub mod solver;
 pub mod volume;
+pub mod warp;

@@ -22,6 +22,36 @@ pub enum VolumeError {
     NonFiniteSample { file: String, index: usize, voxel: [usize; 3] },
 }
 
+/// A voxel lattice: dims, spacing, origin and direction, ITK's convention.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Grid {
+    pub dims: [usize; 3],
+    pub spacing: [f64; 3],
+    pub origin: [f64; 3],
+    pub direction: Matrix3<f64>,
+}
+
+impl Grid {
+    pub fn len(&self) -> usize {
+        self.dims[0] * self.dims[1] * self.dims[2]
+    }
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+    pub fn world_from_index(&self, ijk: Vector3<f64>) -> Vector3<f64> {
+        Vector3::from(self.origin) + self.direction * ijk.component_mul(&Vector3::from(self.spacing))
+    }
+    pub fn index_from_world(&self, p: Vector3<f64>) -> Vector3<f64> {
+        (self.direction.transpose() * (p - Vector3::from(self.origin))).component_div(&Vector3::from(self.spacing))
+    }
+    /// The affine map from this grid's continuous index to `other`'s: (matrix, offset).
+    pub fn index_map_to(&self, other: &Grid) -> (Matrix3<f64>, Vector3<f64>) {
+        let world_from_index = self.direction * Matrix3::from_diagonal(&Vector3::from(self.spacing));
+        let other_from_world = Matrix3::from_diagonal(&Vector3::from(other.spacing).map(|s| 1.0 / s)) * other.direction.transpose();
+        (other_from_world * world_from_index, other_from_world * (Vector3::from(self.origin) - Vector3::from(other.origin)))
+    }
+}
+
 /// A scalar voxel volume in file units (millimetres for medical formats).
 #[derive(Debug, Clone, PartialEq)]
 pub struct Volume {
@@ -87,6 +117,16 @@ impl Volume {
     }
     pub fn is_empty(&self) -> bool {
         self.data.is_empty()
+    }
+
+    /// The volume's lattice (geometry without samples).
+    pub fn grid(&self) -> Grid {
+        Grid { dims: self.dims, spacing: self.spacing, origin: self.origin, direction: self.direction }
+    }
+
+    /// Samples on a grid's lattice.
+    pub fn from_grid(grid: &Grid, data: Vec<f32>, source: &str) -> Result<Self, VolumeError> {
+        Self::new(grid.dims, grid.spacing, grid.origin, grid.direction, data, source)
     }
 
     pub fn index(&self, i: usize, j: usize, k: usize) -> usize {

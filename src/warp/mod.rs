@@ -1,0 +1,622 @@
+//! Grid warp (seed 003): the source volume resampled through a deformed tetrahedral mesh.
+//!
+//! Each output voxel x₁ inside a deformed tet takes the source value at x₀, the point with
+//! the same barycentric coordinates in the rest tet. Per tet both mappings fold into one
+//! affine map from output voxel index to source voxel index, and the barycentric
+//! coordinates into four affine functions of the output index, all computed in f64.
+//!
+//! Rasterization schemes (all make the same inside decisions, b_m ≥ 0 for all m, evaluated
+//! by the same expression):
+//! - `Spans` (the default): per row of the tet's box, the exact interval where all four
+//!   barycentric coordinates are non-negative; only inside voxels are visited.
+//! - `Culling`: the seed's 8-bit half-space masks on coarse points every 8 voxels; cells
+//!   whose 8 corner masks share a bit are skipped, the rest tested voxel by voxel.
+//! - `Bbox`: every voxel of the tet's box tested (the seed's baseline).
+//!
+//! Output slices are processed in parallel, each visiting the tets that overlap it in tet
+//! order, so a run is deterministic and a voxel on a shared face takes the later tet's value.
+
+pub mod bspline;
+
+use nalgebra::{Matrix3, Vector3};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+pub use bspline::DisplacementVolume;
+use bspline::{backward_all, CompiledDisplacement};
+
+use crate::mesh::TetMesh;
+use crate::solver::Real;
+use crate::volume::{Grid, Volume, VolumeError};
+
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum WarpError {
+    #[error("{got} deformed positions for a mesh of {expected} nodes")]
+    NodeCount { got: usize, expected: usize },
+    #[error("deformed node {node} is not finite")]
+    NonFiniteNode { node: usize },
+    #[error("output grid {dims:?} needs {needed_mib} MiB, above the limit of {limit_mib} MiB")]
+    TooLarge { dims: [usize; 3], needed_mib: u64, limit_mib: u64 },
+    #[error("displacement volume {index}: {why}")]
+    BadDisplacement { index: usize, why: String },
+    #[error(transparent)]
+    Volume(#[from] VolumeError),
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "snake_case")]
+pub enum Scheme {
+    Spans,
+    Culling,
+    Bbox,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "snake_case")]
+pub enum Sampling {
+    Trilinear,
+    /// Catmull-Rom cubic convolution, 4x4x4 taps: sharper, about 4-8x the cost.
+    Tricubic,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct WarpOptions {
+    pub scheme: Scheme,
+    pub sampling: Sampling,
+    /// Value of output voxels outside every deformed tet.
+    pub background: f32,
+    /// Output voxels no tet covers keep the source's value there (for meshes covering
+    /// part of the volume) instead of the background.
+    pub keep_uncovered: bool,
+    pub displacements: Vec<DisplacementVolume>,
+    /// Refuse output grids larger than this (bytes of f32 samples).
+    pub max_bytes: u64,
+}
+
+impl Default for WarpOptions {
+    fn default() -> Self {
+        Self { scheme: Scheme::Spans, sampling: Sampling::Trilinear, background: 0.0, keep_uncovered: false, displacements: Vec::new(), max_bytes: 4 << 30 }
+    }
+}
+
+/// Work done by one warp.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize)]
+pub struct WarpStats {
+    pub voxels: u64,
+    /// Voxels whose barycentric coordinates were evaluated.
+    pub candidates: u64,
+    /// Voxel writes from inside a tet.
+    pub inside: u64,
+    /// Deformed tets skipped as inverted or degenerate.
+    pub skipped_tets: u64,
+}
+
+impl std::ops::AddAssign for WarpStats {
+    fn add_assign(&mut self, o: Self) {
+        self.voxels += o.voxels;
+        self.candidates += o.candidates;
+        self.inside += o.inside;
+        self.skipped_tets += o.skipped_tets;
+    }
+}
+
+/// One tet's maps in output index space.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TetMap {
+    /// Inclusive output voxel box, clipped to the grid.
+    pub lo: [usize; 3],
+    pub hi: [usize; 3],
+    /// b_m = bary[m][0] + bary[m][1]·i + bary[m][2]·j + bary[m][3]·k.
+    pub bary: [[f64; 4]; 4],
+    /// Source index r = src[r][0] + src[r][1]·i + src[r][2]·j + src[r][3]·k.
+    pub src: [[f64; 4]; 3],
+}
+
+impl TetMap {
+    /// Barycentric offsets of row (j, k): b_m(i) = a[m] + bary[m][1]·i.
+    #[inline]
+    pub fn row(&self, j: usize, k: usize) -> [f64; 4] {
+        let (j, k) = (j as f64, k as f64);
+        self.bary.map(|b| b[0] + b[2] * j + b[3] * k)
+    }
+
+    #[inline]
+    pub fn inside(&self, a: &[f64; 4], i: usize) -> bool {
+        let i = i as f64;
+        (0..4).all(|m| a[m] + self.bary[m][1] * i >= 0.0)
+    }
+
+    /// The inside voxels of row (j, k) as an inclusive range of i, exact w.r.t. `inside`.
+    pub fn span(&self, a: &[f64; 4]) -> Option<(usize, usize)> {
+        let (mut lo, mut hi) = (self.lo[0] as f64, self.hi[0] as f64);
+        for m in 0..4 {
+            let c = self.bary[m][1];
+            if c > 0.0 {
+                lo = lo.max((-a[m] / c).ceil());
+            } else if c < 0.0 {
+                hi = hi.min((-a[m] / c).floor());
+            } else if a[m] < 0.0 {
+                return None;
+            }
+        }
+        if lo > hi {
+            return None;
+        }
+        let (mut lo, mut hi) = (lo as usize, hi as usize);
+        // The division above can miss by one at a tie; settle on the evaluated predicate.
+        while lo <= hi && !self.inside(a, lo) {
+            lo += 1;
+        }
+        while hi >= lo && !self.inside(a, hi) {
+            if hi == 0 {
+                return None;
+            }
+            hi -= 1;
+        }
+        if lo > hi {
+            return None;
+        }
+        while lo > self.lo[0] && self.inside(a, lo - 1) {
+            lo -= 1;
+        }
+        while hi < self.hi[0] && self.inside(a, hi + 1) {
+            hi += 1;
+        }
+        Some((lo, hi))
+    }
+}
+
+/// The maps of every tet; `None` for deformed tets that are inverted, degenerate or miss the grid.
+pub fn tet_maps(rest: &TetMesh, deformed: &[Vector3<f64>], source: &Grid, grid: &Grid) -> Result<Vec<Option<TetMap>>, WarpError> {
+    if deformed.len() != rest.nodes().len() {
+        return Err(WarpError::NodeCount { got: deformed.len(), expected: rest.nodes().len() });
+    }
+    if let Some(node) = deformed.iter().position(|p| !p.iter().all(|c| c.is_finite())) {
+        return Err(WarpError::NonFiniteNode { node });
+    }
+    let out_index: Vec<Vector3<f64>> = deformed.iter().map(|p| grid.index_from_world(*p)).collect();
+    let src_index: Vec<Vector3<f64>> = rest.nodes().iter().map(|p| source.index_from_world(*p)).collect();
+    Ok(rest.tets().par_iter().map(|t| tet_map(t, &out_index, &src_index, grid.dims)).collect())
+}
+
+fn tet_map(t: &[u32; 4], out_index: &[Vector3<f64>], src_index: &[Vector3<f64>], dims: [usize; 3]) -> Option<TetMap> {
+    let p = t.map(|n| out_index[n as usize]);
+    let q = t.map(|n| src_index[n as usize]);
+    let d = Matrix3::from_columns(&[p[1] - p[0], p[2] - p[0], p[3] - p[0]]);
+    let qm = Matrix3::from_columns(&[q[1] - q[0], q[2] - q[0], q[3] - q[0]]);
+    let (det, rest_det) = (d.determinant(), qm.determinant());
+    // Same orientation as at rest, and not flat: |det| against the cube of its longest edge.
+    let longest = (0..4).flat_map(|a| (a + 1..4).map(move |b| (a, b))).map(|(a, b)| (p[a] - p[b]).norm()).fold(0.0, f64::max);
+    if det * rest_det <= 0.0 || det.abs() < 1e-9 * longest.powi(3) {
+        return None;
+    }
+    let inv = d.try_inverse()?;
+    let mut bary = [[0.0; 4]; 4];
+    for m in 1..4 {
+        let row = inv.row(m - 1);
+        bary[m] = [-(row * p[0])[0], row[0], row[1], row[2]];
+    }
+    for c in 0..4 {
+        bary[0][c] = if c == 0 { 1.0 } else { 0.0 } - bary[1][c] - bary[2][c] - bary[3][c];
+    }
+    let m = qm * inv;
+    let offset = q[0] - m * p[0];
+    let src = [0, 1, 2].map(|r| [offset[r], m[(r, 0)], m[(r, 1)], m[(r, 2)]]);
+    let mut lo = [0usize; 3];
+    let mut hi = [0usize; 3];
+    for a in 0..3 {
+        let min = p.iter().map(|v| v[a]).fold(f64::INFINITY, f64::min).ceil().max(0.0);
+        let max = p.iter().map(|v| v[a]).fold(f64::NEG_INFINITY, f64::max).floor().min((dims[a] - 1) as f64);
+        if min > max {
+            return None;
+        }
+        lo[a] = min as usize;
+        hi[a] = max as usize;
+    }
+    Some(TetMap { lo, hi, bary, src })
+}
+
+/// The default output grid: the deformed nodes' box at the source's spacing and direction,
+/// snapped to the source lattice (so an identity warp is a plain copy).
+pub fn default_grid(source: &Volume, deformed: &[Vector3<f64>]) -> Grid {
+    let g = source.grid();
+    let (mut lo, mut hi) = (Vector3::repeat(f64::INFINITY), Vector3::repeat(f64::NEG_INFINITY));
+    for p in deformed {
+        let ijk = g.index_from_world(*p);
+        lo = lo.inf(&ijk);
+        hi = hi.sup(&ijk);
+    }
+    let lo = lo.map(|v| (v - 1e-9).ceil());
+    let hi = hi.map(|v| (v + 1e-9).floor());
+    let dims = [0, 1, 2].map(|a| ((hi[a] - lo[a]).max(0.0) as usize) + 1);
+    Grid { dims, spacing: g.spacing, origin: g.world_from_index(lo).into(), direction: g.direction }
+}
+
+/// Source samples and how to read them, in precision T.
+pub struct Sampler<'a> {
+    data: &'a [f32],
+    dims: [usize; 3],
+    sampling: Sampling,
+    background: f32,
+    displacements: Vec<CompiledDisplacement>,
+    source: Grid,
+}
+
+impl<'a> Sampler<'a> {
+    pub fn new(source: &'a Volume, options: &WarpOptions) -> Result<Self, WarpError> {
+        let displacements = options
+            .displacements
+            .iter()
+            .enumerate()
+            .map(|(index, d)| d.compile().map_err(|why| WarpError::BadDisplacement { index, why }))
+            .collect::<Result<_, _>>()?;
+        Ok(Self { data: source.data(), dims: source.dims(), sampling: options.sampling, background: options.background, displacements, source: source.grid() })
+    }
+
+    /// Value at a continuous source index, after the displacement volumes.
+    #[inline]
+    pub fn at<T: Real>(&self, x: T, y: T, z: T) -> T {
+        if self.displacements.is_empty() {
+            return self.at_index(x, y, z);
+        }
+        let world = self.source.world_from_index(Vector3::new(x.to_f64(), y.to_f64(), z.to_f64()));
+        let moved = self.source.index_from_world(backward_all(&self.displacements, &world));
+        self.at_index(T::of(moved.x), T::of(moved.y), T::of(moved.z))
+    }
+
+    #[inline]
+    fn at_index<T: Real>(&self, x: T, y: T, z: T) -> T {
+        match self.sampling {
+            Sampling::Trilinear => trilinear(self.data, self.dims, x, y, z).unwrap_or(T::of(self.background as f64)),
+            Sampling::Tricubic => tricubic(self.data, self.dims, x, y, z).unwrap_or(T::of(self.background as f64)),
+        }
+    }
+}
+
+/// Trilinear interpolation at a continuous index; `None` outside the voxel-centre box.
+#[inline]
+pub fn trilinear<T: Real>(data: &[f32], dims: [usize; 3], x: T, y: T, z: T) -> Option<T> {
+    let zero = T::zero();
+    let max = |n: usize| T::of((n - 1) as f64);
+    if !(x >= zero && y >= zero && z >= zero && x <= max(dims[0]) && y <= max(dims[1]) && z <= max(dims[2])) {
+        return None;
+    }
+    let cell = |c: T, n: usize| -> usize { (c.to_f64() as usize).min(n.saturating_sub(2)) };
+    let (i, j, k) = (cell(x, dims[0]), cell(y, dims[1]), cell(z, dims[2]));
+    let (fx, fy, fz) = (x - T::of(i as f64), y - T::of(j as f64), z - T::of(k as f64));
+    let sx = usize::from(dims[0] > 1);
+    let sy = if dims[1] > 1 { dims[0] } else { 0 };
+    let sz = if dims[2] > 1 { dims[0] * dims[1] } else { 0 };
+    let base = i + dims[0] * (j + dims[1] * k);
+    let v = |o: usize| T::of(data[base + o] as f64);
+    let lerp = |a: T, b: T, t: T| a + (b - a) * t;
+    let c00 = lerp(v(0), v(sx), fx);
+    let c10 = lerp(v(sy), v(sy + sx), fx);
+    let c01 = lerp(v(sz), v(sz + sx), fx);
+    let c11 = lerp(v(sz + sy), v(sz + sy + sx), fx);
+    Some(lerp(lerp(c00, c10, fy), lerp(c01, c11, fy), fz))
+}
+
+/// Catmull-Rom weights for the 4 taps around t in [0, 1).
+#[inline]
+fn catmull_rom<T: Real>(t: T) -> [T; 4] {
+    let (h, one, two, three) = (T::of(0.5), T::one(), T::of(2.0), T::of(3.0));
+    let t2 = t * t;
+    let t3 = t2 * t;
+    [h * (-t3 + two * t2 - t), h * (three * t3 - T::of(5.0) * t2 + two), h * (-three * t3 + T::of(4.0) * t2 + t), h * (t3 - t2)].map(|w| w * one)
+}
+
+/// Tricubic (Catmull-Rom) interpolation; taps beyond the edges repeat the edge voxel.
+pub fn tricubic<T: Real>(data: &[f32], dims: [usize; 3], x: T, y: T, z: T) -> Option<T> {
+    let zero = T::zero();
+    let max = |n: usize| T::of((n - 1) as f64);
+    if !(x >= zero && y >= zero && z >= zero && x <= max(dims[0]) && y <= max(dims[1]) && z <= max(dims[2])) {
+        return None;
+    }
+    let base = |c: T| c.to_f64().floor() as i64;
+    let (bi, bj, bk) = (base(x), base(y), base(z));
+    let (wx, wy, wz) = (catmull_rom(x - T::of(bi as f64)), catmull_rom(y - T::of(bj as f64)), catmull_rom(z - T::of(bk as f64)));
+    let clamp = |v: i64, n: usize| v.clamp(0, n as i64 - 1) as usize;
+    let mut acc = T::zero();
+    for (c, wzc) in wz.iter().enumerate() {
+        let kk = clamp(bk + c as i64 - 1, dims[2]);
+        for (b, wyb) in wy.iter().enumerate() {
+            let jj = clamp(bj + b as i64 - 1, dims[1]);
+            let row = dims[0] * (jj + dims[1] * kk);
+            let mut line = T::zero();
+            for (a, wxa) in wx.iter().enumerate() {
+                line += *wxa * T::of(data[row + clamp(bi + a as i64 - 1, dims[0])] as f64);
+            }
+            acc += *wzc * *wyb * line;
+        }
+    }
+    Some(acc)
+}
+
+/// Output grid and its initial contents.
+fn initial_value<T: Real>(sampler: &Sampler, identity: &(Matrix3<f64>, Vector3<f64>), keep_uncovered: bool, i: usize, j: usize, k: usize) -> T {
+    if !keep_uncovered {
+        return T::of(sampler.background as f64);
+    }
+    let s = identity.0 * Vector3::new(i as f64, j as f64, k as f64) + identity.1;
+    sampler.at(T::of(s.x), T::of(s.y), T::of(s.z))
+}
+
+/// Rasterizes `maps` into the output slice k (x-fastest rows), restricted to the inclusive
+/// box `[lo, hi]` in (i, j). The CPU twin of `shaders/warp.wgsl`.
+#[allow(clippy::too_many_arguments)]
+fn rasterize_slice<T: Real>(
+    slice: &mut [T],
+    nx: usize,
+    k: usize,
+    tets: &[u32],
+    maps: &[Option<TetMap>],
+    sampler: &Sampler,
+    scheme: Scheme,
+    lo: [usize; 2],
+    hi: [usize; 2],
+) -> WarpStats {
+    let mut stats = WarpStats::default();
+    for &t in tets {
+        let Some(m) = &maps[t as usize] else { continue };
+        if k < m.lo[2] || k > m.hi[2] {
+            continue;
+        }
+        let (j0, j1) = (m.lo[1].max(lo[1]), m.hi[1].min(hi[1]));
+        let (i0, i1) = (m.lo[0].max(lo[0]), m.hi[0].min(hi[0]));
+        if j0 > j1 || i0 > i1 {
+            continue;
+        }
+        match scheme {
+            Scheme::Spans => {
+                for j in j0..=j1 {
+                    let a = m.row(j, k);
+                    let Some((s0, s1)) = m.span(&a) else { continue };
+                    let (s0, s1) = (s0.max(i0), s1.min(i1));
+                    if s0 > s1 {
+                        continue;
+                    }
+                    write_run(&mut slice[j * nx..], m, j, k, s0, s1, sampler);
+                    let n = (s1 - s0 + 1) as u64;
+                    stats.candidates += n;
+                    stats.inside += n;
+                }
+            }
+            Scheme::Bbox => {
+                for j in j0..=j1 {
+                    let a = m.row(j, k);
+                    for i in i0..=i1 {
+                        stats.candidates += 1;
+                        if m.inside(&a, i) {
+                            write_run(&mut slice[j * nx..], m, j, k, i, i, sampler);
+                            stats.inside += 1;
+                        }
+                    }
+                }
+            }
+            Scheme::Culling => {
+                // Coarse points every CELL voxels from the tet's box corner; the cell test
+                // needs masks at its 8 corners (4 in this slice's plane pair).
+                let kc0 = m.lo[2] + (k - m.lo[2]) / CELL * CELL;
+                let kc1 = kc0 + CELL;
+                let mask = |i: usize, j: usize, kk: usize| -> u8 {
+                    let a = m.row(j, kk);
+                    let mut bits = 0u8;
+                    for q in 0..4 {
+                        let b = a[q] + m.bary[q][1] * i as f64;
+                        bits |= u8::from(b < 0.0) << (2 * q);
+                        bits |= u8::from(b > 1.0) << (2 * q + 1);
+                    }
+                    bits
+                };
+                let mut jc = m.lo[1];
+                while jc <= m.hi[1] {
+                    let mut ic = m.lo[0];
+                    while ic <= m.hi[0] {
+                        let corners = [(ic, jc), (ic + CELL, jc), (ic, jc + CELL), (ic + CELL, jc + CELL)];
+                        let culled = corners.iter().fold(0xFFu8, |acc, &(i, j)| acc & mask(i, j, kc0) & mask(i, j, kc1));
+                        if culled == 0 {
+                            for j in jc.max(j0)..=(jc + CELL - 1).min(j1) {
+                                let a = m.row(j, k);
+                                for i in ic.max(i0)..=(ic + CELL - 1).min(i1) {
+                                    stats.candidates += 1;
+                                    if m.inside(&a, i) {
+                                        write_run(&mut slice[j * nx..], m, j, k, i, i, sampler);
+                                        stats.inside += 1;
+                                    }
+                                }
+                            }
+                        }
+                        ic += CELL;
+                    }
+                    jc += CELL;
+                }
+            }
+        }
+    }
+    stats
+}
+
+/// Coarse cell size of the culling scheme (the seed's 8x8x8).
+pub const CELL: usize = 8;
+
+/// Samples the source for output voxels i0..=i1 of row (j, k); `row` starts at i = 0.
+#[inline]
+fn write_run<T: Real>(row: &mut [T], m: &TetMap, j: usize, k: usize, i0: usize, i1: usize, sampler: &Sampler) {
+    let (jf, kf) = (j as f64, k as f64);
+    let base = m.src.map(|s| T::of(s[0] + s[2] * jf + s[3] * kf));
+    let step = m.src.map(|s| T::of(s[1]));
+    for (i, out) in row[i0..=i1].iter_mut().enumerate() {
+        let fi = T::of((i0 + i) as f64);
+        *out = sampler.at(base[0] + step[0] * fi, base[1] + step[1] * fi, base[2] + step[2] * fi);
+    }
+}
+
+/// Which tets overlap each output slice, in tet order.
+fn slice_bins(maps: &[Option<TetMap>], nz: usize) -> Vec<Vec<u32>> {
+    let mut bins = vec![Vec::new(); nz];
+    for (t, m) in maps.iter().enumerate() {
+        if let Some(m) = m {
+            for bin in &mut bins[m.lo[2]..=m.hi[2]] {
+                bin.push(t as u32);
+            }
+        }
+    }
+    bins
+}
+
+fn check_size(grid: &Grid, bytes_per_voxel: u64, options: &WarpOptions) -> Result<(), WarpError> {
+    let needed = grid.len() as u64 * bytes_per_voxel;
+    if needed > options.max_bytes {
+        return Err(WarpError::TooLarge { dims: grid.dims, needed_mib: needed.div_ceil(1 << 20), limit_mib: options.max_bytes >> 20 });
+    }
+    Ok(())
+}
+
+/// Warps `source` through `rest` → `deformed` onto `grid`, in precision T (f32: the fast
+/// path; f64: the reference). Positions are in the source's physical units.
+pub fn warp_samples<T: Real>(
+    source: &Volume,
+    rest: &TetMesh,
+    deformed: &[Vector3<f64>],
+    grid: &Grid,
+    options: &WarpOptions,
+) -> Result<(Vec<T>, WarpStats), WarpError> {
+    check_size(grid, std::mem::size_of::<T>() as u64, options)?;
+    let maps = tet_maps(rest, deformed, &source.grid(), grid)?;
+    let sampler = Sampler::new(source, options)?;
+    let identity = grid.index_map_to(&source.grid());
+    let [nx, ny, nz] = grid.dims;
+    let bins = slice_bins(&maps, nz);
+    let mut out = vec![T::zero(); grid.len()];
+    let mut stats = out
+        .par_chunks_mut(nx * ny)
+        .enumerate()
+        .map(|(k, slice)| {
+            for j in 0..ny {
+                for i in 0..nx {
+                    slice[i + nx * j] = initial_value(&sampler, &identity, options.keep_uncovered, i, j, k);
+                }
+            }
+            rasterize_slice(slice, nx, k, &bins[k], &maps, &sampler, options.scheme, [0, 0], [nx - 1, ny - 1])
+        })
+        .reduce(WarpStats::default, |mut a, b| {
+            a += b;
+            a
+        });
+    stats.voxels = grid.len() as u64;
+    stats.skipped_tets = maps.iter().filter(|m| m.is_none()).count() as u64;
+    Ok((out, stats))
+}
+
+/// The f32 warp as a volume on `grid`.
+pub fn warp(source: &Volume, rest: &TetMesh, deformed: &[Vector3<f64>], grid: &Grid, options: &WarpOptions) -> Result<(Volume, WarpStats), WarpError> {
+    let (data, stats) = warp_samples::<f32>(source, rest, deformed, grid, options)?;
+    Ok((Volume::from_grid(grid, data, "warped volume")?, stats))
+}
+
+/// Displacement volumes alone (no mesh): out(p) = src(backward(p)) on `grid`.
+pub fn displace(source: &Volume, grid: &Grid, options: &WarpOptions) -> Result<Volume, WarpError> {
+    check_size(grid, 4, options)?;
+    let sampler = Sampler::new(source, options)?;
+    let identity = grid.index_map_to(&source.grid());
+    let [nx, ny, _] = grid.dims;
+    let mut out = vec![0f32; grid.len()];
+    out.par_chunks_mut(nx * ny).enumerate().for_each(|(k, slice)| {
+        for j in 0..ny {
+            for i in 0..nx {
+                slice[i + nx * j] = initial_value(&sampler, &identity, true, i, j, k);
+            }
+        }
+    });
+    Ok(Volume::from_grid(grid, out, "displaced volume")?)
+}
+
+/// A warp kept up to date as the mesh moves: only the region of tets whose nodes moved
+/// more than `tolerance` since the last update is recomputed.
+pub struct IncrementalWarp<'a> {
+    source: &'a Volume,
+    rest: &'a TetMesh,
+    grid: Grid,
+    options: WarpOptions,
+    positions: Vec<Vector3<f64>>,
+    maps: Vec<Option<TetMap>>,
+    data: Vec<f32>,
+}
+
+impl<'a> IncrementalWarp<'a> {
+    pub fn new(source: &'a Volume, rest: &'a TetMesh, deformed: &[Vector3<f64>], grid: Grid, options: WarpOptions) -> Result<(Self, WarpStats), WarpError> {
+        let (data, stats) = warp_samples::<f32>(source, rest, deformed, &grid, &options)?;
+        let maps = tet_maps(rest, deformed, &source.grid(), &grid)?;
+        Ok((Self { source, rest, grid, options, positions: deformed.to_vec(), maps, data }, stats))
+    }
+
+    pub fn data(&self) -> &[f32] {
+        &self.data
+    }
+    pub fn grid(&self) -> &Grid {
+        &self.grid
+    }
+
+    /// Re-warps the box covering the old and new extents of every tet with a node that
+    /// moved more than `tolerance`; returns the work done (zero when nothing moved).
+    pub fn update(&mut self, deformed: &[Vector3<f64>], tolerance: f64) -> Result<WarpStats, WarpError> {
+        let maps = tet_maps(self.rest, deformed, &self.source.grid(), &self.grid)?;
+        let moved: Vec<bool> = self.positions.iter().zip(deformed).map(|(a, b)| (a - b).norm() > tolerance).collect();
+        let mut region: Option<([usize; 3], [usize; 3])> = None;
+        let mut grow = |m: &TetMap| {
+            let (lo, hi) = region.get_or_insert((m.lo, m.hi));
+            for a in 0..3 {
+                lo[a] = lo[a].min(m.lo[a]);
+                hi[a] = hi[a].max(m.hi[a]);
+            }
+        };
+        for (t, tet) in self.rest.tets().iter().enumerate() {
+            if !tet.iter().any(|n| moved[*n as usize]) {
+                continue;
+            }
+            for m in [&self.maps[t], &maps[t]].into_iter().flatten() {
+                grow(m);
+            }
+        }
+        // Inverted tets have no map: cover their nodes' positions too.
+        for (t, tet) in self.rest.tets().iter().enumerate() {
+            if tet.iter().any(|n| moved[*n as usize]) && (self.maps[t].is_none() || maps[t].is_none()) {
+                for p in tet.iter().flat_map(|n| [self.positions[*n as usize], deformed[*n as usize]]) {
+                    let ijk = self.grid.index_from_world(p);
+                    let clampi = |v: f64, a: usize| v.clamp(0.0, (self.grid.dims[a] - 1) as f64);
+                    let c = [0, 1, 2].map(|a| clampi(ijk[a], a));
+                    grow(&TetMap { lo: c.map(|v| v.floor() as usize), hi: c.map(|v| v.ceil() as usize), bary: [[0.0; 4]; 4], src: [[0.0; 4]; 3] });
+                }
+            }
+        }
+        self.positions = deformed.to_vec();
+        self.maps = maps;
+        let Some((lo, hi)) = region else { return Ok(WarpStats::default()) };
+        let sampler = Sampler::new(self.source, &self.options)?;
+        let identity = self.grid.index_map_to(&self.source.grid());
+        let [nx, ny, _] = self.grid.dims;
+        let bins = slice_bins(&self.maps, self.grid.dims[2]);
+        let (maps, options) = (&self.maps, &self.options);
+        let mut stats = self.data[lo[2] * nx * ny..(hi[2] + 1) * nx * ny]
+            .par_chunks_mut(nx * ny)
+            .enumerate()
+            .map(|(dk, slice)| {
+                let k = lo[2] + dk;
+                for j in lo[1]..=hi[1] {
+                    for i in lo[0]..=hi[0] {
+                        slice[i + nx * j] = initial_value(&sampler, &identity, options.keep_uncovered, i, j, k);
+                    }
+                }
+                rasterize_slice(slice, nx, k, &bins[k], maps, &sampler, options.scheme, [lo[0], lo[1]], [hi[0], hi[1]])
+            })
+            .reduce(WarpStats::default, |mut a, b| {
+                a += b;
+                a
+            });
+        stats.voxels = ((hi[0] - lo[0] + 1) * (hi[1] - lo[1] + 1) * (hi[2] - lo[2] + 1)) as u64;
+        Ok(stats)
+    }
+}
