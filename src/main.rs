@@ -10,6 +10,7 @@ use defvol::engine::{BackendChoice, Engine};
 use defvol::io;
 use defvol::scene::{MeshSource, Scene};
 use defvol::solver::{Integrator, Preconditioner, StepReport};
+use defvol::warp::{Sampling, Scheme};
 
 #[derive(Parser)]
 #[command(name = "defvol", version, about = "Deformable volumes: implicit mass-spring meshes on the CPU and the GPU")]
@@ -63,6 +64,27 @@ struct SimulateArgs {
 
 #[derive(Subcommand)]
 enum BenchStage {
+    /// Grid warp of the phantom through lattice meshes (seed 003's cases).
+    Warp {
+        #[arg(long, value_delimiter = ',', default_value = "40,700,1080,5000")]
+        tets: Vec<usize>,
+        #[arg(long, value_delimiter = ',', default_value = "upright,rot45,bend")]
+        cases: Vec<String>,
+        #[arg(long, value_delimiter = ',', default_value = "spans,culling,bbox")]
+        schemes: Vec<Scheme>,
+        #[arg(long, value_delimiter = ',', default_value = "trilinear")]
+        samplings: Vec<Sampling>,
+        /// Phantom size (1 mm voxels).
+        #[arg(long, value_delimiter = ',', default_value = "256,160,122")]
+        dims: Vec<usize>,
+        #[arg(long, default_value_t = 5)]
+        runs: usize,
+        /// Also time an incremental update after a local press.
+        #[arg(long)]
+        incremental: bool,
+        #[arg(long)]
+        json: bool,
+    },
     /// Implicit Euler (CG tolerance and time step sweeps) and the explicit schemes.
     Solver {
         /// Mesh sizes in tets (default: the seed's Table 1 sizes).
@@ -194,6 +216,25 @@ fn main() -> Result<()> {
     tracing_subscriber::fmt().with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into())).with_target(false).init();
     match Cli::parse().command {
         Command::Simulate(args) => simulate(args),
+        Command::Bench { stage: BenchStage::Warp { tets, cases, schemes, samplings, dims, runs, incremental, json } } => {
+            let cases = cases
+                .iter()
+                .map(|c| bench::WarpCase::ALL.into_iter().find(|k| k.name() == c).with_context(|| format!("unknown warp case `{c}` (upright, rot45, bend)")))
+                .collect::<Result<Vec<_>>>()?;
+            let [x, y, z] = dims[..] else { bail!("--dims takes three sizes") };
+            let opts = bench::WarpBenchOptions { tets, cases, schemes, samplings, dims: [x, y, z], runs, incremental };
+            if !json {
+                println!("{}", bench::WARP_TABLE_HEADER);
+            }
+            bench::warp(&opts, |row| {
+                if json {
+                    println!("{}", serde_json::to_string(row).unwrap_or_default());
+                } else {
+                    println!("{}", bench::warp_table_row(row));
+                }
+            })?;
+            Ok(())
+        }
         Command::Bench { stage: BenchStage::Solver { sizes, steps, backends, allow_software_gpu, tolerances, dts, explicit_dt, preconditioners, json } } => {
             let opts = bench::SolverBenchOptions { sizes: sizes.unwrap_or(bench::SEED_SIZES.to_vec()), steps, backends, allow_software_gpu, tolerances, dts, explicit_dt, preconditioners };
             if !json {

@@ -40,6 +40,8 @@ pub enum WarpError {
     TooLarge { dims: [usize; 3], needed_mib: u64, limit_mib: u64 },
     #[error("displacement volume {index}: {why}")]
     BadDisplacement { index: usize, why: String },
+    #[error("output buffer holds {got} samples; the grid has {expected}")]
+    BufferSize { got: usize, expected: usize },
     #[error(transparent)]
     Volume(#[from] VolumeError),
 }
@@ -112,6 +114,13 @@ pub struct TetMap {
     pub bary: [[f64; 4]; 4],
     /// Source index r = src[r][0] + src[r][1]·i + src[r][2]·j + src[r][3]·k.
     pub src: [[f64; 4]; 3],
+    /// Deformed vertices in output index space.
+    pub verts: [[f64; 3]; 4],
+    /// 1 / bary[m][1] (0 where that is 0): the span bounds without divisions per row.
+    pub inv_c: [f64; 4],
+    /// The rest tet lies inside the source's voxel-centre box, so its samples need no
+    /// bounds test (true for meshes embedding the volume).
+    pub src_inside: bool,
 }
 
 impl TetMap {
@@ -134,18 +143,18 @@ impl TetMap {
         for m in 0..4 {
             let c = self.bary[m][1];
             if c > 0.0 {
-                lo = lo.max((-a[m] / c).ceil());
+                lo = lo.max((-a[m] * self.inv_c[m]).ceil());
             } else if c < 0.0 {
-                hi = hi.min((-a[m] / c).floor());
+                hi = hi.min((-a[m] * self.inv_c[m]).floor());
             } else if a[m] < 0.0 {
                 return None;
             }
         }
-        if lo > hi {
-            return None;
-        }
-        let (mut lo, mut hi) = (lo as usize, hi as usize);
-        // The division above can miss by one at a tie; settle on the evaluated predicate.
+        // The divisions can be off by one at a tie: widen by one voxel, then settle on
+        // the evaluated predicate (the inside set of a row is an interval).
+        let (box_lo, box_hi) = (self.lo[0] as f64, self.hi[0] as f64);
+        let mut lo = (lo - 1.0).clamp(box_lo, box_hi) as usize;
+        let mut hi = (hi + 1.0).clamp(box_lo, box_hi) as usize;
         while lo <= hi && !self.inside(a, lo) {
             lo += 1;
         }
@@ -155,16 +164,35 @@ impl TetMap {
             }
             hi -= 1;
         }
+        (lo <= hi).then_some((lo, hi))
+    }
+
+    /// Rows j of slice k that can meet the tet: the y-range of its cross-section with the
+    /// plane z = k, widened by one row (spans settle the exact set).
+    pub fn section_rows(&self, k: usize) -> Option<(usize, usize)> {
+        let z = k as f64;
+        let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
+        for a in 0..4 {
+            let pa = self.verts[a];
+            if pa[2] == z {
+                lo = lo.min(pa[1]);
+                hi = hi.max(pa[1]);
+            }
+            for b in a + 1..4 {
+                let pb = self.verts[b];
+                if (pa[2] - z) * (pb[2] - z) < 0.0 {
+                    let y = pa[1] + (z - pa[2]) / (pb[2] - pa[2]) * (pb[1] - pa[1]);
+                    lo = lo.min(y);
+                    hi = hi.max(y);
+                }
+            }
+        }
         if lo > hi {
             return None;
         }
-        while lo > self.lo[0] && self.inside(a, lo - 1) {
-            lo -= 1;
-        }
-        while hi < self.hi[0] && self.inside(a, hi + 1) {
-            hi += 1;
-        }
-        Some((lo, hi))
+        let j0 = (lo.ceil() - 1.0).max(self.lo[1] as f64);
+        let j1 = (hi.floor() + 1.0).min(self.hi[1] as f64);
+        (j0 <= j1).then_some((j0 as usize, j1 as usize))
     }
 }
 
@@ -178,7 +206,18 @@ pub fn tet_maps(rest: &TetMesh, deformed: &[Vector3<f64>], source: &Grid, grid: 
     }
     let out_index: Vec<Vector3<f64>> = deformed.iter().map(|p| grid.index_from_world(*p)).collect();
     let src_index: Vec<Vector3<f64>> = rest.nodes().iter().map(|p| source.index_from_world(*p)).collect();
-    Ok(rest.tets().par_iter().map(|t| tet_map(t, &out_index, &src_index, grid.dims)).collect())
+    let limit = Vector3::from(source.dims.map(|d| (d - 1) as f64));
+    let within = |q: &Vector3<f64>| (0..3).all(|a| q[a] >= 1e-6 && q[a] <= limit[a] - 1e-6);
+    Ok(rest
+        .tets()
+        .par_iter()
+        .map(|t| {
+            tet_map(t, &out_index, &src_index, grid.dims).map(|mut m| {
+                m.src_inside = t.iter().all(|n| within(&src_index[*n as usize]));
+                m
+            })
+        })
+        .collect())
 }
 
 fn tet_map(t: &[u32; 4], out_index: &[Vector3<f64>], src_index: &[Vector3<f64>], dims: [usize; 3]) -> Option<TetMap> {
@@ -215,7 +254,8 @@ fn tet_map(t: &[u32; 4], out_index: &[Vector3<f64>], src_index: &[Vector3<f64>],
         lo[a] = min as usize;
         hi[a] = max as usize;
     }
-    Some(TetMap { lo, hi, bary, src })
+    let inv_c = bary.map(|b| if b[1] != 0.0 { 1.0 / b[1] } else { 0.0 });
+    Some(TetMap { lo, hi, bary, src, verts: p.map(|v| [v.x, v.y, v.z]), inv_c, src_inside: false })
 }
 
 /// The default output grid: the deformed nodes' box at the source's spacing and direction,
@@ -264,6 +304,99 @@ impl<'a> Sampler<'a> {
         let world = self.source.world_from_index(Vector3::new(x.to_f64(), y.to_f64(), z.to_f64()));
         let moved = self.source.index_from_world(backward_all(&self.displacements, &world));
         self.at_index(T::of(moved.x), T::of(moved.y), T::of(moved.z))
+    }
+
+    fn is_plain_trilinear(&self) -> bool {
+        self.sampling == Sampling::Trilinear && self.displacements.is_empty()
+    }
+
+    /// Trilinear samples along a run of output voxels, source index base + step·i: the hot
+    /// loop of the warp, with the limits and strides hoisted out of it.
+    fn trilinear_run<T: Real>(&self, out: &mut [T], base: [T; 3], step: [T; 3], i0: usize, src_inside: bool) {
+        let [nx, ny, nz] = self.dims;
+        let limit = [T::of((nx - 1) as f64), T::of((ny - 1) as f64), T::of((nz - 1) as f64)];
+        let top = [nx.saturating_sub(2), ny.saturating_sub(2), nz.saturating_sub(2)];
+        let sx = usize::from(nx > 1);
+        let sy = if ny > 1 { nx } else { 0 };
+        let sz = if nz > 1 { nx * ny } else { 0 };
+        let background = T::of(self.background as f64);
+        let zero = T::zero();
+        let data = self.data;
+        let (top, nx, nxy) = (top.map(|t| t as i32), nx as i32, (nx * ny) as i32);
+        if src_inside {
+            // Convex combination of in-box points: only round-off can leave the box, and
+            // truncation plus the clamp to `top` absorb it.
+            for (n, slot) in out.iter_mut().enumerate() {
+                let fi = T::of_i32((i0 + n) as i32);
+                let (x, y, z) = (base[0] + step[0] * fi, base[1] + step[1] * fi, base[2] + step[2] * fi);
+                let (i, j, k) = (x.trunc_i32().clamp(0, top[0]), y.trunc_i32().clamp(0, top[1]), z.trunc_i32().clamp(0, top[2]));
+                let (fx, fy, fz) = (x - T::of_i32(i), y - T::of_i32(j), z - T::of_i32(k));
+                let b = (i + nx * j + nxy * k) as usize;
+                let v = |o: usize| T::of_f32(data[b + o]);
+                let c00 = v(0) + (v(sx) - v(0)) * fx;
+                let c10 = v(sy) + (v(sy + sx) - v(sy)) * fx;
+                let c01 = v(sz) + (v(sz + sx) - v(sz)) * fx;
+                let c11 = v(sz + sy) + (v(sz + sy + sx) - v(sz + sy)) * fx;
+                let c0 = c00 + (c10 - c00) * fy;
+                let c1 = c01 + (c11 - c01) * fy;
+                *slot = c0 + (c1 - c0) * fz;
+            }
+            return;
+        }
+        // The run is affine in n: find the sub-run whose sample points lie in the source's
+        // voxel-centre box, so the loop below needs no per-voxel bounds test.
+        let (mut first, mut last) = (0.0f64, out.len() as f64 - 1.0);
+        for a in 0..3 {
+            let (b0, s0, lim) = ((base[a] + step[a] * T::of_i32(i0 as i32)).to_f64(), step[a].to_f64(), limit[a].to_f64());
+            if s0 > 0.0 {
+                first = first.max((-b0 / s0).ceil());
+                last = last.min(((lim - b0) / s0).floor());
+            } else if s0 < 0.0 {
+                first = first.max(((lim - b0) / s0).ceil());
+                last = last.min((-b0 / s0).floor());
+            } else if !(0.0..=lim).contains(&b0) {
+                first = 1.0;
+                last = 0.0;
+            }
+        }
+        let inside = |n: usize| {
+            let fi = T::of_i32((i0 + n) as i32);
+            (0..3).all(|a| {
+                let c = base[a] + step[a] * fi;
+                c >= zero && c <= limit[a]
+            })
+        };
+        // Settle the rounding of the divisions on the evaluated test, as spans do.
+        let len = out.len();
+        let mut first = (first.max(0.0) as usize).min(len);
+        let mut last = if last < 0.0 { 0 } else { (last as usize).min(len.saturating_sub(1)) };
+        while first < len && first <= last && !inside(first) {
+            first += 1;
+        }
+        while last > first && !inside(last) {
+            last -= 1;
+        }
+        if first >= len || first > last || !inside(first) {
+            out.fill(background);
+            return;
+        }
+        out[..first].fill(background);
+        out[last + 1..].fill(background);
+        for (n, slot) in out[first..=last].iter_mut().enumerate() {
+            let fi = T::of_i32((i0 + first + n) as i32);
+            let (x, y, z) = (base[0] + step[0] * fi, base[1] + step[1] * fi, base[2] + step[2] * fi);
+            let (i, j, k) = (x.trunc_i32().min(top[0]), y.trunc_i32().min(top[1]), z.trunc_i32().min(top[2]));
+            let (fx, fy, fz) = (x - T::of_i32(i), y - T::of_i32(j), z - T::of_i32(k));
+            let b = (i + nx * j + nxy * k) as usize;
+            let v = |o: usize| T::of_f32(data[b + o]);
+            let c00 = v(0) + (v(sx) - v(0)) * fx;
+            let c10 = v(sy) + (v(sy + sx) - v(sy)) * fx;
+            let c01 = v(sz) + (v(sz + sx) - v(sz)) * fx;
+            let c11 = v(sz + sy) + (v(sz + sy + sx) - v(sz + sy)) * fx;
+            let c0 = c00 + (c10 - c00) * fy;
+            let c1 = c01 + (c11 - c01) * fy;
+            *slot = c0 + (c1 - c0) * fz;
+        }
     }
 
     #[inline]
@@ -371,7 +504,8 @@ fn rasterize_slice<T: Real>(
         }
         match scheme {
             Scheme::Spans => {
-                for j in j0..=j1 {
+                let Some((s0, s1)) = m.section_rows(k) else { continue };
+                for j in s0.max(j0)..=s1.min(j1) {
                     let a = m.row(j, k);
                     let Some((s0, s1)) = m.span(&a) else { continue };
                     let (s0, s1) = (s0.max(i0), s1.min(i1));
@@ -448,6 +582,10 @@ fn write_run<T: Real>(row: &mut [T], m: &TetMap, j: usize, k: usize, i0: usize, 
     let (jf, kf) = (j as f64, k as f64);
     let base = m.src.map(|s| T::of(s[0] + s[2] * jf + s[3] * kf));
     let step = m.src.map(|s| T::of(s[1]));
+    if sampler.is_plain_trilinear() {
+        sampler.trilinear_run(&mut row[i0..=i1], base, step, i0, m.src_inside);
+        return;
+    }
     for (i, out) in row[i0..=i1].iter_mut().enumerate() {
         let fi = T::of((i0 + i) as f64);
         *out = sampler.at(base[0] + step[0] * fi, base[1] + step[1] * fi, base[2] + step[2] * fi);
@@ -485,20 +623,42 @@ pub fn warp_samples<T: Real>(
     options: &WarpOptions,
 ) -> Result<(Vec<T>, WarpStats), WarpError> {
     check_size(grid, std::mem::size_of::<T>() as u64, options)?;
+    let mut out = vec![T::zero(); grid.len()];
+    let stats = warp_into(source, rest, deformed, grid, options, &mut out)?;
+    Ok((out, stats))
+}
+
+/// As [`warp_samples`], into a caller's buffer of `grid.len()` samples (reused from frame
+/// to frame, or a shared-memory sample being published).
+pub fn warp_into<T: Real>(
+    source: &Volume,
+    rest: &TetMesh,
+    deformed: &[Vector3<f64>],
+    grid: &Grid,
+    options: &WarpOptions,
+    out: &mut [T],
+) -> Result<WarpStats, WarpError> {
+    check_size(grid, std::mem::size_of::<T>() as u64, options)?;
+    if out.len() != grid.len() {
+        return Err(WarpError::BufferSize { got: out.len(), expected: grid.len() });
+    }
     let maps = tet_maps(rest, deformed, &source.grid(), grid)?;
     let sampler = Sampler::new(source, options)?;
     let identity = grid.index_map_to(&source.grid());
     let [nx, ny, nz] = grid.dims;
     let bins = slice_bins(&maps, nz);
-    let mut out = vec![T::zero(); grid.len()];
     let mut stats = out
         .par_chunks_mut(nx * ny)
         .enumerate()
         .map(|(k, slice)| {
-            for j in 0..ny {
-                for i in 0..nx {
-                    slice[i + nx * j] = initial_value(&sampler, &identity, options.keep_uncovered, i, j, k);
+            if options.keep_uncovered {
+                for j in 0..ny {
+                    for i in 0..nx {
+                        slice[i + nx * j] = initial_value(&sampler, &identity, true, i, j, k);
+                    }
                 }
+            } else {
+                slice.fill(T::of(options.background as f64));
             }
             rasterize_slice(slice, nx, k, &bins[k], &maps, &sampler, options.scheme, [0, 0], [nx - 1, ny - 1])
         })
@@ -508,7 +668,7 @@ pub fn warp_samples<T: Real>(
         });
     stats.voxels = grid.len() as u64;
     stats.skipped_tets = maps.iter().filter(|m| m.is_none()).count() as u64;
-    Ok((out, stats))
+    Ok(stats)
 }
 
 /// The f32 warp as a volume on `grid`.
@@ -588,7 +748,15 @@ impl<'a> IncrementalWarp<'a> {
                     let ijk = self.grid.index_from_world(p);
                     let clampi = |v: f64, a: usize| v.clamp(0.0, (self.grid.dims[a] - 1) as f64);
                     let c = [0, 1, 2].map(|a| clampi(ijk[a], a));
-                    grow(&TetMap { lo: c.map(|v| v.floor() as usize), hi: c.map(|v| v.ceil() as usize), bary: [[0.0; 4]; 4], src: [[0.0; 4]; 3] });
+                    grow(&TetMap {
+                        lo: c.map(|v| v.floor() as usize),
+                        hi: c.map(|v| v.ceil() as usize),
+                        bary: [[0.0; 4]; 4],
+                        src: [[0.0; 4]; 3],
+                        verts: [[0.0; 3]; 4],
+                        inv_c: [0.0; 4],
+                        src_inside: true,
+                    });
                 }
             }
         }
