@@ -10,7 +10,7 @@ use defvol::engine::{BackendChoice, Engine};
 use defvol::io;
 use defvol::scene::{MeshSource, Scene};
 use defvol::solver::{Integrator, Preconditioner, StepReport};
-use defvol::warp::{Sampling, Scheme};
+use defvol::warp::{DisplacementVolume, Sampling, Scheme, WarpOptions};
 
 #[derive(Parser)]
 #[command(name = "defvol", version, about = "Deformable volumes: implicit mass-spring meshes on the CPU and the GPU")]
@@ -23,6 +23,9 @@ struct Cli {
 enum Command {
     /// Run a mesh for N steps with a scripted tool; write the final mesh and a per-step CSV.
     Simulate(SimulateArgs),
+    /// Warp a volume through a deformed mesh and/or displacement volumes; with no files,
+    /// the phantom through a generated bend and press.
+    Warp(WarpArgs),
     /// Measure a stage: run time against error.
     Bench {
         #[command(subcommand)]
@@ -60,6 +63,84 @@ struct SimulateArgs {
     /// Output folder: final.vtu and steps.csv.
     #[arg(long, default_value = "out")]
     out: PathBuf,
+}
+
+#[derive(clap::Args)]
+struct WarpArgs {
+    /// Rest mesh (.vtu, .vtk, .msh, .node/.ele), in the volume's physical units.
+    #[arg(long, requires = "deformed")]
+    rest: Option<PathBuf>,
+    /// Deformed mesh: same topology, moved nodes.
+    #[arg(long, requires = "rest")]
+    deformed: Option<PathBuf>,
+    /// Source volume (.nii, .nii.gz, .nrrd, .nhdr, .mha, .mhd); the phantom when absent.
+    #[arg(long)]
+    volume: Option<PathBuf>,
+    /// Output volume (.nii, .nii.gz, .nrrd, .mha, .mhd), in the source's units and conventions.
+    #[arg(long)]
+    out: PathBuf,
+    /// A displacement volume "cx,cy,cz:dx,dy,dz:extent" (repeatable; applied in order).
+    #[arg(long)]
+    displace: Vec<String>,
+    #[arg(long, value_enum, default_value = "spans")]
+    scheme: Scheme,
+    #[arg(long, value_enum, default_value = "trilinear")]
+    sampling: Sampling,
+    #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
+    background: f32,
+    /// Voxels outside the mesh keep the source's value.
+    #[arg(long)]
+    keep_uncovered: bool,
+}
+
+fn parse_displacement(text: &str) -> Result<DisplacementVolume> {
+    let parts: Vec<&str> = text.split(':').collect();
+    let vec3 = |s: &str| -> Result<[f64; 3]> {
+        let v: Vec<f64> = s.split(',').map(|c| c.trim().parse::<f64>()).collect::<Result<_, _>>().with_context(|| format!("`{s}` is not three numbers"))?;
+        let [x, y, z] = v[..] else { bail!("`{s}` is not three numbers") };
+        Ok([x, y, z])
+    };
+    let [centre, displacement, extent] = parts[..] else { bail!("--displace `{text}`: expected cx,cy,cz:dx,dy,dz:extent") };
+    Ok(DisplacementVolume { centre: vec3(centre)?, displacement: vec3(displacement)?, extent: extent.trim().parse().with_context(|| format!("--displace `{text}`: bad extent"))? })
+}
+
+fn warp_command(args: WarpArgs) -> Result<()> {
+    let source = match &args.volume {
+        Some(path) => io::read_volume(path)?,
+        None => defvol::volume::phantom::phantom(defvol::volume::phantom::DEFAULT_DIMS, 1.0)?,
+    };
+    let displacements = args.displace.iter().map(|d| parse_displacement(d)).collect::<Result<Vec<_>>>()?;
+    let options = WarpOptions { scheme: args.scheme, sampling: args.sampling, background: args.background, keep_uncovered: args.keep_uncovered, displacements, ..Default::default() };
+    let started = std::time::Instant::now();
+    let result = match (&args.rest, &args.deformed) {
+        (Some(rest_path), Some(deformed_path)) => {
+            let rest = io::read_mesh(rest_path)?;
+            let deformed = io::read_mesh(deformed_path)?;
+            if deformed.tets() != rest.tets() {
+                bail!("{}: the deformed mesh's tets differ from the rest mesh's ({} vs {} tets, or other node order)", deformed_path.display(), deformed.tets().len(), rest.tets().len());
+            }
+            let grid = defvol::warp::default_grid(&source, deformed.nodes());
+            let (out, stats) = defvol::warp::warp(&source, &rest, deformed.nodes(), &grid, &options)?;
+            tracing::info!("{stats:?}");
+            out
+        }
+        _ if args.volume.is_some() && args.rest.is_none() && !options.displacements.is_empty() => defvol::warp::displace(&source, &source.grid(), &options)?,
+        _ => {
+            // The phantom through a generated deformation: a bend plus a local press.
+            let (lo, hi) = source.bounds();
+            let rest = defvol::mesh::generate::lattice_for_box(lo, hi, 700, defvol::mesh::generate::CellSplit::Five)?;
+            let (centre, half) = ((lo + hi) / 2.0, (hi - lo) / 2.0);
+            let bent = bench::WarpCase::Bend.deform(rest.nodes(), centre, half);
+            let grid = defvol::warp::default_grid(&source, &bent);
+            let (out, stats) = defvol::warp::warp(&source, &rest, &bent, &grid, &options)?;
+            tracing::info!("{stats:?}");
+            out
+        }
+    };
+    tracing::info!("warped to {:?} in {:.1} ms", result.dims(), started.elapsed().as_secs_f64() * 1e3);
+    io::write_volume(&args.out, &result)?;
+    tracing::info!("wrote {}", args.out.display());
+    Ok(())
 }
 
 #[derive(Subcommand)]
@@ -216,6 +297,7 @@ fn main() -> Result<()> {
     tracing_subscriber::fmt().with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into())).with_target(false).init();
     match Cli::parse().command {
         Command::Simulate(args) => simulate(args),
+        Command::Warp(args) => warp_command(args),
         Command::Bench { stage: BenchStage::Warp { tets, cases, schemes, samplings, dims, runs, incremental, json } } => {
             let cases = cases
                 .iter()

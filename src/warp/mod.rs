@@ -104,6 +104,16 @@ impl std::ops::AddAssign for WarpStats {
     }
 }
 
+/// A voxel is inside a tet when every barycentric coordinate is ≥ -ε. Without it, voxels on
+/// a mesh boundary that coincides with the lattice (a mesh built on the volume's box) fall
+/// out by round-off; ε is far below a voxel (coordinates are in voxel units).
+pub const INSIDE_TOLERANCE: f64 = 1e-9;
+
+/// Sample points this far (in source voxels) outside the voxel-centre box are read on its
+/// edge rather than as background: round-off on a mesh built on the box must not punch
+/// holes in its boundary.
+pub const SAMPLE_TOLERANCE: f64 = 1e-6;
+
 /// One tet's maps in output index space.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct TetMap {
@@ -124,11 +134,12 @@ pub struct TetMap {
 }
 
 impl TetMap {
-    /// Barycentric offsets of row (j, k): b_m(i) = a[m] + bary[m][1]·i.
+    /// Barycentric offsets of row (j, k): b_m(i) + ε = a[m] + bary[m][1]·i, with the
+    /// tolerance ε = [`INSIDE_TOLERANCE`] folded in.
     #[inline]
     pub fn row(&self, j: usize, k: usize) -> [f64; 4] {
         let (j, k) = (j as f64, k as f64);
-        self.bary.map(|b| b[0] + b[2] * j + b[3] * k)
+        self.bary.map(|b| b[0] + b[2] * j + b[3] * k + INSIDE_TOLERANCE)
     }
 
     #[inline]
@@ -174,7 +185,9 @@ impl TetMap {
         let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
         for a in 0..4 {
             let pa = self.verts[a];
-            if pa[2] == z {
+            // Vertices within round-off of the plane belong to the section (a face lying
+            // on a voxel plane must not lose its rows).
+            if (pa[2] - z).abs() <= SAMPLE_TOLERANCE {
                 lo = lo.min(pa[1]);
                 hi = hi.max(pa[1]);
             }
@@ -207,7 +220,7 @@ pub fn tet_maps(rest: &TetMesh, deformed: &[Vector3<f64>], source: &Grid, grid: 
     let out_index: Vec<Vector3<f64>> = deformed.iter().map(|p| grid.index_from_world(*p)).collect();
     let src_index: Vec<Vector3<f64>> = rest.nodes().iter().map(|p| source.index_from_world(*p)).collect();
     let limit = Vector3::from(source.dims.map(|d| (d - 1) as f64));
-    let within = |q: &Vector3<f64>| (0..3).all(|a| q[a] >= 1e-6 && q[a] <= limit[a] - 1e-6);
+    let within = |q: &Vector3<f64>| (0..3).all(|a| q[a] >= -SAMPLE_TOLERANCE && q[a] <= limit[a] + SAMPLE_TOLERANCE);
     Ok(rest
         .tets()
         .par_iter()
@@ -246,8 +259,9 @@ fn tet_map(t: &[u32; 4], out_index: &[Vector3<f64>], src_index: &[Vector3<f64>],
     let mut lo = [0usize; 3];
     let mut hi = [0usize; 3];
     for a in 0..3 {
-        let min = p.iter().map(|v| v[a]).fold(f64::INFINITY, f64::min).ceil().max(0.0);
-        let max = p.iter().map(|v| v[a]).fold(f64::NEG_INFINITY, f64::max).floor().min((dims[a] - 1) as f64);
+        // Widened by the sample tolerance: a vertex at 38.9999999 still covers voxel 39.
+        let min = (p.iter().map(|v| v[a]).fold(f64::INFINITY, f64::min) - SAMPLE_TOLERANCE).ceil().max(0.0);
+        let max = (p.iter().map(|v| v[a]).fold(f64::NEG_INFINITY, f64::max) + SAMPLE_TOLERANCE).floor().min((dims[a] - 1) as f64);
         if min > max {
             return None;
         }
@@ -320,7 +334,6 @@ impl<'a> Sampler<'a> {
         let sy = if ny > 1 { nx } else { 0 };
         let sz = if nz > 1 { nx * ny } else { 0 };
         let background = T::of(self.background as f64);
-        let zero = T::zero();
         let data = self.data;
         let (top, nx, nxy) = (top.map(|t| t as i32), nx as i32, (nx * ny) as i32);
         if src_inside {
@@ -347,7 +360,7 @@ impl<'a> Sampler<'a> {
         // voxel-centre box, so the loop below needs no per-voxel bounds test.
         let (mut first, mut last) = (0.0f64, out.len() as f64 - 1.0);
         for a in 0..3 {
-            let (b0, s0, lim) = ((base[a] + step[a] * T::of_i32(i0 as i32)).to_f64(), step[a].to_f64(), limit[a].to_f64());
+            let (b0, s0, lim) = ((base[a] + step[a] * T::of_i32(i0 as i32)).to_f64() + SAMPLE_TOLERANCE, step[a].to_f64(), limit[a].to_f64() + 2.0 * SAMPLE_TOLERANCE);
             if s0 > 0.0 {
                 first = first.max((-b0 / s0).ceil());
                 last = last.min(((lim - b0) / s0).floor());
@@ -359,11 +372,12 @@ impl<'a> Sampler<'a> {
                 last = 0.0;
             }
         }
+        let tol = T::of(SAMPLE_TOLERANCE);
         let inside = |n: usize| {
             let fi = T::of_i32((i0 + n) as i32);
             (0..3).all(|a| {
                 let c = base[a] + step[a] * fi;
-                c >= zero && c <= limit[a]
+                c >= -tol && c <= limit[a] + tol
             })
         };
         // Settle the rounding of the divisions on the evaluated test, as spans do.
@@ -385,7 +399,7 @@ impl<'a> Sampler<'a> {
         for (n, slot) in out[first..=last].iter_mut().enumerate() {
             let fi = T::of_i32((i0 + first + n) as i32);
             let (x, y, z) = (base[0] + step[0] * fi, base[1] + step[1] * fi, base[2] + step[2] * fi);
-            let (i, j, k) = (x.trunc_i32().min(top[0]), y.trunc_i32().min(top[1]), z.trunc_i32().min(top[2]));
+            let (i, j, k) = (x.trunc_i32().clamp(0, top[0]), y.trunc_i32().clamp(0, top[1]), z.trunc_i32().clamp(0, top[2]));
             let (fx, fy, fz) = (x - T::of_i32(i), y - T::of_i32(j), z - T::of_i32(k));
             let b = (i + nx * j + nxy * k) as usize;
             let v = |o: usize| T::of_f32(data[b + o]);
@@ -408,14 +422,22 @@ impl<'a> Sampler<'a> {
     }
 }
 
+/// The point moved onto the voxel-centre box when within [`SAMPLE_TOLERANCE`] of it;
+/// `None` when further out.
+#[inline]
+fn clamp_to_box<T: Real>(dims: [usize; 3], x: T, y: T, z: T) -> Option<(T, T, T)> {
+    let tol = T::of(SAMPLE_TOLERANCE);
+    let c = |v: T, n: usize| {
+        let max = T::of((n - 1) as f64);
+        (v >= -tol && v <= max + tol).then(|| v.clamp(T::zero(), max))
+    };
+    Some((c(x, dims[0])?, c(y, dims[1])?, c(z, dims[2])?))
+}
+
 /// Trilinear interpolation at a continuous index; `None` outside the voxel-centre box.
 #[inline]
 pub fn trilinear<T: Real>(data: &[f32], dims: [usize; 3], x: T, y: T, z: T) -> Option<T> {
-    let zero = T::zero();
-    let max = |n: usize| T::of((n - 1) as f64);
-    if !(x >= zero && y >= zero && z >= zero && x <= max(dims[0]) && y <= max(dims[1]) && z <= max(dims[2])) {
-        return None;
-    }
+    let (x, y, z) = clamp_to_box(dims, x, y, z)?;
     let cell = |c: T, n: usize| -> usize { (c.to_f64() as usize).min(n.saturating_sub(2)) };
     let (i, j, k) = (cell(x, dims[0]), cell(y, dims[1]), cell(z, dims[2]));
     let (fx, fy, fz) = (x - T::of(i as f64), y - T::of(j as f64), z - T::of(k as f64));
@@ -443,11 +465,7 @@ fn catmull_rom<T: Real>(t: T) -> [T; 4] {
 
 /// Tricubic (Catmull-Rom) interpolation; taps beyond the edges repeat the edge voxel.
 pub fn tricubic<T: Real>(data: &[f32], dims: [usize; 3], x: T, y: T, z: T) -> Option<T> {
-    let zero = T::zero();
-    let max = |n: usize| T::of((n - 1) as f64);
-    if !(x >= zero && y >= zero && z >= zero && x <= max(dims[0]) && y <= max(dims[1]) && z <= max(dims[2])) {
-        return None;
-    }
+    let (x, y, z) = clamp_to_box(dims, x, y, z)?;
     let base = |c: T| c.to_f64().floor() as i64;
     let (bi, bj, bk) = (base(x), base(y), base(z));
     let (wx, wy, wz) = (catmull_rom(x - T::of(bi as f64)), catmull_rom(y - T::of(bj as f64)), catmull_rom(z - T::of(bk as f64)));
@@ -540,8 +558,9 @@ fn rasterize_slice<T: Real>(
                     let mut bits = 0u8;
                     for q in 0..4 {
                         let b = a[q] + m.bary[q][1] * i as f64;
+                        // b here is b_q + ε; inside needs b ≥ 0, which bounds b_q + ε ≤ 1 + 4ε.
                         bits |= u8::from(b < 0.0) << (2 * q);
-                        bits |= u8::from(b > 1.0) << (2 * q + 1);
+                        bits |= u8::from(b > 1.0 + 4.0 * INSIDE_TOLERANCE) << (2 * q + 1);
                     }
                     bits
                 };
