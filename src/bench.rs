@@ -243,6 +243,8 @@ pub struct WarpBenchOptions {
     pub dims: [usize; 3],
     pub runs: usize,
     pub incremental: bool,
+    /// Also run the GPU path (spans, trilinear) where an adapter is allowed.
+    pub gpu: Option<crate::gpu_policy::GpuChoice>,
 }
 
 /// Grid warp of the phantom through lattice meshes, against the f64 reference.
@@ -289,6 +291,10 @@ pub fn warp(opts: &WarpBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result<
                     });
                 }
             }
+            #[cfg(feature = "gpu")]
+            if let Some(choice) = opts.gpu {
+                warp_gpu_rows(choice, &source, &mesh, &deformed, case, &mut emit)?;
+            }
             if opts.incremental {
                 // A local press: nodes within 15 % of the box size from the top centre sink.
                 let tip = centre + Vector3::new(0.0, 0.0, half.z);
@@ -326,6 +332,62 @@ pub fn warp(opts: &WarpBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result<
             }
         }
     }
+    Ok(())
+}
+
+/// GPU rows: the spans scheme with trilinear sampling, including the read-back.
+#[cfg(feature = "gpu")]
+fn warp_gpu_rows(
+    choice: crate::gpu_policy::GpuChoice,
+    source: &crate::volume::Volume,
+    mesh: &crate::mesh::TetMesh,
+    deformed: &[Vector3<f64>],
+    case: WarpCase,
+    emit: &mut impl FnMut(&BenchRow),
+) -> Result<(), crate::warp::WarpError> {
+    use crate::gpu::warp::GpuWarper;
+    use crate::warp::{self as w, WarpOptions};
+    let Some(ctx) = choice.context() else { return Ok(()) };
+    let device = ctx.describe();
+    let warper = match GpuWarper::new(std::sync::Arc::new(ctx), source) {
+        Ok(w) => w,
+        Err(e) => {
+            tracing::warn!("GPU warp unavailable: {e}");
+            return Ok(());
+        }
+    };
+    let grid = w::default_grid(source, deformed);
+    let options = WarpOptions::default();
+    let (reference, _) = w::warp_samples::<f64>(source, mesh, deformed, &grid, &options)?;
+    let mut times = Vec::new();
+    let mut out = Vec::new();
+    for run in 0..=3 {
+        let start = Instant::now();
+        match warper.warp(mesh, deformed, &grid, &options) {
+            Ok((data, _)) => out = data,
+            Err(e) => {
+                tracing::warn!("GPU warp failed: {e}");
+                return Ok(());
+            }
+        }
+        if run > 0 {
+            times.push(start.elapsed().as_secs_f64() * 1e3);
+        }
+    }
+    let (vmin, vmax) = source.range();
+    let error = out.iter().zip(&reference).map(|(a, b)| (*a as f64 - b).abs()).fold(0.0, f64::max) / (vmax - vmin) as f64;
+    let median = time_stats(times.clone()).median;
+    emit(&BenchRow {
+        stage: "warp",
+        case: format!("lattice{}_{}", mesh.tets().len(), case.name()),
+        backend: "gpu".into(),
+        device,
+        params: json!({"scheme": "spans", "sampling": "trilinear", "dims": grid.dims, "includes_readback": true}),
+        runs: times.len(),
+        time_ms: time_stats(times),
+        error: Some(ErrorMeasure { metric: "max_abs_over_range", value: error, reference: "f64" }),
+        work: json!({"voxels": grid.len(), "mvoxels_per_s": grid.len() as f64 / median / 1e3}),
+    });
     Ok(())
 }
 

@@ -8,6 +8,7 @@ pub mod bench;
 pub mod engine;
 #[cfg(feature = "gpu")]
 pub mod gpu;
+pub mod gpu_policy;
 pub mod io;
 pub mod mesh;
 pub mod scene;

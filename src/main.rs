@@ -91,6 +91,12 @@ struct WarpArgs {
     /// Voxels outside the mesh keep the source's value.
     #[arg(long)]
     keep_uncovered: bool,
+    /// `auto`: the GPU when a hardware adapter exists and the options allow (spans,
+    /// trilinear, no displacement volumes), else the CPU.
+    #[arg(long, value_enum, default_value = "auto")]
+    backend: BackendChoice,
+    #[arg(long)]
+    allow_software_gpu: bool,
 }
 
 fn parse_displacement(text: &str) -> Result<DisplacementVolume> {
@@ -120,9 +126,7 @@ fn warp_command(args: WarpArgs) -> Result<()> {
                 bail!("{}: the deformed mesh's tets differ from the rest mesh's ({} vs {} tets, or other node order)", deformed_path.display(), deformed.tets().len(), rest.tets().len());
             }
             let grid = defvol::warp::default_grid(&source, deformed.nodes());
-            let (out, stats) = defvol::warp::warp(&source, &rest, deformed.nodes(), &grid, &options)?;
-            tracing::info!("{stats:?}");
-            out
+            warp_on_backend(&args, &source, &rest, deformed.nodes(), &grid, &options)?
         }
         _ if args.volume.is_some() && args.rest.is_none() && !options.displacements.is_empty() => defvol::warp::displace(&source, &source.grid(), &options)?,
         _ => {
@@ -132,15 +136,41 @@ fn warp_command(args: WarpArgs) -> Result<()> {
             let (centre, half) = ((lo + hi) / 2.0, (hi - lo) / 2.0);
             let bent = bench::WarpCase::Bend.deform(rest.nodes(), centre, half);
             let grid = defvol::warp::default_grid(&source, &bent);
-            let (out, stats) = defvol::warp::warp(&source, &rest, &bent, &grid, &options)?;
-            tracing::info!("{stats:?}");
-            out
+            warp_on_backend(&args, &source, &rest, &bent, &grid, &options)?
         }
     };
     tracing::info!("warped to {:?} in {:.1} ms", result.dims(), started.elapsed().as_secs_f64() * 1e3);
     io::write_volume(&args.out, &result)?;
     tracing::info!("wrote {}", args.out.display());
     Ok(())
+}
+
+/// The GPU path when asked for and possible, else the CPU path (with a log line saying why).
+fn warp_on_backend(
+    args: &WarpArgs,
+    source: &defvol::volume::Volume,
+    rest: &defvol::mesh::TetMesh,
+    deformed: &[nalgebra::Vector3<f64>],
+    grid: &defvol::volume::Grid,
+    options: &WarpOptions,
+) -> Result<defvol::volume::Volume> {
+    #[cfg(feature = "gpu")]
+    if matches!(args.backend, BackendChoice::Auto | BackendChoice::Gpu) {
+        let choice = defvol::gpu_policy::GpuChoice { allow_software: args.allow_software_gpu };
+        if let Some(ctx) = choice.context() {
+            let name = ctx.describe();
+            match defvol::gpu::warp::GpuWarper::new(std::sync::Arc::new(ctx), source).and_then(|w| w.warp(rest, deformed, grid, options)) {
+                Ok((data, stats)) => {
+                    tracing::info!("warped on {name}: {stats:?}");
+                    return Ok(defvol::volume::Volume::from_grid(grid, data, "warped volume")?);
+                }
+                Err(e) => tracing::warn!("GPU warp not used: {e}"),
+            }
+        }
+    }
+    let (out, stats) = defvol::warp::warp(source, rest, deformed, grid, options)?;
+    tracing::info!("warped on the CPU: {stats:?}");
+    Ok(out)
 }
 
 #[derive(Subcommand)]
@@ -163,6 +193,12 @@ enum BenchStage {
         /// Also time an incremental update after a local press.
         #[arg(long)]
         incremental: bool,
+        /// Also run the GPU path.
+        #[arg(long)]
+        gpu: bool,
+        /// Let a software adapter (llvmpipe) run the GPU path.
+        #[arg(long)]
+        allow_software_gpu: bool,
         #[arg(long)]
         json: bool,
     },
@@ -298,13 +334,14 @@ fn main() -> Result<()> {
     match Cli::parse().command {
         Command::Simulate(args) => simulate(args),
         Command::Warp(args) => warp_command(args),
-        Command::Bench { stage: BenchStage::Warp { tets, cases, schemes, samplings, dims, runs, incremental, json } } => {
+        Command::Bench { stage: BenchStage::Warp { tets, cases, schemes, samplings, dims, runs, incremental, gpu, allow_software_gpu, json } } => {
             let cases = cases
                 .iter()
                 .map(|c| bench::WarpCase::ALL.into_iter().find(|k| k.name() == c).with_context(|| format!("unknown warp case `{c}` (upright, rot45, bend)")))
                 .collect::<Result<Vec<_>>>()?;
             let [x, y, z] = dims[..] else { bail!("--dims takes three sizes") };
-            let opts = bench::WarpBenchOptions { tets, cases, schemes, samplings, dims: [x, y, z], runs, incremental };
+            let gpu = gpu.then_some(defvol::gpu_policy::GpuChoice { allow_software: allow_software_gpu });
+            let opts = bench::WarpBenchOptions { tets, cases, schemes, samplings, dims: [x, y, z], runs, incremental, gpu };
             if !json {
                 println!("{}", bench::WARP_TABLE_HEADER);
             }
