@@ -296,9 +296,10 @@ pub fn warp(opts: &WarpBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result<
                 warp_gpu_rows(choice, &source, &mesh, &deformed, case, &mut emit)?;
             }
             if opts.incremental {
-                // A local press: nodes within 15 % of the box size from the top centre sink.
+                // A local press: the nodes within 15 % of the half-width of the top centre sink
+                // (a tool tip pressing in; a few nodes at these resolutions).
                 let tip = centre + Vector3::new(0.0, 0.0, half.z);
-                let radius = 0.3 * half.x;
+                let radius = 0.15 * half.x;
                 let pressed: Vec<Vector3<f64>> = deformed
                     .iter()
                     .zip(mesh.nodes())
