@@ -50,6 +50,14 @@ pub struct CompiledDisplacement {
 }
 
 impl DisplacementVolume {
+    /// A push driven by a tool pose, with no physics: centred on the tool tip, pushing
+    /// `depth` along the tool's -z (into the tissue; the shaft runs along +z).
+    pub fn from_tool(source_from_tool: &nalgebra::Isometry3<f64>, depth: f64, extent: f64) -> Self {
+        let tip = source_from_tool.translation.vector;
+        let push = source_from_tool.rotation * Vector3::new(0.0, 0.0, -depth);
+        Self { centre: tip.into(), displacement: push.into(), extent }
+    }
+
     /// Validates and prepares the volume. A push larger than half the extent would fold
     /// space (the backward map stops being one-to-one), so it is refused.
     pub fn compile(&self) -> Result<CompiledDisplacement, String> {
@@ -152,6 +160,17 @@ mod tests {
         assert_eq!(backward_all(&[a, b], &p), a.backward(&p));
         let c = DisplacementVolume { centre: [0.3, 0.0, 0.0], displacement: [0.0, 0.6, 0.0], extent: 2.0 }.compile().unwrap();
         assert_eq!(backward_all(&[a, c], &p), a.backward(&c.backward(&p)));
+    }
+
+    #[test]
+    fn a_tool_pose_pushes_along_its_shaft() {
+        let pose = nalgebra::Isometry3::new(Vector3::new(1.0, 2.0, 3.0), Vector3::x() * std::f64::consts::FRAC_PI_2);
+        let d = DisplacementVolume::from_tool(&pose, 0.5, 4.0);
+        assert_eq!(d.centre, [1.0, 2.0, 3.0]);
+        // Tool z rotated 90° about x points along -y; the push goes along +y.
+        let push = Vector3::from(d.displacement);
+        assert!((push - Vector3::new(0.0, 0.5, 0.0)).norm() < 1e-12, "{push}");
+        assert!(d.compile().is_ok());
     }
 
     #[test]
