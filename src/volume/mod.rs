@@ -155,26 +155,7 @@ impl Volume {
 
     /// Trilinear sample at a continuous voxel index; `None` outside the voxel-centre box.
     pub fn sample_index(&self, ijk: Vector3<f64>) -> Option<f32> {
-        let [nx, ny, nz] = self.dims;
-        let inside = |c: f64, n: usize| c >= 0.0 && c <= (n - 1) as f64;
-        if !(inside(ijk.x, nx) && inside(ijk.y, ny) && inside(ijk.z, nz)) {
-            return None;
-        }
-        let base = |c: f64, n: usize| (c.floor() as usize).min(n.saturating_sub(2));
-        let (i, j, k) = (base(ijk.x, nx), base(ijk.y, ny), base(ijk.z, nz));
-        let (fx, fy, fz) = (ijk.x - i as f64, ijk.y - j as f64, ijk.z - k as f64);
-        let at = |di: usize, dj: usize, dk: usize| {
-            let ii = (i + di).min(nx - 1);
-            let jj = (j + dj).min(ny - 1);
-            let kk = (k + dk).min(nz - 1);
-            self.data[self.index(ii, jj, kk)] as f64
-        };
-        let lerp = |a: f64, b: f64, t: f64| a + (b - a) * t;
-        let c00 = lerp(at(0, 0, 0), at(1, 0, 0), fx);
-        let c10 = lerp(at(0, 1, 0), at(1, 1, 0), fx);
-        let c01 = lerp(at(0, 0, 1), at(1, 0, 1), fx);
-        let c11 = lerp(at(0, 1, 1), at(1, 1, 1), fx);
-        Some(lerp(lerp(c00, c10, fy), lerp(c01, c11, fy), fz) as f32)
+        trilinear(&self.data, self.dims, ijk.x, ijk.y, ijk.z, 0.0).map(|v| v as f32)
     }
 
     /// Trilinear sample at a physical position.
@@ -186,6 +167,43 @@ impl Volume {
     pub fn range(&self) -> (f32, f32) {
         self.data.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), v| (lo.min(*v), hi.max(*v)))
     }
+}
+
+/// The trilinear blend of a voxel cube: `v(offset)` reads a corner, `strides` are the x,
+/// y, z offsets (0 along a flat axis), `f` the fractions. Shared by every trilinear sampler.
+#[inline]
+pub fn lerp_cube<T: crate::solver::Real>(v: impl Fn(usize) -> T, strides: [usize; 3], f: [T; 3]) -> T {
+    let [sx, sy, sz] = strides;
+    let c00 = v(0) + (v(sx) - v(0)) * f[0];
+    let c10 = v(sy) + (v(sy + sx) - v(sy)) * f[0];
+    let c01 = v(sz) + (v(sz + sx) - v(sz)) * f[0];
+    let c11 = v(sz + sy) + (v(sz + sy + sx) - v(sz + sy)) * f[0];
+    let c0 = c00 + (c10 - c00) * f[1];
+    let c1 = c01 + (c11 - c01) * f[1];
+    c0 + (c1 - c0) * f[2]
+}
+
+/// The point moved onto the voxel-centre box when within `tolerance` (voxels) of it;
+/// `None` when further out.
+#[inline]
+pub fn clamp_to_box<T: crate::solver::Real>(dims: [usize; 3], x: T, y: T, z: T, tolerance: T) -> Option<(T, T, T)> {
+    let c = |v: T, n: usize| {
+        let max = T::of((n - 1) as f64);
+        (v >= -tolerance && v <= max + tolerance).then(|| v.clamp(T::zero(), max))
+    };
+    Some((c(x, dims[0])?, c(y, dims[1])?, c(z, dims[2])?))
+}
+
+/// Trilinear interpolation of x-fastest samples at a continuous index, in precision T;
+/// `None` beyond `tolerance` outside the voxel-centre box.
+#[inline]
+pub fn trilinear<T: crate::solver::Real>(data: &[f32], dims: [usize; 3], x: T, y: T, z: T, tolerance: T) -> Option<T> {
+    let (x, y, z) = clamp_to_box(dims, x, y, z, tolerance)?;
+    let cell = |c: T, n: usize| (c.trunc_i32().max(0) as usize).min(n.saturating_sub(2));
+    let (i, j, k) = (cell(x, dims[0]), cell(y, dims[1]), cell(z, dims[2]));
+    let strides = [usize::from(dims[0] > 1), if dims[1] > 1 { dims[0] } else { 0 }, if dims[2] > 1 { dims[0] * dims[1] } else { 0 }];
+    let base = i + dims[0] * (j + dims[1] * k);
+    Some(lerp_cube(|o| T::of_f32(data[base + o]), strides, [x - T::of(i as f64), y - T::of(j as f64), z - T::of(k as f64)]))
 }
 
 #[cfg(test)]

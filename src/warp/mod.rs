@@ -27,6 +27,7 @@ use bspline::{backward_all, CompiledDisplacement};
 
 use crate::mesh::TetMesh;
 use crate::solver::Real;
+pub use crate::volume::trilinear;
 use crate::volume::{Grid, Volume, VolumeError};
 
 #[derive(Debug, thiserror::Error)]
@@ -328,7 +329,6 @@ impl<'a> Sampler<'a> {
     /// loop of the warp, with the limits and strides hoisted out of it.
     fn trilinear_run<T: Real>(&self, out: &mut [T], base: [T; 3], step: [T; 3], i0: usize, src_inside: bool) {
         let [nx, ny, nz] = self.dims;
-        let limit = [T::of((nx - 1) as f64), T::of((ny - 1) as f64), T::of((nz - 1) as f64)];
         let top = [nx.saturating_sub(2), ny.saturating_sub(2), nz.saturating_sub(2)];
         let sx = usize::from(nx > 1);
         let sy = if ny > 1 { nx } else { 0 };
@@ -336,31 +336,33 @@ impl<'a> Sampler<'a> {
         let background = T::of(self.background as f64);
         let data = self.data;
         let (top, nx, nxy) = (top.map(|t| t as i32), nx as i32, (nx * ny) as i32);
-        if src_inside {
-            // Convex combination of in-box points: only round-off can leave the box, and
-            // truncation plus the clamp to `top` absorb it.
-            for (n, slot) in out.iter_mut().enumerate() {
-                let fi = T::of_i32((i0 + n) as i32);
-                let (x, y, z) = (base[0] + step[0] * fi, base[1] + step[1] * fi, base[2] + step[2] * fi);
-                let (i, j, k) = (x.trunc_i32().clamp(0, top[0]), y.trunc_i32().clamp(0, top[1]), z.trunc_i32().clamp(0, top[2]));
-                let (fx, fy, fz) = (x - T::of_i32(i), y - T::of_i32(j), z - T::of_i32(k));
-                let b = (i + nx * j + nxy * k) as usize;
-                let v = |o: usize| T::of_f32(data[b + o]);
-                let c00 = v(0) + (v(sx) - v(0)) * fx;
-                let c10 = v(sy) + (v(sy + sx) - v(sy)) * fx;
-                let c01 = v(sz) + (v(sz + sx) - v(sz)) * fx;
-                let c11 = v(sz + sy) + (v(sz + sy + sx) - v(sz + sy)) * fx;
-                let c0 = c00 + (c10 - c00) * fy;
-                let c1 = c01 + (c11 - c01) * fy;
-                *slot = c0 + (c1 - c0) * fz;
-            }
+        // The run is affine in n. A rest tet inside the source box samples inside it (only
+        // round-off can leave, and the clamps absorb it); otherwise find the sub-run whose
+        // sample points lie in the box, so the loop needs no per-voxel bounds test.
+        let len = out.len();
+        let run = if src_inside { Some((0, len - 1)) } else { self.in_box_subrun(base, step, i0, len) };
+        let Some((first, last)) = run else {
+            out.fill(background);
             return;
+        };
+        out[..first].fill(background);
+        out[last + 1..].fill(background);
+        for (n, slot) in out[first..=last].iter_mut().enumerate() {
+            let fi = T::of_i32((i0 + first + n) as i32);
+            let (x, y, z) = (base[0] + step[0] * fi, base[1] + step[1] * fi, base[2] + step[2] * fi);
+            let (i, j, k) = (x.trunc_i32().clamp(0, top[0]), y.trunc_i32().clamp(0, top[1]), z.trunc_i32().clamp(0, top[2]));
+            let b = (i + nx * j + nxy * k) as usize;
+            *slot = crate::volume::lerp_cube(|o| T::of_f32(data[b + o]), [sx, sy, sz], [x - T::of_i32(i), y - T::of_i32(j), z - T::of_i32(k)]);
         }
-        // The run is affine in n: find the sub-run whose sample points lie in the source's
-        // voxel-centre box, so the loop below needs no per-voxel bounds test.
-        let (mut first, mut last) = (0.0f64, out.len() as f64 - 1.0);
+    }
+
+    /// The sub-run [first, last] of `len` samples at base + step·(i0 + n) that lies within
+    /// [`SAMPLE_TOLERANCE`] of the source's voxel-centre box, if any.
+    fn in_box_subrun<T: Real>(&self, base: [T; 3], step: [T; 3], i0: usize, len: usize) -> Option<(usize, usize)> {
+        let limit = self.dims.map(|n| (n - 1) as f64);
+        let (mut first, mut last) = (0.0f64, len as f64 - 1.0);
         for a in 0..3 {
-            let (b0, s0, lim) = ((base[a] + step[a] * T::of_i32(i0 as i32)).to_f64() + SAMPLE_TOLERANCE, step[a].to_f64(), limit[a].to_f64() + 2.0 * SAMPLE_TOLERANCE);
+            let (b0, s0, lim) = ((base[a] + step[a] * T::of_i32(i0 as i32)).to_f64() + SAMPLE_TOLERANCE, step[a].to_f64(), limit[a] + 2.0 * SAMPLE_TOLERANCE);
             if s0 > 0.0 {
                 first = first.max((-b0 / s0).ceil());
                 last = last.min(((lim - b0) / s0).floor());
@@ -368,8 +370,7 @@ impl<'a> Sampler<'a> {
                 first = first.max(((lim - b0) / s0).ceil());
                 last = last.min((-b0 / s0).floor());
             } else if !(0.0..=lim).contains(&b0) {
-                first = 1.0;
-                last = 0.0;
+                return None;
             }
         }
         let tol = T::of(SAMPLE_TOLERANCE);
@@ -377,11 +378,10 @@ impl<'a> Sampler<'a> {
             let fi = T::of_i32((i0 + n) as i32);
             (0..3).all(|a| {
                 let c = base[a] + step[a] * fi;
-                c >= -tol && c <= limit[a] + tol
+                c >= -tol && c <= T::of(limit[a]) + tol
             })
         };
         // Settle the rounding of the divisions on the evaluated test, as spans do.
-        let len = out.len();
         let mut first = (first.max(0.0) as usize).min(len);
         let mut last = if last < 0.0 { 0 } else { (last as usize).min(len.saturating_sub(1)) };
         while first < len && first <= last && !inside(first) {
@@ -390,68 +390,16 @@ impl<'a> Sampler<'a> {
         while last > first && !inside(last) {
             last -= 1;
         }
-        if first >= len || first > last || !inside(first) {
-            out.fill(background);
-            return;
-        }
-        out[..first].fill(background);
-        out[last + 1..].fill(background);
-        for (n, slot) in out[first..=last].iter_mut().enumerate() {
-            let fi = T::of_i32((i0 + first + n) as i32);
-            let (x, y, z) = (base[0] + step[0] * fi, base[1] + step[1] * fi, base[2] + step[2] * fi);
-            let (i, j, k) = (x.trunc_i32().clamp(0, top[0]), y.trunc_i32().clamp(0, top[1]), z.trunc_i32().clamp(0, top[2]));
-            let (fx, fy, fz) = (x - T::of_i32(i), y - T::of_i32(j), z - T::of_i32(k));
-            let b = (i + nx * j + nxy * k) as usize;
-            let v = |o: usize| T::of_f32(data[b + o]);
-            let c00 = v(0) + (v(sx) - v(0)) * fx;
-            let c10 = v(sy) + (v(sy + sx) - v(sy)) * fx;
-            let c01 = v(sz) + (v(sz + sx) - v(sz)) * fx;
-            let c11 = v(sz + sy) + (v(sz + sy + sx) - v(sz + sy)) * fx;
-            let c0 = c00 + (c10 - c00) * fy;
-            let c1 = c01 + (c11 - c01) * fy;
-            *slot = c0 + (c1 - c0) * fz;
-        }
+        (first < len && first <= last && inside(first)).then_some((first, last))
     }
 
     #[inline]
     fn at_index<T: Real>(&self, x: T, y: T, z: T) -> T {
         match self.sampling {
-            Sampling::Trilinear => trilinear(self.data, self.dims, x, y, z).unwrap_or(T::of(self.background as f64)),
+            Sampling::Trilinear => trilinear(self.data, self.dims, x, y, z, T::of(SAMPLE_TOLERANCE)).unwrap_or(T::of(self.background as f64)),
             Sampling::Tricubic => tricubic(self.data, self.dims, x, y, z).unwrap_or(T::of(self.background as f64)),
         }
     }
-}
-
-/// The point moved onto the voxel-centre box when within [`SAMPLE_TOLERANCE`] of it;
-/// `None` when further out.
-#[inline]
-fn clamp_to_box<T: Real>(dims: [usize; 3], x: T, y: T, z: T) -> Option<(T, T, T)> {
-    let tol = T::of(SAMPLE_TOLERANCE);
-    let c = |v: T, n: usize| {
-        let max = T::of((n - 1) as f64);
-        (v >= -tol && v <= max + tol).then(|| v.clamp(T::zero(), max))
-    };
-    Some((c(x, dims[0])?, c(y, dims[1])?, c(z, dims[2])?))
-}
-
-/// Trilinear interpolation at a continuous index; `None` outside the voxel-centre box.
-#[inline]
-pub fn trilinear<T: Real>(data: &[f32], dims: [usize; 3], x: T, y: T, z: T) -> Option<T> {
-    let (x, y, z) = clamp_to_box(dims, x, y, z)?;
-    let cell = |c: T, n: usize| -> usize { (c.to_f64() as usize).min(n.saturating_sub(2)) };
-    let (i, j, k) = (cell(x, dims[0]), cell(y, dims[1]), cell(z, dims[2]));
-    let (fx, fy, fz) = (x - T::of(i as f64), y - T::of(j as f64), z - T::of(k as f64));
-    let sx = usize::from(dims[0] > 1);
-    let sy = if dims[1] > 1 { dims[0] } else { 0 };
-    let sz = if dims[2] > 1 { dims[0] * dims[1] } else { 0 };
-    let base = i + dims[0] * (j + dims[1] * k);
-    let v = |o: usize| T::of(data[base + o] as f64);
-    let lerp = |a: T, b: T, t: T| a + (b - a) * t;
-    let c00 = lerp(v(0), v(sx), fx);
-    let c10 = lerp(v(sy), v(sy + sx), fx);
-    let c01 = lerp(v(sz), v(sz + sx), fx);
-    let c11 = lerp(v(sz + sy), v(sz + sy + sx), fx);
-    Some(lerp(lerp(c00, c10, fy), lerp(c01, c11, fy), fz))
 }
 
 /// Catmull-Rom weights for the 4 taps around t in [0, 1).
@@ -465,7 +413,7 @@ fn catmull_rom<T: Real>(t: T) -> [T; 4] {
 
 /// Tricubic (Catmull-Rom) interpolation; taps beyond the edges repeat the edge voxel.
 pub fn tricubic<T: Real>(data: &[f32], dims: [usize; 3], x: T, y: T, z: T) -> Option<T> {
-    let (x, y, z) = clamp_to_box(dims, x, y, z)?;
+    let (x, y, z) = crate::volume::clamp_to_box(dims, x, y, z, T::of(SAMPLE_TOLERANCE))?;
     let base = |c: T| c.to_f64().floor() as i64;
     let (bi, bj, bk) = (base(x), base(y), base(z));
     let (wx, wy, wz) = (catmull_rom(x - T::of(bi as f64)), catmull_rom(y - T::of(bj as f64)), catmull_rom(z - T::of(bk as f64)));
