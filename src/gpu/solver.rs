@@ -62,27 +62,57 @@ struct CgScalars {
     done: u32,
 }
 
-const KERNELS: [&str; 19] = [
-    "spring_terms",
-    "spring_forces",
-    "spring_forces_predicted",
-    "node_terms",
-    "cg_start_spmv",
-    "cg_init",
-    "cg_init_reduce",
-    "cg_spmv",
-    "cg_alpha",
-    "cg_update",
-    "cg_beta",
-    "cg_direction",
-    "implicit_update",
-    "node_forces",
-    "explicit_euler_update",
-    "verlet_update",
-    "velocity_verlet_positions",
-    "velocity_verlet_velocities",
-    "acceleration_from_force",
-];
+/// The entry points of `shaders/solver.wgsl`; the discriminant indexes the pipelines.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Kernel {
+    SpringTerms,
+    SpringForces,
+    SpringForcesPredicted,
+    NodeTerms,
+    CgStartSpmv,
+    CgInit,
+    CgInitReduce,
+    CgSpmv,
+    CgAlpha,
+    CgUpdate,
+    CgBeta,
+    CgDirection,
+    ImplicitUpdate,
+    NodeForces,
+    ExplicitEulerUpdate,
+    VerletUpdate,
+    VelocityVerletPositions,
+    VelocityVerletVelocities,
+    AccelerationFromForce,
+}
+
+impl Kernel {
+    const ALL: [Kernel; 19] = [Kernel::SpringTerms, Kernel::SpringForces, Kernel::SpringForcesPredicted, Kernel::NodeTerms, Kernel::CgStartSpmv, Kernel::CgInit, Kernel::CgInitReduce, Kernel::CgSpmv, Kernel::CgAlpha, Kernel::CgUpdate, Kernel::CgBeta, Kernel::CgDirection, Kernel::ImplicitUpdate, Kernel::NodeForces, Kernel::ExplicitEulerUpdate, Kernel::VerletUpdate, Kernel::VelocityVerletPositions, Kernel::VelocityVerletVelocities, Kernel::AccelerationFromForce];
+
+    fn entry_point(self) -> &'static str {
+        match self {
+            Kernel::SpringTerms => "spring_terms",
+            Kernel::SpringForces => "spring_forces",
+            Kernel::SpringForcesPredicted => "spring_forces_predicted",
+            Kernel::NodeTerms => "node_terms",
+            Kernel::CgStartSpmv => "cg_start_spmv",
+            Kernel::CgInit => "cg_init",
+            Kernel::CgInitReduce => "cg_init_reduce",
+            Kernel::CgSpmv => "cg_spmv",
+            Kernel::CgAlpha => "cg_alpha",
+            Kernel::CgUpdate => "cg_update",
+            Kernel::CgBeta => "cg_beta",
+            Kernel::CgDirection => "cg_direction",
+            Kernel::ImplicitUpdate => "implicit_update",
+            Kernel::NodeForces => "node_forces",
+            Kernel::ExplicitEulerUpdate => "explicit_euler_update",
+            Kernel::VerletUpdate => "verlet_update",
+            Kernel::VelocityVerletPositions => "velocity_verlet_positions",
+            Kernel::VelocityVerletVelocities => "velocity_verlet_velocities",
+            Kernel::AccelerationFromForce => "acceleration_from_force",
+        }
+    }
+}
 
 /// Read-only bindings of the shader (the rest are read-write storage, 0 is the uniform).
 const READ_ONLY: [u32; 8] = [1, 2, 3, 4, 5, 8, 24, 25];
@@ -153,14 +183,14 @@ impl GpuSimulation {
             bind_group_layouts: &[Some(&layout)],
             immediate_size: 0,
         });
-        let pipelines = KERNELS
+        let pipelines = Kernel::ALL
             .iter()
-            .map(|entry| {
+            .map(|kernel| {
                 device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                    label: Some(entry),
+                    label: Some(kernel.entry_point()),
                     layout: Some(&pipeline_layout),
                     module: &module,
-                    entry_point: Some(entry),
+                    entry_point: Some(kernel.entry_point()),
                     compilation_options: Default::default(),
                     cache: None,
                 })
@@ -236,23 +266,18 @@ impl GpuSimulation {
         self.mirror.tool_mut(index)
     }
 
-    fn pipeline(&self, name: &str) -> &wgpu::ComputePipeline {
-        let index = KERNELS.iter().position(|k| *k == name).unwrap_or(0);
-        &self.pipelines[index]
-    }
-
-    fn dispatch(&self, pass: &mut wgpu::ComputePass<'_>, kernel: &str, invocations: u32) {
-        pass.set_pipeline(self.pipeline(kernel));
+    fn dispatch(&self, pass: &mut wgpu::ComputePass<'_>, kernel: Kernel, invocations: u32) {
+        pass.set_pipeline(&self.pipelines[kernel as usize]);
         pass.dispatch_workgroups(groups(invocations), 1, 1);
     }
 
-    fn run(&self, kernels: &[(&str, u32)]) {
+    fn run(&self, kernels: &[(Kernel, u32)]) {
         let mut encoder = self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("solver") });
         {
             let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("solver"), timestamp_writes: None });
             pass.set_bind_group(0, &self.bind_group, &[]);
             for (kernel, invocations) in kernels {
-                self.dispatch(&mut pass, kernel, *invocations);
+                self.dispatch(&mut pass, *kernel, *invocations);
             }
         }
         self.ctx.queue.submit([encoder.finish()]);
@@ -286,10 +311,10 @@ impl GpuSimulation {
         let mut encoder = self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("cg start") });
         encoder.copy_buffer_to_buffer(&self.buffers.dv, 0, &self.buffers.p, 0, n as u64 * 16);
         self.ctx.queue.submit([encoder.finish()]);
-        self.run(&[("spring_terms", self.springs), ("node_terms", n), ("cg_start_spmv", n), ("cg_init", n), ("cg_init_reduce", 1)]);
+        self.run(&[(Kernel::SpringTerms, self.springs), (Kernel::NodeTerms, n), (Kernel::CgStartSpmv, n), (Kernel::CgInit, n), (Kernel::CgInitReduce, 1)]);
         let params = self.mirror.params();
-        let batch: Vec<(&str, u32)> = (0..params.cg_check_interval)
-            .flat_map(|_| [("cg_spmv", n), ("cg_alpha", 1), ("cg_update", n), ("cg_beta", 1), ("cg_direction", n)])
+        let batch: Vec<(Kernel, u32)> = (0..params.cg_check_interval)
+            .flat_map(|_| [(Kernel::CgSpmv, n), (Kernel::CgAlpha, 1), (Kernel::CgUpdate, n), (Kernel::CgBeta, 1), (Kernel::CgDirection, n)])
             .collect();
         loop {
             let bytes = self.ctx.read_back(&self.buffers.scalars, std::mem::size_of::<CgScalars>() as u64)?;
@@ -312,22 +337,22 @@ impl GpuSimulation {
         match integrator {
             Integrator::ImplicitEuler => {
                 cg = self.solve()?;
-                self.run(&[("implicit_update", n)]);
+                self.run(&[(Kernel::ImplicitUpdate, n)]);
             }
-            Integrator::ExplicitEuler => self.run(&[("spring_forces", e), ("node_forces", n), ("explicit_euler_update", n)]),
+            Integrator::ExplicitEuler => self.run(&[(Kernel::SpringForces, e), (Kernel::NodeForces, n), (Kernel::ExplicitEulerUpdate, n)]),
             Integrator::Verlet => {
                 if !self.history_valid {
                     let h = self.mirror.params().dt as f32;
                     let prev: Vec<Vector3<f32>> = self.mirror.displacements().iter().zip(self.mirror.velocities()).map(|(x, v)| x - v * h).collect();
                     self.ctx.queue.write_buffer(&self.buffers.aux, 0, bytemuck::cast_slice(&vec4s(&prev)));
                 }
-                self.run(&[("spring_forces", e), ("node_forces", n), ("verlet_update", n)]);
+                self.run(&[(Kernel::SpringForces, e), (Kernel::NodeForces, n), (Kernel::VerletUpdate, n)]);
             }
             Integrator::VelocityVerlet => {
                 if !self.history_valid {
-                    self.run(&[("spring_forces", e), ("node_forces", n), ("acceleration_from_force", n)]);
+                    self.run(&[(Kernel::SpringForces, e), (Kernel::NodeForces, n), (Kernel::AccelerationFromForce, n)]);
                 }
-                self.run(&[("velocity_verlet_positions", n), ("spring_forces_predicted", e), ("node_forces", n), ("velocity_verlet_velocities", n)]);
+                self.run(&[(Kernel::VelocityVerletPositions, n), (Kernel::SpringForcesPredicted, e), (Kernel::NodeForces, n), (Kernel::VelocityVerletVelocities, n)]);
             }
         }
         self.history_valid = true;
