@@ -75,7 +75,7 @@ fn pack(map: Option<&TetMap>) -> [[f32; 4]; 9] {
 
 impl GpuWarper {
     pub fn new(ctx: Arc<GpuContext>, source: &Volume) -> Result<Self, GpuWarpError> {
-        let limit = ctx.device.limits().max_storage_buffer_binding_size as u64;
+        let limit = ctx.device.limits().max_storage_buffer_binding_size;
         let bytes = source.len() as u64 * 4;
         if bytes > limit {
             return Err(GpuWarpError::BufferTooLarge { what: "the source volume", needed_mib: bytes.div_ceil(1 << 20), limit_mib: limit >> 20 });
@@ -124,7 +124,7 @@ impl GpuWarper {
         if !options.displacements.is_empty() || options.keep_uncovered {
             return Err(GpuWarpError::Unsupported("neither displacement volumes nor keep_uncovered"));
         }
-        let limit = self.ctx.device.limits().max_storage_buffer_binding_size as u64;
+        let limit = self.ctx.device.limits().max_storage_buffer_binding_size;
         let out_bytes = grid.len() as u64 * 4;
         if out_bytes > limit {
             return Err(GpuWarpError::BufferTooLarge { what: "the output grid", needed_mib: out_bytes.div_ceil(1 << 20), limit_mib: limit >> 20 });

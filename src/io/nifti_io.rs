@@ -73,22 +73,24 @@ pub(super) fn read(path: &Path) -> Result<Volume, IoError> {
 
 pub(super) fn write(path: &Path, volume: &Volume) -> Result<(), IoError> {
     let [nx, ny, nz] = volume.dims();
-    let mut header = NiftiHeader::default();
-    header.dim = [3, nx as u16, ny as u16, nz as u16, 1, 1, 1, 1];
     let sp = volume.spacing();
-    header.pixdim = [1.0, sp[0] as f32, sp[1] as f32, sp[2] as f32, 0.0, 0.0, 0.0, 0.0];
-    header.xyzt_units = 2; // millimetres
-    header.sform_code = 1;
-    header.qform_code = 0;
     let d = volume.direction();
     let o = volume.origin();
     let row = |r: usize| -> [f32; 4] {
         let f = LPS_FROM_RAS[r];
         [(f * d[(r, 0)] * sp[0]) as f32, (f * d[(r, 1)] * sp[1]) as f32, (f * d[(r, 2)] * sp[2]) as f32, (f * o[r]) as f32]
     };
-    header.srow_x = row(0);
-    header.srow_y = row(1);
-    header.srow_z = row(2);
+    let header = NiftiHeader {
+        dim: [3, nx as u16, ny as u16, nz as u16, 1, 1, 1, 1],
+        pixdim: [1.0, sp[0] as f32, sp[1] as f32, sp[2] as f32, 0.0, 0.0, 0.0, 0.0],
+        xyzt_units: 2, // millimetres
+        sform_code: 1,
+        qform_code: 0,
+        srow_x: row(0),
+        srow_y: row(1),
+        srow_z: row(2),
+        ..NiftiHeader::default()
+    };
     let array = Array3::from_shape_vec((nx, ny, nz).f(), volume.data().to_vec()).map_err(|e| malformed(path, format!("sample layout: {e}")))?;
     WriterOptions::new(path).reference_header(&header).write_nifti(&array).map_err(|e| malformed(path, format!("cannot write NIfTI: {e}")))
 }
