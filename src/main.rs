@@ -329,6 +329,23 @@ fn simulate(args: SimulateArgs) -> Result<()> {
     Ok(())
 }
 
+/// Prints benchmark rows as JSON lines (the conventions' format) or as a table under `header`.
+fn row_printer(json: bool, header: &str, table_row: fn(&bench::BenchRow) -> String) -> impl FnMut(&bench::BenchRow) {
+    if !json {
+        println!("{header}");
+    }
+    move |row| {
+        if json {
+            match serde_json::to_string(row) {
+                Ok(line) => println!("{line}"),
+                Err(e) => tracing::error!("cannot encode a benchmark row: {e}"),
+            }
+        } else {
+            println!("{}", table_row(row));
+        }
+    }
+}
+
 fn main() -> Result<()> {
     tracing_subscriber::fmt().with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into())).with_target(false).init();
     match Cli::parse().command {
@@ -342,30 +359,12 @@ fn main() -> Result<()> {
             let [x, y, z] = dims[..] else { bail!("--dims takes three sizes") };
             let gpu = gpu.then_some(defvol::gpu_policy::GpuChoice { allow_software: allow_software_gpu });
             let opts = bench::WarpBenchOptions { tets, cases, schemes, samplings, dims: [x, y, z], runs, incremental, gpu };
-            if !json {
-                println!("{}", bench::WARP_TABLE_HEADER);
-            }
-            bench::warp(&opts, |row| {
-                if json {
-                    println!("{}", serde_json::to_string(row).unwrap_or_default());
-                } else {
-                    println!("{}", bench::warp_table_row(row));
-                }
-            })?;
+            bench::warp(&opts, row_printer(json, bench::WARP_TABLE_HEADER, bench::warp_table_row))?;
             Ok(())
         }
         Command::Bench { stage: BenchStage::Solver { sizes, steps, backends, allow_software_gpu, tolerances, dts, explicit_dt, preconditioners, json } } => {
             let opts = bench::SolverBenchOptions { sizes: sizes.unwrap_or(bench::SEED_SIZES.to_vec()), steps, backends, allow_software_gpu, tolerances, dts, explicit_dt, preconditioners };
-            if !json {
-                println!("{}", bench::TABLE_HEADER);
-            }
-            bench::solver(&opts, |row| {
-                if json {
-                    println!("{}", serde_json::to_string(row).unwrap_or_default());
-                } else {
-                    println!("{}", bench::table_row(row));
-                }
-            })?;
+            bench::solver(&opts, row_printer(json, bench::TABLE_HEADER, bench::table_row))?;
             Ok(())
         }
     }
