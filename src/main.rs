@@ -63,6 +63,10 @@ struct SimulateArgs {
     /// Output folder: final.vtu and steps.csv.
     #[arg(long, default_value = "out")]
     out: PathBuf,
+    /// Also warp the scene's volume through the final mesh and write it here (.nii.gz,
+    /// .nrrd, .mha…), in the volume's own units.
+    #[arg(long)]
+    warp_out: Option<PathBuf>,
 }
 
 #[derive(clap::Args)]
@@ -325,6 +329,18 @@ fn simulate(args: SimulateArgs) -> Result<()> {
     let mesh_path = args.out.join("final.vtu");
     io::write_mesh(&mesh_path, &loaded.mesh, Some(&engine.positions()))?;
     tracing::info!("wrote {} and {}", mesh_path.display(), csv_path.display());
+    if let Some(path) = &args.warp_out {
+        // The mesh lives in world units; the volume in its file's units.
+        let to_file = 1.0 / loaded.scene.file_to_world;
+        let mut rest = loaded.mesh.clone();
+        rest.map_nodes(|p| p * to_file);
+        let deformed: Vec<_> = engine.positions().iter().map(|p| p * to_file).collect();
+        let grid = defvol::warp::default_grid(&loaded.volume, &deformed);
+        let options = WarpOptions { background: loaded.volume.range().0, ..Default::default() };
+        let (warped, stats) = defvol::warp::warp(&loaded.volume, &rest, &deformed, &grid, &options)?;
+        io::write_volume(path, &warped)?;
+        tracing::info!("wrote the warped volume {} ({:?} voxels, {} inside the mesh)", path.display(), warped.dims(), stats.inside);
+    }
     outcome.context("simulation stopped")?;
     Ok(())
 }

@@ -12,7 +12,8 @@ fn defvol() -> Command {
 #[test]
 fn simulate_default_scene_writes_mesh_and_step_csv() {
     let dir = tempfile::tempdir().unwrap();
-    let out = defvol().args(["simulate", "--steps", "12", "--tets", "800", "--backend", "cpu", "--out"]).arg(dir.path()).output().unwrap();
+    let warped = dir.path().join("warped.nrrd");
+    let out = defvol().args(["simulate", "--steps", "12", "--tets", "800", "--backend", "cpu", "--out"]).arg(dir.path()).arg("--warp-out").arg(&warped).output().unwrap();
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let csv = std::fs::read_to_string(dir.path().join("steps.csv")).unwrap();
     let rows: Vec<&str> = csv.lines().collect();
@@ -24,6 +25,11 @@ fn simulate_default_scene_writes_mesh_and_step_csv() {
     assert!(last[6] > 0.0, "the mesh moved: {}", rows[12]);
     let mesh = defvol::io::read_mesh(&dir.path().join("final.vtu")).unwrap();
     assert!(mesh.tets().len() > 500);
+    // The phantom carried through the final mesh, still in millimetres at 1 mm spacing.
+    let volume = defvol::io::read_volume(&warped).unwrap();
+    assert_eq!(volume.spacing(), [1.0; 3]);
+    let (lo, hi) = volume.range();
+    assert!(lo <= -999.0 && hi >= 700.0, "air and bone present: {lo}..{hi}");
 }
 
 #[test]
