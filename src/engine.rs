@@ -45,22 +45,14 @@ impl Engine {
 
     #[cfg(feature = "gpu")]
     fn gpu_or_cpu(choice: BackendChoice, allow_software_gpu: bool, model: &MassSpringModel, params: SolverParams, tools: Vec<Tool>) -> Result<Self, EngineError> {
-        use crate::gpu::{AdapterPolicy, GpuContext};
-        let policy = if allow_software_gpu { AdapterPolicy::AllowSoftware } else { AdapterPolicy::HardwareOnly };
-        match GpuContext::new(policy) {
-            Ok(ctx) => {
+        let choice = crate::gpu_policy::GpuChoice { allow_software: allow_software_gpu, required: choice == BackendChoice::Gpu };
+        match choice.context() {
+            Some(ctx) => {
                 tracing::info!("solver on GPU: {}", ctx.describe());
                 let sim = crate::gpu::solver::GpuSimulation::new(std::sync::Arc::new(ctx), model, params, tools)?;
                 Ok(Engine::Gpu(Box::new(sim)))
             }
-            Err(e) => {
-                if choice == BackendChoice::Gpu {
-                    tracing::warn!("GPU path unavailable ({e}); running the CPU path");
-                } else {
-                    tracing::info!("no GPU adapter ({e}); running the CPU path");
-                }
-                Ok(Engine::Cpu(Simulation::new(model, params, tools)?))
-            }
+            None => Ok(Engine::Cpu(Simulation::new(model, params, tools)?)),
         }
     }
 

@@ -5,6 +5,8 @@
 pub struct GpuChoice {
     /// Let a software adapter (llvmpipe) count as a GPU (tests, CI).
     pub allow_software: bool,
+    /// The user asked for the GPU explicitly: falling back to the CPU is a warning.
+    pub required: bool,
 }
 
 impl GpuChoice {
@@ -14,8 +16,12 @@ impl GpuChoice {
     pub fn context(self) -> Option<crate::gpu::GpuContext> {
         use crate::gpu::{AdapterPolicy, GpuContext};
         let policy = if self.allow_software { AdapterPolicy::AllowSoftware } else { AdapterPolicy::HardwareOnly };
-        match GpuContext::new(policy) {
+        match GpuContext::open(policy) {
             Ok(ctx) => Some(ctx),
+            Err(e) if self.required => {
+                tracing::warn!("GPU path unavailable ({e}); the CPU path runs");
+                None
+            }
             Err(e) => {
                 tracing::info!("no GPU adapter ({e}); the CPU path runs");
                 None

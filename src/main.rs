@@ -158,9 +158,11 @@ fn warp_on_backend(
     grid: &defvol::volume::Grid,
     options: &WarpOptions,
 ) -> Result<defvol::volume::Volume> {
+    #[cfg(not(feature = "gpu"))]
+    let _ = args.backend;
     #[cfg(feature = "gpu")]
     if matches!(args.backend, BackendChoice::Auto | BackendChoice::Gpu) {
-        let choice = defvol::gpu_policy::GpuChoice { allow_software: args.allow_software_gpu };
+        let choice = defvol::gpu_policy::GpuChoice { allow_software: args.allow_software_gpu, required: args.backend == BackendChoice::Gpu };
         if let Some(ctx) = choice.context() {
             let name = ctx.describe();
             match defvol::gpu::warp::GpuWarper::new(std::sync::Arc::new(ctx), source).and_then(|w| w.warp(rest, deformed, grid, options)) {
@@ -373,7 +375,7 @@ fn main() -> Result<()> {
                 .map(|c| bench::WarpCase::ALL.into_iter().find(|k| k.name() == c).with_context(|| format!("unknown warp case `{c}` (upright, rot45, bend)")))
                 .collect::<Result<Vec<_>>>()?;
             let [x, y, z] = dims[..] else { bail!("--dims takes three sizes") };
-            let gpu = gpu.then_some(defvol::gpu_policy::GpuChoice { allow_software: allow_software_gpu });
+            let gpu = gpu.then_some(defvol::gpu_policy::GpuChoice { allow_software: allow_software_gpu, required: true });
             let opts = bench::WarpBenchOptions { tets, cases, schemes, samplings, dims: [x, y, z], runs, incremental, gpu };
             bench::warp(&opts, row_printer(json, bench::WARP_TABLE_HEADER, bench::warp_table_row))?;
             Ok(())

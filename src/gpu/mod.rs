@@ -39,7 +39,8 @@ pub struct GpuContext {
 }
 
 impl GpuContext {
-    pub fn new(policy: AdapterPolicy) -> Result<Self, GpuError> {
+    /// Opens the best allowed adapter (see the module's adapter policy).
+    pub fn open(policy: AdapterPolicy) -> Result<Self, GpuError> {
         pollster::block_on(Self::new_async(policy))
     }
 

@@ -380,7 +380,7 @@ mod tests {
     use nalgebra::Isometry3;
 
     fn context() -> Option<Arc<GpuContext>> {
-        match GpuContext::new(AdapterPolicy::AllowSoftware) {
+        match GpuContext::open(AdapterPolicy::AllowSoftware) {
             Ok(ctx) => Some(Arc::new(ctx)),
             Err(e) if std::env::var_os("DEFVOL_REQUIRE_GPU").is_some() => panic!("GPU required but unavailable: {e}"),
             Err(e) => {

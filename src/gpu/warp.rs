@@ -188,7 +188,7 @@ mod tests {
     /// GPU and CPU warps of the phantom through a rotated and bent mesh agree.
     #[test]
     fn gpu_warp_matches_cpu() {
-        let ctx = match GpuContext::new(AdapterPolicy::AllowSoftware) {
+        let ctx = match GpuContext::open(AdapterPolicy::AllowSoftware) {
             Ok(ctx) => Arc::new(ctx),
             Err(e) if std::env::var_os("DEFVOL_REQUIRE_GPU").is_some() => panic!("GPU required but unavailable: {e}"),
             Err(e) => {

@@ -235,6 +235,7 @@ impl<T: Real> Simulation<T> {
         Ok(tools)
     }
 
+    #[cfg_attr(not(feature = "gpu"), allow(dead_code))]
     pub(crate) fn external_forces(&self) -> &[Vector3<T>] {
         &self.external
     }
@@ -245,6 +246,7 @@ impl<T: Real> Simulation<T> {
 
     /// Takes a state computed elsewhere (the GPU) as this step's result, with the same
     /// reporting and divergence check as a CPU step.
+    #[cfg_attr(not(feature = "gpu"), allow(dead_code))]
     pub(crate) fn accept_step(&mut self, tools: &[ContactTool<T>], u: Vec<Vector3<T>>, v: Vec<Vector3<T>>, cg: CgStats) -> Result<StepReport, SolverError> {
         let saved = self.snapshot();
         self.u = u;
