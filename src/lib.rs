@@ -1,10 +1,11 @@
 //! defvol: deformable volumes for robot and surgical-simulation stacks.
 //!
 //! The algorithms live here, independent of ROS: [`mesh`] and [`volume`] hold the data,
-//! [`io`] reads and writes it, [`solver`] deforms meshes, [`gpu`] runs the same kernels
+//! [`io`] reads and writes it, [`solver`] deforms meshes, [`dpcm`] engraves phyxel surfaces, [`gpu`] runs the same kernels
 //! through wgpu, [`scene`] describes a run and [`bench`] measures it.
 
 pub mod bench;
+pub mod dpcm;
 pub mod engine;
 #[cfg(feature = "gpu")]
 pub mod gpu;

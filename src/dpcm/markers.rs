@@ -1,0 +1,347 @@
+//! Where markers come from (seed 004, section 4.2.1): a script, a motion file, tool poses
+//! through a calibration, and the seed's UDP frames.
+
+use std::collections::BTreeMap;
+use std::io::ErrorKind;
+use std::net::{SocketAddr, UdpSocket};
+use std::path::{Path, PathBuf};
+
+use nalgebra::{Isometry3, Point3};
+use serde::{Deserialize, Serialize};
+
+use super::{DpcmConfig, Marker};
+
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum MarkerError {
+    #[error("{path}: {message}")]
+    MotionFile { path: PathBuf, message: String },
+    #[error("cannot listen for UDP markers on {addr}: {source}")]
+    Bind { addr: SocketAddr, source: std::io::Error },
+    #[error("receiving UDP markers failed: {0}")]
+    Receive(std::io::Error),
+}
+
+/// The seed's calibration (section 7.1): where the grid sits in the world. The grid frame
+/// has phyxel (0, 0) at its origin, columns along x, rows along y, Z along +z.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Calibration {
+    pub world_from_grid: Isometry3<f64>,
+    /// Metres per phyxel.
+    pub spacing: f64,
+}
+
+impl Calibration {
+    /// A grid lying in the world's xy plane, centred on the origin.
+    pub fn centred(config: &DpcmConfig) -> Self {
+        let half = nalgebra::Vector3::new((config.width - 1) as f64, (config.height - 1) as f64, 0.0) * (0.5 * config.spacing);
+        Self { world_from_grid: Isometry3::translation(-half.x, -half.y, 0.0), spacing: config.spacing }
+    }
+
+    /// A tool tip (world) as a marker: projected on the grid, its height above the plane.
+    pub fn marker(&self, id: u32, world_tip: Point3<f64>) -> Marker {
+        let p = self.world_from_grid.inverse_transform_point(&world_tip);
+        Marker { id, col: p.x / self.spacing, row: p.y / self.spacing, height: p.z, params: None }
+    }
+}
+
+/// Scripted marker paths, for demos, pictures and benchmarks.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Script {
+    pub markers: usize,
+    pub pattern: Pattern,
+    /// Metres per second along the path.
+    pub speed: f64,
+    /// How far the marker's lowest point goes below the rest height (metres).
+    pub depth: f64,
+    /// Markers leave (lift off the surface) after this many seconds.
+    pub leave_after: Option<f64>,
+}
+
+impl Default for Script {
+    fn default() -> Self {
+        Self { markers: 1, pattern: Pattern::Lines, speed: 0.05, depth: 0.001, leave_after: None }
+    }
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "snake_case")]
+pub enum Pattern {
+    /// Markers on evenly spaced rows crossing the grid from left to right (tracks, boats).
+    Lines,
+    /// Markers evenly spaced on a circle, going round it.
+    Circle,
+    /// Each marker on its own Lissajous path over the whole grid (many markers at once).
+    Wander,
+}
+
+impl Script {
+    /// The height of a marker centre that reaches `depth` below the rest height.
+    pub fn pressing_height(&self, config: &DpcmConfig) -> f64 {
+        config.rest_height + config.marker.threshold * (1.0 - config.marker.flattening) - self.depth
+    }
+
+    /// The markers at time `t` (seconds).
+    pub fn markers_at(&self, config: &DpcmConfig, t: f64) -> Vec<Marker> {
+        if self.leave_after.is_some_and(|leave| t >= leave) {
+            return Vec::new();
+        }
+        let (w, h) = ((config.width - 1) as f64, (config.height - 1) as f64);
+        let height = self.pressing_height(config);
+        let travelled = self.speed * t / config.spacing;
+        let k = self.markers.max(1);
+        (0..k)
+            .map(|i| {
+                let f = (i as f64 + 0.5) / k as f64;
+                let (col, row) = match self.pattern {
+                    Pattern::Lines => {
+                        let margin = 0.1 * w;
+                        (margin + travelled % (w - 2.0 * margin).max(1.0), 0.15 * h + 0.7 * h * f)
+                    }
+                    Pattern::Circle => {
+                        let radius = 0.3 * w.min(h);
+                        let angle = std::f64::consts::TAU * f + travelled / radius;
+                        (0.5 * w + radius * angle.cos(), 0.5 * h + radius * angle.sin())
+                    }
+                    Pattern::Wander => {
+                        let phase = 2.399_963 * i as f64; // golden angle: spread without pattern
+                        let s = travelled / (w + h);
+                        (0.5 * w + 0.45 * w * (s * 1.3 + phase).sin(), 0.5 * h + 0.45 * h * (s * 1.7 + 1.3 * phase).cos())
+                    }
+                };
+                Marker { id: i as u32, col, row, height, params: None }
+            })
+            .collect()
+    }
+}
+
+/// One row of a motion file: `time,marker,x,y,z` (seconds, id, world metres).
+#[derive(Debug, Clone, Copy, Deserialize)]
+struct MotionRow {
+    time: f64,
+    marker: u32,
+    x: f64,
+    y: f64,
+    z: f64,
+}
+
+/// A motion file: per marker, timed world positions; positions in between are interpolated
+/// linearly, and a marker is absent before its first and after its last sample.
+#[derive(Debug, Clone)]
+pub struct MotionFile {
+    tracks: BTreeMap<u32, Vec<(f64, Point3<f64>)>>,
+}
+
+impl MotionFile {
+    pub fn load(path: &Path) -> Result<Self, MarkerError> {
+        let bad = |message: String| MarkerError::MotionFile { path: path.to_owned(), message };
+        let mut reader = csv::ReaderBuilder::new().trim(csv::Trim::All).comment(Some(b'#')).from_path(path).map_err(|e| bad(e.to_string()))?;
+        let mut tracks: BTreeMap<u32, Vec<(f64, Point3<f64>)>> = BTreeMap::new();
+        for (line, row) in reader.deserialize::<MotionRow>().enumerate() {
+            let row = row.map_err(|e| bad(format!("row {}: {e} (columns: time,marker,x,y,z)", line + 1)))?;
+            if ![row.time, row.x, row.y, row.z].iter().all(|v| v.is_finite()) {
+                return Err(bad(format!("row {}: marker {} has a non-finite value", line + 1, row.marker)));
+            }
+            let track = tracks.entry(row.marker).or_default();
+            if track.last().is_some_and(|(t, _)| *t >= row.time) {
+                return Err(bad(format!("row {}: marker {} goes back in time to {} s", line + 1, row.marker, row.time)));
+            }
+            track.push((row.time, Point3::new(row.x, row.y, row.z)));
+        }
+        if tracks.is_empty() {
+            return Err(bad("no samples".into()));
+        }
+        Ok(Self { tracks })
+    }
+
+    /// The last sample time.
+    pub fn duration(&self) -> f64 {
+        self.tracks.values().filter_map(|t| t.last().map(|s| s.0)).fold(0.0, f64::max)
+    }
+
+    /// The markers at time `t`, through `calibration`.
+    pub fn markers_at(&self, calibration: &Calibration, t: f64) -> Vec<Marker> {
+        let mut out = Vec::with_capacity(self.tracks.len());
+        for (&id, track) in &self.tracks {
+            let after = track.partition_point(|(ts, _)| *ts <= t);
+            let Some(&(t0, p0)) = after.checked_sub(1).and_then(|i| track.get(i)) else { continue };
+            let p = match track.get(after) {
+                Some(&(t1, p1)) => p0 + (p1 - p0) * ((t - t0) / (t1 - t0)),
+                None if t0 == t => p0,
+                None => continue,
+            };
+            out.push(calibration.marker(id, p));
+        }
+        out
+    }
+}
+
+/// The seed's frame marker (figure 7).
+pub const FRAME_FLAG: u32 = 0xFFFF_FFFF;
+/// More markers than this in one frame is taken as a malformed count.
+pub const MAX_FRAME_MARKERS: u32 = 65_536;
+
+/// A frame of the seed's UDP format: frame number and (marker index, x, y) in phyxels.
+#[derive(Debug, Clone, PartialEq)]
+pub struct UdpFrame {
+    pub frame: u32,
+    pub markers: Vec<(u32, f32, f32)>,
+}
+
+/// Frame counts kept by [`FrameParser`].
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct FrameCounts {
+    pub received: u64,
+    /// Frame numbers skipped by the sender's sequence.
+    pub lost: u64,
+    /// Truncated frames, bad counts or indices, non-finite positions, stray bytes.
+    pub malformed: u64,
+    /// Frames older than one already taken.
+    pub out_of_order: u64,
+}
+
+/// Parses the seed's frames (little-endian 32-bit words: flag, count, frame number, then
+/// index, x, y per marker), resynchronising on the flag after damage.
+#[derive(Debug, Default)]
+pub struct FrameParser {
+    last_frame: Option<u32>,
+    pub counts: FrameCounts,
+}
+
+impl FrameParser {
+    /// Every well-formed frame in one datagram, in order.
+    pub fn parse(&mut self, bytes: &[u8]) -> Vec<UdpFrame> {
+        let words: Vec<u32> = bytes.chunks_exact(4).map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
+        if bytes.len() % 4 != 0 {
+            self.malformed("a datagram length that is not a whole number of 32-bit words");
+        }
+        let mut frames = Vec::new();
+        let mut i = 0;
+        let mut skipped = false;
+        while i < words.len() {
+            if words[i] != FRAME_FLAG {
+                skipped = true;
+                i += 1;
+                continue;
+            }
+            if skipped {
+                self.malformed("bytes before a frame flag");
+                skipped = false;
+            }
+            match Self::frame_at(&words[i..]) {
+                Ok((frame, used)) => {
+                    i += used;
+                    self.take(frame, &mut frames);
+                }
+                Err(why) => {
+                    self.malformed(why);
+                    i += 1;
+                }
+            }
+        }
+        if skipped {
+            self.malformed("bytes without a frame flag");
+        }
+        frames
+    }
+
+    fn malformed(&mut self, why: &str) {
+        self.counts.malformed += 1;
+        tracing::warn!("UDP markers: malformed frame dropped ({why})");
+    }
+
+    fn take(&mut self, frame: UdpFrame, frames: &mut Vec<UdpFrame>) {
+        match self.last_frame {
+            // A sender that restarts its count at 0 starts a new sequence.
+            Some(last) if frame.frame <= last && frame.frame != 0 => {
+                self.counts.out_of_order += 1;
+                return;
+            }
+            Some(last) if frame.frame > last => self.counts.lost += u64::from(frame.frame - last - 1),
+            _ => {}
+        }
+        self.counts.received += 1;
+        self.last_frame = Some(frame.frame);
+        frames.push(frame);
+    }
+
+    fn frame_at(words: &[u32]) -> Result<(UdpFrame, usize), &'static str> {
+        let [_, count, number, ..] = *words else { return Err("truncated header") };
+        if count > MAX_FRAME_MARKERS {
+            return Err("implausible marker count");
+        }
+        let used = 3 + 3 * count as usize;
+        let Some(body) = words.get(3..used) else { return Err("fewer markers than its count") };
+        let mut markers = Vec::with_capacity(count as usize);
+        let mut seen = vec![false; count as usize];
+        for m in body.chunks_exact(3) {
+            let (index, x, y) = (m[0], f32::from_bits(m[1]), f32::from_bits(m[2]));
+            let Some(slot) = seen.get_mut(index as usize) else { return Err("a marker index beyond its count") };
+            if std::mem::replace(slot, true) {
+                return Err("a repeated marker index");
+            }
+            if !(x.is_finite() && y.is_finite()) {
+                return Err("a non-finite marker position");
+            }
+            markers.push((index, x, y));
+        }
+        Ok((UdpFrame { frame: number, markers }, used))
+    }
+}
+
+/// A non-blocking UDP marker source (the seed's network reading pass never blocks a step).
+#[derive(Debug)]
+pub struct UdpSource {
+    socket: UdpSocket,
+    pub parser: FrameParser,
+    latest: Option<UdpFrame>,
+    buffer: Vec<u8>,
+}
+
+impl UdpSource {
+    /// Binds `addr` (the CLI's default is loopback: other hosts only when asked).
+    pub fn bind(addr: SocketAddr) -> Result<Self, MarkerError> {
+        let socket = UdpSocket::bind(addr).map_err(|source| MarkerError::Bind { addr, source })?;
+        socket.set_nonblocking(true).map_err(|source| MarkerError::Bind { addr, source })?;
+        Ok(Self { socket, parser: FrameParser::default(), latest: None, buffer: vec![0; 65_536] })
+    }
+
+    pub fn local_addr(&self) -> Option<SocketAddr> {
+        self.socket.local_addr().ok()
+    }
+
+    /// Drains pending datagrams; the newest well-formed frame so far.
+    pub fn poll(&mut self) -> Result<Option<&UdpFrame>, MarkerError> {
+        loop {
+            match self.socket.recv(&mut self.buffer) {
+                Ok(n) => {
+                    let frames = self.parser.parse(&self.buffer[..n]);
+                    if let Some(last) = frames.into_iter().last() {
+                        self.latest = Some(last);
+                    }
+                }
+                Err(e) if e.kind() == ErrorKind::WouldBlock => break,
+                Err(e) if e.kind() == ErrorKind::Interrupted || e.kind() == ErrorKind::ConnectionRefused => continue,
+                Err(e) => return Err(MarkerError::Receive(e)),
+            }
+        }
+        Ok(self.latest.as_ref())
+    }
+}
+
+impl UdpFrame {
+    /// The frame's markers at `height` (the format carries x and y only).
+    pub fn markers(&self, height: f64) -> Vec<Marker> {
+        self.markers.iter().map(|&(id, x, y)| Marker { id, col: f64::from(x), row: f64::from(y), height, params: None }).collect()
+    }
+
+    /// The frame as the seed's words, little-endian (for senders and tests).
+    pub fn encode(&self) -> Vec<u8> {
+        let mut words = vec![FRAME_FLAG, self.markers.len() as u32, self.frame];
+        for &(index, x, y) in &self.markers {
+            words.extend([index, x.to_bits(), y.to_bits()]);
+        }
+        words.iter().flat_map(|w| w.to_le_bytes()).collect()
+    }
+}

@@ -1,0 +1,749 @@
+//! The dynamic particle coating method (seed 004): a grid of phyxels, each a mass on a
+//! one-dimensional link to its fixed point, coupled to its neighbours and engraved by
+//! markers that push it one way.
+//!
+//! Heights Z are the distance from a phyxel's fixed point to its mass (metres), Z = rest
+//! height at rest. [`Surface`] runs the CPU path (rayon over bands of rows); the GPU twin is
+//! `gpu::dpcm`. Markers are binned into [`kernel::TILE`]² tiles, so a step costs the grid
+//! plus each marker's footprint, never grid × markers.
+
+pub mod kernel;
+pub mod markers;
+pub mod render;
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use kernel::{Coeffs, KernelMarker, Rows, TILE};
+
+/// The presets in `config/dpcm/`, compiled in: (name, YAML).
+pub const PRESETS: [(&str, &str); 5] = [
+    ("water", include_str!("../../config/dpcm/water.yaml")),
+    ("loose_soil", include_str!("../../config/dpcm/loose_soil.yaml")),
+    ("sand", include_str!("../../config/dpcm/sand.yaml")),
+    ("oil_painting", include_str!("../../config/dpcm/oil_painting.yaml")),
+    ("fossil", include_str!("../../config/dpcm/fossil.yaml")),
+];
+
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum DpcmError {
+    #[error("DPCM parameter `{name}` = {value}: {why}")]
+    BadParameter { name: String, value: f64, why: String },
+    #[error("DPCM {source_name}: {message}")]
+    Parse { source_name: String, message: String },
+    #[error("unknown DPCM preset `{0}` (known: water, loose_soil, sand, oil_painting, fossil)")]
+    UnknownPreset(String),
+    #[error("the DPCM step is unstable: h²/m·λ(K) + 2h/m·λ(C) = {value:.3} must stay below 4 (the explicit Verlet limit); lower dt below {dt_max:.3e} s or soften the links")]
+    Unstable { value: f64, dt_max: f64 },
+    #[error("{path}: {message}")]
+    Texture { path: PathBuf, message: String },
+    #[error("{path}: {source}")]
+    File { path: PathBuf, source: std::io::Error },
+}
+
+/// A one-dimensional interaction from the library (seed 004, section 7.2).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case", tag = "kind", deny_unknown_fields)]
+pub enum Interaction {
+    /// Spring, N/m.
+    Elastic { stiffness: f64 },
+    /// Dashpot, N·s/m.
+    Viscous { damping: f64 },
+    DampedSpring { stiffness: f64, damping: f64 },
+    /// Hysteretic spring ([CLH96]): its rest point follows the mass once the stretch exceeds
+    /// `threshold` (metres), leaving a permanent mark. Ground links only.
+    Plastic { stiffness: f64, damping: f64, threshold: f64 },
+}
+
+impl Interaction {
+    fn stiffness(&self) -> f64 {
+        match *self {
+            Self::Elastic { stiffness } | Self::DampedSpring { stiffness, .. } | Self::Plastic { stiffness, .. } => stiffness,
+            Self::Viscous { .. } => 0.0,
+        }
+    }
+    fn damping(&self) -> f64 {
+        match *self {
+            Self::Viscous { damping } | Self::DampedSpring { damping, .. } | Self::Plastic { damping, .. } => damping,
+            Self::Elastic { .. } => 0.0,
+        }
+    }
+    fn validate(&self, name: &str) -> Result<(), DpcmError> {
+        let check = |field: &str, v: f64| {
+            if v.is_finite() && v >= 0.0 {
+                Ok(())
+            } else {
+                Err(DpcmError::BadParameter { name: format!("{name}.{field}"), value: v, why: "must be finite and >= 0".into() })
+            }
+        };
+        check("stiffness", self.stiffness())?;
+        check("damping", self.damping())?;
+        if let Self::Plastic { threshold, .. } = *self {
+            if !(threshold.is_finite() && threshold > 0.0) {
+                return Err(DpcmError::BadParameter { name: format!("{name}.threshold"), value: threshold, why: "must be finite and > 0".into() });
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Which neighbours a phyxel is linked to (seed 004, figure 12 and 13).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "snake_case")]
+pub enum Topology {
+    /// No inter-phyxel links (pure engraving, as the seed's loose soil).
+    None,
+    Four,
+    Eight,
+    /// The four diagonal neighbours only: same pattern as `four`, faster propagation.
+    Diagonal,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Links {
+    pub topology: Topology,
+    /// Each link exists with this probability (the stochastic "dynamic oil painting"),
+    /// drawn once from `seed`.
+    #[serde(default = "one")]
+    pub probability: f64,
+    #[serde(default)]
+    pub seed: u32,
+    /// Interaction of the axial links.
+    pub axial: Option<Interaction>,
+    /// Interaction of the diagonal links (default: the axial one).
+    #[serde(default)]
+    pub diagonal: Option<Interaction>,
+}
+
+fn one() -> f64 {
+    1.0
+}
+
+/// How a marker pushes the phyxels (seed 004, section 4.2.1).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MarkerParams {
+    /// N/m.
+    pub stiffness: f64,
+    /// N·s/m, coupling the phyxels to the marker's own vertical motion while in reach.
+    #[serde(default)]
+    pub damping: f64,
+    /// Radius of influence (metres): the distance threshold.
+    pub threshold: f64,
+    /// 0: a sphere; towards 1: an ever flatter disc (vertical axis times 1 - flattening).
+    #[serde(default)]
+    pub flattening: f64,
+}
+
+impl MarkerParams {
+    fn validate(&self, name: &str) -> Result<(), DpcmError> {
+        let bad = |field: &str, v: f64, why: &str| DpcmError::BadParameter { name: format!("{name}.{field}"), value: v, why: why.into() };
+        if !(self.stiffness.is_finite() && self.stiffness >= 0.0) {
+            return Err(bad("stiffness", self.stiffness, "must be finite and >= 0"));
+        }
+        if !(self.damping.is_finite() && self.damping >= 0.0) {
+            return Err(bad("damping", self.damping, "must be finite and >= 0"));
+        }
+        if !(self.threshold.is_finite() && self.threshold > 0.0) {
+            return Err(bad("threshold", self.threshold, "must be finite and > 0"));
+        }
+        if !(0.0..1.0).contains(&self.flattening) {
+            return Err(bad("flattening", self.flattening, "must be in [0, 1)"));
+        }
+        Ok(())
+    }
+}
+
+/// A per-phyxel parameter read from an image (PNG, or a one-slice .mha/.nrrd/.nii):
+/// intensity 0..1 (PNG) or the raw value (float images) mapped linearly onto `range`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ParamTexture {
+    pub file: PathBuf,
+    pub parameter: TexturedParameter,
+    /// Values at intensity 0 and 1 (PNG) or the scale of raw values (default [0, 1]).
+    #[serde(default = "unit_range")]
+    pub range: [f64; 2],
+}
+
+fn unit_range() -> [f64; 2] {
+    [0.0, 1.0]
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum TexturedParameter {
+    GroundStiffness,
+    GroundDamping,
+    /// Initial rest height (a terrain to engrave).
+    RestHeight,
+}
+
+/// A DPCM run: the grid, its physics and how it is shown.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DpcmConfig {
+    /// What the preset shows (README).
+    #[serde(default)]
+    pub description: String,
+    /// Phyxels along x (columns) and y (rows).
+    pub width: usize,
+    pub height: usize,
+    /// Metres between phyxels.
+    pub spacing: f64,
+    /// Seconds per step (the seed's Tech).
+    pub dt: f64,
+    /// kg per phyxel.
+    pub mass: f64,
+    /// Initial Z, metres (the seed initialises Z to the ground link's rest length).
+    #[serde(default)]
+    pub rest_height: f64,
+    pub ground: Interaction,
+    pub links: Links,
+    pub marker: MarkerParams,
+    #[serde(default)]
+    pub textures: Vec<ParamTexture>,
+    #[serde(default)]
+    pub render: render::RenderConfig,
+    /// The scripted markers used when no other source is given.
+    #[serde(default)]
+    pub script: markers::Script,
+}
+
+impl DpcmConfig {
+    pub fn preset(name: &str) -> Result<Self, DpcmError> {
+        let Some((_, text)) = PRESETS.iter().find(|(n, _)| *n == name) else {
+            return Err(DpcmError::UnknownPreset(name.to_owned()));
+        };
+        Self::from_yaml(text, &format!("preset {name}"))
+    }
+
+    pub fn from_yaml(text: &str, source_name: &str) -> Result<Self, DpcmError> {
+        serde_yaml_ng::from_str(text).map_err(|e| DpcmError::Parse { source_name: source_name.to_owned(), message: e.to_string() })
+    }
+
+    pub fn load(path: &Path) -> Result<Self, DpcmError> {
+        let text = std::fs::read_to_string(path).map_err(|source| DpcmError::File { path: path.to_owned(), source })?;
+        Self::from_yaml(&text, &path.display().to_string())
+    }
+
+    /// Checks every parameter and the explicit step's stability; the per-step coefficients.
+    pub fn coeffs(&self) -> Result<Coeffs, DpcmError> {
+        let positive = |name: &str, v: f64| {
+            if v.is_finite() && v > 0.0 {
+                Ok(())
+            } else {
+                Err(DpcmError::BadParameter { name: name.into(), value: v, why: "must be finite and > 0".into() })
+            }
+        };
+        positive("dt", self.dt)?;
+        positive("mass", self.mass)?;
+        positive("spacing", self.spacing)?;
+        for (name, n) in [("width", self.width), ("height", self.height)] {
+            if n < 3 {
+                return Err(DpcmError::BadParameter { name: name.into(), value: n as f64, why: "the grid needs at least 3 phyxels a side".into() });
+            }
+        }
+        if self.width.checked_mul(self.height).is_none_or(|n| n > u32::MAX as usize / 4) {
+            return Err(DpcmError::BadParameter { name: "width x height".into(), value: (self.width as f64) * (self.height as f64), why: "more phyxels than a u32 index allows".into() });
+        }
+        if !self.rest_height.is_finite() {
+            return Err(DpcmError::BadParameter { name: "rest_height".into(), value: self.rest_height, why: "must be finite".into() });
+        }
+        if !(0.0..=1.0).contains(&self.links.probability) {
+            return Err(DpcmError::BadParameter { name: "links.probability".into(), value: self.links.probability, why: "must be in [0, 1]".into() });
+        }
+        self.ground.validate("ground")?;
+        self.marker.validate("marker")?;
+        let axial = self.links.axial.unwrap_or(Interaction::Elastic { stiffness: 0.0 });
+        let diagonal = self.links.diagonal.unwrap_or(axial);
+        for (name, link) in [("links.axial", axial), ("links.diagonal", diagonal)] {
+            link.validate(name)?;
+            if matches!(link, Interaction::Plastic { .. }) {
+                return Err(DpcmError::BadParameter {
+                    name: name.into(),
+                    value: link.stiffness(),
+                    why: "plastic links between phyxels are not in the library (they need a state per link); make the ground link plastic".into(),
+                });
+            }
+        }
+        if self.links.topology != Topology::None && self.links.axial.is_none() {
+            return Err(DpcmError::BadParameter { name: "links.axial".into(), value: f64::NAN, why: format!("topology {:?} needs an interaction", self.links.topology) });
+        }
+        let (has_axial, has_diagonal) = match self.links.topology {
+            Topology::None => (false, false),
+            Topology::Four => (true, false),
+            Topology::Eight => (true, true),
+            Topology::Diagonal => (false, true),
+        };
+        let (h, m) = (self.dt, self.mass);
+        let ground_k = self.ground.stiffness() * self.texture_max(TexturedParameter::GroundStiffness);
+        let ground_c = self.ground.damping() * self.texture_max(TexturedParameter::GroundDamping);
+        // Largest eigenvalue of the lattice's link matrix (a Fourier mode at a corner of the
+        // Brillouin zone); a stochastic or bordered grid is a subgraph, whose eigenvalues are
+        // no larger.
+        let lattice_max = |axial: f64, diagonal: f64| match (has_axial, has_diagonal) {
+            (false, false) => 0.0,
+            (true, false) => 8.0 * axial,
+            (false, true) => 8.0 * diagonal,
+            (true, true) => f64::max(8.0 * axial, 4.0 * axial + 8.0 * diagonal),
+        };
+        let k_sum = ground_k + lattice_max(axial.stiffness(), diagonal.stiffness()) + self.marker.stiffness;
+        let c_sum = ground_c + lattice_max(axial.damping(), diagonal.damping()) + self.marker.damping;
+        let value = h * h / m * k_sum + 2.0 * h / m * c_sum;
+        if value >= 4.0 {
+            // Largest h with h²·K/m + 2h·C/m < 4.
+            let (a, b) = (k_sum / m, 2.0 * c_sum / m);
+            let dt_max = if a > 0.0 { (-b + (b * b + 16.0 * a).sqrt()) / (2.0 * a) } else { 4.0 / b };
+            return Err(DpcmError::Unstable { value, dt_max });
+        }
+        let threshold = match self.ground {
+            Interaction::Plastic { threshold, .. } => threshold as f32,
+            _ => -1.0,
+        };
+        let keep = (self.links.probability * f64::from(1u32 << 24)).round() as u32;
+        Ok(Coeffs {
+            ground_a: (self.ground.stiffness() * h * h / m) as f32,
+            ground_b: (self.ground.damping() * h / m) as f32,
+            axial_a: (axial.stiffness() * h * h / m) as f32,
+            axial_b: (axial.damping() * h / m) as f32,
+            diag_a: (diagonal.stiffness() * h * h / m) as f32,
+            diag_b: (diagonal.damping() * h / m) as f32,
+            plastic_threshold: threshold,
+            link_keep: keep,
+            link_seed: kernel::hash32(self.links.seed ^ 0x9e37_79b9),
+            has_axial: u32::from(has_axial),
+            has_diagonal: u32::from(has_diagonal),
+            _pad: 0,
+        })
+    }
+
+    /// The largest multiplier a texture puts on `parameter` (1 without one).
+    fn texture_max(&self, parameter: TexturedParameter) -> f64 {
+        self.textures.iter().filter(|t| t.parameter == parameter).map(|t| t.range[0].max(t.range[1]).max(0.0)).fold(1.0, f64::max)
+    }
+}
+
+/// A marker at one step, in grid coordinates.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Marker {
+    /// Stable identity across steps (the marker's velocity comes from its last height).
+    pub id: u32,
+    /// Column and row, in phyxels (fractional).
+    pub col: f64,
+    pub row: f64,
+    /// Height of the marker's centre above the fixed plane, metres.
+    pub height: f64,
+    /// Its own parameters; the configuration's when `None`.
+    pub params: Option<MarkerParams>,
+}
+
+/// What a step did with its markers.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct StepStats {
+    pub markers_applied: usize,
+    /// Markers with a NaN or infinite coordinate, or invalid parameters: dropped.
+    pub markers_dropped: usize,
+    /// Markers whose reach lies wholly outside the grid.
+    pub markers_off_grid: usize,
+}
+
+/// Markers binned into tiles (CSR): the lists both paths read.
+#[derive(Debug, Default, Clone)]
+pub struct MarkerBins {
+    pub markers: Vec<KernelMarker>,
+    pub tiles_x: usize,
+    pub tiles_y: usize,
+    /// Tile t's markers are `indices[offsets[t]..offsets[t + 1]]`.
+    pub offsets: Vec<u32>,
+    pub indices: Vec<u32>,
+}
+
+impl MarkerBins {
+    fn tile_range(m: &KernelMarker, width: usize, height: usize) -> Option<([usize; 2], [usize; 2])> {
+        let lo_x = (m.col - m.threshold).floor().max(0.0);
+        let hi_x = (m.col + m.threshold).ceil().min(width as f32 - 1.0);
+        let lo_y = (m.row - m.threshold).floor().max(0.0);
+        let hi_y = (m.row + m.threshold).ceil().min(height as f32 - 1.0);
+        if lo_x > hi_x || lo_y > hi_y {
+            return None;
+        }
+        Some(([lo_x as usize / TILE, hi_x as usize / TILE], [lo_y as usize / TILE, hi_y as usize / TILE]))
+    }
+
+    /// Bins `markers` for a `width` x `height` grid; returns how many reach no phyxel.
+    pub fn build(&mut self, markers: Vec<KernelMarker>, width: usize, height: usize) -> usize {
+        self.tiles_x = width.div_ceil(TILE);
+        self.tiles_y = height.div_ceil(TILE);
+        let tiles = self.tiles_x * self.tiles_y;
+        self.offsets.clear();
+        self.offsets.resize(tiles + 1, 0);
+        let mut off_grid = 0;
+        let ranges: Vec<_> = markers.iter().map(|m| Self::tile_range(m, width, height)).collect();
+        for range in &ranges {
+            let Some(([x0, x1], [y0, y1])) = *range else {
+                off_grid += 1;
+                continue;
+            };
+            for ty in y0..=y1 {
+                for tx in x0..=x1 {
+                    self.offsets[ty * self.tiles_x + tx + 1] += 1;
+                }
+            }
+        }
+        for t in 0..tiles {
+            self.offsets[t + 1] += self.offsets[t];
+        }
+        self.indices.clear();
+        self.indices.resize(self.offsets[tiles] as usize, 0);
+        let mut fill: Vec<u32> = self.offsets[..tiles].to_vec();
+        for (index, range) in ranges.iter().enumerate() {
+            let Some(([x0, x1], [y0, y1])) = *range else { continue };
+            for ty in y0..=y1 {
+                for tx in x0..=x1 {
+                    let t = ty * self.tiles_x + tx;
+                    self.indices[fill[t] as usize] = index as u32;
+                    fill[t] += 1;
+                }
+            }
+        }
+        self.markers = markers;
+        off_grid
+    }
+
+    pub fn tile(&self, tx: usize, ty: usize) -> &[u32] {
+        let t = ty * self.tiles_x + tx;
+        &self.indices[self.offsets[t] as usize..self.offsets[t + 1] as usize]
+    }
+}
+
+/// The rest points of the ground links.
+#[derive(Debug, Clone)]
+enum Rest {
+    /// Every phyxel at the configured rest height (elastic ground, no texture).
+    Uniform(f32),
+    /// One per phyxel: plastic ground, or a rest-height texture.
+    PerPhyxel(Vec<f32>),
+}
+
+/// Ground coefficients per phyxel, when a texture sets them.
+#[derive(Debug, Clone)]
+struct GroundTexture {
+    a: Vec<f32>,
+    b: Vec<f32>,
+}
+
+/// A DPCM grid and its state, stepped on the CPU.
+#[derive(Debug, Clone)]
+pub struct Surface {
+    config: DpcmConfig,
+    coeffs: Coeffs,
+    z: Vec<f32>,
+    zp: Vec<f32>,
+    next: Vec<f32>,
+    rest: Rest,
+    initial_rest: Rest,
+    ground: Option<GroundTexture>,
+    marker_heights: HashMap<u32, f32>,
+    bins: MarkerBins,
+    steps: u64,
+}
+
+/// Rows per rayon task: a multiple of the tile side, so tiles never straddle two tasks.
+const BAND_ROWS: usize = 4 * TILE;
+
+impl Surface {
+    pub fn new(config: &DpcmConfig) -> Result<Self, DpcmError> {
+        let coeffs = config.coeffs()?;
+        let n = config.width * config.height;
+        let rest_height = config.rest_height as f32;
+        let mut per_phyxel_rest = None;
+        let mut ground = None;
+        for texture in &config.textures {
+            let values = render::load_texture(texture, config.width, config.height)?;
+            match texture.parameter {
+                TexturedParameter::RestHeight => per_phyxel_rest = Some(values),
+                TexturedParameter::GroundStiffness | TexturedParameter::GroundDamping => {
+                    let g = ground.get_or_insert_with(|| GroundTexture { a: vec![coeffs.ground_a; n], b: vec![coeffs.ground_b; n] });
+                    let (target, base) = if texture.parameter == TexturedParameter::GroundStiffness {
+                        (&mut g.a, config.ground.stiffness() * config.dt * config.dt / config.mass)
+                    } else {
+                        (&mut g.b, config.ground.damping() * config.dt / config.mass)
+                    };
+                    for (t, v) in target.iter_mut().zip(&values) {
+                        *t = (base * f64::from(*v)) as f32;
+                    }
+                }
+            }
+        }
+        let plastic = coeffs.plastic_threshold >= 0.0;
+        let rest = match per_phyxel_rest {
+            Some(r) => Rest::PerPhyxel(r),
+            None if plastic => Rest::PerPhyxel(vec![rest_height; n]),
+            None => Rest::Uniform(rest_height),
+        };
+        let z = match &rest {
+            Rest::PerPhyxel(r) => r.clone(),
+            Rest::Uniform(h) => vec![*h; n],
+        };
+        Ok(Self {
+            config: config.clone(),
+            coeffs,
+            zp: z.clone(),
+            next: z.clone(),
+            z,
+            initial_rest: rest.clone(),
+            rest,
+            ground,
+            marker_heights: HashMap::new(),
+            bins: MarkerBins::default(),
+            steps: 0,
+        })
+    }
+
+    pub fn config(&self) -> &DpcmConfig {
+        &self.config
+    }
+    pub fn coeffs(&self) -> &Coeffs {
+        &self.coeffs
+    }
+    pub fn width(&self) -> usize {
+        self.config.width
+    }
+    pub fn height(&self) -> usize {
+        self.config.height
+    }
+    pub fn steps(&self) -> u64 {
+        self.steps
+    }
+    /// Z(n), row-major (x fastest).
+    pub fn heights(&self) -> &[f32] {
+        &self.z
+    }
+    /// Z(n-1).
+    pub fn previous_heights(&self) -> &[f32] {
+        &self.zp
+    }
+    /// The ground links' rest points now (moved by plasticity).
+    pub fn rest_heights(&self) -> Vec<f32> {
+        match &self.rest {
+            Rest::Uniform(h) => vec![*h; self.z.len()],
+            Rest::PerPhyxel(r) => r.clone(),
+        }
+    }
+    /// Ground coefficients of phyxel i: (k·h²/m, c·h/m).
+    pub fn ground_coeffs(&self, i: usize) -> (f32, f32) {
+        match &self.ground {
+            Some(g) => (g.a[i], g.b[i]),
+            None => (self.coeffs.ground_a, self.coeffs.ground_b),
+        }
+    }
+    /// Z minus the initial rest height: the engraving, as rendered.
+    pub fn displacement(&self) -> Vec<f32> {
+        match &self.initial_rest {
+            Rest::Uniform(h) => self.z.iter().map(|z| z - h).collect(),
+            Rest::PerPhyxel(r) => self.z.iter().zip(r).map(|(z, r)| z - r).collect(),
+        }
+    }
+
+    /// Sets Z(n) = Z(n-1) = `heights` (a disturbance released at rest).
+    pub fn set_heights(&mut self, heights: &[f32]) -> Result<(), DpcmError> {
+        if heights.len() != self.z.len() || heights.iter().any(|h| !h.is_finite()) {
+            return Err(DpcmError::BadParameter { name: "heights".into(), value: heights.len() as f64, why: format!("need {} finite values", self.z.len()) });
+        }
+        self.z.copy_from_slice(heights);
+        self.zp.copy_from_slice(heights);
+        Ok(())
+    }
+
+    /// Back to the initial balance state (seed 004, section 4.2.4).
+    pub fn reset(&mut self) {
+        self.rest = self.initial_rest.clone();
+        let z = match &self.rest {
+            Rest::PerPhyxel(r) => r.clone(),
+            Rest::Uniform(h) => vec![*h; self.z.len()],
+        };
+        self.zp.copy_from_slice(&z);
+        self.z = z;
+        self.marker_heights.clear();
+        self.steps = 0;
+    }
+
+    /// Markers as the kernels read them, binned; NaN markers and bad parameters dropped.
+    pub fn bin_markers(&mut self, markers: &[Marker]) -> StepStats {
+        let (kernel_markers, mut stats) = to_kernel_markers(&self.config, &mut self.marker_heights, markers);
+        stats.markers_off_grid = self.bins.build(kernel_markers, self.config.width, self.config.height);
+        stats.markers_applied -= stats.markers_off_grid;
+        stats
+    }
+
+    pub fn bins(&self) -> &MarkerBins {
+        &self.bins
+    }
+
+    /// One Verlet step under `markers`.
+    pub fn step(&mut self, markers: &[Marker]) -> StepStats {
+        let stats = self.bin_markers(markers);
+        self.step_binned();
+        stats
+    }
+
+    /// One step with the markers already binned (the benchmark and the GPU twin share bins).
+    pub fn step_binned(&mut self) {
+        let (w, h) = (self.config.width, self.config.height);
+        let band = BAND_ROWS * w;
+        let bands = h.div_ceil(BAND_ROWS);
+        let (rest_height, rest_bands): (f32, Vec<&mut [f32]>) = match &mut self.rest {
+            Rest::Uniform(r) => (*r, std::iter::repeat_with(|| &mut [][..]).take(bands).collect()),
+            Rest::PerPhyxel(r) => (0.0, r.chunks_mut(band).collect()),
+        };
+        let plastic = self.coeffs.plastic_threshold >= 0.0;
+        let regular = self.coeffs.link_keep >= 1 << 24;
+        let ctx = StepContext { c: &self.coeffs, z: &self.z, zp: &self.zp, width: w, height: h, ground: self.ground.as_ref(), rest_height, plastic, regular, bins: &self.bins };
+        self.next.par_chunks_mut(band).zip(rest_bands).enumerate().for_each(|(b, (out, rest))| ctx.band(b * BAND_ROWS, out, rest));
+        std::mem::swap(&mut self.zp, &mut self.z);
+        std::mem::swap(&mut self.z, &mut self.next);
+        self.steps += 1;
+    }
+}
+
+/// Converts and validates markers; tracks each marker's last height for its velocity.
+pub fn to_kernel_markers(config: &DpcmConfig, last_heights: &mut HashMap<u32, f32>, markers: &[Marker]) -> (Vec<KernelMarker>, StepStats) {
+    let mut stats = StepStats::default();
+    let mut out = Vec::with_capacity(markers.len());
+    let (h, m, s) = (config.dt, config.mass, config.spacing);
+    let mut seen = HashMap::with_capacity(markers.len());
+    for marker in markers {
+        let params = marker.params.unwrap_or(config.marker);
+        let finite = marker.col.is_finite() && marker.row.is_finite() && marker.height.is_finite();
+        if !finite || params.validate("marker").is_err() || params.stiffness > config.marker.stiffness || params.damping > config.marker.damping {
+            // Stiffer markers than the configured one could break the checked stability bound.
+            stats.markers_dropped += 1;
+            continue;
+        }
+        let height = marker.height as f32;
+        let step_dz = last_heights.get(&marker.id).map_or(0.0, |last| height - last);
+        seen.insert(marker.id, height);
+        out.push(KernelMarker {
+            col: marker.col as f32,
+            row: marker.row as f32,
+            height,
+            step_dz,
+            stiffness_a: (params.stiffness * h * h / m * s) as f32,
+            damping_b: (params.damping * h / m) as f32,
+            threshold: (params.threshold / s) as f32,
+            z_scale: (1.0 / ((1.0 - params.flattening) * s)) as f32,
+        });
+    }
+    *last_heights = seen;
+    stats.markers_applied = out.len();
+    (out, stats)
+}
+
+/// What a band task reads.
+struct StepContext<'a> {
+    c: &'a Coeffs,
+    z: &'a [f32],
+    zp: &'a [f32],
+    width: usize,
+    height: usize,
+    ground: Option<&'a GroundTexture>,
+    rest_height: f32,
+    plastic: bool,
+    regular: bool,
+    bins: &'a MarkerBins,
+}
+
+impl StepContext<'_> {
+    /// Rows y0.. of Z(n+1) into `out` (whole rows), then the markers of the band's tiles.
+    fn band(&self, y0: usize, out: &mut [f32], rest: &mut [f32]) {
+        let w = self.width;
+        let rows = out.len() / w;
+        for dy in 0..rows {
+            let y = y0 + dy;
+            let out_row = &mut out[dy * w..(dy + 1) * w];
+            let rest_row: &mut [f32] = if rest.is_empty() { &mut [] } else { &mut rest[dy * w..(dy + 1) * w] };
+            if self.regular && y > 0 && y + 1 < self.height {
+                self.interior(y, out_row, rest_row);
+                for x in [0, w - 1] {
+                    self.general(x, y, out_row, rest_row);
+                }
+            } else {
+                for x in 0..w {
+                    self.general(x, y, out_row, rest_row);
+                }
+            }
+        }
+        self.markers(y0, rows, out);
+    }
+
+    fn general(&self, x: usize, y: usize, out_row: &mut [f32], rest_row: &mut [f32]) {
+        let i = y * self.width + x;
+        let rest = if rest_row.is_empty() {
+            self.rest_height
+        } else {
+            let r = if self.plastic { kernel::plastic_rest(self.c, rest_row[x], self.z[i]) } else { rest_row[x] };
+            rest_row[x] = r;
+            r
+        };
+        let (ga, gb) = match self.ground {
+            Some(g) => (g.a[i], g.b[i]),
+            None => (self.c.ground_a, self.c.ground_b),
+        };
+        out_row[x] = kernel::phyxel_update(self.c, ga, gb, rest, self.z, self.zp, self.width, self.height, x, y);
+    }
+
+    fn interior<'a>(&'a self, y: usize, out: &mut [f32], rest: &mut [f32]) {
+        let w = self.width;
+        let row = |v: &'a [f32], y: usize| -> &'a [f32] { &v[y * w..(y + 1) * w] };
+        let rows = Rows { up: row(self.z, y - 1), mid: row(self.z, y), down: row(self.z, y + 1), up_p: row(self.zp, y - 1), mid_p: row(self.zp, y), down_p: row(self.zp, y + 1) };
+        let (c, p, rh) = (self.c, self.plastic, self.rest_height);
+        match (self.ground, self.c.has_axial != 0, self.c.has_diagonal != 0) {
+            (None, false, false) => kernel::interior_row::<false, false, f32, f32>(c, c.ground_a, c.ground_b, rest, p, rh, &rows, out),
+            (None, true, false) => kernel::interior_row::<true, false, f32, f32>(c, c.ground_a, c.ground_b, rest, p, rh, &rows, out),
+            (None, false, true) => kernel::interior_row::<false, true, f32, f32>(c, c.ground_a, c.ground_b, rest, p, rh, &rows, out),
+            (None, true, true) => kernel::interior_row::<true, true, f32, f32>(c, c.ground_a, c.ground_b, rest, p, rh, &rows, out),
+            (Some(g), ax, dg) => {
+                let (ga, gb) = (row(&g.a, y), row(&g.b, y));
+                match (ax, dg) {
+                    (false, false) => kernel::interior_row::<false, false, &[f32], &[f32]>(c, ga, gb, rest, p, rh, &rows, out),
+                    (true, false) => kernel::interior_row::<true, false, &[f32], &[f32]>(c, ga, gb, rest, p, rh, &rows, out),
+                    (false, true) => kernel::interior_row::<false, true, &[f32], &[f32]>(c, ga, gb, rest, p, rh, &rows, out),
+                    (true, true) => kernel::interior_row::<true, true, &[f32], &[f32]>(c, ga, gb, rest, p, rh, &rows, out),
+                }
+            }
+        }
+    }
+
+    /// Adds the markers' pushes to the band's phyxels, tile by tile (as the GPU gathers them).
+    fn markers(&self, y0: usize, rows: usize, out: &mut [f32]) {
+        if self.bins.markers.is_empty() {
+            return;
+        }
+        let w = self.width;
+        for ty in y0 / TILE..(y0 + rows).div_ceil(TILE) {
+            for tx in 0..self.bins.tiles_x {
+                let list = self.bins.tile(tx, ty);
+                if list.is_empty() {
+                    continue;
+                }
+                for y in ty * TILE..((ty + 1) * TILE).min(y0 + rows) {
+                    for x in tx * TILE..((tx + 1) * TILE).min(w) {
+                        let i = y * w + x;
+                        let (z, v) = (self.z[i], self.z[i] - self.zp[i]);
+                        let mut push = 0.0f32;
+                        for &m in list {
+                            push += kernel::marker_term(&self.bins.markers[m as usize], x as f32, y as f32, z, v);
+                        }
+                        out[(y - y0) * w + x] += push;
+                    }
+                }
+            }
+        }
+    }
+}
