@@ -1,5 +1,7 @@
 //! The `defvol` command line.
 
+mod cli;
+
 use std::path::PathBuf;
 
 use anyhow::{bail, Context, Result};
@@ -26,6 +28,8 @@ enum Command {
     /// Warp a volume through a deformed mesh and/or displacement volumes; with no files,
     /// the phantom through a generated bend and press.
     Warp(WarpArgs),
+    /// Run a DPCM surface (phyxels engraved by markers) and write its renderings.
+    Dpcm(cli::dpcm::DpcmArgs),
     /// Measure a stage: run time against error.
     Bench {
         #[command(subcommand)]
@@ -181,6 +185,32 @@ fn warp_on_backend(
 
 #[derive(Subcommand)]
 enum BenchStage {
+    /// DPCM steps per second on the seed's 1100 x 1100 grid, 1 to 300 markers; error over dt.
+    Dpcm {
+        #[arg(long, value_delimiter = ',', default_value = "1100,1100")]
+        size: Vec<usize>,
+        #[arg(long, value_delimiter = ',', default_value = "1,20,50,100,300")]
+        markers: Vec<usize>,
+        #[arg(long, value_delimiter = ',', default_value = "eight,four")]
+        topologies: Vec<defvol::dpcm::Topology>,
+        #[arg(long, value_delimiter = ',', default_value = "elastic,plastic")]
+        physics: Vec<bench::dpcm::Physics>,
+        #[arg(long, default_value_t = 200)]
+        steps: usize,
+        /// Time steps of the accuracy sweep.
+        #[arg(long, value_delimiter = ',', default_value = "0.002,0.001,0.0005,0.00025")]
+        dts: Vec<f64>,
+        /// Skip the accuracy sweep.
+        #[arg(long)]
+        no_sweep: bool,
+        /// Also run the GPU path.
+        #[arg(long)]
+        gpu: bool,
+        #[arg(long)]
+        allow_software_gpu: bool,
+        #[arg(long)]
+        json: bool,
+    },
     /// Grid warp of the phantom through lattice meshes (seed 003's cases).
     Warp {
         #[arg(long, value_delimiter = ',', default_value = "40,700,1080,5000")]
@@ -369,6 +399,15 @@ fn main() -> Result<()> {
     match Cli::parse().command {
         Command::Simulate(args) => simulate(args),
         Command::Warp(args) => warp_command(args),
+        Command::Dpcm(args) => cli::dpcm::run(args),
+        Command::Bench { stage: BenchStage::Dpcm { size, markers, topologies, physics, steps, dts, no_sweep, gpu, allow_software_gpu, json } } => {
+            let [w, h] = size[..] else { bail!("--size takes two sizes") };
+            let gpu = gpu.then_some(defvol::gpu_policy::GpuChoice { allow_software: allow_software_gpu, required: true });
+            let dts = if no_sweep { Vec::new() } else { dts };
+            let opts = bench::dpcm::DpcmBenchOptions { size: [w, h], markers, topologies, physics, steps, dts, gpu };
+            bench::dpcm::run(&opts, row_printer(json, bench::dpcm::TABLE_HEADER, bench::dpcm::table_row))?;
+            Ok(())
+        }
         Command::Bench { stage: BenchStage::Warp { tets, cases, schemes, samplings, dims, runs, incremental, gpu, allow_software_gpu, json } } => {
             let cases = cases
                 .iter()

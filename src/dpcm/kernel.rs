@@ -3,18 +3,32 @@
 //!
 //! Z(n+1) = 2·Z(n) - Z(n-1) + F·h²/m (the seed's Verlet form), with every force already
 //! scaled by h²/m (stiffness) or h/m (damping; velocities are per step, Z(n) - Z(n-1)).
-//! Link forces are sums of differences (z_j - z_i), never Σz_j - 4·z_i: the differences are
-//! exactly zero at rest, so a grid at a non-zero rest height stays there bit for bit (the
-//! seed fought quantisation noise at rest).
+//! The kernels hold u = Z - rest height, so the balance state is exactly 0 and stays so bit
+//! for bit (the seed fought quantisation noise at rest).
+//!
+//! Links of one family (axial or diagonal) sum as a·Σ(u_j - u) + b·Σ(v_j - v)
+//! = (a+b)·Σu_j - b·Σup_j - n·(a·u + b·v), with n the family's existing links: a third of the
+//! work of summing differences. Neighbour sums associate as (l + r) + (t + b) for axial and
+//! (tl + bl) + (tr + br) for diagonal links, in every path.
 
 use bytemuck::{Pod, Zeroable};
 
 /// Side of the square tiles markers are binned into (and of the GPU workgroups).
 pub const TILE: usize = 16;
 
-/// Link directions as (dx, dy): four axial, then four diagonal.
-pub const AXIAL: [(isize, isize); 4] = [(-1, 0), (1, 0), (0, -1), (0, 1)];
-pub const DIAGONAL: [(isize, isize); 4] = [(-1, -1), (1, -1), (-1, 1), (1, 1)];
+/// |u| below this (metres) is set to 0 after each step: far below any engraving, and above
+/// f32's subnormal range, whose arithmetic is ~100x slower on x86 CPUs. Waves that die out
+/// in the far field would otherwise fill the grid with subnormals.
+pub const FLUSH_BELOW: f32 = 1e-20;
+
+#[inline(always)]
+pub fn flush_tiny(x: f32) -> f32 {
+    if x.abs() < FLUSH_BELOW {
+        0.0
+    } else {
+        x
+    }
+}
 
 /// Per-step coefficients, as the shader's uniform reads them.
 #[repr(C)]
@@ -23,12 +37,14 @@ pub struct Coeffs {
     /// Ground link: k·h²/m and c·h/m.
     pub ground_a: f32,
     pub ground_b: f32,
-    /// Axial links (left, right, up, down).
+    /// Axial links (left, right, up, down): a, b and a + b.
     pub axial_a: f32,
     pub axial_b: f32,
+    pub axial_ab: f32,
     /// Diagonal links.
     pub diag_a: f32,
     pub diag_b: f32,
+    pub diag_ab: f32,
     /// Half-width of the plastic ground link's elastic band (metres); negative: elastic.
     pub plastic_threshold: f32,
     /// Probability that a link exists, scaled to 2^24 (2^24: every link).
@@ -37,7 +53,7 @@ pub struct Coeffs {
     pub link_seed: u32,
     pub has_axial: u32,
     pub has_diagonal: u32,
-    pub _pad: u32,
+    pub _pad: [u32; 3],
 }
 
 /// A marker as the kernels read it: grid units for (col, row) and threshold, metres for
@@ -47,7 +63,7 @@ pub struct Coeffs {
 pub struct KernelMarker {
     pub col: f32,
     pub row: f32,
-    /// Height of the marker's centre above the fixed plane (metres).
+    /// Height of the marker's centre above the rest height (metres).
     pub height: f32,
     /// Height change since the previous step (metres per step).
     pub step_dz: f32,
@@ -95,32 +111,38 @@ fn canonical(width: usize, x: usize, y: usize, dx: isize, dy: isize) -> (u32, u3
     ((oy as usize * width + ox as usize) as u32, dir)
 }
 
-/// Sum over existing links of a (z_j - z) + b (v_j - v), for one family of directions.
+/// Whether the link from (x, y) towards (dx, dy) exists (inside the grid, and drawn).
+#[inline(always)]
+fn link_exists(c: &Coeffs, width: usize, height: usize, x: usize, y: usize, dx: isize, dy: isize) -> Option<usize> {
+    let (nx, ny) = (x as isize + dx, y as isize + dy);
+    if nx < 0 || ny < 0 || nx as usize >= width || ny as usize >= height {
+        return None;
+    }
+    let (owner, dir) = canonical(width, x, y, dx, dy);
+    link_kept(c, owner, dir).then_some(ny as usize * width + nx as usize)
+}
+
+/// A family's (Σu_j, Σup_j, n) over existing links, summed as ((d0 + d1) + (d2 + d3)) in
+/// `order` (absent links add 0, which changes no sum).
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
-fn family_term(c: &Coeffs, dirs: &[(isize, isize); 4], a: f32, b: f32, z: &[f32], zp: &[f32], width: usize, height: usize, x: usize, y: usize) -> f32 {
-    let i = y * width + x;
-    let (zi, vi) = (z[i], z[i] - zp[i]);
-    let mut dzs = 0.0f32;
-    let mut dvs = 0.0f32;
-    for &(dx, dy) in dirs {
-        let (nx, ny) = (x as isize + dx, y as isize + dy);
-        let inside = nx >= 0 && ny >= 0 && (nx as usize) < width && (ny as usize) < height;
-        let kept = inside && {
-            let (owner, dir) = canonical(width, x, y, dx, dy);
-            link_kept(c, owner, dir)
-        };
-        if kept {
-            let j = ny as usize * width + nx as usize;
-            dzs += z[j] - zi;
-            dvs += (z[j] - zp[j]) - vi;
-        } else {
-            dzs += 0.0;
-            dvs += 0.0;
+fn family_sums(c: &Coeffs, order: &[(isize, isize); 4], u: &[f32], up: &[f32], width: usize, height: usize, x: usize, y: usize) -> (f32, f32, f32) {
+    let mut su = [0.0f32; 4];
+    let mut sp = [0.0f32; 4];
+    let mut n = 0.0f32;
+    for (k, &(dx, dy)) in order.iter().enumerate() {
+        if let Some(j) = link_exists(c, width, height, x, y, dx, dy) {
+            su[k] = u[j];
+            sp[k] = up[j];
+            n += 1.0;
         }
     }
-    a * dzs + b * dvs
+    ((su[0] + su[1]) + (su[2] + su[3]), (sp[0] + sp[1]) + (sp[2] + sp[3]), n)
 }
+
+/// Link directions (dx, dy) in summation order: axial (l, r, t, b); diagonal (tl, bl, tr, br).
+pub const AXIAL: [(isize, isize); 4] = [(-1, 0), (1, 0), (0, -1), (0, 1)];
+pub const DIAGONAL: [(isize, isize); 4] = [(-1, -1), (-1, 1), (1, -1), (1, 1)];
 
 /// The plastic ground link's rest point after Z(n): dragged so that |Z - rest| <= threshold
 /// (the hysteresis of [CLH96]). Elastic when the threshold is negative.
@@ -133,22 +155,33 @@ pub fn plastic_rest(c: &Coeffs, rest: f32, z: f32) -> f32 {
     }
 }
 
-/// Z(n+1) of phyxel (x, y) without markers: the general form, any topology, any position
+/// The update from the link sums: shared by the general form and the fast rows.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn combine(c: &Coeffs, sums: [f32; 4], self_a: f32, self_b: f32, ga: f32, gb: f32, rest: f32, u: f32, up: f32) -> f32 {
+    let [su_ax, sp_ax, su_dg, sp_dg] = sums;
+    let v = u - up;
+    let links = ((c.axial_ab * su_ax - c.axial_b * sp_ax) + (c.diag_ab * su_dg - c.diag_b * sp_dg)) - (self_a * u + self_b * v);
+    let ground = ga * (u - rest) + gb * v;
+    flush_tiny(2.0 * u - up + (links - ground))
+}
+
+/// u(n+1) of phyxel (x, y) without markers: the general form, any topology, any position
 /// (borders lose their outward links). `ground_a`/`ground_b` are the phyxel's own.
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
-pub fn phyxel_update(c: &Coeffs, ground_a: f32, ground_b: f32, rest: f32, z: &[f32], zp: &[f32], width: usize, height: usize, x: usize, y: usize) -> f32 {
+pub fn phyxel_update(c: &Coeffs, ground_a: f32, ground_b: f32, rest: f32, u: &[f32], up: &[f32], width: usize, height: usize, x: usize, y: usize) -> f32 {
     let i = y * width + x;
-    let (zi, vi) = (z[i], z[i] - zp[i]);
-    let mut links = 0.0f32;
+    let (mut ax, mut dg) = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0));
     if c.has_axial != 0 {
-        links += family_term(c, &AXIAL, c.axial_a, c.axial_b, z, zp, width, height, x, y);
+        ax = family_sums(c, &AXIAL, u, up, width, height, x, y);
     }
     if c.has_diagonal != 0 {
-        links += family_term(c, &DIAGONAL, c.diag_a, c.diag_b, z, zp, width, height, x, y);
+        dg = family_sums(c, &DIAGONAL, u, up, width, height, x, y);
     }
-    let ground = ground_a * (zi - rest) + ground_b * vi;
-    2.0 * zi - zp[i] + (links - ground)
+    let self_a = ax.2 * c.axial_a + dg.2 * c.diag_a;
+    let self_b = ax.2 * c.axial_b + dg.2 * c.diag_b;
+    combine(c, [ax.0, ax.1, dg.0, dg.1], self_a, self_b, ground_a, ground_b, rest, u[i], up[i])
 }
 
 /// The push of one marker on a phyxel at (x, y) with height z and step velocity v, already
@@ -185,6 +218,39 @@ impl Field for &[f32] {
     }
 }
 
+/// The ground links' rest points along a row.
+pub trait RestRow {
+    /// The rest point of phyxel x for this step, given Z(n) there (plasticity moves it).
+    fn rest(&mut self, c: &Coeffs, x: usize, z: f32) -> f32;
+}
+/// Every phyxel at one rest height.
+pub struct UniformRest(pub f32);
+/// Per-phyxel rest points that stay (a rest-height texture, elastic ground).
+pub struct FixedRest<'a>(pub &'a [f32]);
+/// Per-phyxel rest points dragged by the plastic ground link.
+pub struct PlasticRest<'a>(pub &'a mut [f32]);
+
+impl RestRow for UniformRest {
+    #[inline(always)]
+    fn rest(&mut self, _: &Coeffs, _: usize, _: f32) -> f32 {
+        self.0
+    }
+}
+impl RestRow for FixedRest<'_> {
+    #[inline(always)]
+    fn rest(&mut self, _: &Coeffs, x: usize, _: f32) -> f32 {
+        self.0[x]
+    }
+}
+impl RestRow for PlasticRest<'_> {
+    #[inline(always)]
+    fn rest(&mut self, c: &Coeffs, x: usize, z: f32) -> f32 {
+        let r = plastic_rest(c, self.0[x], z);
+        self.0[x] = r;
+        r
+    }
+}
+
 /// Rows y-1, y, y+1 of Z(n) and Z(n-1).
 pub struct Rows<'a> {
     pub up: &'a [f32],
@@ -199,42 +265,24 @@ pub struct Rows<'a> {
 /// compiler vectorises it. Same expression tree as [`phyxel_update`]: the two agree bit for
 /// bit (tested), the general form being the reference and the border path.
 #[inline(always)]
-#[allow(clippy::too_many_arguments)]
-pub fn interior_row<const AX: bool, const DG: bool, GA: Field, GB: Field>(c: &Coeffs, ga: GA, gb: GB, rest: &mut [f32], plastic: bool, rest_height: f32, r: &Rows, out: &mut [f32]) {
+pub fn interior_row<const AX: bool, const DG: bool, GA: Field, GB: Field, R: RestRow>(c: &Coeffs, ga: GA, gb: GB, mut rest: R, r: &Rows, out: &mut [f32]) {
     let w = out.len();
     let (up, mid, down) = (&r.up[..w], &r.mid[..w], &r.down[..w]);
     let (up_p, mid_p, down_p) = (&r.up_p[..w], &r.mid_p[..w], &r.down_p[..w]);
-    let per_phyxel_rest = !rest.is_empty();
+    let (n_ax, n_dg) = (if AX { 4.0f32 } else { 0.0 }, if DG { 4.0f32 } else { 0.0 });
+    let self_a = n_ax * c.axial_a + n_dg * c.diag_a;
+    let self_b = n_ax * c.axial_b + n_dg * c.diag_b;
     for x in 1..w - 1 {
-        let zi = mid[x];
-        let vi = zi - mid_p[x];
-        let mut links = 0.0f32;
+        let mut sums = [0.0f32; 4];
         if AX {
-            let dzs = 0.0 + (mid[x - 1] - zi) + (mid[x + 1] - zi) + (up[x] - zi) + (down[x] - zi);
-            let dvs = 0.0
-                + ((mid[x - 1] - mid_p[x - 1]) - vi)
-                + ((mid[x + 1] - mid_p[x + 1]) - vi)
-                + ((up[x] - up_p[x]) - vi)
-                + ((down[x] - down_p[x]) - vi);
-            links += c.axial_a * dzs + c.axial_b * dvs;
+            sums[0] = (mid[x - 1] + mid[x + 1]) + (up[x] + down[x]);
+            sums[1] = (mid_p[x - 1] + mid_p[x + 1]) + (up_p[x] + down_p[x]);
         }
         if DG {
-            let dzs = 0.0 + (up[x - 1] - zi) + (up[x + 1] - zi) + (down[x - 1] - zi) + (down[x + 1] - zi);
-            let dvs = 0.0
-                + ((up[x - 1] - up_p[x - 1]) - vi)
-                + ((up[x + 1] - up_p[x + 1]) - vi)
-                + ((down[x - 1] - down_p[x - 1]) - vi)
-                + ((down[x + 1] - down_p[x + 1]) - vi);
-            links += c.diag_a * dzs + c.diag_b * dvs;
+            sums[2] = (up[x - 1] + down[x - 1]) + (up[x + 1] + down[x + 1]);
+            sums[3] = (up_p[x - 1] + down_p[x - 1]) + (up_p[x + 1] + down_p[x + 1]);
         }
-        let rest_x = if per_phyxel_rest {
-            let r = if plastic { plastic_rest(c, rest[x], zi) } else { rest[x] };
-            rest[x] = r;
-            r
-        } else {
-            rest_height
-        };
-        let ground = ga.at(x) * (zi - rest_x) + gb.at(x) * vi;
-        out[x] = 2.0 * zi - mid_p[x] + (links - ground);
+        let rest_x = rest.rest(c, x, mid[x]);
+        out[x] = combine(c, sums, self_a, self_b, ga.at(x), gb.at(x), rest_x, mid[x], mid_p[x]);
     }
 }

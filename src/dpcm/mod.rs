@@ -3,10 +3,11 @@
 //! markers that push it one way.
 //!
 //! Heights Z are the distance from a phyxel's fixed point to its mass (metres), Z = rest
-//! height at rest. [`Surface`] runs the CPU path (rayon over bands of rows); the GPU twin is
+//! height at rest; the state is kept as u = Z - rest height, exactly 0 at rest. [`Surface`] runs the CPU path (rayon over bands of rows); the GPU twin is
 //! `gpu::dpcm`. Markers are binned into [`kernel::TILE`]² tiles, so a step costs the grid
 //! plus each marker's footprint, never grid × markers.
 
+pub mod engine;
 pub mod kernel;
 pub mod markers;
 pub mod render;
@@ -17,7 +18,7 @@ use std::path::{Path, PathBuf};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use kernel::{Coeffs, KernelMarker, Rows, TILE};
+use kernel::{Coeffs, FixedRest, KernelMarker, PlasticRest, Rows, UniformRest, TILE};
 
 /// The presets in `config/dpcm/`, compiled in: (name, YAML).
 pub const PRESETS: [(&str, &str); 5] = [
@@ -41,6 +42,8 @@ pub enum DpcmError {
     Unstable { value: f64, dt_max: f64 },
     #[error("{path}: {message}")]
     Texture { path: PathBuf, message: String },
+    #[error("the GPU DPCM failed: {0}")]
+    Gpu(String),
     #[error("{path}: {source}")]
     File { path: PathBuf, source: std::io::Error },
 }
@@ -307,19 +310,23 @@ impl DpcmConfig {
             _ => -1.0,
         };
         let keep = (self.links.probability * f64::from(1u32 << 24)).round() as u32;
+        let (axial_a, axial_b) = ((axial.stiffness() * h * h / m) as f32, (axial.damping() * h / m) as f32);
+        let (diag_a, diag_b) = ((diagonal.stiffness() * h * h / m) as f32, (diagonal.damping() * h / m) as f32);
         Ok(Coeffs {
             ground_a: (self.ground.stiffness() * h * h / m) as f32,
             ground_b: (self.ground.damping() * h / m) as f32,
-            axial_a: (axial.stiffness() * h * h / m) as f32,
-            axial_b: (axial.damping() * h / m) as f32,
-            diag_a: (diagonal.stiffness() * h * h / m) as f32,
-            diag_b: (diagonal.damping() * h / m) as f32,
+            axial_a,
+            axial_b,
+            axial_ab: axial_a + axial_b,
+            diag_a,
+            diag_b,
+            diag_ab: diag_a + diag_b,
             plastic_threshold: threshold,
             link_keep: keep,
             link_seed: kernel::hash32(self.links.seed ^ 0x9e37_79b9),
             has_axial: u32::from(has_axial),
             has_diagonal: u32::from(has_diagonal),
-            _pad: 0,
+            _pad: [0; 3],
         })
     }
 
@@ -422,15 +429,6 @@ impl MarkerBins {
     }
 }
 
-/// The rest points of the ground links.
-#[derive(Debug, Clone)]
-enum Rest {
-    /// Every phyxel at the configured rest height (elastic ground, no texture).
-    Uniform(f32),
-    /// One per phyxel: plastic ground, or a rest-height texture.
-    PerPhyxel(Vec<f32>),
-}
-
 /// Ground coefficients per phyxel, when a texture sets them.
 #[derive(Debug, Clone)]
 struct GroundTexture {
@@ -443,11 +441,16 @@ struct GroundTexture {
 pub struct Surface {
     config: DpcmConfig,
     coeffs: Coeffs,
-    z: Vec<f32>,
-    zp: Vec<f32>,
+    /// The configured rest height L0; the state below is relative to it.
+    rest_height: f32,
+    /// u(n) = Z(n) - L0, u(n-1), and the buffer u(n+1) is written to.
+    u: Vec<f32>,
+    up: Vec<f32>,
     next: Vec<f32>,
-    rest: Rest,
-    initial_rest: Rest,
+    /// Per-phyxel ground rest points (minus L0): plastic ground or a rest-height texture.
+    /// Empty: every rest point at L0.
+    rest: Vec<f32>,
+    initial_rest: Vec<f32>,
     ground: Option<GroundTexture>,
     marker_heights: HashMap<u32, f32>,
     bins: MarkerBins,
@@ -462,12 +465,12 @@ impl Surface {
         let coeffs = config.coeffs()?;
         let n = config.width * config.height;
         let rest_height = config.rest_height as f32;
-        let mut per_phyxel_rest = None;
+        let mut rest = Vec::new();
         let mut ground = None;
         for texture in &config.textures {
             let values = render::load_texture(texture, config.width, config.height)?;
             match texture.parameter {
-                TexturedParameter::RestHeight => per_phyxel_rest = Some(values),
+                TexturedParameter::RestHeight => rest = values.iter().map(|r| r - rest_height).collect(),
                 TexturedParameter::GroundStiffness | TexturedParameter::GroundDamping => {
                     let g = ground.get_or_insert_with(|| GroundTexture { a: vec![coeffs.ground_a; n], b: vec![coeffs.ground_b; n] });
                     let (target, base) = if texture.parameter == TexturedParameter::GroundStiffness {
@@ -481,22 +484,17 @@ impl Surface {
                 }
             }
         }
-        let plastic = coeffs.plastic_threshold >= 0.0;
-        let rest = match per_phyxel_rest {
-            Some(r) => Rest::PerPhyxel(r),
-            None if plastic => Rest::PerPhyxel(vec![rest_height; n]),
-            None => Rest::Uniform(rest_height),
-        };
-        let z = match &rest {
-            Rest::PerPhyxel(r) => r.clone(),
-            Rest::Uniform(h) => vec![*h; n],
-        };
+        if rest.is_empty() && coeffs.plastic_threshold >= 0.0 {
+            rest = vec![0.0; n];
+        }
+        let u = if rest.is_empty() { vec![0.0; n] } else { rest.clone() };
         Ok(Self {
             config: config.clone(),
             coeffs,
-            zp: z.clone(),
-            next: z.clone(),
-            z,
+            rest_height,
+            up: u.clone(),
+            next: u.clone(),
+            u,
             initial_rest: rest.clone(),
             rest,
             ground,
@@ -521,19 +519,36 @@ impl Surface {
     pub fn steps(&self) -> u64 {
         self.steps
     }
-    /// Z(n), row-major (x fastest).
-    pub fn heights(&self) -> &[f32] {
-        &self.z
+    /// The configured rest height L0.
+    pub fn rest_height(&self) -> f32 {
+        self.rest_height
+    }
+    /// u(n) = Z(n) - L0, row-major (x fastest): the state the kernels step.
+    pub fn deviations(&self) -> &[f32] {
+        &self.u
+    }
+    /// u(n-1).
+    pub fn previous_deviations(&self) -> &[f32] {
+        &self.up
+    }
+    /// Z(n), metres.
+    pub fn heights(&self) -> Vec<f32> {
+        self.u.iter().map(|u| u + self.rest_height).collect()
     }
     /// Z(n-1).
-    pub fn previous_heights(&self) -> &[f32] {
-        &self.zp
+    pub fn previous_heights(&self) -> Vec<f32> {
+        self.up.iter().map(|u| u + self.rest_height).collect()
     }
-    /// The ground links' rest points now (moved by plasticity).
+    /// The ground links' rest points minus L0 (moved by plasticity); empty when all are 0.
+    pub fn rest_deviations(&self) -> &[f32] {
+        &self.rest
+    }
+    /// The ground links' rest points now, metres.
     pub fn rest_heights(&self) -> Vec<f32> {
-        match &self.rest {
-            Rest::Uniform(h) => vec![*h; self.z.len()],
-            Rest::PerPhyxel(r) => r.clone(),
+        if self.rest.is_empty() {
+            vec![self.rest_height; self.u.len()]
+        } else {
+            self.rest.iter().map(|r| r + self.rest_height).collect()
         }
     }
     /// Ground coefficients of phyxel i: (k·h²/m, c·h/m).
@@ -543,33 +558,33 @@ impl Surface {
             None => (self.coeffs.ground_a, self.coeffs.ground_b),
         }
     }
-    /// Z minus the initial rest height: the engraving, as rendered.
+    /// Z minus the initial rest point: the engraving, as rendered.
     pub fn displacement(&self) -> Vec<f32> {
-        match &self.initial_rest {
-            Rest::Uniform(h) => self.z.iter().map(|z| z - h).collect(),
-            Rest::PerPhyxel(r) => self.z.iter().zip(r).map(|(z, r)| z - r).collect(),
+        if self.initial_rest.is_empty() {
+            self.u.clone()
+        } else {
+            self.u.iter().zip(&self.initial_rest).map(|(u, r)| u - r).collect()
         }
     }
 
     /// Sets Z(n) = Z(n-1) = `heights` (a disturbance released at rest).
     pub fn set_heights(&mut self, heights: &[f32]) -> Result<(), DpcmError> {
-        if heights.len() != self.z.len() || heights.iter().any(|h| !h.is_finite()) {
-            return Err(DpcmError::BadParameter { name: "heights".into(), value: heights.len() as f64, why: format!("need {} finite values", self.z.len()) });
+        if heights.len() != self.u.len() || heights.iter().any(|h| !h.is_finite()) {
+            return Err(DpcmError::BadParameter { name: "heights".into(), value: heights.len() as f64, why: format!("need {} finite values", self.u.len()) });
         }
-        self.z.copy_from_slice(heights);
-        self.zp.copy_from_slice(heights);
+        for ((u, up), h) in self.u.iter_mut().zip(&mut self.up).zip(heights) {
+            *u = h - self.rest_height;
+            *up = *u;
+        }
         Ok(())
     }
 
     /// Back to the initial balance state (seed 004, section 4.2.4).
     pub fn reset(&mut self) {
-        self.rest = self.initial_rest.clone();
-        let z = match &self.rest {
-            Rest::PerPhyxel(r) => r.clone(),
-            Rest::Uniform(h) => vec![*h; self.z.len()],
-        };
-        self.zp.copy_from_slice(&z);
-        self.z = z;
+        self.rest.clone_from(&self.initial_rest);
+        let u = if self.rest.is_empty() { vec![0.0; self.u.len()] } else { self.rest.clone() };
+        self.up.copy_from_slice(&u);
+        self.u = u;
         self.marker_heights.clear();
         self.steps = 0;
     }
@@ -598,16 +613,13 @@ impl Surface {
         let (w, h) = (self.config.width, self.config.height);
         let band = BAND_ROWS * w;
         let bands = h.div_ceil(BAND_ROWS);
-        let (rest_height, rest_bands): (f32, Vec<&mut [f32]>) = match &mut self.rest {
-            Rest::Uniform(r) => (*r, std::iter::repeat_with(|| &mut [][..]).take(bands).collect()),
-            Rest::PerPhyxel(r) => (0.0, r.chunks_mut(band).collect()),
-        };
+        let rest_bands: Vec<&mut [f32]> = if self.rest.is_empty() { std::iter::repeat_with(|| &mut [][..]).take(bands).collect() } else { self.rest.chunks_mut(band).collect() };
         let plastic = self.coeffs.plastic_threshold >= 0.0;
         let regular = self.coeffs.link_keep >= 1 << 24;
-        let ctx = StepContext { c: &self.coeffs, z: &self.z, zp: &self.zp, width: w, height: h, ground: self.ground.as_ref(), rest_height, plastic, regular, bins: &self.bins };
-        self.next.par_chunks_mut(band).zip(rest_bands).enumerate().for_each(|(b, (out, rest))| ctx.band(b * BAND_ROWS, out, rest));
-        std::mem::swap(&mut self.zp, &mut self.z);
-        std::mem::swap(&mut self.z, &mut self.next);
+        let ctx = StepContext { c: &self.coeffs, u: &self.u, up: &self.up, width: w, height: h, ground: self.ground.as_ref(), plastic, regular, bins: &self.bins };
+        self.next.par_chunks_mut(band).zip(rest_bands).enumerate().for_each(|(b, (out, rest))| step_band(&ctx, b * BAND_ROWS, out, rest));
+        std::mem::swap(&mut self.up, &mut self.u);
+        std::mem::swap(&mut self.u, &mut self.next);
         self.steps += 1;
     }
 }
@@ -626,7 +638,7 @@ pub fn to_kernel_markers(config: &DpcmConfig, last_heights: &mut HashMap<u32, f3
             stats.markers_dropped += 1;
             continue;
         }
-        let height = marker.height as f32;
+        let height = (marker.height - config.rest_height) as f32;
         let step_dz = last_heights.get(&marker.id).map_or(0.0, |last| height - last);
         seen.insert(marker.id, height);
         out.push(KernelMarker {
@@ -645,15 +657,21 @@ pub fn to_kernel_markers(config: &DpcmConfig, last_heights: &mut HashMap<u32, f3
     (out, stats)
 }
 
+/// One band, compiled for AVX2 (8 lanes) where the CPU has it and dispatched at run time.
+/// Rust never fuses multiply-adds on its own, so every version gives the same bits.
+#[multiversion::multiversion(targets("x86_64+avx2+fma", "x86_64+avx"))]
+fn step_band(ctx: &StepContext, y0: usize, out: &mut [f32], rest: &mut [f32]) {
+    ctx.band(y0, out, rest);
+}
+
 /// What a band task reads.
 struct StepContext<'a> {
     c: &'a Coeffs,
-    z: &'a [f32],
-    zp: &'a [f32],
+    u: &'a [f32],
+    up: &'a [f32],
     width: usize,
     height: usize,
     ground: Option<&'a GroundTexture>,
-    rest_height: f32,
     plastic: bool,
     regular: bool,
     bins: &'a MarkerBins,
@@ -661,6 +679,7 @@ struct StepContext<'a> {
 
 impl StepContext<'_> {
     /// Rows y0.. of Z(n+1) into `out` (whole rows), then the markers of the band's tiles.
+    #[inline(always)]
     fn band(&self, y0: usize, out: &mut [f32], rest: &mut [f32]) {
         let w = self.width;
         let rows = out.len() / w;
@@ -682,12 +701,13 @@ impl StepContext<'_> {
         self.markers(y0, rows, out);
     }
 
+    #[inline(always)]
     fn general(&self, x: usize, y: usize, out_row: &mut [f32], rest_row: &mut [f32]) {
         let i = y * self.width + x;
         let rest = if rest_row.is_empty() {
-            self.rest_height
+            0.0
         } else {
-            let r = if self.plastic { kernel::plastic_rest(self.c, rest_row[x], self.z[i]) } else { rest_row[x] };
+            let r = if self.plastic { kernel::plastic_rest(self.c, rest_row[x], self.u[i]) } else { rest_row[x] };
             rest_row[x] = r;
             r
         };
@@ -695,32 +715,42 @@ impl StepContext<'_> {
             Some(g) => (g.a[i], g.b[i]),
             None => (self.c.ground_a, self.c.ground_b),
         };
-        out_row[x] = kernel::phyxel_update(self.c, ga, gb, rest, self.z, self.zp, self.width, self.height, x, y);
+        out_row[x] = kernel::phyxel_update(self.c, ga, gb, rest, self.u, self.up, self.width, self.height, x, y);
     }
 
+    #[inline(always)]
     fn interior<'a>(&'a self, y: usize, out: &mut [f32], rest: &mut [f32]) {
         let w = self.width;
         let row = |v: &'a [f32], y: usize| -> &'a [f32] { &v[y * w..(y + 1) * w] };
-        let rows = Rows { up: row(self.z, y - 1), mid: row(self.z, y), down: row(self.z, y + 1), up_p: row(self.zp, y - 1), mid_p: row(self.zp, y), down_p: row(self.zp, y + 1) };
-        let (c, p, rh) = (self.c, self.plastic, self.rest_height);
-        match (self.ground, self.c.has_axial != 0, self.c.has_diagonal != 0) {
-            (None, false, false) => kernel::interior_row::<false, false, f32, f32>(c, c.ground_a, c.ground_b, rest, p, rh, &rows, out),
-            (None, true, false) => kernel::interior_row::<true, false, f32, f32>(c, c.ground_a, c.ground_b, rest, p, rh, &rows, out),
-            (None, false, true) => kernel::interior_row::<false, true, f32, f32>(c, c.ground_a, c.ground_b, rest, p, rh, &rows, out),
-            (None, true, true) => kernel::interior_row::<true, true, f32, f32>(c, c.ground_a, c.ground_b, rest, p, rh, &rows, out),
-            (Some(g), ax, dg) => {
-                let (ga, gb) = (row(&g.a, y), row(&g.b, y));
-                match (ax, dg) {
-                    (false, false) => kernel::interior_row::<false, false, &[f32], &[f32]>(c, ga, gb, rest, p, rh, &rows, out),
-                    (true, false) => kernel::interior_row::<true, false, &[f32], &[f32]>(c, ga, gb, rest, p, rh, &rows, out),
-                    (false, true) => kernel::interior_row::<false, true, &[f32], &[f32]>(c, ga, gb, rest, p, rh, &rows, out),
-                    (true, true) => kernel::interior_row::<true, true, &[f32], &[f32]>(c, ga, gb, rest, p, rh, &rows, out),
+        let rows = Rows { up: row(self.u, y - 1), mid: row(self.u, y), down: row(self.u, y + 1), up_p: row(self.up, y - 1), mid_p: row(self.up, y), down_p: row(self.up, y + 1) };
+        let c = self.c;
+        let (ga, gb): (&[f32], &[f32]) = match self.ground {
+            Some(g) => (row(&g.a, y), row(&g.b, y)),
+            None => (&[], &[]),
+        };
+        // One instantiation per topology, ground texture and rest kind: no branch in the row.
+        macro_rules! with_rest {
+            ($ax:literal, $dg:literal) => {
+                match (self.ground.is_some(), rest.is_empty(), self.plastic) {
+                    (false, true, _) => kernel::interior_row::<$ax, $dg, f32, f32, _>(c, c.ground_a, c.ground_b, UniformRest(0.0), &rows, out),
+                    (false, false, false) => kernel::interior_row::<$ax, $dg, f32, f32, _>(c, c.ground_a, c.ground_b, FixedRest(rest), &rows, out),
+                    (false, false, true) => kernel::interior_row::<$ax, $dg, f32, f32, _>(c, c.ground_a, c.ground_b, PlasticRest(rest), &rows, out),
+                    (true, true, _) => kernel::interior_row::<$ax, $dg, &[f32], &[f32], _>(c, ga, gb, UniformRest(0.0), &rows, out),
+                    (true, false, false) => kernel::interior_row::<$ax, $dg, &[f32], &[f32], _>(c, ga, gb, FixedRest(rest), &rows, out),
+                    (true, false, true) => kernel::interior_row::<$ax, $dg, &[f32], &[f32], _>(c, ga, gb, PlasticRest(rest), &rows, out),
                 }
-            }
+            };
+        }
+        match (c.has_axial != 0, c.has_diagonal != 0) {
+            (false, false) => with_rest!(false, false),
+            (true, false) => with_rest!(true, false),
+            (false, true) => with_rest!(false, true),
+            (true, true) => with_rest!(true, true),
         }
     }
 
     /// Adds the markers' pushes to the band's phyxels, tile by tile (as the GPU gathers them).
+    #[inline(always)]
     fn markers(&self, y0: usize, rows: usize, out: &mut [f32]) {
         if self.bins.markers.is_empty() {
             return;
@@ -735,7 +765,7 @@ impl StepContext<'_> {
                 for y in ty * TILE..((ty + 1) * TILE).min(y0 + rows) {
                     for x in tx * TILE..((tx + 1) * TILE).min(w) {
                         let i = y * w + x;
-                        let (z, v) = (self.z[i], self.z[i] - self.zp[i]);
+                        let (z, v) = (self.u[i], self.u[i] - self.up[i]);
                         let mut push = 0.0f32;
                         for &m in list {
                             push += kernel::marker_term(&self.bins.markers[m as usize], x as f32, y as f32, z, v);

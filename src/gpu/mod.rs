@@ -4,6 +4,7 @@
 //! when the caller allows it (tests do); with neither, callers fall back to the CPU path.
 //! Only Vulkan, Metal and DX12 are asked for: the GL backend lacks what compute needs here.
 
+pub mod dpcm;
 pub mod solver;
 pub mod warp;
 
@@ -95,6 +96,13 @@ impl GpuContext {
             contents,
             usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST,
         })
+    }
+
+    /// Blocks until the queued work is done (for timing).
+    pub fn wait(&self) {
+        if let Err(e) = self.device.poll(wgpu::PollType::wait_indefinitely()) {
+            tracing::warn!("waiting for the GPU failed: {e}");
+        }
     }
 
     /// Copies `size` bytes of `buffer` back to the host (blocking).

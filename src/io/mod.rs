@@ -79,6 +79,16 @@ pub fn write_mesh(path: &Path, mesh: &TetMesh, positions: Option<&[Vector3<f64>]
     }
 }
 
+/// Writes a triangle surface with per-vertex scalars (`.vtu` or legacy `.vtk`).
+pub fn write_triangles(path: &Path, nodes: &[[f32; 3]], triangles: &[[u32; 3]], scalars: Option<&[f32]>) -> Result<(), IoError> {
+    let name = file_name(path);
+    if name.ends_with(".vtu") || name.ends_with(".vtk") {
+        vtk::write_triangles(path, nodes, triangles, scalars)
+    } else {
+        Err(IoError::UnsupportedExtension { path: path.to_owned(), expected: ".vtu, .vtk" })
+    }
+}
+
 /// Reads a scalar volume (NIfTI-1 `.nii[.gz]`, NRRD `.nrrd`/`.nhdr`, MetaImage `.mha`/`.mhd`).
 pub fn read_volume(path: &Path) -> Result<Volume, IoError> {
     let name = file_name(path);

@@ -59,23 +59,33 @@ pub(super) fn read(path: &Path) -> Result<MeshParts, IoError> {
 
 pub(super) fn write(path: &Path, nodes: &[Vector3<f64>], tets: &[[u32; 4]], scalars: Option<&[f32]>) -> Result<(), IoError> {
     let points: Vec<f64> = nodes.iter().flat_map(|p| [p.x, p.y, p.z]).collect();
+    write_cells(path, points, tets, CellType::Tetra, scalars, "defvol tetrahedral mesh")
+}
+
+/// A triangle surface (a height field, a boundary) as an unstructured grid of triangles.
+pub(super) fn write_triangles(path: &Path, nodes: &[[f32; 3]], triangles: &[[u32; 3]], scalars: Option<&[f32]>) -> Result<(), IoError> {
+    let points: Vec<f64> = nodes.iter().flat_map(|p| p.map(f64::from)).collect();
+    write_cells(path, points, triangles, CellType::Triangle, scalars, "defvol surface")
+}
+
+fn write_cells<const N: usize>(path: &Path, points: Vec<f64>, cells: &[[u32; N]], cell_type: CellType, scalars: Option<&[f32]>, title: &str) -> Result<(), IoError> {
     let xml = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("vtu"));
     let cell_verts = if xml {
         VertexNumbers::XML {
-            connectivity: tets.iter().flat_map(|t| t.map(u64::from)).collect(),
-            offsets: (1..=tets.len() as u64).map(|c| 4 * c).collect(),
+            connectivity: cells.iter().flat_map(|c| c.map(u64::from)).collect(),
+            offsets: (1..=cells.len() as u64).map(|c| N as u64 * c).collect(),
         }
     } else {
-        VertexNumbers::Legacy { num_cells: tets.len() as u32, vertices: tets.iter().flat_map(|t| [4, t[0], t[1], t[2], t[3]]).collect() }
+        VertexNumbers::Legacy { num_cells: cells.len() as u32, vertices: cells.iter().flat_map(|c| std::iter::once(N as u32).chain(c.iter().copied())).collect() }
     };
     let mut data = Attributes::new();
     if let Some(s) = scalars {
         data.point.push(Attribute::DataArray(DataArray::scalars("scalar", 1).with_data(s.to_vec())));
     }
-    let piece = UnstructuredGridPiece { points: points.into(), cells: Cells { cell_verts, types: vec![CellType::Tetra; tets.len()] }, data };
+    let piece = UnstructuredGridPiece { points: points.into(), cells: Cells { cell_verts, types: vec![cell_type; cells.len()] }, data };
     let vtk = Vtk {
         version: if xml { Version::new((1, 0)) } else { Version::new((4, 2)) },
-        title: "defvol tetrahedral mesh".into(),
+        title: title.into(),
         // Legacy binary VTK is big-endian by specification.
         byte_order: if xml { ByteOrder::LittleEndian } else { ByteOrder::BigEndian },
         file_path: None,

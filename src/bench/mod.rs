@@ -1,6 +1,8 @@
 //! `defvol bench`: run time against error, one JSON object per measurement
 //! (format in `../shared/conventions.md`), plus a human table.
 
+pub mod dpcm;
+
 use std::time::Instant;
 
 use nalgebra::Vector3;

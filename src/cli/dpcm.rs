@@ -1,0 +1,203 @@
+//! `defvol dpcm`: run a DPCM preset under scripted, recorded or streamed markers and write
+//! its renderings.
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+use anyhow::{bail, Context, Result};
+use indicatif::{ProgressBar, ProgressStyle};
+use nalgebra::Isometry3;
+
+use defvol::dpcm::engine::DpcmEngine;
+use defvol::dpcm::markers::{Calibration, MotionFile, UdpSource};
+use defvol::dpcm::render::{self, ColorMap};
+use defvol::dpcm::{DpcmConfig, Marker, StepStats};
+use defvol::engine::BackendChoice;
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum Output {
+    /// colour.png: the colour map of the displacement.
+    Colour,
+    /// bump.png: lit normals from the height derivatives.
+    Bump,
+    /// surface.vtu: the height field as triangles (the displacement mesh).
+    Mesh,
+    /// height.mha: Z as a 32-bit float image, metres.
+    Height,
+}
+
+#[derive(clap::Args)]
+pub struct DpcmArgs {
+    /// A preset from config/dpcm: water, loose_soil, sand, oil_painting, fossil.
+    #[arg(long, default_value = "water")]
+    preset: String,
+    /// A DPCM configuration file (YAML, as the presets), instead of the preset.
+    #[arg(long, conflicts_with = "preset")]
+    config: Option<PathBuf>,
+    /// Grid size, WxH phyxels (overrides the configuration's).
+    #[arg(long)]
+    size: Option<String>,
+    /// Motion file (CSV `time,marker,x,y,z`: seconds, id, world metres).
+    #[arg(long, conflicts_with = "udp")]
+    markers: Option<PathBuf>,
+    /// Listen for the seed's UDP marker frames here (x, y in phyxels). Give a loopback
+    /// address unless other hosts must reach it.
+    #[arg(long)]
+    udp: Option<SocketAddr>,
+    /// Height of UDP markers' centres (metres; default: the script's pressing height).
+    #[arg(long)]
+    udp_height: Option<f64>,
+    /// World position of phyxel (0, 0) for motion files (default: the grid centred on the
+    /// origin, in the xy plane).
+    #[arg(long, value_delimiter = ',', num_args = 3)]
+    origin: Option<Vec<f64>>,
+    #[arg(long, default_value_t = 2000)]
+    steps: u64,
+    /// Pace the steps at dt (real time), as with a live marker stream.
+    #[arg(long)]
+    realtime: bool,
+    /// Also write numbered frames every K steps.
+    #[arg(long, default_value_t = 0)]
+    every: u64,
+    #[arg(long, value_delimiter = ',', default_value = "colour,bump,mesh,height")]
+    render: Vec<Output>,
+    /// Colour map (the configuration's when absent).
+    #[arg(long, value_enum)]
+    colormap: Option<ColorMap>,
+    /// Every S-th phyxel a vertex of the displacement mesh.
+    #[arg(long, default_value_t = 2)]
+    mesh_stride: usize,
+    #[arg(long, default_value = "out/dpcm")]
+    out: PathBuf,
+    #[arg(long, value_enum, default_value = "auto")]
+    backend: BackendChoice,
+    /// Let a software adapter (llvmpipe) run the GPU path.
+    #[arg(long)]
+    allow_software_gpu: bool,
+}
+
+/// Where this run's markers come from.
+enum Source {
+    Script,
+    Motion(MotionFile, Calibration),
+    Udp(UdpSource, f64),
+}
+
+pub fn run(args: DpcmArgs) -> Result<()> {
+    let mut config = match &args.config {
+        Some(path) => DpcmConfig::load(path)?,
+        None => DpcmConfig::preset(&args.preset)?,
+    };
+    if let Some(size) = &args.size {
+        let parsed: Option<(usize, usize)> = size.split_once('x').and_then(|(w, h)| Some((w.trim().parse().ok()?, h.trim().parse().ok()?)));
+        let Some((w, h)) = parsed else { bail!("--size `{size}`: expected WxH, e.g. 1100x1100") };
+        (config.width, config.height) = (w, h);
+    }
+    if let Some(map) = args.colormap {
+        config.render.colormap = map;
+    }
+    let mut source = if let Some(path) = &args.markers {
+        let calibration = match &args.origin {
+            Some(o) => Calibration { world_from_grid: Isometry3::translation(o[0], o[1], o[2]), spacing: config.spacing },
+            None => Calibration::centred(&config),
+        };
+        Source::Motion(MotionFile::load(path)?, calibration)
+    } else if let Some(addr) = args.udp {
+        if !addr.ip().is_loopback() {
+            tracing::warn!("listening for UDP markers on {addr}: reachable from other hosts");
+        }
+        let udp = UdpSource::bind(addr)?;
+        tracing::info!("listening for UDP marker frames on {}", udp.local_addr().map_or(addr.to_string(), |a| a.to_string()));
+        Source::Udp(udp, args.udp_height.unwrap_or_else(|| config.script.pressing_height(&config)))
+    } else {
+        Source::Script
+    };
+    let mut engine = DpcmEngine::new(&config, args.backend, args.allow_software_gpu)?;
+    tracing::info!("DPCM {}x{} on {}", config.width, config.height, engine.name());
+    std::fs::create_dir_all(&args.out).with_context(|| format!("cannot create {}", args.out.display()))?;
+    let progress = ProgressBar::new(args.steps).with_style(ProgressStyle::with_template("{bar:40} {pos}/{len} steps {per_sec} {msg}").unwrap_or_else(|_| ProgressStyle::default_bar()));
+    let mut totals = StepStats::default();
+    let started = Instant::now();
+    for step in 0..args.steps {
+        let t = step as f64 * config.dt;
+        let markers: Vec<Marker> = match &mut source {
+            Source::Script => config.script.markers_at(&config, t),
+            Source::Motion(file, calibration) => file.markers_at(calibration, t),
+            Source::Udp(udp, height) => udp.poll()?.map(|frame| frame.markers(*height)).unwrap_or_default(),
+        };
+        let stats = engine.step(&markers);
+        totals.markers_applied += stats.markers_applied;
+        totals.markers_dropped += stats.markers_dropped;
+        totals.markers_off_grid += stats.markers_off_grid;
+        if args.every > 0 && (step + 1) % args.every == 0 {
+            write_outputs(&args, &config, &engine, Some(step + 1))?;
+        }
+        if args.realtime {
+            let due = Duration::from_secs_f64((step + 1) as f64 * config.dt);
+            if let Some(wait) = due.checked_sub(started.elapsed()) {
+                std::thread::sleep(wait);
+            }
+        }
+        progress.inc(1);
+    }
+    progress.finish_and_clear();
+    let elapsed = started.elapsed().as_secs_f64();
+    tracing::info!(
+        "{} steps in {:.2} s ({:.0} steps/s); marker-steps applied {}, dropped {}, off the grid {}",
+        args.steps,
+        elapsed,
+        args.steps as f64 / elapsed.max(1e-9),
+        totals.markers_applied,
+        totals.markers_dropped,
+        totals.markers_off_grid
+    );
+    if let Source::Udp(udp, _) = &source {
+        let c = udp.parser.counts;
+        tracing::info!("UDP frames: {} received, {} lost, {} malformed, {} out of order", c.received, c.lost, c.malformed, c.out_of_order);
+    }
+    write_outputs(&args, &config, &engine, None)
+}
+
+fn write_outputs(args: &DpcmArgs, config: &DpcmConfig, engine: &DpcmEngine, frame: Option<u64>) -> Result<()> {
+    let (heights, displacement) = engine.heights_and_displacement()?;
+    let (w, h) = (config.width, config.height);
+    let dir = match frame {
+        Some(_) => args.out.join("frames"),
+        None => args.out.clone(),
+    };
+    std::fs::create_dir_all(&dir).with_context(|| format!("cannot create {}", dir.display()))?;
+    let name = |stem: &str, ext: &str| match frame {
+        Some(n) => dir.join(format!("{stem}_{n:06}.{ext}")),
+        None => dir.join(format!("{stem}.{ext}")),
+    };
+    for output in &args.render {
+        let path = match output {
+            Output::Colour => {
+                let path = name("colour", "png");
+                render::colour_map(&displacement, w, h, &config.render).write_png(&path)?;
+                path
+            }
+            Output::Bump => {
+                let path = name("bump", "png");
+                render::bump_map(&displacement, w, h, config.spacing, &config.render).write_png(&path)?;
+                path
+            }
+            Output::Mesh => {
+                let path = name("surface", "vtu");
+                let mesh = render::displacement_mesh(&heights, &displacement, w, h, config.spacing, args.mesh_stride);
+                defvol::io::write_triangles(&path, &mesh.positions, &mesh.triangles, Some(&mesh.scalars))?;
+                path
+            }
+            Output::Height => {
+                let path = name("height", "mha");
+                render::write_height(&path, &heights, w, h, config.spacing)?;
+                path
+            }
+        };
+        if frame.is_none() {
+            tracing::info!("wrote {}", path.display());
+        }
+    }
+    Ok(())
+}
