@@ -198,7 +198,7 @@ enum BenchStage {
         #[arg(long, default_value_t = 200)]
         steps: usize,
         /// Time steps of the accuracy sweep.
-        #[arg(long, value_delimiter = ',', default_value = "0.002,0.001,0.0005,0.00025")]
+        #[arg(long, value_delimiter = ',', default_value = "0.001,0.0005,0.00025,0.000125")]
         dts: Vec<f64>,
         /// Skip the accuracy sweep.
         #[arg(long)]

@@ -80,3 +80,46 @@ fn warp_round_trip_keeps_file_units_and_geometry() {
     let worst = back.data().iter().zip(rotated.data()).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
     assert!(worst < 1e-2, "identity warp changed values by {worst}");
 }
+
+#[test]
+fn dpcm_preset_writes_every_rendering_and_a_motion_file_drives_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = defvol().args(["dpcm", "--preset", "loose_soil", "--size", "96x64", "--steps", "400", "--every", "200", "--backend", "cpu", "--out"]).arg(dir.path()).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    for name in ["colour.png", "bump.png", "surface.vtu", "height.mha", "frames/colour_000200.png", "frames/bump_000400.png"] {
+        assert!(dir.path().join(name).exists(), "{name} missing");
+    }
+    let decoder = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(dir.path().join("colour.png")).unwrap()));
+    let reader = decoder.read_info().unwrap();
+    assert_eq!((reader.info().width, reader.info().height), (96, 64));
+    let height = defvol::io::read_volume(&dir.path().join("height.mha")).unwrap();
+    assert_eq!(height.dims(), [96, 64, 1]);
+    assert!(height.range().0 < -5e-4, "the vehicles left tracks: {:?}", height.range());
+
+    // A motion file: one marker pressing 1.5 mm into the grid's centre (world origin).
+    let motion = dir.path().join("press.csv");
+    std::fs::write(&motion, "time,marker,x,y,z\n0,0,0,0,0.004\n0.2,0,0,0,0.0025\n").unwrap();
+    let pressed = dir.path().join("pressed");
+    let out = defvol().args(["dpcm", "--preset", "sand", "--size", "64x64", "--steps", "200", "--render", "height", "--backend", "cpu", "--markers"]).arg(&motion).arg("--out").arg(&pressed).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let h = defvol::io::read_volume(&pressed.join("height.mha")).unwrap();
+    let centre = h.data()[32 * 64 + 32];
+    let corner = h.data()[0];
+    assert!(centre < -1e-3 && corner == 0.0, "centre {centre}, corner {corner}");
+}
+
+#[test]
+fn dpcm_bad_input_is_named() {
+    let dir = tempfile::tempdir().unwrap();
+    for (args, needle) in [
+        (vec!["--preset", "mud"], "unknown DPCM preset `mud`"),
+        (vec!["--size", "10by10"], "--size `10by10`"),
+        (vec!["--size", "2x2"], "width"),
+        (vec!["--markers", "/nonexistent/motion.csv"], "/nonexistent/motion.csv"),
+    ] {
+        let out = defvol().arg("dpcm").args(&args).args(["--steps", "1", "--out"]).arg(dir.path()).output().unwrap();
+        assert!(!out.status.success(), "{args:?} accepted");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(err.contains(needle), "{args:?}: {err}");
+    }
+}

@@ -193,12 +193,15 @@ pub fn marker_term(m: &KernelMarker, x: f32, y: f32, z: f32, v: f32) -> f32 {
     let dy = y - m.row;
     let dz = (z - m.height) * m.z_scale;
     let d2 = dx * dx + dy * dy + dz * dz;
-    if d2 >= m.threshold * m.threshold {
-        return 0.0;
-    }
+    // Branch-free (selects), so a row of phyxels runs in SIMD lanes.
     let d = d2.sqrt();
     let dir = if d > 0.0 { dz / d } else { -1.0 };
-    m.stiffness_a * (m.threshold - d) * dir + m.damping_b * (m.step_dz - v)
+    let push = m.stiffness_a * (m.threshold - d) * dir + m.damping_b * (m.step_dz - v);
+    if d2 < m.threshold * m.threshold {
+        push
+    } else {
+        0.0
+    }
 }
 
 /// Per-phyxel ground coefficients: one value for the grid, or a texture row.

@@ -210,38 +210,37 @@ pub struct FrameParser {
 }
 
 impl FrameParser {
-    /// Every well-formed frame in one datagram, in order.
+    /// Every well-formed frame in one datagram, in order. Each damaged stretch (a bad frame
+    /// and the words after it up to the next flag) counts once as malformed.
     pub fn parse(&mut self, bytes: &[u8]) -> Vec<UdpFrame> {
         let words: Vec<u32> = bytes.chunks_exact(4).map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
-        if bytes.len() % 4 != 0 {
-            self.malformed("a datagram length that is not a whole number of 32-bit words");
-        }
         let mut frames = Vec::new();
         let mut i = 0;
-        let mut skipped = false;
+        let mut damaged = false;
         while i < words.len() {
             if words[i] != FRAME_FLAG {
-                skipped = true;
+                if !damaged {
+                    self.malformed("words outside a frame");
+                    damaged = true;
+                }
                 i += 1;
                 continue;
-            }
-            if skipped {
-                self.malformed("bytes before a frame flag");
-                skipped = false;
             }
             match Self::frame_at(&words[i..]) {
                 Ok((frame, used)) => {
                     i += used;
+                    damaged = false;
                     self.take(frame, &mut frames);
                 }
                 Err(why) => {
                     self.malformed(why);
+                    damaged = true;
                     i += 1;
                 }
             }
         }
-        if skipped {
-            self.malformed("bytes without a frame flag");
+        if !bytes.len().is_multiple_of(4) && !damaged {
+            self.malformed("a datagram length that is not a whole number of 32-bit words");
         }
         frames
     }

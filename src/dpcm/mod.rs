@@ -756,21 +756,49 @@ impl StepContext<'_> {
             return;
         }
         let w = self.width;
+        let mut push = [0.0f32; TILE * TILE];
         for ty in y0 / TILE..(y0 + rows).div_ceil(TILE) {
+            let (row0, row1) = (ty * TILE, ((ty + 1) * TILE).min(y0 + rows));
             for tx in 0..self.bins.tiles_x {
                 let list = self.bins.tile(tx, ty);
                 if list.is_empty() {
                     continue;
                 }
-                for y in ty * TILE..((ty + 1) * TILE).min(y0 + rows) {
-                    for x in tx * TILE..((tx + 1) * TILE).min(w) {
-                        let i = y * w + x;
-                        let (z, v) = (self.u[i], self.u[i] - self.up[i]);
-                        let mut push = 0.0f32;
-                        for &m in list {
-                            push += kernel::marker_term(&self.bins.markers[m as usize], x as f32, y as f32, z, v);
+                let (col0, col1) = (tx * TILE, ((tx + 1) * TILE).min(w));
+                // Marker by marker over its own box: each phyxel still sums its markers in
+                // list order (as the GPU does); phyxels out of a marker's reach would add 0.
+                let span = |m: &KernelMarker, centre: f32, lo: usize, hi: usize| {
+                    ((centre - m.threshold).floor().max(lo as f32) as usize, ((centre + m.threshold).ceil() + 1.0).clamp(lo as f32, hi as f32) as usize)
+                };
+                let (mut bx, mut by) = ((col1, col0), (row1, row0));
+                for &m in list {
+                    let m = &self.bins.markers[m as usize];
+                    let ((xa, xb), (ya, yb)) = (span(m, m.col, col0, col1), span(m, m.row, row0, row1));
+                    (bx, by) = ((bx.0.min(xa), bx.1.max(xb)), (by.0.min(ya), by.1.max(yb)));
+                }
+                if bx.0 >= bx.1 {
+                    continue;
+                }
+                for y in by.0..by.1 {
+                    push[(y - row0) * TILE + (bx.0 - col0)..(y - row0) * TILE + (bx.1 - col0)].fill(0.0);
+                }
+                for &m in list {
+                    let m = &self.bins.markers[m as usize];
+                    let ((xa, xb), (ya, yb)) = (span(m, m.col, col0, col1), span(m, m.row, row0, row1));
+                    if xa >= xb {
+                        continue;
+                    }
+                    for y in ya..yb {
+                        let (u, up) = (&self.u[y * w + xa..y * w + xb], &self.up[y * w + xa..y * w + xb]);
+                        let row = &mut push[(y - row0) * TILE + (xa - col0)..(y - row0) * TILE + (xb - col0)];
+                        for (k, ((p, &u), &up)) in row.iter_mut().zip(u).zip(up).enumerate() {
+                            *p += kernel::marker_term(m, (xa + k) as f32, y as f32, u, u - up);
                         }
-                        out[(y - y0) * w + x] += push;
+                    }
+                }
+                for y in by.0..by.1 {
+                    for x in bx.0..bx.1 {
+                        out[(y - y0) * w + x] += push[(y - row0) * TILE + (x - col0)];
                     }
                 }
             }
