@@ -113,7 +113,7 @@ fn canonical(width: usize, x: usize, y: usize, dx: isize, dy: isize) -> (u32, u3
 
 /// Whether the link from (x, y) towards (dx, dy) exists (inside the grid, and drawn).
 #[inline(always)]
-fn link_exists(c: &Coeffs, width: usize, height: usize, x: usize, y: usize, dx: isize, dy: isize) -> Option<usize> {
+pub fn link_exists(c: &Coeffs, width: usize, height: usize, x: usize, y: usize, dx: isize, dy: isize) -> Option<usize> {
     let (nx, ny) = (x as isize + dx, y as isize + dy);
     if nx < 0 || ny < 0 || nx as usize >= width || ny as usize >= height {
         return None;
@@ -254,6 +254,36 @@ impl RestRow for PlasticRest<'_> {
     }
 }
 
+/// Which links of a phyxel exist: bit k for [`AXIAL`]\[k], bit 4 + k for [`DIAGONAL`]\[k].
+pub trait LinkMask: Copy {
+    fn at(self, x: usize) -> u8;
+}
+/// Every link (the regular topologies' interior).
+#[derive(Clone, Copy)]
+pub struct AllLinks;
+impl LinkMask for AllLinks {
+    #[inline(always)]
+    fn at(self, _: usize) -> u8 {
+        0xFF
+    }
+}
+impl LinkMask for &[u8] {
+    #[inline(always)]
+    fn at(self, x: usize) -> u8 {
+        self[x]
+    }
+}
+
+/// The link masks of a stochastic topology, drawn once (the same draw as [`link_kept`]).
+pub fn link_masks(c: &Coeffs, width: usize, height: usize) -> Vec<u8> {
+    (0..width * height)
+        .map(|i| {
+            let (x, y) = (i % width, i / width);
+            AXIAL.iter().chain(&DIAGONAL).enumerate().fold(0u8, |mask, (bit, &(dx, dy))| if link_exists(c, width, height, x, y, dx, dy).is_some() { mask | 1 << bit } else { mask })
+        })
+        .collect()
+}
+
 /// Rows y-1, y, y+1 of Z(n) and Z(n-1).
 pub struct Rows<'a> {
     pub up: &'a [f32],
@@ -268,23 +298,27 @@ pub struct Rows<'a> {
 /// compiler vectorises it. Same expression tree as [`phyxel_update`]: the two agree bit for
 /// bit (tested), the general form being the reference and the border path.
 #[inline(always)]
-pub fn interior_row<const AX: bool, const DG: bool, GA: Field, GB: Field, R: RestRow>(c: &Coeffs, ga: GA, gb: GB, mut rest: R, r: &Rows, out: &mut [f32]) {
+pub fn interior_row<const AX: bool, const DG: bool, M: LinkMask, GA: Field, GB: Field, R: RestRow>(c: &Coeffs, links: M, ga: GA, gb: GB, mut rest: R, r: &Rows, out: &mut [f32]) {
     let w = out.len();
     let (up, mid, down) = (&r.up[..w], &r.mid[..w], &r.down[..w]);
     let (up_p, mid_p, down_p) = (&r.up_p[..w], &r.mid_p[..w], &r.down_p[..w]);
-    let (n_ax, n_dg) = (if AX { 4.0f32 } else { 0.0 }, if DG { 4.0f32 } else { 0.0 });
-    let self_a = n_ax * c.axial_a + n_dg * c.diag_a;
-    let self_b = n_ax * c.axial_b + n_dg * c.diag_b;
     for x in 1..w - 1 {
+        let m = links.at(x);
+        let on = |bit: u8, v: f32| if m & (1 << bit) != 0 { v } else { 0.0 };
         let mut sums = [0.0f32; 4];
+        let (mut n_ax, mut n_dg) = (0.0f32, 0.0f32);
         if AX {
-            sums[0] = (mid[x - 1] + mid[x + 1]) + (up[x] + down[x]);
-            sums[1] = (mid_p[x - 1] + mid_p[x + 1]) + (up_p[x] + down_p[x]);
+            sums[0] = (on(0, mid[x - 1]) + on(1, mid[x + 1])) + (on(2, up[x]) + on(3, down[x]));
+            sums[1] = (on(0, mid_p[x - 1]) + on(1, mid_p[x + 1])) + (on(2, up_p[x]) + on(3, down_p[x]));
+            n_ax = (m & 0x0F).count_ones() as f32;
         }
         if DG {
-            sums[2] = (up[x - 1] + down[x - 1]) + (up[x + 1] + down[x + 1]);
-            sums[3] = (up_p[x - 1] + down_p[x - 1]) + (up_p[x + 1] + down_p[x + 1]);
+            sums[2] = (on(4, up[x - 1]) + on(5, down[x - 1])) + (on(6, up[x + 1]) + on(7, down[x + 1]));
+            sums[3] = (on(4, up_p[x - 1]) + on(5, down_p[x - 1])) + (on(6, up_p[x + 1]) + on(7, down_p[x + 1]));
+            n_dg = (m & 0xF0).count_ones() as f32;
         }
+        let self_a = n_ax * c.axial_a + n_dg * c.diag_a;
+        let self_b = n_ax * c.axial_b + n_dg * c.diag_b;
         let rest_x = rest.rest(c, x, mid[x]);
         out[x] = combine(c, sums, self_a, self_b, ga.at(x), gb.at(x), rest_x, mid[x], mid_p[x]);
     }

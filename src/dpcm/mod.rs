@@ -452,6 +452,8 @@ pub struct Surface {
     rest: Vec<f32>,
     initial_rest: Vec<f32>,
     ground: Option<GroundTexture>,
+    /// Per-phyxel link masks of a stochastic topology (empty: every link exists).
+    links: Vec<u8>,
     marker_heights: HashMap<u32, f32>,
     bins: MarkerBins,
     steps: u64,
@@ -498,6 +500,7 @@ impl Surface {
             initial_rest: rest.clone(),
             rest,
             ground,
+            links: if coeffs.link_keep < 1 << 24 { kernel::link_masks(&coeffs, config.width, config.height) } else { Vec::new() },
             marker_heights: HashMap::new(),
             bins: MarkerBins::default(),
             steps: 0,
@@ -615,8 +618,8 @@ impl Surface {
         let bands = h.div_ceil(BAND_ROWS);
         let rest_bands: Vec<&mut [f32]> = if self.rest.is_empty() { std::iter::repeat_with(|| &mut [][..]).take(bands).collect() } else { self.rest.chunks_mut(band).collect() };
         let plastic = self.coeffs.plastic_threshold >= 0.0;
-        let regular = self.coeffs.link_keep >= 1 << 24;
-        let ctx = StepContext { c: &self.coeffs, u: &self.u, up: &self.up, width: w, height: h, ground: self.ground.as_ref(), plastic, regular, bins: &self.bins };
+        let links = (!self.links.is_empty()).then_some(&self.links[..]);
+        let ctx = StepContext { c: &self.coeffs, u: &self.u, up: &self.up, width: w, height: h, ground: self.ground.as_ref(), plastic, links, bins: &self.bins };
         self.next.par_chunks_mut(band).zip(rest_bands).enumerate().for_each(|(b, (out, rest))| step_band(&ctx, b * BAND_ROWS, out, rest));
         std::mem::swap(&mut self.up, &mut self.u);
         std::mem::swap(&mut self.u, &mut self.next);
@@ -673,7 +676,8 @@ struct StepContext<'a> {
     height: usize,
     ground: Option<&'a GroundTexture>,
     plastic: bool,
-    regular: bool,
+    /// The stochastic topology's link masks; `None`: every link.
+    links: Option<&'a [u8]>,
     bins: &'a MarkerBins,
 }
 
@@ -687,7 +691,7 @@ impl StepContext<'_> {
             let y = y0 + dy;
             let out_row = &mut out[dy * w..(dy + 1) * w];
             let rest_row: &mut [f32] = if rest.is_empty() { &mut [] } else { &mut rest[dy * w..(dy + 1) * w] };
-            if self.regular && y > 0 && y + 1 < self.height {
+            if y > 0 && y + 1 < self.height {
                 self.interior(y, out_row, rest_row);
                 for x in [0, w - 1] {
                     self.general(x, y, out_row, rest_row);
@@ -723,29 +727,30 @@ impl StepContext<'_> {
         let w = self.width;
         let row = |v: &'a [f32], y: usize| -> &'a [f32] { &v[y * w..(y + 1) * w] };
         let rows = Rows { up: row(self.u, y - 1), mid: row(self.u, y), down: row(self.u, y + 1), up_p: row(self.up, y - 1), mid_p: row(self.up, y), down_p: row(self.up, y + 1) };
-        let c = self.c;
-        let (ga, gb): (&[f32], &[f32]) = match self.ground {
-            Some(g) => (row(&g.a, y), row(&g.b, y)),
-            None => (&[], &[]),
-        };
-        // One instantiation per topology, ground texture and rest kind: no branch in the row.
-        macro_rules! with_rest {
-            ($ax:literal, $dg:literal) => {
-                match (self.ground.is_some(), rest.is_empty(), self.plastic) {
-                    (false, true, _) => kernel::interior_row::<$ax, $dg, f32, f32, _>(c, c.ground_a, c.ground_b, UniformRest(0.0), &rows, out),
-                    (false, false, false) => kernel::interior_row::<$ax, $dg, f32, f32, _>(c, c.ground_a, c.ground_b, FixedRest(rest), &rows, out),
-                    (false, false, true) => kernel::interior_row::<$ax, $dg, f32, f32, _>(c, c.ground_a, c.ground_b, PlasticRest(rest), &rows, out),
-                    (true, true, _) => kernel::interior_row::<$ax, $dg, &[f32], &[f32], _>(c, ga, gb, UniformRest(0.0), &rows, out),
-                    (true, false, false) => kernel::interior_row::<$ax, $dg, &[f32], &[f32], _>(c, ga, gb, FixedRest(rest), &rows, out),
-                    (true, false, true) => kernel::interior_row::<$ax, $dg, &[f32], &[f32], _>(c, ga, gb, PlasticRest(rest), &rows, out),
-                }
-            };
+        let links = self.links.map(|l| &l[y * w..(y + 1) * w]);
+        match (self.c.has_axial != 0, self.c.has_diagonal != 0, links) {
+            (false, false, _) => self.interior_kinds::<false, false, _>(kernel::AllLinks, y, &rows, out, rest),
+            (true, false, None) => self.interior_kinds::<true, false, _>(kernel::AllLinks, y, &rows, out, rest),
+            (false, true, None) => self.interior_kinds::<false, true, _>(kernel::AllLinks, y, &rows, out, rest),
+            (true, true, None) => self.interior_kinds::<true, true, _>(kernel::AllLinks, y, &rows, out, rest),
+            (true, false, Some(m)) => self.interior_kinds::<true, false, _>(m, y, &rows, out, rest),
+            (false, true, Some(m)) => self.interior_kinds::<false, true, _>(m, y, &rows, out, rest),
+            (true, true, Some(m)) => self.interior_kinds::<true, true, _>(m, y, &rows, out, rest),
         }
-        match (c.has_axial != 0, c.has_diagonal != 0) {
-            (false, false) => with_rest!(false, false),
-            (true, false) => with_rest!(true, false),
-            (false, true) => with_rest!(false, true),
-            (true, true) => with_rest!(true, true),
+    }
+
+    /// One instantiation per ground texture and rest kind: no branch inside the row.
+    #[inline(always)]
+    fn interior_kinds<const AX: bool, const DG: bool, M: kernel::LinkMask>(&self, links: M, y: usize, rows: &Rows, out: &mut [f32], rest: &mut [f32]) {
+        let c = self.c;
+        let w = self.width;
+        match (self.ground, rest.is_empty(), self.plastic) {
+            (None, true, _) => kernel::interior_row::<AX, DG, _, _, _, _>(c, links, c.ground_a, c.ground_b, UniformRest(0.0), rows, out),
+            (None, false, false) => kernel::interior_row::<AX, DG, _, _, _, _>(c, links, c.ground_a, c.ground_b, FixedRest(rest), rows, out),
+            (None, false, true) => kernel::interior_row::<AX, DG, _, _, _, _>(c, links, c.ground_a, c.ground_b, PlasticRest(rest), rows, out),
+            (Some(g), true, _) => kernel::interior_row::<AX, DG, _, _, _, _>(c, links, &g.a[y * w..(y + 1) * w], &g.b[y * w..(y + 1) * w], UniformRest(0.0), rows, out),
+            (Some(g), false, false) => kernel::interior_row::<AX, DG, _, _, _, _>(c, links, &g.a[y * w..(y + 1) * w], &g.b[y * w..(y + 1) * w], FixedRest(rest), rows, out),
+            (Some(g), false, true) => kernel::interior_row::<AX, DG, _, _, _, _>(c, links, &g.a[y * w..(y + 1) * w], &g.b[y * w..(y + 1) * w], PlasticRest(rest), rows, out),
         }
     }
 
