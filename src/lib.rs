@@ -12,6 +12,7 @@ pub mod gpu;
 pub mod gpu_policy;
 pub mod io;
 pub mod mesh;
+pub mod msgs;
 pub mod scene;
 pub mod solver;
 pub mod volume;

@@ -194,3 +194,50 @@ fn textures_set_parameters_per_phyxel_and_heights_write_as_float_images() {
     assert_eq!(volume.data(), &heights[..]);
     assert_eq!(volume.spacing()[0], 0.001);
 }
+
+#[cfg(feature = "mcap")]
+#[test]
+fn tool_poses_recorded_in_an_mcap_bag_drive_markers() {
+    use defvol::msgs::{self, Header, Pose, PoseStamped, Quaternion, Time};
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("session.mcap");
+    let mut writer = mcap::Writer::new(std::io::BufWriter::new(std::fs::File::create(&path).unwrap())).unwrap();
+    let schema = writer.add_schema("geometry_msgs/msg/PoseStamped", "ros2msg", msgs::ros2msg_schema("geometry_msgs/msg/PoseStamped").unwrap().as_bytes()).unwrap();
+    let left = writer.add_channel(schema, "/left/tool_pose", "cdr", &Default::default()).unwrap();
+    let right = writer.add_channel(schema, "/right/tool_pose", "cdr", &Default::default()).unwrap();
+    let other = writer.add_channel(0, "/chatter", "json", &Default::default()).unwrap();
+    let t0 = 1_700_000_000_000_000_000u64;
+    let pose = |x: f64, y: f64, z: f64| PoseStamped { header: Header { stamp: Time::default(), frame_id: "world".into() }, pose: Pose { position: msgs::Point { x, y, z }, orientation: Quaternion::default() } };
+    let mut write = |channel_id: u16, dt_ms: u64, data: &[u8]| {
+        writer.write_to_known_channel(&mcap::records::MessageHeader { channel_id, sequence: 0, log_time: t0 + dt_ms * 1_000_000, publish_time: t0 }, data).unwrap();
+    };
+    write(left, 0, &msgs::encode(&pose(0.0, 0.0, 0.01)).unwrap());
+    write(other, 5, b"{}");
+    write(right, 100, &msgs::encode(&pose(0.01, 0.0, 0.0)).unwrap());
+    write(left, 200, &msgs::encode(&pose(0.02, 0.0, 0.0)).unwrap());
+    write(left, 200, &msgs::encode(&pose(0.5, 0.5, 0.5)).unwrap()); // same time: dropped
+    write(right, 300, &msgs::encode(&pose(f64::NAN, 0.0, 0.0)).unwrap()); // dropped
+    write(right, 400, &msgs::encode(&pose(0.01, 0.02, 0.0)).unwrap());
+    writer.finish().unwrap();
+    drop(writer);
+
+    let (motion, counts) = MotionFile::from_mcap(&path, &[]).unwrap();
+    assert_eq!(counts.topics, vec!["/left/tool_pose".to_owned(), "/right/tool_pose".to_owned()]);
+    assert_eq!((counts.messages, counts.dropped), (4, 2));
+    let calibration = Calibration { world_from_grid: Isometry3::identity(), spacing: 0.001 };
+    let at = motion.markers_at(&calibration, 0.1);
+    assert_eq!(at.len(), 2);
+    assert!((at[0].col - 10.0).abs() < 1e-9 && (at[0].height - 0.005).abs() < 1e-12, "{:?}", at[0]);
+    assert!((at[1].col - 10.0).abs() < 1e-9 && at[1].row.abs() < 1e-9);
+    let at = motion.markers_at(&calibration, 0.25);
+    assert_eq!(at.len(), 1, "the left tool's track ended at 0.2 s");
+    assert!((at[0].row - 10.0).abs() < 1e-9, "{:?}", at[0]);
+    // One topic by name; a topic that is not a pose, or missing, is an error naming it.
+    let (only_right, _) = MotionFile::from_mcap(&path, &["/right/tool_pose".to_owned()]).unwrap();
+    assert_eq!(only_right.markers_at(&calibration, 0.1).len(), 1);
+    let err = MotionFile::from_mcap(&path, &["/chatter".to_owned()]).unwrap_err().to_string();
+    assert!(err.contains("/chatter") && err.contains("PoseStamped"), "{err}");
+    std::fs::write(dir.path().join("broken.mcap"), b"not an mcap").unwrap();
+    let err = MotionFile::from_mcap(&dir.path().join("broken.mcap"), &[]).unwrap_err().to_string();
+    assert!(err.contains("broken.mcap"), "{err}");
+}

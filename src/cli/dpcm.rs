@@ -38,9 +38,13 @@ pub struct DpcmArgs {
     /// Grid size, WxH phyxels (overrides the configuration's).
     #[arg(long)]
     size: Option<String>,
-    /// Motion file (CSV `time,marker,x,y,z`: seconds, id, world metres).
+    /// Motion file: CSV `time,marker,x,y,z` (seconds, id, world metres), or an MCAP bag of
+    /// geometry_msgs/msg/PoseStamped tool poses (one marker per topic).
     #[arg(long, conflicts_with = "udp")]
     markers: Option<PathBuf>,
+    /// With an MCAP --markers file: the pose topics to use (default: every PoseStamped topic).
+    #[arg(long, value_delimiter = ',')]
+    marker_topics: Vec<String>,
     /// Listen for the seed's UDP marker frames here (x, y in phyxels). Give a loopback
     /// address unless other hosts must reach it.
     #[arg(long)]
@@ -102,7 +106,9 @@ pub fn run(args: DpcmArgs) -> Result<()> {
             Some(o) => Calibration { world_from_grid: Isometry3::translation(o[0], o[1], o[2]), spacing: config.spacing },
             None => Calibration::centred(&config),
         };
-        Source::Motion(MotionFile::load(path)?, calibration)
+        let is_mcap = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("mcap"));
+        let motion = if is_mcap { load_mcap(path, &args.marker_topics)? } else { MotionFile::load(path)? };
+        Source::Motion(motion, calibration)
     } else if let Some(addr) = args.udp {
         if !addr.ip().is_loopback() {
             tracing::warn!("listening for UDP markers on {addr}: reachable from other hosts");
@@ -157,6 +163,18 @@ pub fn run(args: DpcmArgs) -> Result<()> {
         tracing::info!("UDP frames: {} received, {} lost, {} malformed, {} out of order", c.received, c.lost, c.malformed, c.out_of_order);
     }
     write_outputs(&args, &config, &engine, None)
+}
+
+#[cfg(feature = "mcap")]
+fn load_mcap(path: &std::path::Path, topics: &[String]) -> Result<MotionFile> {
+    let (motion, counts) = MotionFile::from_mcap(path, topics)?;
+    tracing::info!("{}: {} tool poses on {} as markers 0.., {} dropped", path.display(), counts.messages, counts.topics.join(", "), counts.dropped);
+    Ok(motion)
+}
+
+#[cfg(not(feature = "mcap"))]
+fn load_mcap(path: &std::path::Path, _: &[String]) -> Result<MotionFile> {
+    bail!("{}: this defvol was built without the `mcap` feature", path.display())
 }
 
 fn write_outputs(args: &DpcmArgs, config: &DpcmConfig, engine: &DpcmEngine, frame: Option<u64>) -> Result<()> {

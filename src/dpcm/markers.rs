@@ -16,6 +16,8 @@ use super::{DpcmConfig, Marker};
 pub enum MarkerError {
     #[error("{path}: {message}")]
     MotionFile { path: PathBuf, message: String },
+    #[error("{path}: {message}")]
+    Mcap { path: PathBuf, message: String },
     #[error("cannot listen for UDP markers on {addr}: {source}")]
     Bind { addr: SocketAddr, source: std::io::Error },
     #[error("receiving UDP markers failed: {0}")]
@@ -155,6 +157,65 @@ impl MotionFile {
         Ok(Self { tracks })
     }
 
+    /// Tool poses recorded in an MCAP file (a rosbag2 bag): every `geometry_msgs/msg/PoseStamped`
+    /// channel, or those of `topics`, one marker per topic (ids in topic order), timed by log
+    /// time from the first message. Positions are world metres; frame ids are not resolved.
+    /// Samples with non-finite positions or going back in time are dropped and counted.
+    #[cfg(feature = "mcap")]
+    pub fn from_mcap(path: &Path, topics: &[String]) -> Result<(Self, McapCounts), MarkerError> {
+        use crate::msgs::{self, Message, PoseStamped};
+        let bad = |message: String| MarkerError::Mcap { path: path.to_owned(), message };
+        let bytes = std::fs::read(path).map_err(|e| bad(e.to_string()))?;
+        let stream = mcap::MessageStream::new(&bytes).map_err(|e| bad(format!("not a readable MCAP file: {e}")))?;
+        let mut samples: BTreeMap<String, Vec<(u64, Point3<f64>)>> = BTreeMap::new();
+        let mut counts = McapCounts::default();
+        for message in stream {
+            let message = message.map_err(|e| bad(format!("damaged MCAP record: {e}")))?;
+            let channel = &message.channel;
+            let is_pose = channel.schema.as_ref().is_some_and(|s| s.name == PoseStamped::NAME) && channel.message_encoding == "cdr";
+            let wanted = if topics.is_empty() { is_pose } else { topics.iter().any(|t| *t == channel.topic) };
+            if !wanted {
+                continue;
+            }
+            if !is_pose {
+                return Err(bad(format!("topic {} is not geometry_msgs/msg/PoseStamped in CDR", channel.topic)));
+            }
+            let pose: PoseStamped = match msgs::decode(&message.data, &channel.topic) {
+                Ok(p) => p,
+                Err(e) => {
+                    tracing::warn!("{}: {e}; message dropped", path.display());
+                    counts.dropped += 1;
+                    continue;
+                }
+            };
+            let p = pose.pose.position;
+            if ![p.x, p.y, p.z].iter().all(|v| v.is_finite()) {
+                counts.dropped += 1;
+                continue;
+            }
+            samples.entry(channel.topic.clone()).or_default().push((message.log_time, Point3::new(p.x, p.y, p.z)));
+        }
+        for topic in topics {
+            if !samples.contains_key(topic) {
+                return Err(bad(format!("no PoseStamped messages on topic {topic}")));
+            }
+        }
+        let Some(start) = samples.values().flatten().map(|(t, _)| *t).min() else {
+            return Err(bad("no geometry_msgs/msg/PoseStamped messages".into()));
+        };
+        let mut tracks = BTreeMap::new();
+        for (id, (topic, mut track)) in samples.into_iter().enumerate() {
+            track.sort_by_key(|(t, _)| *t);
+            let before = track.len();
+            track.dedup_by_key(|(t, _)| *t);
+            counts.dropped += before - track.len();
+            counts.topics.push(topic);
+            tracks.insert(id as u32, track.into_iter().map(|(t, p)| ((t - start) as f64 * 1e-9, p)).collect());
+        }
+        counts.messages = tracks.values().map(Vec::len).sum();
+        Ok((Self { tracks }, counts))
+    }
+
     /// The last sample time.
     pub fn duration(&self) -> f64 {
         self.tracks.values().filter_map(|t| t.last().map(|s| s.0)).fold(0.0, f64::max)
@@ -175,6 +236,15 @@ impl MotionFile {
         }
         out
     }
+}
+
+/// What [`MotionFile::from_mcap`] took and left.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct McapCounts {
+    /// Marker ids are indices into this.
+    pub topics: Vec<String>,
+    pub messages: usize,
+    pub dropped: usize,
 }
 
 /// The seed's frame marker (figure 7).
