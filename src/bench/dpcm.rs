@@ -47,7 +47,6 @@ pub fn bench_config(size: [usize; 2], topology: Topology, physics: Physics, mark
 /// A benchmark backend: the CPU surface or its GPU twin.
 trait Stepper {
     fn step(&mut self, config: &DpcmConfig, t: f64) -> Result<(), DpcmError>;
-    fn heights(&mut self) -> Result<Vec<f32>, DpcmError>;
 }
 
 impl Stepper for Surface {
@@ -55,9 +54,6 @@ impl Stepper for Surface {
         let markers = config.script.markers_at(config, t);
         Surface::step(self, &markers);
         Ok(())
-    }
-    fn heights(&mut self) -> Result<Vec<f32>, DpcmError> {
-        Ok(Surface::heights(self).to_vec())
     }
 }
 
@@ -67,9 +63,6 @@ impl Stepper for crate::gpu::dpcm::GpuSurface {
         let markers = config.script.markers_at(config, t);
         crate::gpu::dpcm::GpuSurface::step(self, &markers);
         Ok(())
-    }
-    fn heights(&mut self) -> Result<Vec<f32>, DpcmError> {
-        self.read_heights().map_err(|e| DpcmError::Gpu(e.to_string()))
     }
 }
 
@@ -112,7 +105,7 @@ pub fn run(opts: &DpcmBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result<(
                 let mut surface = Surface::new(&config)?;
                 let samples = time_steps(&mut surface, &config, opts.steps, &mut || {})?;
                 #[cfg(feature = "gpu")]
-                let cpu_heights = Stepper::heights(&mut surface)?;
+                let cpu_heights = surface.heights();
                 emit(&BenchRow { stage: "dpcm", case: case.clone(), backend: "cpu".into(), device: cpu.clone(), params: params.clone(), runs: samples.len(), time_ms: time_stats(samples), error: None, work: work.clone() });
                 #[cfg(feature = "gpu")]
                 if let Some(ctx) = &gpu {
@@ -120,7 +113,7 @@ pub fn run(opts: &DpcmBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result<(
                     let device = ctx.describe();
                     let mut sync = || ctx.wait();
                     let samples = time_steps(&mut surface, &config, opts.steps, &mut sync)?;
-                    let heights = surface.heights()?;
+                    let heights = surface.read_heights().map_err(|e| DpcmError::Gpu(e.to_string()))?;
                     let peak = cpu_heights.iter().fold(0.0f32, |m, z| m.max(z.abs())).max(f32::MIN_POSITIVE);
                     let worst = heights.iter().zip(&cpu_heights).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
                     let error = Some(ErrorMeasure { metric: "max_abs_over_peak", value: f64::from(worst / peak), reference: "cpu" });
