@@ -13,6 +13,7 @@ pub mod gpu_policy;
 pub mod io;
 pub mod mesh;
 pub mod msgs;
+pub mod render;
 pub mod scene;
 pub mod solver;
 pub mod volume;

@@ -1,0 +1,204 @@
+//! Transfer functions: piecewise-linear colour and opacity over the scalar, their lookup
+//! tables, and the pre-integrated table of seed 000, section 5.1 (colour and opacity of a
+//! whole ray segment from its front and back scalars).
+//!
+//! Opacity is given per unit length (the opacity of a 1 mm slab for a millimetre volume):
+//! a segment of length d has α = 1 - (1 - opacity)^d, i.e. extinction τ = -ln(1 - opacity).
+
+use serde::{Deserialize, Serialize};
+
+use super::RenderError;
+
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TfPoint {
+    pub value: f64,
+    /// RGB in 0..1.
+    pub color: [f64; 3],
+    /// Opacity of a unit length, 0..1 (exclusive).
+    pub opacity: f64,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TransferFunction {
+    pub points: Vec<TfPoint>,
+    /// Point values are fractions of the volume's range (for MRI, which has no units).
+    #[serde(default)]
+    pub relative: bool,
+}
+
+const fn p(value: f64, color: [f64; 3], opacity: f64) -> TfPoint {
+    TfPoint { value, color, opacity }
+}
+
+impl TransferFunction {
+    pub const PRESETS: [&'static str; 3] = ["ct_soft_tissue", "ct_bone", "mri"];
+
+    /// CT in Hounsfield units: soft tissue and organs translucent, vessels and bone bright.
+    pub fn preset(name: &str) -> Result<Self, RenderError> {
+        let points = match name {
+            "ct_soft_tissue" => vec![
+                p(-1000.0, [0.0, 0.0, 0.0], 0.0),
+                p(-200.0, [0.0, 0.0, 0.0], 0.0),
+                p(-100.0, [0.85, 0.65, 0.45], 0.01),
+                p(20.0, [0.75, 0.35, 0.3], 0.03),
+                p(80.0, [0.9, 0.45, 0.35], 0.08),
+                p(250.0, [1.0, 0.85, 0.7], 0.3),
+                p(700.0, [1.0, 1.0, 0.95], 0.8),
+                p(3000.0, [1.0, 1.0, 1.0], 0.9),
+            ],
+            "ct_bone" => vec![p(-1000.0, [0.0; 3], 0.0), p(150.0, [0.0; 3], 0.0), p(300.0, [0.9, 0.8, 0.65], 0.4), p(1000.0, [1.0, 1.0, 0.95], 0.9), p(3000.0, [1.0; 3], 0.95)],
+            "mri" => return Ok(Self { points: vec![p(0.0, [0.0; 3], 0.0), p(0.1, [0.0; 3], 0.0), p(0.4, [0.7, 0.6, 0.55], 0.05), p(0.8, [1.0, 0.95, 0.9], 0.3), p(1.0, [1.0; 3], 0.5)], relative: true }),
+            other => return Err(RenderError::UnknownPreset(other.to_owned())),
+        };
+        Ok(Self { points, relative: false })
+    }
+
+    /// Checks the points; the function in the volume's own values.
+    pub fn resolve(&self, data_range: (f32, f32)) -> Result<Self, RenderError> {
+        let bad = |why: String| Err(RenderError::TransferFunction(why));
+        if self.points.is_empty() {
+            return bad("it has no points".into());
+        }
+        for (i, q) in self.points.iter().enumerate() {
+            if !(q.value.is_finite() && q.color.iter().all(|c| (0.0..=1.0).contains(c)) && (0.0..1.0).contains(&q.opacity)) {
+                return bad(format!("point {i} ({q:?}): value must be finite, colour in 0..1, opacity in [0, 1)"));
+            }
+            if i > 0 && q.value < self.points[i - 1].value {
+                return bad(format!("point {i} goes back to value {}", q.value));
+            }
+        }
+        let (lo, hi) = (f64::from(data_range.0), f64::from(data_range.1));
+        let map = |v: f64| if self.relative { lo + v * (hi - lo) } else { v };
+        Ok(Self { points: self.points.iter().map(|q| TfPoint { value: map(q.value), ..*q }).collect(), relative: false })
+    }
+
+    /// (colour, extinction per unit length) at `s`, exactly (the f64 reference's form).
+    pub fn eval(&self, s: f64) -> ([f64; 3], f64) {
+        let pts = &self.points;
+        let after = pts.partition_point(|q| q.value <= s);
+        let (color, opacity) = match (after.checked_sub(1).map(|i| pts[i]), pts.get(after)) {
+            (Some(a), Some(b)) if b.value > a.value => {
+                let f = (s - a.value) / (b.value - a.value);
+                ([0, 1, 2].map(|c| a.color[c] + (b.color[c] - a.color[c]) * f), a.opacity + (b.opacity - a.opacity) * f)
+            }
+            (Some(a), _) => (a.color, a.opacity),
+            (None, Some(b)) => (b.color, b.opacity),
+            (None, None) => ([0.0; 3], 0.0),
+        };
+        (color, -(1.0 - opacity).ln())
+    }
+
+    /// The scalar range in which the function changes (outside it, it is constant).
+    pub fn span(&self) -> (f64, f64) {
+        match (self.points.first(), self.points.last()) {
+            (Some(a), Some(b)) => (a.value, b.value),
+            _ => (0.0, 1.0),
+        }
+    }
+}
+
+/// Entries of the 1D table and levels of the pre-integrated one.
+pub const LUT_SIZE: usize = 1024;
+pub const PREINTEGRATED_SIZE: usize = 512;
+
+/// The transfer function sampled for rendering: (r, g, b, τ) on `LUT_SIZE` values over its
+/// span, and the pre-integrated segments for one step length.
+#[derive(Debug, Clone)]
+pub struct Tables {
+    pub lo: f32,
+    pub hi: f32,
+    /// r, g, b, τ per unit length.
+    pub lut: Vec<[f32; 4]>,
+    /// Premultiplied r, g, b and α of a segment of `step` from front level i to back level j
+    /// (row i, column j) over [pre_lo, pre_hi]; empty unless asked for.
+    pub preintegrated: Vec<[f32; 4]>,
+    /// The pre-integrated levels span the data as well as the function: a segment running
+    /// from below the function's span to above it crosses the span over only part of its
+    /// length, which clamping its ends would lose.
+    pub pre_lo: f32,
+    pub pre_hi: f32,
+    pub step: f32,
+}
+
+impl Tables {
+    /// Tables for `tf` over its span; the pre-integrated one (when asked for) also over
+    /// `data_range`.
+    pub fn new(tf: &TransferFunction, data_range: (f32, f32), step: f64, preintegrate: bool) -> Self {
+        let (lo, hi) = tf.span();
+        let hi = if hi > lo { hi } else { lo + 1.0 };
+        let (pre_lo, pre_hi) = (lo.min(f64::from(data_range.0)), hi.max(f64::from(data_range.1)));
+        let at = |i: usize, n: usize| lo + (hi - lo) * i as f64 / (n - 1) as f64;
+        let lut = (0..LUT_SIZE)
+            .map(|i| {
+                let (c, tau) = tf.eval(at(i, LUT_SIZE));
+                [c[0] as f32, c[1] as f32, c[2] as f32, tau as f32]
+            })
+            .collect();
+        let preintegrated = if preintegrate { preintegrate_table(tf, pre_lo, pre_hi, step) } else { Vec::new() };
+        Self { lo: lo as f32, hi: hi as f32, lut, preintegrated, pre_lo: pre_lo as f32, pre_hi: pre_hi as f32, step: step as f32 }
+    }
+
+    /// (r, g, b, τ) at `s`, linear between table entries.
+    #[inline]
+    pub fn sample(&self, s: f32) -> [f32; 4] {
+        let x = ((s - self.lo) / (self.hi - self.lo)).clamp(0.0, 1.0) * (LUT_SIZE - 1) as f32;
+        let i = (x as usize).min(LUT_SIZE - 2);
+        let f = x - i as f32;
+        let (a, b) = (self.lut[i], self.lut[i + 1]);
+        [0, 1, 2, 3].map(|c| a[c] + (b[c] - a[c]) * f)
+    }
+
+    /// The segment from `front` to `back` scalars: premultiplied colour and α, bilinear in
+    /// the pre-integrated table.
+    #[inline]
+    pub fn segment(&self, front: f32, back: f32) -> [f32; 4] {
+        let n = PREINTEGRATED_SIZE;
+        let level = |s: f32| ((s - self.pre_lo) / (self.pre_hi - self.pre_lo)).clamp(0.0, 1.0) * (n - 1) as f32;
+        let (x, y) = (level(front), level(back));
+        let (i, j) = ((x as usize).min(n - 2), (y as usize).min(n - 2));
+        let (fx, fy) = (x - i as f32, y - j as f32);
+        let t = &self.preintegrated;
+        let (a, b, c, d) = (t[i * n + j], t[i * n + j + 1], t[(i + 1) * n + j], t[(i + 1) * n + j + 1]);
+        [0, 1, 2, 3].map(|k| {
+            let top = a[k] + (b[k] - a[k]) * fy;
+            let bottom = c[k] + (d[k] - c[k]) * fy;
+            top + (bottom - top) * fx
+        })
+    }
+
+    /// The largest extinction over the scalar interval [a, b] (for empty-space skipping).
+    pub fn max_tau(&self, a: f32, b: f32) -> f32 {
+        let index = |s: f32| (((s - self.lo) / (self.hi - self.lo)).clamp(0.0, 1.0) * (LUT_SIZE - 1) as f32) as usize;
+        let (i, j) = (index(a), (index(b) + 1).min(LUT_SIZE - 1));
+        self.lut[i..=j].iter().map(|e| e[3]).fold(0.0, f32::max)
+    }
+}
+
+/// Each segment integrated front to back in 64 sub-steps, the scalar linear along it.
+fn preintegrate_table(tf: &TransferFunction, lo: f64, hi: f64, step: f64) -> Vec<[f32; 4]> {
+    use rayon::prelude::*;
+    const SUBSTEPS: usize = 64;
+    let n = PREINTEGRATED_SIZE;
+    let level = |i: usize| lo + (hi - lo) * i as f64 / (n - 1) as f64;
+    (0..n * n)
+        .into_par_iter()
+        .map(|k| {
+            let (front, back) = (level(k / n), level(k % n));
+            let ds = step / SUBSTEPS as f64;
+            let mut acc = [0.0f64; 4];
+            for m in 0..SUBSTEPS {
+                let s = front + (back - front) * (m as f64 + 0.5) / SUBSTEPS as f64;
+                let (c, tau) = tf.eval(s);
+                let alpha = 1.0 - (-tau * ds).exp();
+                let w = (1.0 - acc[3]) * alpha;
+                for ch in 0..3 {
+                    acc[ch] += w * c[ch];
+                }
+                acc[3] += w;
+            }
+            acc.map(|v| v as f32)
+        })
+        .collect()
+}
