@@ -30,6 +30,8 @@ enum Command {
     Warp(WarpArgs),
     /// Run a DPCM surface (phyxels engraved by markers) and write its renderings.
     Dpcm(cli::dpcm::DpcmArgs),
+    /// A raycast image of a volume (the phantom when no file is given).
+    Render(cli::render::RenderArgs),
     /// Measure a stage: run time against error.
     Bench {
         #[command(subcommand)]
@@ -185,6 +187,23 @@ fn warp_on_backend(
 
 #[derive(Subcommand)]
 enum BenchStage {
+    /// Volume raycasting of the phantom (plain and warped): ms per frame and PSNR against the
+    /// f64 ray integral, over steps.
+    Render {
+        #[arg(long, value_delimiter = ',', default_value = "512,1024")]
+        sizes: Vec<usize>,
+        #[arg(long, value_delimiter = ',', default_value = "2,1,0.5")]
+        steps: Vec<f64>,
+        #[arg(long, default_value_t = 5)]
+        runs: usize,
+        #[arg(long, default_value_t = 0.1)]
+        reference_step: f64,
+        /// Only the phantom as it is (no warped copy).
+        #[arg(long)]
+        no_warped: bool,
+        #[arg(long)]
+        json: bool,
+    },
     /// DPCM steps per second on the seed's 1100 x 1100 grid, 1 to 300 markers; error over dt.
     Dpcm {
         #[arg(long, value_delimiter = ',', default_value = "1100,1100")]
@@ -400,6 +419,12 @@ fn main() -> Result<()> {
         Command::Simulate(args) => simulate(args),
         Command::Warp(args) => warp_command(args),
         Command::Dpcm(args) => cli::dpcm::run(args),
+        Command::Render(args) => cli::render::run(args),
+        Command::Bench { stage: BenchStage::Render { sizes, steps, runs, reference_step, no_warped, json } } => {
+            let opts = bench::render::RenderBenchOptions { sizes, steps, runs, reference_step, warped: !no_warped };
+            bench::render::run(&opts, row_printer(json, bench::render::TABLE_HEADER, bench::render::table_row))?;
+            Ok(())
+        }
         Command::Bench { stage: BenchStage::Dpcm { size, markers, topologies, physics, steps, dts, no_sweep, gpu, allow_software_gpu, json } } => {
             let [w, h] = size[..] else { bail!("--size takes two sizes") };
             let gpu = gpu.then_some(defvol::gpu_policy::GpuChoice { allow_software: allow_software_gpu, required: true });

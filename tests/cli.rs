@@ -123,3 +123,25 @@ fn dpcm_bad_input_is_named() {
         assert!(err.contains(needle), "{args:?}: {err}");
     }
 }
+
+#[test]
+fn render_writes_an_image_and_a_depth_map_and_names_bad_input() {
+    let dir = tempfile::tempdir().unwrap();
+    let png = dir.path().join("view.png");
+    let depth = dir.path().join("depth.mha");
+    let out = defvol().args(["render", "--size", "64x48", "--step", "2", "--out"]).arg(&png).arg("--depth-out").arg(&depth).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let reader = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(&png).unwrap())).read_info().unwrap();
+    assert_eq!((reader.info().width, reader.info().height), (64, 48));
+    let d = defvol::io::read_volume(&depth).unwrap();
+    assert_eq!(d.dims(), [64, 48, 1]);
+    // The phantom fills the middle of the view, some hundreds of mm from the eye.
+    let centre = d.data()[24 * 64 + 32];
+    assert!(centre > 100.0 && centre < 2000.0, "depth at the centre {centre}");
+    for (args, needle) in [(vec!["--tf", "pet"], "unknown transfer-function preset `pet`"), (vec!["--camera", "0,0,0:0,0,0"], "coincide"), (vec!["--size", "0x10"], "image size")] {
+        let out = defvol().arg("render").args(&args).arg("--out").arg(dir.path().join("x.png")).output().unwrap();
+        assert!(!out.status.success(), "{args:?} accepted");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(err.contains(needle), "{args:?}: {err}");
+    }
+}

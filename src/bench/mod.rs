@@ -2,6 +2,7 @@
 //! (format in `../shared/conventions.md`), plus a human table.
 
 pub mod dpcm;
+pub mod render;
 
 use std::time::Instant;
 

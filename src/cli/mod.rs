@@ -1,1 +1,2 @@
 pub mod dpcm;
+pub mod render;

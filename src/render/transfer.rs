@@ -114,21 +114,22 @@ pub struct Tables {
     /// Premultiplied r, g, b and α of a segment of `step` from front level i to back level j
     /// (row i, column j) over [pre_lo, pre_hi]; empty unless asked for.
     pub preintegrated: Vec<[f32; 4]>,
-    /// The pre-integrated levels span the data as well as the function: a segment running
-    /// from below the function's span to above it crosses the span over only part of its
-    /// length, which clamping its ends would lose.
+    /// The pre-integrated levels span the data's range, not the function's: a segment
+    /// running from below the function's span to above it crosses the span over only part
+    /// of its length, which clamping its ends would lose, and levels beyond the data would be
+    /// resolution wasted.
     pub pre_lo: f32,
     pub pre_hi: f32,
     pub step: f32,
 }
 
 impl Tables {
-    /// Tables for `tf` over its span; the pre-integrated one (when asked for) also over
-    /// `data_range`.
+    /// Tables for `tf`: the 1D one over its span, the pre-integrated one (when asked for)
+    /// over `data_range`.
     pub fn new(tf: &TransferFunction, data_range: (f32, f32), step: f64, preintegrate: bool) -> Self {
         let (lo, hi) = tf.span();
         let hi = if hi > lo { hi } else { lo + 1.0 };
-        let (pre_lo, pre_hi) = (lo.min(f64::from(data_range.0)), hi.max(f64::from(data_range.1)));
+        let (pre_lo, pre_hi) = if data_range.1 > data_range.0 { (f64::from(data_range.0), f64::from(data_range.1)) } else { (lo, hi) };
         let at = |i: usize, n: usize| lo + (hi - lo) * i as f64 / (n - 1) as f64;
         let lut = (0..LUT_SIZE)
             .map(|i| {

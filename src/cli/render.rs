@@ -1,0 +1,112 @@
+//! `defvol render`: a raycast image of a volume (the phantom when no file is given).
+
+use std::path::PathBuf;
+
+use anyhow::{bail, Context, Result};
+use nalgebra::{Point3, Vector3};
+
+use defvol::render::camera::{Camera, Projection};
+use defvol::render::raycast::{self, Mode, RaycastParams, Shading};
+use defvol::render::transfer::TransferFunction;
+use defvol::volume::{phantom, Volume};
+
+#[derive(clap::Args)]
+pub struct RenderArgs {
+    /// Volume file (.nii/.nii.gz/.nrrd/.nhdr/.mha/.mhd); the phantom when absent.
+    #[arg(long)]
+    volume: Option<PathBuf>,
+    /// Transfer-function preset: ct_soft_tissue, ct_bone, mri.
+    #[arg(long, default_value = "ct_soft_tissue")]
+    tf: String,
+    /// A transfer function as YAML (`points: [{value, color: [r, g, b], opacity}]`,
+    /// `relative: bool`), instead of the preset.
+    #[arg(long)]
+    tf_file: Option<PathBuf>,
+    /// Image size, WxH.
+    #[arg(long, default_value = "512x512")]
+    size: String,
+    /// Camera: `EYE:TARGET` as x,y,z:x,y,z in the volume's world units (mm for medical
+    /// files); default: the bench view of the whole volume.
+    #[arg(long)]
+    camera: Option<String>,
+    #[arg(long, value_delimiter = ',', num_args = 3, default_value = "0,0,1")]
+    up: Vec<f64>,
+    /// Vertical field of view, degrees.
+    #[arg(long, default_value_t = 45.0)]
+    fov: f64,
+    /// Orthographic view of this height instead of perspective.
+    #[arg(long)]
+    ortho: Option<f64>,
+    #[arg(long, value_enum, default_value = "composite")]
+    mode: Mode,
+    /// Iso value for --mode iso.
+    #[arg(long, default_value_t = 300.0)]
+    iso: f64,
+    #[arg(long, value_enum, default_value = "gradient")]
+    shading: Shading,
+    /// Sample spacing along rays (world units).
+    #[arg(long, default_value_t = 1.0)]
+    step: f64,
+    /// Point sampling instead of pre-integrated segments.
+    #[arg(long)]
+    no_preintegration: bool,
+    #[arg(long, default_value = "render.png")]
+    out: PathBuf,
+    /// Also write the depth along each ray (world units; 0 where nothing was hit) as a
+    /// float image (.mha, .nrrd, .nii).
+    #[arg(long)]
+    depth_out: Option<PathBuf>,
+}
+
+fn point(text: &str) -> Result<Point3<f64>> {
+    let v: Vec<f64> = text.split(',').map(|c| c.trim().parse::<f64>()).collect::<Result<_, _>>().with_context(|| format!("`{text}` is not x,y,z"))?;
+    let [x, y, z] = v[..] else { bail!("`{text}` is not x,y,z") };
+    Ok(Point3::new(x, y, z))
+}
+
+pub fn run(args: RenderArgs) -> Result<()> {
+    let volume: Volume = match &args.volume {
+        Some(path) => defvol::io::read_volume(path)?,
+        None => phantom::phantom(phantom::DEFAULT_DIMS, 1.0)?,
+    };
+    let tf = match &args.tf_file {
+        Some(path) => {
+            let text = std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
+            serde_yaml_ng::from_str::<TransferFunction>(&text).with_context(|| format!("{}: not a transfer function", path.display()))?
+        }
+        None => TransferFunction::preset(&args.tf)?,
+    };
+    let Some((w, h)) = args.size.split_once('x').and_then(|(w, h)| Some((w.trim().parse::<usize>().ok()?, h.trim().parse::<usize>().ok()?))) else {
+        bail!("--size `{}`: expected WxH, e.g. 512x512", args.size)
+    };
+    let projection = match args.ortho {
+        Some(height) => Projection::Orthographic { height },
+        None => Projection::Perspective { fov_y_deg: args.fov },
+    };
+    let camera = match &args.camera {
+        Some(text) => {
+            let Some((eye, target)) = text.split_once(':') else { bail!("--camera `{text}`: expected EYE:TARGET as x,y,z:x,y,z") };
+            let up = Vector3::new(args.up[0], args.up[1], args.up[2]);
+            Camera::look_at(point(eye)?, point(target)?, up, projection, w, h)?
+        }
+        None => {
+            let mut camera = defvol::bench::render::phantom_camera(&volume, w.max(h))?;
+            (camera.width, camera.height, camera.projection) = (w, h, projection);
+            camera.validate()?;
+            camera
+        }
+    };
+    let params = RaycastParams { mode: args.mode, step: args.step, preintegrated: !args.no_preintegration, shading: args.shading, iso_value: args.iso, ..Default::default() };
+    let started = std::time::Instant::now();
+    let image = raycast::raycast(&volume, &camera, &tf, &params)?;
+    tracing::info!("rendered {w}x{h} in {:.1} ms", started.elapsed().as_secs_f64() * 1e3);
+    image.write_png(&args.out)?;
+    tracing::info!("wrote {}", args.out.display());
+    if let Some(path) = &args.depth_out {
+        let depth: Vec<f32> = image.depth.iter().map(|d| if d.is_finite() { *d } else { 0.0 }).collect();
+        let out = Volume::new([w, h, 1], [1.0; 3], [0.0; 3], nalgebra::Matrix3::identity(), depth, &path.display().to_string())?;
+        defvol::io::write_volume(path, &out)?;
+        tracing::info!("wrote {}", path.display());
+    }
+    Ok(())
+}
