@@ -170,35 +170,57 @@ fn clip(dims: [usize; 3], o: &Vector3<f64>, d: &Vector3<f64>) -> Option<(f64, f6
     (near <= far).then_some((near, far))
 }
 
-/// Renders `volume` seen by `camera`.
+/// A volume prepared for rendering with one transfer function and parameters: the tables
+/// and macro cells are built once, then any number of frames render from it.
+pub struct VolumeRaycaster<'a> {
+    volume: &'a Volume,
+    tables: Tables,
+    cells: Option<MacroCells>,
+    space: IndexSpace,
+    params: RaycastParams,
+    gradient_scale: f32,
+}
+
+impl<'a> VolumeRaycaster<'a> {
+    pub fn new(volume: &'a Volume, tf: &TransferFunction, params: &RaycastParams) -> Result<Self, RenderError> {
+        if !(params.step.is_finite() && params.step > 0.0) {
+            return Err(RenderError::Parameter(format!("step {} must be finite and > 0", params.step)));
+        }
+        if params.light.is_some_and(|l| !l.iter().all(|v| v.is_finite()) || Vector3::from(l).norm() == 0.0) {
+            return Err(RenderError::Parameter("the light direction must be finite and non-zero".into()));
+        }
+        let tf = tf.resolve(volume.range())?;
+        let tables = Tables::new(&tf, volume.range(), params.step, params.preintegrated && params.mode == Mode::Composite);
+        let cells = (params.empty_space_skipping && params.mode == Mode::Composite).then(|| MacroCells::new(volume, &tables));
+        let (lo, hi) = volume.range();
+        let min_spacing = volume.spacing().iter().copied().fold(f64::INFINITY, f64::min);
+        let gradient_scale = params.gradient_scale.unwrap_or((f64::from(hi - lo) / (4.0 * min_spacing)).max(1e-12)) as f32;
+        Ok(Self { volume, tables, cells, space: IndexSpace::new(volume), params: params.clone(), gradient_scale })
+    }
+
+    /// One frame seen by `camera`.
+    pub fn render(&self, camera: &Camera) -> Result<Rendered, RenderError> {
+        camera.validate()?;
+        let caster = Caster { volume: self.volume, tables: &self.tables, cells: self.cells.as_ref(), space: &self.space, params: &self.params, gradient_scale: self.gradient_scale };
+        let (w, h) = (camera.width, camera.height);
+        let mut rgba = vec![0u8; w * h * 4];
+        let mut depth = vec![f32::INFINITY; w * h];
+        rgba.par_chunks_mut(w * 4).zip(depth.par_chunks_mut(w)).enumerate().for_each(|(py, (row, depth_row))| {
+            for px in 0..w {
+                let (origin, direction) = camera.ray(px, py);
+                let (color, d) = caster.cast(&origin, &direction);
+                row[px * 4..px * 4 + 4].copy_from_slice(&color.map(|c| (c.clamp(0.0, 1.0) * 255.0).round() as u8));
+                depth_row[px] = d;
+            }
+        });
+        Ok(Rendered { width: w, height: h, rgba, depth })
+    }
+}
+
+/// Renders `volume` seen by `camera` (prepares and renders one frame).
 pub fn raycast(volume: &Volume, camera: &Camera, tf: &TransferFunction, params: &RaycastParams) -> Result<Rendered, RenderError> {
     camera.validate()?;
-    if !(params.step.is_finite() && params.step > 0.0) {
-        return Err(RenderError::Parameter(format!("step {} must be finite and > 0", params.step)));
-    }
-    if params.light.is_some_and(|l| !l.iter().all(|v| v.is_finite()) || Vector3::from(l).norm() == 0.0) {
-        return Err(RenderError::Parameter("the light direction must be finite and non-zero".into()));
-    }
-    let tf = tf.resolve(volume.range())?;
-    let tables = Tables::new(&tf, volume.range(), params.step, params.preintegrated && params.mode == Mode::Composite);
-    let cells = (params.empty_space_skipping && params.mode == Mode::Composite).then(|| MacroCells::new(volume, &tables));
-    let space = IndexSpace::new(volume);
-    let (lo, hi) = volume.range();
-    let min_spacing = volume.spacing().iter().copied().fold(f64::INFINITY, f64::min);
-    let gradient_scale = params.gradient_scale.unwrap_or((f64::from(hi - lo) / (4.0 * min_spacing)).max(1e-12)) as f32;
-    let caster = Caster { volume, tables: &tables, cells: cells.as_ref(), space: &space, params, gradient_scale };
-    let (w, h) = (camera.width, camera.height);
-    let mut rgba = vec![0u8; w * h * 4];
-    let mut depth = vec![f32::INFINITY; w * h];
-    rgba.par_chunks_mut(w * 4).zip(depth.par_chunks_mut(w)).enumerate().for_each(|(py, (row, depth_row))| {
-        for px in 0..w {
-            let (origin, direction) = camera.ray(px, py);
-            let (color, d) = caster.cast(&origin, &direction);
-            row[px * 4..px * 4 + 4].copy_from_slice(&color.map(|c| (c.clamp(0.0, 1.0) * 255.0).round() as u8));
-            depth_row[px] = d;
-        }
-    });
-    Ok(Rendered { width: w, height: h, rgba, depth })
+    VolumeRaycaster::new(volume, tf, params)?.render(camera)
 }
 
 struct Caster<'a> {
@@ -211,16 +233,24 @@ struct Caster<'a> {
 }
 
 impl Caster<'_> {
+    /// Trilinear, the point clamped to the voxel-centre box (rays are clipped to it, so
+    /// only round-off and the gradient's neighbours at the border are clamped). The same
+    /// arithmetic as `volume::trilinear`, without its range checks, in the hot loop.
+    #[inline(always)]
     fn sample(&self, p: &Vector3<f32>) -> f32 {
-        trilinear(self.volume.data(), self.volume.dims(), p.x, p.y, p.z, 1e-3).unwrap_or(f32::NEG_INFINITY)
+        let [nx, ny, nz] = self.volume.dims();
+        let data = self.volume.data();
+        let axis = |v: f32, n: usize| {
+            let v = v.clamp(0.0, (n - 1) as f32);
+            let i = (v as usize).min(n.saturating_sub(2));
+            (i, v - i as f32)
+        };
+        let ((i, fx), (j, fy), (k, fz)) = (axis(p.x, nx), axis(p.y, ny), axis(p.z, nz));
+        let (sx, sy, sz) = (usize::from(nx > 1), if ny > 1 { nx } else { 0 }, if nz > 1 { nx * ny } else { 0 });
+        let base = i + nx * (j + ny * k);
+        crate::volume::lerp_cube(|o| data[base + o], [sx, sy, sz], [fx, fy, fz])
     }
 
-    /// Clamped to the box: gradients and forward differences at the border read the edge.
-    fn sample_clamped(&self, p: &Vector3<f32>) -> f32 {
-        let d = self.volume.dims();
-        let c = |v: f32, n: usize| v.clamp(0.0, (n - 1) as f32);
-        trilinear(self.volume.data(), d, c(p.x, d[0]), c(p.y, d[1]), c(p.z, d[2]), 0.0).unwrap_or(0.0)
-    }
 
     /// Lambert factor at p for the light (index-space direction `light_index`, world `light`).
     fn shade(&self, p: &Vector3<f32>, light: &Vector3<f64>, light_index: &Vector3<f32>) -> f32 {
@@ -229,9 +259,9 @@ impl Caster<'_> {
             Shading::None => 1.0,
             Shading::Gradient => {
                 let g = Vector3::new(
-                    self.sample_clamped(&(p + Vector3::x())) - self.sample_clamped(&(p - Vector3::x())),
-                    self.sample_clamped(&(p + Vector3::y())) - self.sample_clamped(&(p - Vector3::y())),
-                    self.sample_clamped(&(p + Vector3::z())) - self.sample_clamped(&(p - Vector3::z())),
+                    self.sample(&(p + Vector3::x())) - self.sample(&(p - Vector3::x())),
+                    self.sample(&(p + Vector3::y())) - self.sample(&(p - Vector3::y())),
+                    self.sample(&(p + Vector3::z())) - self.sample(&(p - Vector3::z())),
                 ) * 0.5;
                 let g = self.space.world_gradient(g.cast::<f64>());
                 match g.try_normalize(1e-12) {
@@ -242,7 +272,7 @@ impl Caster<'_> {
             Shading::ForwardDifference => {
                 // ∇f·l ≈ (f(p + δl) - f(p)) / δ, δ = one world unit; the surface faces the
                 // light where values fall toward it.
-                let drop = self.sample_clamped(p) - self.sample_clamped(&(p + light_index));
+                let drop = self.sample(p) - self.sample(&(p + light_index));
                 ambient + (1.0 - ambient) * (drop / self.gradient_scale).clamp(0.0, 1.0)
             }
         }

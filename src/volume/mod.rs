@@ -171,7 +171,7 @@ impl Volume {
 
 /// The trilinear blend of a voxel cube: `v(offset)` reads a corner, `strides` are the x,
 /// y, z offsets (0 along a flat axis), `f` the fractions. Shared by every trilinear sampler.
-#[inline]
+#[inline(always)]
 pub fn lerp_cube<T: crate::solver::Real>(v: impl Fn(usize) -> T, strides: [usize; 3], f: [T; 3]) -> T {
     let [sx, sy, sz] = strides;
     let c00 = v(0) + (v(sx) - v(0)) * f[0];
