@@ -52,10 +52,33 @@ pub struct RenderArgs {
     no_preintegration: bool,
     #[arg(long, default_value = "render.png")]
     out: PathBuf,
+    #[arg(long, value_enum, default_value = "auto")]
+    backend: defvol::engine::BackendChoice,
+    /// Let a software adapter (llvmpipe) run the GPU path.
+    #[arg(long)]
+    allow_software_gpu: bool,
     /// Also write the depth along each ray (world units; 0 where nothing was hit) as a
     /// float image (.mha, .nrrd, .nii).
     #[arg(long)]
     depth_out: Option<PathBuf>,
+}
+
+/// The GPU path when asked for and possible, else the CPU path (with a log line saying why).
+fn render_on_backend(args: &RenderArgs, prepared: &raycast::VolumeRaycaster, camera: &Camera) -> Result<(defvol::render::Rendered, String)> {
+    #[cfg(feature = "gpu")]
+    if matches!(args.backend, defvol::engine::BackendChoice::Auto | defvol::engine::BackendChoice::Gpu) {
+        let choice = defvol::gpu_policy::GpuChoice { allow_software: args.allow_software_gpu, required: args.backend == defvol::engine::BackendChoice::Gpu };
+        if let Some(ctx) = choice.context() {
+            let name = ctx.describe();
+            match defvol::gpu::raycast::GpuVolumeRaycaster::new(std::sync::Arc::new(ctx), prepared).and_then(|g| g.render(camera)) {
+                Ok(image) => return Ok((image, name)),
+                Err(e) => tracing::warn!("GPU raycaster not used: {e}; the CPU path runs"),
+            }
+        }
+    }
+    #[cfg(not(feature = "gpu"))]
+    let _ = (args.backend, args.allow_software_gpu);
+    Ok((prepared.render(camera)?, format!("cpu ({} threads)", rayon::current_num_threads())))
 }
 
 fn point(text: &str) -> Result<Point3<f64>> {
@@ -97,9 +120,10 @@ pub fn run(args: RenderArgs) -> Result<()> {
         }
     };
     let params = RaycastParams { mode: args.mode, step: args.step, preintegrated: !args.no_preintegration, shading: args.shading, iso_value: args.iso, ..Default::default() };
+    let prepared = raycast::VolumeRaycaster::new(&volume, &tf, &params)?;
     let started = std::time::Instant::now();
-    let image = raycast::raycast(&volume, &camera, &tf, &params)?;
-    tracing::info!("rendered {w}x{h} in {:.1} ms", started.elapsed().as_secs_f64() * 1e3);
+    let (image, on) = render_on_backend(&args, &prepared, &camera)?;
+    tracing::info!("rendered {w}x{h} on {on} in {:.1} ms", started.elapsed().as_secs_f64() * 1e3);
     image.write_png(&args.out)?;
     tracing::info!("wrote {}", args.out.display());
     if let Some(path) = &args.depth_out {

@@ -5,6 +5,7 @@
 //! Only Vulkan, Metal and DX12 are asked for: the GL backend lacks what compute needs here.
 
 pub mod dpcm;
+pub mod raycast;
 pub mod solver;
 pub mod warp;
 

@@ -76,9 +76,9 @@ impl Default for RaycastParams {
 const CELL: usize = 8;
 
 /// Per macro cell: can any sample inside it be visible?
-struct MacroCells {
-    dims: [usize; 3],
-    visible: Vec<bool>,
+pub(crate) struct MacroCells {
+    pub(crate) dims: [usize; 3],
+    pub(crate) visible: Vec<bool>,
 }
 
 impl MacroCells {
@@ -129,9 +129,9 @@ impl MacroCells {
 }
 
 /// The volume's index space: index = index_from_world · world + offset.
-struct IndexSpace {
-    index_from_world: Matrix3<f64>,
-    origin: Vector3<f64>,
+pub(crate) struct IndexSpace {
+    pub(crate) index_from_world: Matrix3<f64>,
+    pub(crate) origin: Vector3<f64>,
 }
 
 impl IndexSpace {
@@ -173,12 +173,12 @@ fn clip(dims: [usize; 3], o: &Vector3<f64>, d: &Vector3<f64>) -> Option<(f64, f6
 /// A volume prepared for rendering with one transfer function and parameters: the tables
 /// and macro cells are built once, then any number of frames render from it.
 pub struct VolumeRaycaster<'a> {
-    volume: &'a Volume,
-    tables: Tables,
-    cells: Option<MacroCells>,
-    space: IndexSpace,
-    params: RaycastParams,
-    gradient_scale: f32,
+    pub(crate) volume: &'a Volume,
+    pub(crate) tables: Tables,
+    pub(crate) cells: Option<MacroCells>,
+    pub(crate) space: IndexSpace,
+    pub(crate) params: RaycastParams,
+    pub(crate) gradient_scale: f32,
 }
 
 impl<'a> VolumeRaycaster<'a> {
