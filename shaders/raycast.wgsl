@@ -26,8 +26,10 @@ struct Params {
     // ambient, early termination, iso value, gradient scale
     misc: vec4<f32>,
     background: vec4<f32>,
-    // shading (0 none, 1 gradient, 2 forward difference)
+    // shading (0 none, 1 gradient, 2 forward difference), tool count
     shading: vec4<u32>,
+    // per tool: tip and radius, tail, colour
+    tools: array<vec4<f32>, 12>,
 }
 
 const LUT_SIZE: u32 = 1024u;
@@ -156,6 +158,46 @@ fn clip(o: vec3<f32>, d: vec3<f32>) -> vec2<f32> {
     return vec2<f32>(near, far);
 }
 
+// ToolPicture::hit (sphere tracing a capsule), then Caster::tool: (t, lit colour), t < 0
+// when no tool is hit.
+fn tool_hit(origin: vec3<f32>, dir: vec3<f32>, light: vec3<f32>) -> vec4<f32> {
+    var best = vec4<f32>(-1.0, 0.0, 0.0, 0.0);
+    var best_t = 1e30;
+    for (var k = 0u; k < p.shading.y; k++) {
+        let a = p.tools[3u * k].xyz;
+        let radius = p.tools[3u * k].w;
+        let ab = p.tools[3u * k + 1u].xyz - a;
+        var t = 0.0;
+        for (var n = 0; n < 128; n++) {
+            let q = origin + dir * t;
+            var h = 0.0;
+            if dot(ab, ab) > 0.0 {
+                h = clamp(dot(q - a, ab) / dot(ab, ab), 0.0, 1.0);
+            }
+            let outward = q - (a + ab * h);
+            let dist = length(outward) - radius;
+            if dist < 1e-6 * (1.0 + t) {
+                if t < best_t {
+                    best_t = t;
+                    var normal = -dir;
+                    if length(outward) > 1e-12 {
+                        normal = outward / length(outward);
+                    }
+                    let f = p.misc.x + (1.0 - p.misc.x) * max(dot(normal, light), 0.0);
+                    let c = p.tools[3u * k + 2u].xyz * f;
+                    best = vec4<f32>(t, c);
+                }
+                break;
+            }
+            t += dist;
+            if t > 1e7 {
+                break;
+            }
+        }
+    }
+    return best;
+}
+
 fn pack(c: vec4<f32>) -> u32 {
     let b = vec4<u32>(round(clamp(c, vec4<f32>(0.0), vec4<f32>(1.0)) * 255.0));
     return b.x | (b.y << 8u) | (b.z << 16u) | (b.w << 24u);
@@ -183,24 +225,35 @@ fn render(@builtin(global_invocation_id) gid: vec3<u32>) {
     let world_dir = p.cam_x.xyz * local_dir.x + p.cam_y.xyz * local_dir.y + p.cam_z.xyz * local_dir.z;
     let o = index_from_world(world_origin - p.vol_origin.xyz);
     let d = index_from_world(world_dir);
-    let bg = p.background;
-    let span = clip(o, d);
-    if span.x > span.y {
-        out_rgba[pixel] = pack(bg);
-        out_depth[pixel] = 1e30;
-        return;
-    }
     var light = -world_dir;
     if p.light.w > 0.5 {
         light = normalize(p.light.xyz);
     }
+    let tool = tool_hit(world_origin, world_dir, light);
+    var bg = p.background;
+    var behind = 1e30;
+    if tool.x >= 0.0 {
+        bg = vec4<f32>(tool.yzw, 1.0);
+        behind = tool.x;
+    }
+    let span = clip(o, d);
+    if span.x > span.y || min(span.y, behind) < span.x {
+        out_rgba[pixel] = pack(bg);
+        out_depth[pixel] = behind;
+        return;
+    }
     let light_index = index_from_world(light);
     let step = p.proj.w;
     let t_near = span.x;
-    let t_far = span.y;
+    let t_far = min(span.y, behind);
     let steps = u32(floor((t_far - t_near) / step));
 
     if p.image.z == 1u {
+        if tool.x >= 0.0 {
+            out_rgba[pixel] = pack(bg);
+            out_depth[pixel] = behind;
+            return;
+        }
         var peak = -1e30;
         for (var k = 0u; k <= steps; k++) {
             peak = max(peak, sample(o + d * (t_near + f32(k) * step)));
@@ -244,7 +297,7 @@ fn render(@builtin(global_invocation_id) gid: vec3<u32>) {
             prev = s;
         }
         out_rgba[pixel] = pack(bg);
-        out_depth[pixel] = 1e30;
+        out_depth[pixel] = behind;
         return;
     }
 
@@ -326,5 +379,8 @@ fn render(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
     let rest = 1.0 - acc.w;
     out_rgba[pixel] = pack(vec4<f32>(acc.xyz + rest * bg.xyz * bg.w, acc.w + rest * bg.w));
+    if depth >= 1e30 {
+        depth = behind;
+    }
     out_depth[pixel] = depth;
 }

@@ -148,3 +148,36 @@ fn bad_cameras_and_transfer_functions_are_refused_or_rendered_validly() {
     let zero_step = RaycastParams { step: 0.0, ..Default::default() };
     assert!(matches!(raycast::raycast(&volume, &camera, &tf, &zero_step), Err(RenderError::Parameter(_))));
 }
+
+#[test]
+fn a_tool_is_drawn_at_its_depth_behind_or_in_front_of_tissue() {
+    use defvol::render::raycast::ToolPicture;
+    let volume = Volume::new([20, 10, 10], [1.0; 3], [0.0; 3], Matrix3::identity(), vec![100.0; 2000], "slab").unwrap();
+    let camera = along_x(&volume, 8);
+    let tf = flat([0.2, 0.6, 1.0], 0.05);
+    let alpha = 1.0 - 0.95f64.powf(19.0);
+    let centre = [9.5, 4.5, 4.5];
+    let sphere = |x: f64| ToolPicture { tip: [x, centre[1], centre[2]], tail: [x, centre[1], centre[2]], radius: 3.0, color: [1.0, 0.5, 0.0] };
+    let params = |tools| RaycastParams { shading: Shading::None, early_termination: 1.0, step: 0.5, tools, ..Default::default() };
+    // Behind the slab: seen through it. The centre pixel's ray meets the sphere head-on,
+    // so the headlight gives full diffuse light.
+    let behind = raycast::raycast(&volume, &camera, &tf, &params(vec![sphere(40.0)])).unwrap();
+    let px = &behind.rgba[(4 * 8 + 4) * 4..(4 * 8 + 4) * 4 + 4];
+    for (c, (tissue, tool)) in [(0.2, 1.0), (0.6, 0.5), (1.0, 0.0)].iter().enumerate() {
+        let want = ((tissue * alpha + (1.0 - alpha) * tool) * 255.0).round();
+        assert!((f64::from(px[c]) - want).abs() <= 1.5, "behind: channel {c} = {}, want {want}", px[c]);
+    }
+    // In front of the slab: the tool alone, at its distance (pixel centres are ±0.25 off
+    // the axis, so the surface is within 0.02 mm of the head-on distance).
+    let front = raycast::raycast(&volume, &camera, &tf, &params(vec![sphere(-20.0)])).unwrap();
+    let px = &front.rgba[(4 * 8 + 4) * 4..(4 * 8 + 4) * 4 + 4];
+    for (c, want) in [255.0, 127.5, 0.0].iter().enumerate() {
+        assert!((f64::from(px[c]) - want).abs() <= 1.5, "front: channel {c} = {}, want {want}", px[c]);
+    }
+    let expect = 100.0 - 9.5 - 20.0 - 3.0;
+    assert!((f64::from(front.depth[4 * 8 + 4]) - expect).abs() < 0.05, "tool depth {}", front.depth[4 * 8 + 4]);
+    // A bad tool is refused.
+    let mut bad = sphere(0.0);
+    bad.radius = f64::NAN;
+    assert!(matches!(raycast::raycast(&volume, &camera, &tf, &params(vec![bad])), Err(RenderError::Parameter(_))));
+}

@@ -50,6 +50,10 @@ pub struct RenderArgs {
     /// Point sampling instead of pre-integrated segments.
     #[arg(long)]
     no_preintegration: bool,
+    /// A tool in the picture: `TIP:TAIL:RADIUS` (x,y,z:x,y,z:r, world units; a sphere when
+    /// tip and tail coincide). Repeat for more tools (up to 4).
+    #[arg(long)]
+    tool: Vec<String>,
     #[arg(long, default_value = "render.png")]
     out: PathBuf,
     #[arg(long, value_enum, default_value = "auto")]
@@ -79,6 +83,13 @@ fn render_on_backend(args: &RenderArgs, prepared: &raycast::VolumeRaycaster, cam
     #[cfg(not(feature = "gpu"))]
     let _ = (args.backend, args.allow_software_gpu);
     Ok((prepared.render(camera)?, format!("cpu ({} threads)", rayon::current_num_threads())))
+}
+
+fn tool(text: &str) -> Result<raycast::ToolPicture> {
+    let parts: Vec<&str> = text.split(':').collect();
+    let [tip, tail, radius] = parts[..] else { bail!("--tool `{text}`: expected TIP:TAIL:RADIUS as x,y,z:x,y,z:r") };
+    let radius: f64 = radius.trim().parse().with_context(|| format!("--tool `{text}`: bad radius"))?;
+    Ok(raycast::ToolPicture { tip: point(tip)?.coords.into(), tail: point(tail)?.coords.into(), radius, color: [0.75, 0.78, 0.82] })
 }
 
 fn point(text: &str) -> Result<Point3<f64>> {
@@ -119,7 +130,8 @@ pub fn run(args: RenderArgs) -> Result<()> {
             camera
         }
     };
-    let params = RaycastParams { mode: args.mode, step: args.step, preintegrated: !args.no_preintegration, shading: args.shading, iso_value: args.iso, ..Default::default() };
+    let tools = args.tool.iter().map(|t| tool(t)).collect::<Result<Vec<_>>>()?;
+    let params = RaycastParams { mode: args.mode, step: args.step, preintegrated: !args.no_preintegration, shading: args.shading, iso_value: args.iso, tools, ..Default::default() };
     let prepared = raycast::VolumeRaycaster::new(&volume, &tf, &params)?;
     let started = std::time::Instant::now();
     let (image, on) = render_on_backend(&args, &prepared, &camera)?;

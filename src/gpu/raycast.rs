@@ -10,7 +10,7 @@ use wgpu::util::DeviceExt;
 
 use super::{GpuContext, GpuError};
 use crate::render::camera::{Camera, Projection};
-use crate::render::raycast::{Mode, Shading, VolumeRaycaster};
+use crate::render::raycast::{Mode, Shading, ToolPicture, VolumeRaycaster, MAX_TOOLS};
 use crate::render::{RenderError, Rendered};
 
 #[derive(Debug, thiserror::Error)]
@@ -39,6 +39,19 @@ struct Params {
     misc: [f32; 4],
     background: [f32; 4],
     shading: [u32; 4],
+    tools: [[f32; 4]; 12],
+}
+
+/// Tip and radius, tail, colour per tool, as the shader's uniform holds them.
+fn tool_block(tools: &[ToolPicture]) -> [[f32; 4]; 3 * MAX_TOOLS] {
+    let mut block = [[0.0f32; 4]; 3 * MAX_TOOLS];
+    for (k, t) in tools.iter().take(MAX_TOOLS).enumerate() {
+        let f = |v: [f64; 3], w: f64| [v[0] as f32, v[1] as f32, v[2] as f32, w as f32];
+        block[3 * k] = f(t.tip, t.radius);
+        block[3 * k + 1] = f(t.tail, 0.0);
+        block[3 * k + 2] = f(t.color, 0.0);
+    }
+    block
 }
 
 pub struct GpuVolumeRaycaster {
@@ -122,7 +135,8 @@ impl GpuVolumeRaycaster {
             light,
             misc: [params.ambient as f32, params.early_termination as f32, params.iso_value as f32, prepared.gradient_scale],
             background: params.background.map(|c| c as f32),
-            shading: [shading, 0, 0, 0],
+            shading: [shading, params.tools.len() as u32, 0, 0],
+            tools: tool_block(&params.tools),
         };
         Ok(Self { ctx, base, layout, pipeline, buffers })
     }
@@ -191,6 +205,7 @@ mod tests {
             (&soft, RaycastParams { shading: Shading::ForwardDifference, empty_space_skipping: false, ..Default::default() }),
             (&bone, RaycastParams { mode: Mode::Iso, iso_value: 300.0, step: 0.5, ..Default::default() }),
             (&bone, RaycastParams { mode: Mode::Mip, ..Default::default() }),
+            (&soft, RaycastParams { tools: vec![crate::render::raycast::ToolPicture { tip: [centre.x, centre.y - 40.0, centre.z], tail: [centre.x, centre.y - 160.0, centre.z + 60.0], radius: 12.0, color: [0.3, 0.9, 0.3] }], ..Default::default() }),
         ];
         for (tf, params) in cases {
             let prepared = VolumeRaycaster::new(&volume, tf, &params).unwrap();

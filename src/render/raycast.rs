@@ -52,6 +52,57 @@ pub struct RaycastParams {
     pub gradient_scale: Option<f64>,
     /// RGBA behind the volume.
     pub background: [f64; 4],
+    /// Tools drawn into the picture, opaque, at their depth (up to [`MAX_TOOLS`]).
+    pub tools: Vec<ToolPicture>,
+}
+
+/// The most tools a frame draws (the GPU's uniform block holds this many).
+pub const MAX_TOOLS: usize = 4;
+
+/// A tool as the picture shows it: a capsule from `tip` to `tail` (a sphere when they
+/// coincide) of `radius`, world units of the volume.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ToolPicture {
+    pub tip: [f64; 3],
+    pub tail: [f64; 3],
+    pub radius: f64,
+    pub color: [f64; 3],
+}
+
+impl ToolPicture {
+    fn validate(&self) -> Result<(), RenderError> {
+        let finite = self.tip.iter().chain(&self.tail).chain(&self.color).all(|v| v.is_finite());
+        if !finite || !(self.radius.is_finite() && self.radius > 0.0) {
+            return Err(RenderError::Parameter(format!("tool {self:?}: positions must be finite and the radius > 0")));
+        }
+        Ok(())
+    }
+
+    /// Distance from p to the capsule's surface (negative inside).
+    fn distance(&self, p: &Vector3<f64>) -> (f64, Vector3<f64>) {
+        let (a, b) = (Vector3::from(self.tip), Vector3::from(self.tail));
+        let ab = b - a;
+        let h = if ab.norm_squared() > 0.0 { ((p - a).dot(&ab) / ab.norm_squared()).clamp(0.0, 1.0) } else { 0.0 };
+        let outward = p - (a + ab * h);
+        (outward.norm() - self.radius, outward)
+    }
+
+    /// The first hit along a world ray (sphere tracing the capsule's distance): distance
+    /// and outward normal.
+    fn hit(&self, origin: &Point3<f64>, direction: &Vector3<f64>) -> Option<(f64, Vector3<f64>)> {
+        let mut t = 0.0;
+        for _ in 0..128 {
+            let (d, outward) = self.distance(&(origin.coords + direction * t));
+            if d < 1e-6 * (1.0 + t) {
+                return Some((t, outward.try_normalize(1e-12).unwrap_or(-direction)));
+            }
+            t += d;
+            if t > 1e7 {
+                break;
+            }
+        }
+        None
+    }
 }
 
 impl Default for RaycastParams {
@@ -68,6 +119,7 @@ impl Default for RaycastParams {
             iso_value: 300.0,
             gradient_scale: None,
             background: [0.0, 0.0, 0.0, 1.0],
+            tools: Vec::new(),
         }
     }
 }
@@ -189,6 +241,12 @@ impl<'a> VolumeRaycaster<'a> {
         if params.light.is_some_and(|l| !l.iter().all(|v| v.is_finite()) || Vector3::from(l).norm() == 0.0) {
             return Err(RenderError::Parameter("the light direction must be finite and non-zero".into()));
         }
+        if params.tools.len() > MAX_TOOLS {
+            return Err(RenderError::Parameter(format!("{} tools; a picture draws up to {MAX_TOOLS}", params.tools.len())));
+        }
+        for tool in &params.tools {
+            tool.validate()?;
+        }
         let tf = tf.resolve(volume.range())?;
         let tables = Tables::new(&tf, volume.range(), params.step, params.preintegrated && params.mode == Mode::Composite);
         let cells = (params.empty_space_skipping && params.mode == Mode::Composite).then(|| MacroCells::new(volume, &tables));
@@ -279,20 +337,47 @@ impl Caster<'_> {
     }
 
     /// Premultiplied RGBA over the background, and the depth where opacity passed 0.5.
+    /// The nearest tool along the ray: distance and its lit, opaque colour.
+    fn tool(&self, origin: &Point3<f64>, direction: &Vector3<f64>, light: &Vector3<f64>) -> Option<(f32, [f32; 4])> {
+        let ambient = self.params.ambient;
+        self.params
+            .tools
+            .iter()
+            .filter_map(|tool| tool.hit(origin, direction).map(|(t, n)| (t, tool, n)))
+            .min_by(|a, b| a.0.total_cmp(&b.0))
+            .map(|(t, tool, n)| {
+                let shade = ambient + (1.0 - ambient) * n.dot(light).max(0.0);
+                (t as f32, [(tool.color[0] * shade) as f32, (tool.color[1] * shade) as f32, (tool.color[2] * shade) as f32, 1.0])
+            })
+    }
+
+    /// Premultiplied RGBA over the background (or the tool), and the depth where opacity
+    /// passed 0.5 (or the tool's surface).
     fn cast(&self, origin: &Point3<f64>, direction: &Vector3<f64>) -> ([f32; 4], f32) {
-        let bg = self.params.background.map(|c| c as f32);
+        let light = self.params.light.map_or(-direction, |l| Vector3::from(l).normalize());
+        let tool = self.tool(origin, direction, &light);
+        // A tool hides what lies behind it: it is the background of the ray from its surface.
+        let (bg, behind) = match tool {
+            Some((t, color)) => (color, t),
+            None => (self.params.background.map(|c| c as f32), f32::INFINITY),
+        };
         let (o, d) = self.space.ray(origin, direction);
         let Some((t_near, t_far)) = clip(self.volume.dims(), &o, &d) else {
-            return (bg, f32::INFINITY);
+            return (bg, behind);
         };
-        let light = self.params.light.map_or(-direction, |l| Vector3::from(l).normalize());
         let light_index = (self.space.index_from_world * light).cast::<f32>();
         let (o, d) = (o.cast::<f32>(), d.cast::<f32>());
         let step = self.params.step as f32;
-        let (t_near, t_far) = (t_near as f32, t_far as f32);
+        let (t_near, t_far) = (t_near as f32, (t_far as f32).min(behind));
+        if t_far < t_near {
+            return (bg, behind);
+        }
         let steps = ((t_far - t_near) / step).floor() as usize;
         match self.params.mode {
             Mode::Mip => {
+                if tool.is_some() {
+                    return (bg, behind);
+                }
                 let mut peak = f32::NEG_INFINITY;
                 for k in 0..=steps {
                     peak = peak.max(self.sample(&(o + d * (t_near + k as f32 * step))));
@@ -300,8 +385,14 @@ impl Caster<'_> {
                 let v = ((peak - self.tables.lo) / (self.tables.hi - self.tables.lo)).clamp(0.0, 1.0);
                 ([v, v, v, 1.0], f32::INFINITY)
             }
-            Mode::Iso => self.iso(&o, &d, t_near, steps, step, &light, &light_index, bg),
-            Mode::Composite => self.composite(&o, &d, t_near, t_far, &light, &light_index, bg),
+            Mode::Iso => {
+                let (color, depth) = self.iso(&o, &d, t_near, steps, step, &light, &light_index, bg);
+                (color, if depth.is_finite() { depth } else { behind })
+            }
+            Mode::Composite => {
+                let (color, depth) = self.composite(&o, &d, t_near, t_far, &light, &light_index, bg);
+                (color, if depth.is_finite() { depth } else { behind })
+            }
         }
     }
 
