@@ -72,7 +72,7 @@ pub struct ToolPicture {
 impl ToolPicture {
     fn validate(&self) -> Result<(), RenderError> {
         let finite = self.tip.iter().chain(&self.tail).chain(&self.color).all(|v| v.is_finite());
-        if !finite || !(self.radius.is_finite() && self.radius > 0.0) {
+        if !(finite && self.radius.is_finite() && self.radius > 0.0) {
             return Err(RenderError::Parameter(format!("tool {self:?}: positions must be finite and the radius > 0")));
         }
         Ok(())
