@@ -116,6 +116,7 @@ fn dpcm_bad_input_is_named() {
         (vec!["--size", "10by10"], "--size `10by10`"),
         (vec!["--size", "2x2"], "width"),
         (vec!["--markers", "/nonexistent/motion.csv"], "/nonexistent/motion.csv"),
+        (vec!["--udp", "somewhere"], "neither a port nor ADDR:PORT"),
     ] {
         let out = defvol().arg("dpcm").args(&args).args(["--steps", "1", "--out"]).arg(dir.path()).output().unwrap();
         assert!(!out.status.success(), "{args:?} accepted");

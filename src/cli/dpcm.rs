@@ -45,9 +45,9 @@ pub struct DpcmArgs {
     /// With an MCAP --markers file: the pose topics to use (default: every PoseStamped topic).
     #[arg(long, value_delimiter = ',')]
     marker_topics: Vec<String>,
-    /// Listen for the seed's UDP marker frames here (x, y in phyxels). Give a loopback
-    /// address unless other hosts must reach it.
-    #[arg(long)]
+    /// Listen for the seed's UDP marker frames (x, y in phyxels): a port (bound on loopback)
+    /// or ADDR:PORT, an address other hosts can reach only when given one.
+    #[arg(long, value_parser = udp_address)]
     udp: Option<SocketAddr>,
     /// Height of UDP markers' centres (metres; default: the script's pressing height).
     #[arg(long)]
@@ -79,6 +79,14 @@ pub struct DpcmArgs {
     /// Let a software adapter (llvmpipe) run the GPU path.
     #[arg(long)]
     allow_software_gpu: bool,
+}
+
+/// `PORT` → 127.0.0.1:PORT; anything else must be ADDR:PORT.
+fn udp_address(text: &str) -> Result<SocketAddr, String> {
+    match text.parse::<u16>() {
+        Ok(port) => Ok(SocketAddr::from(([127, 0, 0, 1], port))),
+        Err(_) => text.parse().map_err(|e| format!("`{text}` is neither a port nor ADDR:PORT ({e})")),
+    }
 }
 
 /// Where this run's markers come from.
