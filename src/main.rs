@@ -201,6 +201,9 @@ enum BenchStage {
         /// Only the phantom as it is (no warped copy).
         #[arg(long)]
         no_warped: bool,
+        /// Lattice meshes (tets) over the phantom for the tetrahedral-mesh raycaster.
+        #[arg(long, value_delimiter = ',', default_value = "112000,157000")]
+        meshes: Vec<usize>,
         #[arg(long)]
         json: bool,
     },
@@ -420,8 +423,8 @@ fn main() -> Result<()> {
         Command::Warp(args) => warp_command(args),
         Command::Dpcm(args) => cli::dpcm::run(args),
         Command::Render(args) => cli::render::run(args),
-        Command::Bench { stage: BenchStage::Render { sizes, steps, runs, reference_step, no_warped, json } } => {
-            let opts = bench::render::RenderBenchOptions { sizes, steps, runs, reference_step, warped: !no_warped };
+        Command::Bench { stage: BenchStage::Render { sizes, steps, runs, reference_step, no_warped, meshes, json } } => {
+            let opts = bench::render::RenderBenchOptions { sizes, steps, runs, reference_step, warped: !no_warped, meshes };
             bench::render::run(&opts, row_printer(json, bench::render::TABLE_HEADER, bench::render::table_row))?;
             Ok(())
         }

@@ -22,6 +22,8 @@ pub struct RenderBenchOptions {
     /// Step of the f64 reference.
     pub reference_step: f64,
     pub warped: bool,
+    /// Lattice meshes over the phantom for the tetrahedral-mesh raycaster (tets).
+    pub meshes: Vec<usize>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -95,6 +97,39 @@ pub fn run(opts: &RenderBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result
                     });
                 }
             }
+        }
+    }
+    for &target in &opts.meshes {
+        let (lo, hi) = source.bounds();
+        let mesh = generate::lattice_for_box(lo, hi, target, CellSplit::Five).map_err(|e| RenderBenchError::Setup(e.to_string()))?;
+        let scalars: Vec<f32> = mesh.nodes().iter().map(|p| source.sample_world(*p).unwrap_or(source.range().0)).collect();
+        for &size in &opts.sizes {
+            let camera = phantom_camera(&source, size)?;
+            let step = opts.steps.iter().copied().fold(f64::INFINITY, f64::min).max(0.25);
+            let params = crate::render::tet_raycast::TetRaycastParams { step, ..Default::default() };
+            let start = Instant::now();
+            let mut raycaster = crate::render::tet_raycast::TetRaycaster::new(&mesh, &scalars, &tf, &params)?;
+            let prepare_ms = start.elapsed().as_secs_f64() * 1e3;
+            raycaster.render(&camera)?;
+            let mut samples = Vec::with_capacity(opts.runs);
+            for _ in 0..opts.runs {
+                // Each frame refreshes planes and gradients, as after a deformation step.
+                let start = Instant::now();
+                raycaster.update(mesh.nodes())?;
+                raycaster.render(&camera)?;
+                samples.push(start.elapsed().as_secs_f64() * 1e3);
+            }
+            emit(&BenchRow {
+                stage: "render",
+                case: format!("mesh{}k_{size}", mesh.tets().len() / 1000),
+                backend: "cpu".into(),
+                device: device.clone(),
+                params: json!({"mode": "tet_mesh", "prepare_ms": prepare_ms, "step_mm": step, "preintegrated": false, "shading": "none", "tf": "ct_soft_tissue"}),
+                runs: samples.len(),
+                time_ms: time_stats(samples),
+                error: None,
+                work: json!({"rays": size * size, "tets": mesh.tets().len()}),
+            });
         }
     }
     Ok(())

@@ -3,6 +3,7 @@
 
 pub mod camera;
 pub mod raycast;
+pub mod tet_raycast;
 pub mod transfer;
 
 use std::io::BufWriter;
