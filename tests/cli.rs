@@ -146,3 +146,22 @@ fn render_writes_an_image_and_a_depth_map_and_names_bad_input() {
         assert!(err.contains(needle), "{args:?}: {err}");
     }
 }
+
+#[test]
+fn render_draws_a_tetrahedral_mesh_with_scalars_sampled_from_the_volume() {
+    let dir = tempfile::tempdir().unwrap();
+    let phantom = defvol::volume::phantom::phantom([64, 40, 31], 4.0).unwrap();
+    let (lo, hi) = phantom.bounds();
+    let mesh = defvol::mesh::generate::lattice_for_box(lo, hi, 600, defvol::mesh::generate::CellSplit::Five).unwrap();
+    let mesh_path = dir.path().join("organ.vtu");
+    defvol::io::write_mesh(&mesh_path, &mesh, None).unwrap();
+    let png = dir.path().join("mesh.png");
+    let depth = dir.path().join("depth.nrrd");
+    let out = defvol().args(["render", "--size", "48x48", "--step", "4", "--mesh"]).arg(&mesh_path).arg("--out").arg(&png).arg("--depth-out").arg(&depth).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let d = defvol::io::read_volume(&depth).unwrap();
+    let hit = d.data().iter().filter(|v| **v > 0.0).count();
+    assert!(hit > 48 * 48 / 10, "the mesh covers {hit} pixels");
+    let out = defvol().args(["render", "--mesh-scale", "0", "--mesh"]).arg(&mesh_path).arg("--out").arg(&png).output().unwrap();
+    assert!(!out.status.success() && String::from_utf8_lossy(&out.stderr).contains("--mesh-scale"));
+}

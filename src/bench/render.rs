@@ -102,7 +102,8 @@ pub fn run(opts: &RenderBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result
     for &target in &opts.meshes {
         let (lo, hi) = source.bounds();
         let mesh = generate::lattice_for_box(lo, hi, target, CellSplit::Five).map_err(|e| RenderBenchError::Setup(e.to_string()))?;
-        let scalars: Vec<f32> = mesh.nodes().iter().map(|p| source.sample_world(*p).unwrap_or(source.range().0)).collect();
+        let outside = source.range().0;
+        let scalars: Vec<f32> = mesh.nodes().iter().map(|p| source.sample_world(*p).unwrap_or(outside)).collect();
         for &size in &opts.sizes {
             let camera = phantom_camera(&source, size)?;
             let step = opts.steps.iter().copied().fold(f64::INFINITY, f64::min).max(0.25);

@@ -15,6 +15,15 @@ pub struct RenderArgs {
     /// Volume file (.nii/.nii.gz/.nrrd/.nhdr/.mha/.mhd); the phantom when absent.
     #[arg(long)]
     volume: Option<PathBuf>,
+    /// Render a tetrahedral mesh instead (.vtu, .vtk, .msh, .node/.ele), in the volume's
+    /// world units. Its node scalars are the file's, or sampled from --volume (or the
+    /// phantom) at the nodes.
+    #[arg(long)]
+    mesh: Option<PathBuf>,
+    /// Volume units per mesh unit (1000 for a metre mesh, as `simulate` writes, over a
+    /// millimetre volume).
+    #[arg(long, default_value_t = 1.0)]
+    mesh_scale: f64,
     /// Transfer-function preset: ct_soft_tissue, ct_bone, mri.
     #[arg(long, default_value = "ct_soft_tissue")]
     tf: String,
@@ -132,9 +141,31 @@ pub fn run(args: RenderArgs) -> Result<()> {
     };
     let tools = args.tool.iter().map(|t| tool(t)).collect::<Result<Vec<_>>>()?;
     let params = RaycastParams { mode: args.mode, step: args.step, preintegrated: !args.no_preintegration, shading: args.shading, iso_value: args.iso, tools, ..Default::default() };
-    let prepared = raycast::VolumeRaycaster::new(&volume, &tf, &params)?;
     let started = std::time::Instant::now();
-    let (image, on) = render_on_backend(&args, &prepared, &camera)?;
+    let (image, on) = match &args.mesh {
+        Some(path) => {
+            let mut mesh = defvol::io::read_mesh(path)?;
+            if !(args.mesh_scale.is_finite() && args.mesh_scale > 0.0) {
+                bail!("--mesh-scale {} must be finite and > 0", args.mesh_scale);
+            }
+            let scale = args.mesh_scale;
+            mesh.map_nodes(|p| p * scale);
+            let scalars: Vec<f32> = match (mesh.scalars(), &args.volume) {
+                (Some(s), None) => s.to_vec(),
+                _ => {
+                    let outside = volume.range().0;
+                    mesh.nodes().iter().map(|p| volume.sample_world(*p).unwrap_or(outside)).collect()
+                }
+            };
+            let tet_params = defvol::render::tet_raycast::TetRaycastParams { step: args.step, background: params.background, ..Default::default() };
+            let raycaster = defvol::render::tet_raycast::TetRaycaster::new(&mesh, &scalars, &tf, &tet_params)?;
+            (raycaster.render(&camera)?, format!("cpu ({} threads), {} tets", rayon::current_num_threads(), mesh.tets().len()))
+        }
+        None => {
+            let prepared = raycast::VolumeRaycaster::new(&volume, &tf, &params)?;
+            render_on_backend(&args, &prepared, &camera)?
+        }
+    };
     tracing::info!("rendered {w}x{h} on {on} in {:.1} ms", started.elapsed().as_secs_f64() * 1e3);
     image.write_png(&args.out)?;
     tracing::info!("wrote {}", args.out.display());

@@ -211,7 +211,9 @@ impl<'a> TetRaycaster<'a> {
                 continue;
             }
             let (mut tet, mut face_in, mut t_in) = (entry.tet, entry.face, entry.t);
-            // A walk crosses each tet once; the bound only guards against degenerate meshes.
+            // A ray through an edge or a vertex can circle the tets around it without moving
+            // on: a walk that stalls that long is abandoned (the next entry takes over).
+            let mut stalled = 0;
             for _ in 0..4 * self.mesh.tets().len().max(1) {
                 let planes = self.geometry[tet as usize].planes;
                 let mut exit: Option<(f64, usize)> = None;
@@ -230,6 +232,11 @@ impl<'a> TetRaycaster<'a> {
                 }
                 let Some((t_exit, k_exit)) = exit else { break };
                 let t_out = t_exit.max(t_in);
+                stalled = if t_out - t_in <= 1e-9 * (1.0 + t_in.abs()) { stalled + 1 } else { 0 };
+                if stalled > 64 {
+                    left_at = t_out;
+                    break;
+                }
                 let (s_in, s_out) = (self.scalar(tet, &(o + d * t_in)), self.scalar(tet, &(o + d * t_out)));
                 self.integrate(&mut acc, &mut depth, t_in, t_out, s_in, s_out);
                 if acc[3] >= termination {
