@@ -9,7 +9,7 @@ use std::sync::Arc;
 
 use bytemuck::{Pod, Zeroable};
 
-use super::{GpuContext, GpuError};
+use super::{GpuContext, GpuError, Kernels};
 use crate::dpcm::kernel::{Coeffs, KernelMarker, TILE};
 use crate::dpcm::{to_kernel_markers, DpcmConfig, DpcmError, Marker, MarkerBins, StepStats, Surface};
 
@@ -82,40 +82,9 @@ impl GpuSurface {
         if bytes > limit {
             return Err(GpuDpcmError::TooLarge { width: config.width, height: config.height, needed_mib: bytes.div_ceil(1 << 20), limit_mib: limit >> 20 });
         }
+        use super::Binding::{Read, ReadWrite, Uniform};
+        let Kernels { layout, pipelines: [pipeline] } = ctx.kernels("dpcm.wgsl", include_str!("../../shaders/dpcm.wgsl"), &[Uniform, Read, Read, ReadWrite, ReadWrite, Read, Read, Read, Read, Read], ["step"]);
         let device = &ctx.device;
-        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor { label: Some("dpcm.wgsl"), source: wgpu::ShaderSource::Wgsl(include_str!("../../shaders/dpcm.wgsl").into()) });
-        let entry = |binding: u32, ty: wgpu::BufferBindingType| wgpu::BindGroupLayoutEntry {
-            binding,
-            visibility: wgpu::ShaderStages::COMPUTE,
-            ty: wgpu::BindingType::Buffer { ty, has_dynamic_offset: false, min_binding_size: None },
-            count: None,
-        };
-        let read = wgpu::BufferBindingType::Storage { read_only: true };
-        let write = wgpu::BufferBindingType::Storage { read_only: false };
-        let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-            label: Some("dpcm"),
-            entries: &[
-                entry(0, wgpu::BufferBindingType::Uniform),
-                entry(1, read),
-                entry(2, read),
-                entry(3, write),
-                entry(4, write),
-                entry(5, read),
-                entry(6, read),
-                entry(7, read),
-                entry(8, read),
-                entry(9, read),
-            ],
-        });
-        let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor { label: Some("dpcm"), bind_group_layouts: &[Some(&layout)], immediate_size: 0 });
-        let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-            label: Some("dpcm step"),
-            layout: Some(&pipeline_layout),
-            module: &module,
-            entry_point: Some("step"),
-            compilation_options: Default::default(),
-            cache: None,
-        });
         let coeffs = *surface.coeffs();
         let rest = surface.rest_deviations();
         let per_phyxel_rest = !rest.is_empty();
@@ -164,9 +133,7 @@ impl GpuSurface {
         self.bind_groups = (0..3)
             .map(|r| {
                 let (z, out, zp) = (&self.heights[r], &self.heights[(r + 1) % 3], &self.heights[(r + 2) % 3]);
-                let buffers = [&self.params, z, zp, out, &self.rest, &self.ground[0], &self.ground[1], &self.markers, &self.offsets, &self.indices];
-                let entries: Vec<wgpu::BindGroupEntry> = buffers.iter().enumerate().map(|(i, b)| wgpu::BindGroupEntry { binding: i as u32, resource: b.as_entire_binding() }).collect();
-                self.ctx.device.create_bind_group(&wgpu::BindGroupDescriptor { label: Some("dpcm"), layout: &self.layout, entries: &entries })
+                self.ctx.bind_group("dpcm", &self.layout, &[&self.params, z, zp, out, &self.rest, &self.ground[0], &self.ground[1], &self.markers, &self.offsets, &self.indices])
             })
             .collect();
     }

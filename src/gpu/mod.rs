@@ -24,6 +24,21 @@ pub enum GpuError {
     Readback(String),
 }
 
+/// How a kernel binds one buffer.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Binding {
+    Uniform,
+    Read,
+    ReadWrite,
+}
+
+/// A WGSL module's bind-group layout (bindings 0.. of group 0) and its compute pipelines,
+/// one per entry point, in the order asked.
+pub struct Kernels<const N: usize> {
+    pub layout: wgpu::BindGroupLayout,
+    pub pipelines: [wgpu::ComputePipeline; N],
+}
+
 /// Which adapters may run the GPU path.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum AdapterPolicy {
@@ -89,6 +104,49 @@ impl GpuContext {
     /// "name (type, backend)", for logs and benchmark rows.
     pub fn describe(&self) -> String {
         format!("{} ({:?}, {:?})", self.adapter_info.name, self.adapter_info.device_type, self.adapter_info.backend)
+    }
+
+    /// Compiles `wgsl` and builds its layout from `bindings` and a pipeline per entry point.
+    pub fn kernels<const N: usize>(&self, label: &str, wgsl: &str, bindings: &[Binding], entry_points: [&str; N]) -> Kernels<N> {
+        let device = &self.device;
+        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor { label: Some(label), source: wgpu::ShaderSource::Wgsl(wgsl.into()) });
+        let entries: Vec<wgpu::BindGroupLayoutEntry> = bindings
+            .iter()
+            .enumerate()
+            .map(|(i, b)| wgpu::BindGroupLayoutEntry {
+                binding: i as u32,
+                visibility: wgpu::ShaderStages::COMPUTE,
+                ty: wgpu::BindingType::Buffer {
+                    ty: match b {
+                        Binding::Uniform => wgpu::BufferBindingType::Uniform,
+                        Binding::Read => wgpu::BufferBindingType::Storage { read_only: true },
+                        Binding::ReadWrite => wgpu::BufferBindingType::Storage { read_only: false },
+                    },
+                    has_dynamic_offset: false,
+                    min_binding_size: None,
+                },
+                count: None,
+            })
+            .collect();
+        let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor { label: Some(label), entries: &entries });
+        let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor { label: Some(label), bind_group_layouts: &[Some(&layout)], immediate_size: 0 });
+        let pipelines = entry_points.map(|entry| {
+            device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some(entry),
+                layout: Some(&pipeline_layout),
+                module: &module,
+                entry_point: Some(entry),
+                compilation_options: Default::default(),
+                cache: None,
+            })
+        });
+        Kernels { layout, pipelines }
+    }
+
+    /// A bind group of `buffers` at bindings 0.. of `layout`.
+    pub fn bind_group(&self, label: &str, layout: &wgpu::BindGroupLayout, buffers: &[&wgpu::Buffer]) -> wgpu::BindGroup {
+        let entries: Vec<wgpu::BindGroupEntry> = buffers.iter().enumerate().map(|(i, b)| wgpu::BindGroupEntry { binding: i as u32, resource: b.as_entire_binding() }).collect();
+        self.device.create_bind_group(&wgpu::BindGroupDescriptor { label: Some(label), layout, entries: &entries })
     }
 
     pub fn storage_buffer(&self, label: &str, contents: &[u8]) -> wgpu::Buffer {

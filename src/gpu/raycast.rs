@@ -8,7 +8,7 @@ use std::sync::Arc;
 use bytemuck::{Pod, Zeroable};
 use wgpu::util::DeviceExt;
 
-use super::{GpuContext, GpuError};
+use super::{GpuContext, GpuError, Kernels};
 use crate::render::camera::{Camera, Projection};
 use crate::render::raycast::{Mode, Shading, ToolPicture, VolumeRaycaster, MAX_TOOLS};
 use crate::render::{RenderError, Rendered};
@@ -71,29 +71,8 @@ impl GpuVolumeRaycaster {
         if bytes > limit {
             return Err(GpuRenderError::TooLarge { needed_mib: bytes.div_ceil(1 << 20), limit_mib: limit >> 20 });
         }
-        let device = &ctx.device;
-        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor { label: Some("raycast.wgsl"), source: wgpu::ShaderSource::Wgsl(include_str!("../../shaders/raycast.wgsl").into()) });
-        let entry = |binding: u32, ty: wgpu::BufferBindingType| wgpu::BindGroupLayoutEntry {
-            binding,
-            visibility: wgpu::ShaderStages::COMPUTE,
-            ty: wgpu::BindingType::Buffer { ty, has_dynamic_offset: false, min_binding_size: None },
-            count: None,
-        };
-        let read = wgpu::BufferBindingType::Storage { read_only: true };
-        let write = wgpu::BufferBindingType::Storage { read_only: false };
-        let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-            label: Some("raycast"),
-            entries: &[entry(0, wgpu::BufferBindingType::Uniform), entry(1, read), entry(2, read), entry(3, read), entry(4, read), entry(5, write), entry(6, write)],
-        });
-        let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor { label: Some("raycast"), bind_group_layouts: &[Some(&layout)], immediate_size: 0 });
-        let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-            label: Some("raycast"),
-            layout: Some(&pipeline_layout),
-            module: &module,
-            entry_point: Some("render"),
-            compilation_options: Default::default(),
-            cache: None,
-        });
+        use super::Binding::{Read, ReadWrite, Uniform};
+        let Kernels { layout, pipelines: [pipeline] } = ctx.kernels("raycast.wgsl", include_str!("../../shaders/raycast.wgsl"), &[Uniform, Read, Read, Read, Read, ReadWrite, ReadWrite], ["render"]);
         let tables = &prepared.tables;
         let pre: &[[f32; 4]] = if tables.preintegrated.is_empty() { &[[0.0; 4]] } else { &tables.preintegrated };
         let (cell_dims, visible): ([usize; 3], Vec<u32>) = match &prepared.cells {
@@ -157,9 +136,7 @@ impl GpuVolumeRaycaster {
         let uniform = device.create_buffer_init(&wgpu::util::BufferInitDescriptor { label: Some("raycast params"), contents: bytemuck::bytes_of(&params), usage: wgpu::BufferUsages::UNIFORM });
         let out_rgba = self.ctx.storage_buffer("raycast rgba", &vec![0u8; w * h * 4]);
         let out_depth = self.ctx.storage_buffer("raycast depth", &vec![0u8; w * h * 4]);
-        let buffers = [&uniform, &self.buffers[0], &self.buffers[1], &self.buffers[2], &self.buffers[3], &out_rgba, &out_depth];
-        let entries: Vec<wgpu::BindGroupEntry> = buffers.iter().enumerate().map(|(i, b)| wgpu::BindGroupEntry { binding: i as u32, resource: b.as_entire_binding() }).collect();
-        let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor { label: Some("raycast"), layout: &self.layout, entries: &entries });
+        let bind_group = self.ctx.bind_group("raycast", &self.layout, &[&uniform, &self.buffers[0], &self.buffers[1], &self.buffers[2], &self.buffers[3], &out_rgba, &out_depth]);
         let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("raycast") });
         {
             let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("raycast"), timestamp_writes: None });

@@ -12,7 +12,7 @@ use std::sync::Arc;
 use bytemuck::{Pod, Zeroable};
 use nalgebra::Vector3;
 
-use super::{GpuContext, GpuError};
+use super::{GpuContext, GpuError, Kernels};
 use crate::mesh::TetMesh;
 use crate::volume::{Grid, Volume};
 use crate::warp::{self, Sampling, TetMap, WarpError, WarpOptions, WarpStats};
@@ -80,38 +80,8 @@ impl GpuWarper {
         if bytes > limit {
             return Err(GpuWarpError::BufferTooLarge { what: "the source volume", needed_mib: bytes.div_ceil(1 << 20), limit_mib: limit >> 20 });
         }
-        let device = &ctx.device;
-        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
-            label: Some("warp.wgsl"),
-            source: wgpu::ShaderSource::Wgsl(include_str!("../../shaders/warp.wgsl").into()),
-        });
-        let entry = |binding: u32, ty: wgpu::BufferBindingType| wgpu::BindGroupLayoutEntry {
-            binding,
-            visibility: wgpu::ShaderStages::COMPUTE,
-            ty: wgpu::BindingType::Buffer { ty, has_dynamic_offset: false, min_binding_size: None },
-            count: None,
-        };
-        let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-            label: Some("warp"),
-            entries: &[
-                entry(0, wgpu::BufferBindingType::Uniform),
-                entry(1, wgpu::BufferBindingType::Storage { read_only: true }),
-                entry(2, wgpu::BufferBindingType::Storage { read_only: true }),
-                entry(3, wgpu::BufferBindingType::Storage { read_only: false }),
-            ],
-        });
-        let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor { label: Some("warp"), bind_group_layouts: &[Some(&layout)], immediate_size: 0 });
-        let pipeline = |entry: &str| {
-            device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                label: Some(entry),
-                layout: Some(&pipeline_layout),
-                module: &module,
-                entry_point: Some(entry),
-                compilation_options: Default::default(),
-                cache: None,
-            })
-        };
-        let (fill, warp) = (pipeline("fill_background"), pipeline("warp_tets"));
+        use super::Binding::{Read, ReadWrite, Uniform};
+        let Kernels { layout, pipelines: [fill, warp] } = ctx.kernels("warp.wgsl", include_str!("../../shaders/warp.wgsl"), &[Uniform, Read, Read, ReadWrite], ["fill_background", "warp_tets"]);
         let source_buffer = ctx.storage_buffer("warp source", bytemuck::cast_slice(source.data()));
         Ok(Self { source_dims: source.dims(), source_grid: source.grid(), source: source_buffer, layout, fill, warp, ctx })
     }
@@ -149,16 +119,7 @@ impl GpuWarper {
             &self.ctx.device,
             &wgpu::util::BufferInitDescriptor { label: Some("warp params"), contents: bytemuck::bytes_of(&params), usage: wgpu::BufferUsages::UNIFORM },
         );
-        let bind_group = self.ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("warp"),
-            layout: &self.layout,
-            entries: &[
-                wgpu::BindGroupEntry { binding: 0, resource: params_buffer.as_entire_binding() },
-                wgpu::BindGroupEntry { binding: 1, resource: tets.as_entire_binding() },
-                wgpu::BindGroupEntry { binding: 2, resource: self.source.as_entire_binding() },
-                wgpu::BindGroupEntry { binding: 3, resource: out.as_entire_binding() },
-            ],
-        });
+        let bind_group = self.ctx.bind_group("warp", &self.layout, &[&params_buffer, &tets, &self.source, &out]);
         let mut encoder = self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("warp") });
         {
             let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("warp"), timestamp_writes: None });
