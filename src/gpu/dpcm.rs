@@ -199,24 +199,13 @@ mod tests {
     use super::*;
     use crate::dpcm::markers::{Pattern, Script};
     use crate::dpcm::{Interaction, Topology};
-    use crate::gpu::AdapterPolicy;
 
-    fn context() -> Option<Arc<GpuContext>> {
-        match GpuContext::open(AdapterPolicy::AllowSoftware) {
-            Ok(ctx) => Some(Arc::new(ctx)),
-            Err(e) if std::env::var_os("DEFVOL_REQUIRE_GPU").is_some() => panic!("DEFVOL_REQUIRE_GPU is set but no adapter opened: {e}"),
-            Err(e) => {
-                eprintln!("skipping: no GPU adapter ({e})");
-                None
-            }
-        }
-    }
 
     /// The GPU step against the CPU step, over every topology and ground kind, with
     /// markers moving: same state within f32 round-off (the GPU may fuse multiply-adds).
     #[test]
     fn gpu_steps_match_the_cpu_surface() {
-        let Some(ctx) = context() else { return };
+        let Some(ctx) = crate::gpu::test_context() else { return };
         let cases = [
             (Topology::Eight, 1.0, Interaction::DampedSpring { stiffness: 0.5, damping: 5e-4 }),
             (Topology::Four, 1.0, Interaction::Plastic { stiffness: 20.0, damping: 0.02, threshold: 3e-4 }),
@@ -251,7 +240,7 @@ mod tests {
 
     #[test]
     fn a_gpu_grid_at_rest_stays_bit_exact() {
-        let Some(ctx) = context() else { return };
+        let Some(ctx) = crate::gpu::test_context() else { return };
         let mut c = DpcmConfig::preset("fossil").unwrap();
         (c.width, c.height) = (40, 33);
         c.rest_height = 0.0037;

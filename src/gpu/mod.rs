@@ -191,6 +191,20 @@ impl GpuContext {
     }
 }
 
+/// The GPU tests' context: any adapter, software included; `None` (the test skips) when
+/// there is none, unless DEFVOL_REQUIRE_GPU is set (tests/run.sh sets it).
+#[cfg(test)]
+pub(crate) fn test_context() -> Option<std::sync::Arc<GpuContext>> {
+    match GpuContext::open(AdapterPolicy::AllowSoftware) {
+        Ok(ctx) => Some(std::sync::Arc::new(ctx)),
+        Err(e) if std::env::var_os("DEFVOL_REQUIRE_GPU").is_some() => panic!("DEFVOL_REQUIRE_GPU is set but no adapter opened: {e}"),
+        Err(e) => {
+            eprintln!("skipping: no GPU adapter ({e})");
+            None
+        }
+    }
+}
+
 fn desc_backends() -> wgpu::Backends {
     wgpu::Backends::VULKAN | wgpu::Backends::METAL | wgpu::Backends::DX12
 }

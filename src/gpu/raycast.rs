@@ -155,21 +155,13 @@ impl GpuVolumeRaycaster {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::gpu::AdapterPolicy;
     use crate::render::raycast::RaycastParams;
     use crate::render::transfer::TransferFunction;
     use nalgebra::{Point3, Vector3};
 
     #[test]
     fn gpu_frames_match_the_cpu_raycaster() {
-        let ctx = match GpuContext::open(AdapterPolicy::AllowSoftware) {
-            Ok(ctx) => Arc::new(ctx),
-            Err(e) if std::env::var_os("DEFVOL_REQUIRE_GPU").is_some() => panic!("DEFVOL_REQUIRE_GPU is set but no adapter opened: {e}"),
-            Err(e) => {
-                eprintln!("skipping: no GPU adapter ({e})");
-                return;
-            }
-        };
+        let Some(ctx) = crate::gpu::test_context() else { return };
         let volume = crate::volume::phantom::phantom([96, 60, 46], 8.0 / 3.0).unwrap();
         let (lo, hi) = volume.bounds();
         let centre = Point3::from((lo + hi) / 2.0);

@@ -374,21 +374,10 @@ impl GpuSimulation {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::gpu::AdapterPolicy;
     use crate::mesh::generate;
     use crate::solver::{FixedNodes, Material, ToolShape};
     use nalgebra::Isometry3;
 
-    fn context() -> Option<Arc<GpuContext>> {
-        match GpuContext::open(AdapterPolicy::AllowSoftware) {
-            Ok(ctx) => Some(Arc::new(ctx)),
-            Err(e) if std::env::var_os("DEFVOL_REQUIRE_GPU").is_some() => panic!("GPU required but unavailable: {e}"),
-            Err(e) => {
-                eprintln!("skipping GPU test: {e}");
-                None
-            }
-        }
-    }
 
     fn cantilever() -> MassSpringModel {
         let mesh = generate::lattice(Vector3::zeros(), Vector3::new(0.12, 0.03, 0.03), [8, 2, 2], generate::CellSplit::Five).unwrap();
@@ -399,7 +388,7 @@ mod tests {
     /// Every integrator, with a tool pressing in: GPU and CPU (f32) agree after 100 steps.
     #[test]
     fn gpu_matches_cpu_for_every_integrator() {
-        let Some(ctx) = context() else { return };
+        let Some(ctx) = crate::gpu::test_context() else { return };
         let model = cantilever();
         for integrator in Integrator::ALL {
             let dt = if integrator == Integrator::ImplicitEuler { 0.005 } else { 2e-4 };

@@ -141,7 +141,6 @@ impl GpuWarper {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::gpu::AdapterPolicy;
     use crate::mesh::generate::{self, CellSplit};
     use crate::volume::phantom;
     use nalgebra::Rotation3;
@@ -149,14 +148,7 @@ mod tests {
     /// GPU and CPU warps of the phantom through a rotated and bent mesh agree.
     #[test]
     fn gpu_warp_matches_cpu() {
-        let ctx = match GpuContext::open(AdapterPolicy::AllowSoftware) {
-            Ok(ctx) => Arc::new(ctx),
-            Err(e) if std::env::var_os("DEFVOL_REQUIRE_GPU").is_some() => panic!("GPU required but unavailable: {e}"),
-            Err(e) => {
-                eprintln!("skipping GPU test: {e}");
-                return;
-            }
-        };
+        let Some(ctx) = crate::gpu::test_context() else { return };
         let source = phantom::phantom([64, 40, 31], 4.0).unwrap();
         let (lo, hi) = source.bounds();
         let mesh = generate::lattice_for_box(lo, hi, 700, CellSplit::Five).unwrap();
