@@ -32,6 +32,18 @@ enum Command {
     Dpcm(cli::dpcm::DpcmArgs),
     /// A raycast image of a volume (the phantom when no file is given).
     Render(cli::render::RenderArgs),
+    /// The node's pipeline on a scene with its scripted tool path, no DDS: writes
+    /// DIR/demo.mcap (a rosbag2 MCAP) and DIR/demo.rrd (a rerun log).
+    Demo(cli::session::DemoArgs),
+    /// Run the pipeline from the tool poses and wrenches of a recorded bag.
+    Replay(cli::session::ReplayArgs),
+    /// The ROS 2 node (as `defvol_node`): `defvol node [--record F.mcap] --ros-args -p …`.
+    #[cfg(feature = "ros")]
+    Node {
+        /// The node's options and its ROS arguments, as `defvol_node` takes them.
+        #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
+        args: Vec<String>,
+    },
     /// Measure a stage: run time against error.
     Bench {
         #[command(subcommand)]
@@ -187,6 +199,23 @@ fn warp_on_backend(
 
 #[derive(Subcommand)]
 enum BenchStage {
+    /// The node's pipeline: pose-in to feedback-out latency at 1 kHz, recording overhead,
+    /// and warped-volume delivery through iceoryx2 beside DDS (DDS rows need a private
+    /// network namespace: `tests/netns-run defvol bench node`).
+    Node {
+        #[arg(long, value_delimiter = ',', default_value = "5000,600")]
+        tets: Vec<usize>,
+        #[arg(long, default_value_t = 1000)]
+        steps: usize,
+        #[arg(long, default_value_t = 200)]
+        settle: usize,
+        #[arg(long, value_delimiter = ',', default_value = "1,64")]
+        volume_mib: Vec<usize>,
+        #[arg(long, value_enum, default_value = "cpu")]
+        backend: BackendChoice,
+        #[arg(long)]
+        json: bool,
+    },
     /// Volume raycasting of the phantom (plain and warped): ms per frame and PSNR against the
     /// f64 ray integral, over steps.
     Render {
@@ -417,12 +446,25 @@ fn row_printer(json: bool, header: &str, table_row: fn(&bench::BenchRow) -> Stri
 }
 
 fn main() -> Result<()> {
-    tracing_subscriber::fmt().with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into())).with_target(false).init();
+    tracing_subscriber::fmt().with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info,rustdds=warn,ros2_client=warn".into())).with_target(false).init();
     match Cli::parse().command {
         Command::Simulate(args) => simulate(args),
         Command::Warp(args) => warp_command(args),
         Command::Dpcm(args) => cli::dpcm::run(args),
         Command::Render(args) => cli::render::run(args),
+        Command::Demo(args) => cli::session::demo(args),
+        Command::Replay(args) => cli::session::replay(args),
+        #[cfg(feature = "ros")]
+        Command::Node { args } => {
+            let settings = defvol::ros::node::settings_from_args(&args)?;
+            defvol::ros::node::run(settings)?;
+            Ok(())
+        }
+        Command::Bench { stage: BenchStage::Node { tets, steps, settle, volume_mib, backend, json } } => {
+            let opts = bench::node::NodeBenchOptions { tets, steps, settle, volume_mib, backend };
+            bench::node::run(&opts, row_printer(json, bench::node::TABLE_HEADER, bench::node::table_row))?;
+            Ok(())
+        }
         Command::Bench { stage: BenchStage::Render { sizes, steps, runs, reference_step, no_warped, meshes, json } } => {
             let opts = bench::render::RenderBenchOptions { sizes, steps, runs, reference_step, warped: !no_warped, meshes };
             bench::render::run(&opts, row_printer(json, bench::render::TABLE_HEADER, bench::render::table_row))?;

@@ -69,6 +69,103 @@ pub struct ToolConfig {
     pub spread_radius: f64,
     #[serde(default)]
     pub path: Option<ToolPath>,
+    /// Input topics (relative to the node's namespace); `tool_pose` and `tool_wrench` for
+    /// the first tool, `<name>/tool_pose` and `<name>/tool_wrench` for the others.
+    #[serde(default)]
+    pub pose_topic: Option<String>,
+    #[serde(default)]
+    pub wrench_topic: Option<String>,
+}
+
+/// Which stages a scene runs; a stage left out is never initialised.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Stages {
+    pub solver: bool,
+    pub warp: bool,
+    pub dpcm: bool,
+    pub raycast: bool,
+}
+
+impl Default for Stages {
+    fn default() -> Self {
+        Self { solver: true, warp: false, dpcm: false, raycast: false }
+    }
+}
+
+/// The grid-warp stage: the volume carried through the deformed mesh.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct WarpStageConfig {
+    /// Most warps per second of simulated time.
+    pub rate_hz: f64,
+    /// Nodes that moved less than this (metres) since the last warp leave their tets alone.
+    pub tolerance: f64,
+    /// The iceoryx2 service carrying the volumes.
+    pub service: String,
+}
+
+impl Default for WarpStageConfig {
+    fn default() -> Self {
+        Self { rate_hz: 10.0, tolerance: 1e-5, service: "defvol/warped_volume".into() }
+    }
+}
+
+/// The DPCM surface: a phyxel grid lying on a plane of the scene, engraved by the tools.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct DpcmStageConfig {
+    /// A preset name (`config/dpcm/`) or a DPCM YAML file.
+    pub preset: String,
+    /// Phyxels along x and y (the preset's size when absent).
+    pub size: Option<[usize; 2]>,
+    /// Metres between phyxels (the preset's when absent).
+    pub spacing: Option<f64>,
+    /// World position of phyxel (0, 0); the grid's x and y run along the world's.
+    pub origin: [f64; 3],
+    /// Most images per second of simulated time.
+    pub rate_hz: f64,
+}
+
+impl Default for DpcmStageConfig {
+    fn default() -> Self {
+        Self { preset: "water".into(), size: None, spacing: None, origin: [0.0; 3], rate_hz: 10.0 }
+    }
+}
+
+/// The raycast camera and what it shows.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct CameraConfig {
+    /// World positions (metres).
+    pub eye: [f64; 3],
+    pub target: [f64; 3],
+    pub up: [f64; 3],
+    pub fov_y_deg: f64,
+    pub width: usize,
+    pub height: usize,
+    /// Transfer-function preset: ct_soft_tissue, ct_bone or mri.
+    pub transfer_function: String,
+    /// Ray step in the volume's file units.
+    pub step: f64,
+    /// Most frames per second of simulated time.
+    pub rate_hz: f64,
+}
+
+impl Default for CameraConfig {
+    fn default() -> Self {
+        Self {
+            eye: [0.0, -0.45, 0.25],
+            target: [0.0, 0.0, 0.0],
+            up: [0.0, 0.0, 1.0],
+            fov_y_deg: 35.0,
+            width: 320,
+            height: 240,
+            transfer_function: "ct_soft_tissue".into(),
+            step: 1.0,
+            rate_hz: 10.0,
+        }
+    }
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -85,6 +182,31 @@ pub struct Scene {
     pub solver: SolverParams,
     #[serde(default)]
     pub tools: Vec<ToolConfig>,
+    /// The world frame: poses must be given in it (or with an empty frame_id).
+    #[serde(default = "default_frame")]
+    pub frame_id: String,
+    #[serde(default)]
+    pub stages: Stages,
+    #[serde(default)]
+    pub warp: WarpStageConfig,
+    #[serde(default)]
+    pub dpcm: DpcmStageConfig,
+    #[serde(default)]
+    pub camera: CameraConfig,
+}
+
+fn default_frame() -> String {
+    "world".into()
+}
+
+impl ToolConfig {
+    /// The pose topic of the tool at `index`.
+    pub fn pose_topic(&self, index: usize) -> String {
+        self.pose_topic.clone().unwrap_or_else(|| if index == 0 { "tool_pose".into() } else { format!("{}/tool_pose", self.name) })
+    }
+    pub fn wrench_topic(&self, index: usize) -> String {
+        self.wrench_topic.clone().unwrap_or_else(|| if index == 0 { "tool_wrench".into() } else { format!("{}/tool_wrench", self.name) })
+    }
 }
 
 /// Everything a run needs, loaded and validated.

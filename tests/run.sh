@@ -17,6 +17,33 @@ if ! command -v cargo >/dev/null 2>&1; then
     exit 1
 fi
 
+# Network namespaces for the DDS tests (unshare, ip): they never touch a real interface.
+if ! command -v unshare >/dev/null 2>&1 || ! command -v ip >/dev/null 2>&1; then
+    echo "tests/run.sh: installing util-linux and iproute2 (private network namespaces)"
+    as_root apt-get update -qq
+    as_root env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq util-linux iproute2 >/dev/null
+fi
+
+# Independent peers and readers for the interop tests, in a virtual environment beside the
+# build: Foxglove's ROS 2 MCAP reader, rerun's CLI, Eclipse Cyclone DDS, iceoryx2's Python
+# binding. Versions are pinned to what the Rust side speaks.
+venv="${CARGO_TARGET_DIR:-target}/interop-venv"
+requirements="mcap==1.6.0 mcap-ros2-support==0.6.0 rerun-sdk==0.36.3 cyclonedds==11.0.1 iceoryx2==0.10.0"
+if [ "$(cat "$venv/.requirements" 2>/dev/null)" != "$requirements" ]; then
+    if ! python3 -m venv --help >/dev/null 2>&1 || ! python3 -c 'import ensurepip' >/dev/null 2>&1; then
+        as_root apt-get update -qq
+        as_root env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq python3-venv >/dev/null
+    fi
+    echo "tests/run.sh: installing the interop peers into $venv"
+    rm -rf "$venv"
+    python3 -m venv "$venv"
+    "$venv/bin/pip" install -q $requirements
+    echo "$requirements" > "$venv/.requirements"
+fi
+export PATH="$(cd "$venv" && pwd)/bin:$PATH"
+rerun analytics disable >/dev/null 2>&1 || true
+export DEFVOL_REQUIRE_INTEROP=1
+
 export XDG_RUNTIME_DIR="${XDG_RUNTIME_DIR:-$(mktemp -d)}"
 # GPU tests must run, not skip, once the adapter is installed.
 export DEFVOL_REQUIRE_GPU=1

@@ -143,7 +143,7 @@ fn incremental_update_equals_a_full_warp() {
     let mesh = box_mesh(&v, 700);
     let grid = warp::default_grid(&v, mesh.nodes());
     let opts = WarpOptions { keep_uncovered: true, ..options(Scheme::Spans) };
-    let (mut inc, _) = IncrementalWarp::new(&v, &mesh, mesh.nodes(), grid.clone(), opts.clone()).unwrap();
+    let (mut inc, _) = IncrementalWarp::new(std::sync::Arc::new(v.clone()), std::sync::Arc::new(mesh.clone()), mesh.nodes(), grid.clone(), opts.clone()).unwrap();
     // A tool presses locally: nodes near one point move.
     let tip = Vector3::new(20.0, 10.0, 60.0);
     let pressed: Vec<Vector3<f64>> = mesh.nodes().iter().map(|p| {

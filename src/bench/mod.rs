@@ -2,6 +2,7 @@
 //! (format in `../shared/conventions.md`), plus a human table.
 
 pub mod dpcm;
+pub mod node;
 pub mod render;
 
 use std::time::Instant;
@@ -314,10 +315,11 @@ pub fn warp(opts: &WarpBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result<
                     })
                     .collect();
                 let options = WarpOptions::default();
+                let (shared_source, shared_mesh) = (std::sync::Arc::new(source.clone()), std::sync::Arc::new(mesh.clone()));
                 let mut times = Vec::with_capacity(opts.runs);
                 let mut stats = w::WarpStats::default();
                 for run in 0..=opts.runs {
-                    let (mut inc, _) = w::IncrementalWarp::new(&source, &mesh, &deformed, grid_for(&source, &deformed, &pressed), options.clone())?;
+                    let (mut inc, _) = w::IncrementalWarp::new(shared_source.clone(), shared_mesh.clone(), &deformed, grid_for(&source, &deformed, &pressed), options.clone())?;
                     let start = Instant::now();
                     stats = inc.update(&pressed, 1e-9)?;
                     if run > 0 {

@@ -1,2 +1,3 @@
 pub mod dpcm;
 pub mod render;
+pub mod session;

@@ -18,6 +18,8 @@
 
 pub mod bspline;
 
+use std::sync::Arc;
+
 use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -663,9 +665,9 @@ pub fn displace(source: &Volume, grid: &Grid, options: &WarpOptions) -> Result<V
 
 /// A warp kept up to date as the mesh moves: only the region of tets whose nodes moved
 /// more than `tolerance` since the last update is recomputed.
-pub struct IncrementalWarp<'a> {
-    source: &'a Volume,
-    rest: &'a TetMesh,
+pub struct IncrementalWarp {
+    source: Arc<Volume>,
+    rest: Arc<TetMesh>,
     grid: Grid,
     options: WarpOptions,
     positions: Vec<Vector3<f64>>,
@@ -673,10 +675,10 @@ pub struct IncrementalWarp<'a> {
     data: Vec<f32>,
 }
 
-impl<'a> IncrementalWarp<'a> {
-    pub fn new(source: &'a Volume, rest: &'a TetMesh, deformed: &[Vector3<f64>], grid: Grid, options: WarpOptions) -> Result<(Self, WarpStats), WarpError> {
-        let (data, stats) = warp_samples::<f32>(source, rest, deformed, &grid, &options)?;
-        let maps = tet_maps(rest, deformed, &source.grid(), &grid)?;
+impl IncrementalWarp {
+    pub fn new(source: Arc<Volume>, rest: Arc<TetMesh>, deformed: &[Vector3<f64>], grid: Grid, options: WarpOptions) -> Result<(Self, WarpStats), WarpError> {
+        let (data, stats) = warp_samples::<f32>(&source, &rest, deformed, &grid, &options)?;
+        let maps = tet_maps(&rest, deformed, &source.grid(), &grid)?;
         Ok((Self { source, rest, grid, options, positions: deformed.to_vec(), maps, data }, stats))
     }
 
@@ -690,7 +692,7 @@ impl<'a> IncrementalWarp<'a> {
     /// Re-warps the box covering the old and new extents of every tet with a node that
     /// moved more than `tolerance`; returns the work done (zero when nothing moved).
     pub fn update(&mut self, deformed: &[Vector3<f64>], tolerance: f64) -> Result<WarpStats, WarpError> {
-        let maps = tet_maps(self.rest, deformed, &self.source.grid(), &self.grid)?;
+        let maps = tet_maps(&self.rest, deformed, &self.source.grid(), &self.grid)?;
         let moved: Vec<bool> = self.positions.iter().zip(deformed).map(|(a, b)| (a - b).norm() > tolerance).collect();
         let mut region: Option<([usize; 3], [usize; 3])> = None;
         let mut grow = |m: &TetMap| {
@@ -730,7 +732,7 @@ impl<'a> IncrementalWarp<'a> {
         self.positions = deformed.to_vec();
         self.maps = maps;
         let Some((lo, hi)) = region else { return Ok(WarpStats::default()) };
-        let sampler = Sampler::new(self.source, &self.options)?;
+        let sampler = Sampler::new(&self.source, &self.options)?;
         let identity = self.grid.index_map_to(&self.source.grid());
         let [nx, ny, _] = self.grid.dims;
         let bins = slice_bins(&self.maps, self.grid.dims[2]);

@@ -2,8 +2,12 @@
 //! in `msg/` (tested), and their CDR encoding (the wire format of DDS and of rosbag2's
 //! MCAP files).
 
+mod types;
+
 use serde::de::DeserializeOwned;
-use serde::{Deserialize, Serialize};
+use serde::Serialize;
+
+pub use types::*;
 
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
@@ -19,99 +23,40 @@ pub enum MsgError {
 }
 
 /// The `.msg` texts of `msg/`, by full name.
-pub const DEFINITIONS: [(&str, &str); 6] = [
-    ("builtin_interfaces/msg/Time", include_str!("../msg/builtin_interfaces/msg/Time.msg")),
-    ("std_msgs/msg/Header", include_str!("../msg/std_msgs/msg/Header.msg")),
-    ("geometry_msgs/msg/Point", include_str!("../msg/geometry_msgs/msg/Point.msg")),
-    ("geometry_msgs/msg/Quaternion", include_str!("../msg/geometry_msgs/msg/Quaternion.msg")),
-    ("geometry_msgs/msg/Pose", include_str!("../msg/geometry_msgs/msg/Pose.msg")),
-    ("geometry_msgs/msg/PoseStamped", include_str!("../msg/geometry_msgs/msg/PoseStamped.msg")),
+pub const DEFINITIONS: [(&str, &str); 21] = [
+    ("builtin_interfaces/msg/Time", include_str!("../../msg/builtin_interfaces/msg/Time.msg")),
+    ("builtin_interfaces/msg/Duration", include_str!("../../msg/builtin_interfaces/msg/Duration.msg")),
+    ("std_msgs/msg/Header", include_str!("../../msg/std_msgs/msg/Header.msg")),
+    ("std_msgs/msg/ColorRGBA", include_str!("../../msg/std_msgs/msg/ColorRGBA.msg")),
+    ("geometry_msgs/msg/Point", include_str!("../../msg/geometry_msgs/msg/Point.msg")),
+    ("geometry_msgs/msg/Vector3", include_str!("../../msg/geometry_msgs/msg/Vector3.msg")),
+    ("geometry_msgs/msg/Quaternion", include_str!("../../msg/geometry_msgs/msg/Quaternion.msg")),
+    ("geometry_msgs/msg/Pose", include_str!("../../msg/geometry_msgs/msg/Pose.msg")),
+    ("geometry_msgs/msg/PoseStamped", include_str!("../../msg/geometry_msgs/msg/PoseStamped.msg")),
+    ("geometry_msgs/msg/Wrench", include_str!("../../msg/geometry_msgs/msg/Wrench.msg")),
+    ("geometry_msgs/msg/WrenchStamped", include_str!("../../msg/geometry_msgs/msg/WrenchStamped.msg")),
+    ("sensor_msgs/msg/Image", include_str!("../../msg/sensor_msgs/msg/Image.msg")),
+    ("sensor_msgs/msg/CompressedImage", include_str!("../../msg/sensor_msgs/msg/CompressedImage.msg")),
+    ("visualization_msgs/msg/UVCoordinate", include_str!("../../msg/visualization_msgs/msg/UVCoordinate.msg")),
+    ("visualization_msgs/msg/MeshFile", include_str!("../../msg/visualization_msgs/msg/MeshFile.msg")),
+    ("visualization_msgs/msg/Marker", include_str!("../../msg/visualization_msgs/msg/Marker.msg")),
+    ("diagnostic_msgs/msg/KeyValue", include_str!("../../msg/diagnostic_msgs/msg/KeyValue.msg")),
+    ("diagnostic_msgs/msg/DiagnosticStatus", include_str!("../../msg/diagnostic_msgs/msg/DiagnosticStatus.msg")),
+    ("diagnostic_msgs/msg/DiagnosticArray", include_str!("../../msg/diagnostic_msgs/msg/DiagnosticArray.msg")),
+    ("defvol/msg/DeformedMesh", include_str!("../../msg/defvol/msg/DeformedMesh.msg")),
+    ("defvol/msg/WarpedVolumeInfo", include_str!("../../msg/defvol/msg/WarpedVolumeInfo.msg")),
+];
+
+/// The `.srv` texts of `msg/`, by full name.
+pub const SERVICES: [(&str, &str); 2] = [
+    ("std_srvs/srv/Trigger", include_str!("../../msg/std_srvs/srv/Trigger.srv")),
+    ("defvol/srv/LoadScene", include_str!("../../msg/defvol/srv/LoadScene.srv")),
 ];
 
 /// A message type with its ROS 2 name.
 pub trait Message: Serialize + DeserializeOwned {
     /// "package/msg/Type".
     const NAME: &'static str;
-}
-
-/// builtin_interfaces/msg/Time.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
-pub struct Time {
-    pub sec: i32,
-    pub nanosec: u32,
-}
-
-impl Time {
-    pub fn from_secs(t: f64) -> Self {
-        let sec = t.floor();
-        Self { sec: sec as i32, nanosec: (((t - sec) * 1e9).round() as u32).min(999_999_999) }
-    }
-    pub fn as_secs(&self) -> f64 {
-        f64::from(self.sec) + f64::from(self.nanosec) * 1e-9
-    }
-}
-
-/// std_msgs/msg/Header.
-#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
-pub struct Header {
-    pub stamp: Time,
-    pub frame_id: String,
-}
-
-/// geometry_msgs/msg/Point.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
-pub struct Point {
-    pub x: f64,
-    pub y: f64,
-    pub z: f64,
-}
-
-/// geometry_msgs/msg/Quaternion.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct Quaternion {
-    pub x: f64,
-    pub y: f64,
-    pub z: f64,
-    pub w: f64,
-}
-
-impl Default for Quaternion {
-    fn default() -> Self {
-        Self { x: 0.0, y: 0.0, z: 0.0, w: 1.0 }
-    }
-}
-
-/// geometry_msgs/msg/Pose.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
-pub struct Pose {
-    pub position: Point,
-    pub orientation: Quaternion,
-}
-
-/// geometry_msgs/msg/PoseStamped.
-#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
-pub struct PoseStamped {
-    pub header: Header,
-    pub pose: Pose,
-}
-
-impl Message for Time {
-    const NAME: &'static str = "builtin_interfaces/msg/Time";
-}
-impl Message for Header {
-    const NAME: &'static str = "std_msgs/msg/Header";
-}
-impl Message for Point {
-    const NAME: &'static str = "geometry_msgs/msg/Point";
-}
-impl Message for Quaternion {
-    const NAME: &'static str = "geometry_msgs/msg/Quaternion";
-}
-impl Message for Pose {
-    const NAME: &'static str = "geometry_msgs/msg/Pose";
-}
-impl Message for PoseStamped {
-    const NAME: &'static str = "geometry_msgs/msg/PoseStamped";
 }
 
 /// Little-endian CDR with its 4-byte encapsulation header (as DDS and rosbag2 write it).
@@ -196,36 +141,96 @@ mod tests {
             .collect()
     }
 
-    /// The struct's fields as serde sees them, against its `.msg` text.
-    fn check<T: Message>(registry: &serde_reflection::Registry, rust_name: &str) {
-        let Some(ContainerFormat::Struct(fields)) = registry.get(rust_name) else { panic!("{} is not a struct", T::NAME) };
-        let text = DEFINITIONS.iter().find(|(n, _)| *n == T::NAME).unwrap().1;
+    /// Whether a serde format is the `.msg` field type `ty`.
+    fn same_type(format: &Format, ty: &str) -> bool {
+        if let Some(element) = ty.strip_suffix("[]") {
+            return match format {
+                Format::Bytes => element == "uint8",
+                Format::Seq(inner) => same_type(inner, element),
+                _ => false,
+            };
+        }
+        if let Some((element, size)) = ty.strip_suffix(']').and_then(|t| t.split_once('[')) {
+            return matches!(format, Format::TupleArray { content, size: n } if size.parse() == Ok(*n) && same_type(content, element));
+        }
+        match (format, ty) {
+            (Format::Bool, "bool") | (Format::U8, "uint8" | "byte") | (Format::I32, "int32") | (Format::U32, "uint32") | (Format::U64, "uint64") | (Format::F32, "float32") | (Format::F64, "float64") | (Format::Str, "string") => true,
+            (Format::TypeName(rust), msg) => msg.rsplit('/').next() == Some(rust.as_str()),
+            _ => false,
+        }
+    }
+
+    /// The fields of `rust_name` as serde sees them, against a `.msg` text.
+    fn check_fields(registry: &serde_reflection::Registry, rust_name: &str, what: &str, text: &str) {
+        let Some(ContainerFormat::Struct(fields)) = registry.get(rust_name) else { panic!("{what}: {rust_name} is not a struct") };
         let expected = msg_fields(text);
         let got: Vec<&str> = fields.iter().map(|f| f.name.as_str()).collect();
         let want: Vec<&str> = expected.iter().map(|(_, n)| n.as_str()).collect();
-        assert_eq!(got, want, "{}: serde fields against the .msg text", T::NAME);
+        assert_eq!(got, want, "{what}: serde fields against the .msg text");
         for (field, (ty, _)) in fields.iter().zip(&expected) {
-            let same = match (&field.value, ty.as_str()) {
-                (Format::I32, "int32") | (Format::U32, "uint32") | (Format::F64, "float64") | (Format::Str, "string") => true,
-                (Format::TypeName(rust), msg) => msg.rsplit('/').next() == Some(rust.as_str()),
-                _ => false,
-            };
-            assert!(same, "{}: field {} is {:?}, the .msg says {ty}", T::NAME, field.name, field.value);
+            assert!(same_type(&field.value, ty), "{what}: field {} is {:?}, the .msg says {ty}", field.name, field.value);
         }
+    }
+
+    fn check<T: Message>(registry: &serde_reflection::Registry) {
+        let text = DEFINITIONS.iter().find(|(n, _)| *n == T::NAME).unwrap().1;
+        check_fields(registry, T::NAME.rsplit('/').next().unwrap(), T::NAME, text);
     }
 
     #[test]
     fn every_struct_matches_its_msg_text() {
         let mut tracer = Tracer::new(TracerConfig::default());
-        tracer.trace_simple_type::<PoseStamped>().unwrap();
+        let traces: [fn(&mut Tracer) -> serde_reflection::Result<()>; 10] = [
+            |t: &mut Tracer| t.trace_simple_type::<PoseStamped>().map(drop),
+            |t: &mut Tracer| t.trace_simple_type::<WrenchStamped>().map(drop),
+            |t: &mut Tracer| t.trace_simple_type::<Image>().map(drop),
+            |t: &mut Tracer| t.trace_simple_type::<Marker>().map(drop),
+            |t: &mut Tracer| t.trace_simple_type::<DiagnosticArray>().map(drop),
+            |t: &mut Tracer| t.trace_simple_type::<DeformedMesh>().map(drop),
+            |t: &mut Tracer| t.trace_simple_type::<WarpedVolumeInfo>().map(drop),
+            |t: &mut Tracer| t.trace_simple_type::<TriggerRequest>().map(drop),
+            |t: &mut Tracer| t.trace_simple_type::<TriggerResponse>().map(drop),
+            |t: &mut Tracer| t.trace_simple_type::<LoadSceneRequest>().map(drop),
+        ];
+        for trace in traces {
+            trace(&mut tracer).unwrap();
+        }
         let registry = tracer.registry().unwrap();
-        check::<Time>(&registry, "Time");
-        check::<Header>(&registry, "Header");
-        check::<Point>(&registry, "Point");
-        check::<Quaternion>(&registry, "Quaternion");
-        check::<Pose>(&registry, "Pose");
-        check::<PoseStamped>(&registry, "PoseStamped");
-        assert_eq!(registry.len(), DEFINITIONS.len(), "every traced struct has a .msg text");
+        check::<Time>(&registry);
+        check::<Duration>(&registry);
+        check::<Header>(&registry);
+        check::<ColorRGBA>(&registry);
+        check::<Point>(&registry);
+        check::<Vector3>(&registry);
+        check::<Quaternion>(&registry);
+        check::<Pose>(&registry);
+        check::<PoseStamped>(&registry);
+        check::<Wrench>(&registry);
+        check::<WrenchStamped>(&registry);
+        check::<Image>(&registry);
+        check::<CompressedImage>(&registry);
+        check::<UVCoordinate>(&registry);
+        check::<MeshFile>(&registry);
+        check::<Marker>(&registry);
+        check::<KeyValue>(&registry);
+        check::<DiagnosticStatus>(&registry);
+        check::<DiagnosticArray>(&registry);
+        check::<DeformedMesh>(&registry);
+        check::<WarpedVolumeInfo>(&registry);
+        // Services: each half against its side of the `---`.
+        let halves = |name: &str| {
+            let text = SERVICES.iter().find(|(n, _)| *n == name).unwrap().1;
+            let (request, response) = text.split_once("---").unwrap();
+            (request.to_owned(), response.to_owned())
+        };
+        let (request, response) = halves("std_srvs/srv/Trigger");
+        assert!(msg_fields(&request).is_empty(), "Trigger's request is empty: CDR's placeholder byte stands for it");
+        check_fields(&registry, "TriggerResponse", "Trigger response", &response);
+        let (request, response) = halves("defvol/srv/LoadScene");
+        check_fields(&registry, "LoadSceneRequest", "LoadScene request", &request);
+        check_fields(&registry, "TriggerResponse", "LoadScene response", &response);
+        // Every traced struct has a text: the 21 messages and the 3 service halves.
+        assert_eq!(registry.len(), DEFINITIONS.len() + 3);
     }
 
     #[test]

@@ -1,0 +1,290 @@
+//! `defvol bench node`: what a user of the node feels. The pose-in to feedback-out
+//! latency of the pipeline at 1 kHz input, the cost of recording, and the delivery time of
+//! a warped volume through iceoryx2 beside DDS for the same bytes.
+
+use std::time::{Duration, Instant};
+
+use serde_json::json;
+
+use super::{cpu_description, time_stats, BenchRow};
+use crate::engine::BackendChoice;
+use crate::msgs::{Header, Pose, PoseStamped, Time};
+use crate::pipeline::inputs::InputLimits;
+use crate::pipeline::{Demand, FrameMode, Pipeline, PipelineError};
+use crate::scene::Scene;
+use crate::session::{RecordOptions, Session};
+
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum NodeBenchError {
+    #[error(transparent)]
+    Pipeline(#[from] PipelineError),
+    #[error(transparent)]
+    Session(#[from] crate::session::SessionError),
+    #[error("{0}")]
+    Setup(String),
+}
+
+pub struct NodeBenchOptions {
+    /// Tet counts of the lattice scenes timed.
+    pub tets: Vec<usize>,
+    /// Steps timed per case (after `settle` untimed ones).
+    pub steps: usize,
+    pub settle: usize,
+    /// Volume bytes sent through shared memory (and DDS).
+    pub volume_mib: Vec<usize>,
+    pub backend: BackendChoice,
+}
+
+pub const TABLE_HEADER: &str = "case                          backend   p50 ms   p99 ms    max ms   rate Hz  notes";
+
+pub fn table_row(row: &BenchRow) -> String {
+    let p99 = row.params["p99_ms"].as_f64().map_or("-".into(), |v| format!("{v:.3}"));
+    let notes = row.params["note"].as_str().unwrap_or_default();
+    format!("{:<29} {:<8} {:>7.3} {:>8} {:>9.3} {:>9.0}  {notes}", row.case, row.backend, row.time_ms.median, p99, row.time_ms.max, 1e3 / row.time_ms.median.max(1e-9))
+}
+
+fn percentile(samples: &[f64], p: f64) -> f64 {
+    let mut sorted = samples.to_vec();
+    sorted.sort_by(f64::total_cmp);
+    sorted.get(((sorted.len() as f64 - 1.0) * p).round() as usize).copied().unwrap_or(0.0)
+}
+
+/// The default scene with the solver alone at 1 kHz, on a lattice of about `tets`.
+fn haptic_scene(tets: usize) -> Result<Scene, NodeBenchError> {
+    let mut scene = Scene::default_scene().map_err(|e| NodeBenchError::Setup(e.to_string()))?;
+    scene.stages = crate::scene::Stages { solver: true, warp: false, dpcm: false, raycast: false };
+    scene.solver.dt = 1e-3;
+    if let crate::scene::MeshSource::VolumeLattice { target_tets, .. } = &mut scene.mesh {
+        *target_tets = tets;
+    }
+    Ok(scene)
+}
+
+/// Pose in, one solver step, feedback and mesh messages out: `steps` times, recording or not.
+fn pose_to_feedback(scene: Scene, opts: &NodeBenchOptions, record: Option<&std::path::Path>) -> Result<(Vec<f64>, String, usize), NodeBenchError> {
+    let mut pipeline = Pipeline::new(scene, opts.backend, false, InputLimits { max_age: None, ..Default::default() }, FrameMode::Lockstep)?;
+    let tets = pipeline.mesh().tets().len();
+    let records = RecordOptions { mcap: record.map(Into::into), ..Default::default() };
+    let mut session = Session::open("/", &records, &pipeline)?;
+    let demand = Demand { tool_feedback: true, deformed_mesh: true, ..Demand::NONE };
+    let mut samples = Vec::with_capacity(opts.steps);
+    for k in 0..opts.settle + opts.steps {
+        let t = (k + 1) as f64 * 1e-3;
+        // The probe comes down over the first half second, then holds: contact throughout.
+        let z = 0.07 - 0.01 * (t / 0.5).min(1.0);
+        let stamp = Time::from_secs(t);
+        let mut pose = PoseStamped { header: Header { stamp, frame_id: "world".into() }, pose: Pose::default() };
+        pose.pose.position.z = z;
+        let start = Instant::now();
+        let _ = pipeline.apply_pose("tool_pose", &pose, stamp);
+        session.record_pose("/tool_pose", &pose, "probe", None);
+        let out = pipeline.tick(stamp, &demand)?;
+        session.record_outputs(&out, &pipeline, stamp);
+        if k >= opts.settle {
+            samples.push(start.elapsed().as_secs_f64() * 1e3);
+        }
+    }
+    session.finish()?;
+    Ok((samples, pipeline.backend_name(), tets))
+}
+
+pub fn run(opts: &NodeBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result<(), NodeBenchError> {
+    let cpu = cpu_description();
+    let dir = tempfile_dir()?;
+    for &tets in &opts.tets {
+        let (plain, backend, n) = pose_to_feedback(haptic_scene(tets)?, opts, None)?;
+        let bag = dir.join(format!("bench_{tets}.mcap"));
+        let (recorded, _, _) = pose_to_feedback(haptic_scene(tets)?, opts, Some(&bag))?;
+        let (p50, p99) = (percentile(&plain, 0.5), percentile(&plain, 0.99));
+        let overhead = percentile(&recorded, 0.5) / p50 - 1.0;
+        let mean = plain.iter().sum::<f64>() / plain.len().max(1) as f64;
+        emit(&BenchRow {
+            stage: "node",
+            case: format!("pose_to_feedback_{n}tets"),
+            backend: backend.clone(),
+            device: cpu.clone(),
+            params: json!({"input_hz": 1000, "dt": 1e-3, "p99_ms": p99, "sustained_hz": 1e3 / mean, "note": format!("goal p99 < 2 ms; sustains {:.0} Hz", 1e3 / mean)}),
+            runs: plain.len(),
+            time_ms: time_stats(plain),
+            error: None,
+            work: json!({"tets": n, "outputs": ["tool_feedback", "deformed_mesh"]}),
+        });
+        emit(&BenchRow {
+            stage: "node",
+            case: format!("recording_{n}tets"),
+            backend,
+            device: cpu.clone(),
+            params: json!({"p99_ms": percentile(&recorded, 0.99), "overhead": overhead, "note": format!("MCAP recording adds {:.1} % to the median step (goal < 5 %)", overhead * 100.0)}),
+            runs: recorded.len(),
+            time_ms: time_stats(recorded),
+            error: None,
+            work: json!({"tets": n, "bag_bytes": std::fs::metadata(&bag).map(|m| m.len()).unwrap_or(0)}),
+        });
+        let _ = std::fs::remove_file(&bag);
+    }
+    #[cfg(feature = "shm")]
+    for &mib in &opts.volume_mib {
+        emit(&shm_delivery(mib, &cpu)?);
+    }
+    #[cfg(feature = "ros")]
+    for &mib in &opts.volume_mib {
+        emit(&dds_delivery(mib, &cpu)?);
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+    Ok(())
+}
+
+fn tempfile_dir() -> Result<std::path::PathBuf, NodeBenchError> {
+    let dir = std::env::temp_dir().join(format!("defvol-bench-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).map_err(|e| NodeBenchError::Setup(format!("{}: {e}", dir.display())))?;
+    Ok(dir)
+}
+
+/// Send-to-receive time of `mib` MiB through iceoryx2: from `send()` of a sample already
+/// written (the warp writes into the loan) to the subscriber holding it.
+#[cfg(feature = "shm")]
+fn shm_delivery(mib: usize, cpu: &str) -> Result<BenchRow, NodeBenchError> {
+    use crate::shm::WarpedVolumeHeader;
+    use iceoryx2::prelude::*;
+    use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+    use std::sync::Arc;
+
+    let err = |e: &dyn std::fmt::Debug| NodeBenchError::Setup(format!("iceoryx2: {e:?}"));
+    let elements = mib * (1 << 20) / 4;
+    let name = format!("defvol/bench_{}_{mib}", std::process::id());
+    let needed = crate::shm::bytes_needed(elements);
+    let node = NodeBuilder::new().create::<ipc::Service>().map_err(|e| err(&e))?;
+    let service_name: ServiceName = name.as_str().try_into().map_err(|e| err(&e))?;
+    let service = node
+        .service_builder(&service_name)
+        .publish_subscribe::<[f32]>()
+        .user_header::<WarpedVolumeHeader>()
+        .enable_safe_overflow(true)
+        .subscriber_max_buffer_size(2)
+        .max_subscribers(1)
+        .open_or_create()
+        .map_err(|e| NodeBenchError::Setup(format!("iceoryx2 ({} MiB of /dev/shm needed): {e:?}", needed >> 20)))?;
+    let publisher = service.publisher_builder().initial_max_slice_len(elements).max_loaned_samples(2).create().map_err(|e| err(&e))?;
+    let base = Instant::now();
+    let sent_at = Arc::new(AtomicU64::new(0));
+    let done = Arc::new(AtomicBool::new(false));
+    let (tx, rx) = std::sync::mpsc::channel::<f64>();
+    let (sent_at_reader, done_reader, reader_name) = (sent_at.clone(), done.clone(), name.clone());
+    // iceoryx2 ports stay on the thread that made them: the subscriber opens its own node.
+    let reader = std::thread::spawn(move || -> Result<(), String> {
+        let node = NodeBuilder::new().create::<ipc::Service>().map_err(|e| format!("{e:?}"))?;
+        let name: ServiceName = reader_name.as_str().try_into().map_err(|e| format!("{e:?}"))?;
+        let service = node.service_builder(&name).publish_subscribe::<[f32]>().user_header::<WarpedVolumeHeader>().open().map_err(|e| format!("{e:?}"))?;
+        let subscriber = service.subscriber_builder().create().map_err(|e| format!("{e:?}"))?;
+        let _ = tx.send(-1.0);
+        while !done_reader.load(Ordering::Acquire) {
+            if let Ok(Some(sample)) = subscriber.receive() {
+                let received = base.elapsed().as_nanos() as u64;
+                let latency = received.saturating_sub(sent_at_reader.load(Ordering::Acquire)) as f64 * 1e-6;
+                std::hint::black_box(sample.payload().len());
+                let _ = tx.send(latency);
+            }
+        }
+        Ok(())
+    });
+    if rx.recv_timeout(Duration::from_secs(10)).is_err() {
+        return Err(NodeBenchError::Setup(format!("iceoryx2: the subscriber did not open `{name}`")));
+    }
+    let data = vec![1.5f32; elements];
+    let mut samples = Vec::new();
+    for run in 0..12 {
+        let sample = publisher.loan_slice_uninit(elements).map_err(|e| err(&e))?;
+        let sample = sample.write_from_slice(&data);
+        sent_at.store(base.elapsed().as_nanos() as u64, Ordering::Release);
+        sample.send().map_err(|e| err(&e))?;
+        if let Ok(latency) = rx.recv_timeout(Duration::from_secs(5)) {
+            if run >= 2 {
+                samples.push(latency);
+            }
+        }
+    }
+    done.store(true, Ordering::Release);
+    if let Ok(Err(e)) = reader.join() {
+        return Err(NodeBenchError::Setup(format!("iceoryx2 subscriber: {e}")));
+    }
+    Ok(BenchRow {
+        stage: "node",
+        case: format!("volume_{mib}mib_iceoryx2"),
+        backend: "shm".into(),
+        device: cpu.into(),
+        params: json!({"p99_ms": percentile(&samples, 0.99), "note": "send() to receive(), goal < 0.1 ms"}),
+        runs: samples.len(),
+        time_ms: time_stats(samples),
+        error: None,
+        work: json!({"bytes": elements * 4}),
+    })
+}
+
+/// The same bytes as a sensor_msgs/Image over DDS (ros2-client/RustDDS, reliable), between
+/// two participants on loopback: publish() to take(). Only inside a private network
+/// namespace (run it as `tests/netns-run defvol bench node`).
+#[cfg(feature = "ros")]
+fn dds_delivery(mib: usize, cpu: &str) -> Result<BenchRow, NodeBenchError> {
+    use crate::msgs::Image;
+    use crate::record::Qos;
+    use crate::ros::dds::{context, Discovery};
+    use crate::ros::node::qos;
+    use ros2_client::{MessageTypeName, Name, NodeName, NodeOptions};
+
+    // This process's network namespace (/sys/class/net would show the host's).
+    let dev = std::fs::read_to_string("/proc/self/net/dev").unwrap_or_default();
+    let names: Vec<&str> = dev.lines().skip(2).filter_map(|l| l.split(':').next()).map(str::trim).collect();
+    let row = |samples: Vec<f64>, note: String| BenchRow {
+        stage: "node",
+        case: format!("volume_{mib}mib_dds"),
+        backend: "rustdds".into(),
+        device: cpu.into(),
+        params: json!({"p99_ms": percentile(&samples, 0.99), "note": note}),
+        runs: samples.len(),
+        time_ms: time_stats(samples),
+        error: None,
+        work: json!({"bytes": mib << 20}),
+    };
+    if names != ["lo"] {
+        return Ok(row(Vec::new(), "skipped: run inside a private network namespace (tests/netns-run)".into()));
+    }
+    let setup = |e: &dyn std::fmt::Debug| NodeBenchError::Setup(format!("DDS: {e:?}"));
+    let (a, b) = (context(23, Discovery::Localhost).map_err(|e| setup(&e))?, context(23, Discovery::Localhost).map_err(|e| setup(&e))?);
+    let mut sender = a.new_node(NodeName::new("/", "bench_sender").map_err(|e| setup(&e))?, NodeOptions::new()).map_err(|e| setup(&e))?;
+    let mut receiver = b.new_node(NodeName::new("/", "bench_receiver").map_err(|e| setup(&e))?, NodeOptions::new()).map_err(|e| setup(&e))?;
+    let q = qos(Qos::Reliable);
+    let name = Name::parse("/bench_volume").map_err(|e| setup(&e))?;
+    let ty = || MessageTypeName::new("sensor_msgs", "Image");
+    let topic_a = sender.create_topic(&name, ty(), &q).map_err(|e| setup(&e))?;
+    let topic_b = receiver.create_topic(&name, ty(), &q).map_err(|e| setup(&e))?;
+    let publisher = sender.create_publisher::<Image>(&topic_a, Some(q.clone())).map_err(|e| setup(&e))?;
+    let subscription = receiver.create_subscription::<Image>(&topic_b, Some(q)).map_err(|e| setup(&e))?;
+    std::thread::sleep(Duration::from_secs(2));
+    let image = Image { height: 1, width: (mib << 20) as u32, encoding: "mono8".into(), step: (mib << 20) as u32, data: vec![3u8; mib << 20], ..Default::default() };
+    let mut samples = Vec::new();
+    let mut lost = 0;
+    for run in 0..7 {
+        let start = Instant::now();
+        if publisher.publish(image.clone()).is_err() {
+            lost += 1;
+            continue;
+        }
+        let got = loop {
+            if let Ok(Some(_)) = subscription.take() {
+                break true;
+            }
+            if start.elapsed() > Duration::from_secs(10) {
+                break false;
+            }
+            std::thread::sleep(Duration::from_micros(50));
+        };
+        match (got, run) {
+            (true, 0) => {}
+            (true, _) => samples.push(start.elapsed().as_secs_f64() * 1e3),
+            (false, _) => lost += 1,
+        }
+    }
+    let note = if lost > 0 { format!("{lost} of 7 not delivered within 10 s") } else { "publish() to take(), reliable".into() };
+    Ok(row(samples, note))
+}

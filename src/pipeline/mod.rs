@@ -1,0 +1,640 @@
+//! The node's work without ROS: tool inputs in, a solver step, then the stages whose
+//! outputs someone wants (the deformed mesh, the warped volume, the DPCM surface, raycast
+//! images, diagnostics), as messages. The node, `demo` and `replay` all drive this.
+
+mod frames;
+pub mod inputs;
+mod outputs;
+
+pub use frames::{FrameMode, WarpedVolume};
+
+use std::sync::Arc;
+use std::time::Instant;
+
+use nalgebra::{Point3, Vector3};
+
+use crate::dpcm::engine::DpcmEngine;
+use crate::dpcm::markers::Calibration;
+use crate::dpcm::{DpcmConfig, DpcmError};
+use crate::engine::{BackendChoice, Engine, EngineError};
+use crate::mesh::TetMesh;
+use crate::msgs::{DeformedMesh, DiagnosticArray, Image, Marker, PoseStamped, Time, WrenchStamped};
+use crate::render::camera::{Camera, Projection};
+use crate::render::raycast::{RaycastParams, ToolPicture, VolumeRaycaster};
+use crate::render::transfer::TransferFunction;
+use crate::render::RenderError;
+use crate::scene::{LoadedScene, Scene, SceneError};
+use crate::solver::{SolverError, StepReport};
+use crate::volume::{Grid, Volume, VolumeError};
+use crate::warp::{IncrementalWarp, WarpError, WarpOptions};
+use inputs::{Checker, InputCounters, InputLimits, Rejection};
+
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum PipelineError {
+    #[error(transparent)]
+    Scene(#[from] SceneError),
+    #[error("solver: {0}")]
+    Engine(#[from] EngineError),
+    #[error("solver: {0}")]
+    Solver(#[from] SolverError),
+    #[error("warp: {0}")]
+    Warp(#[from] WarpError),
+    #[error("DPCM: {0}")]
+    Dpcm(#[from] DpcmError),
+    #[error("raycast: {0}")]
+    Render(#[from] RenderError),
+    #[error("volume: {0}")]
+    Volume(#[from] VolumeError),
+    #[error("scene: {0}")]
+    Invalid(String),
+}
+
+/// Which outputs have a consumer (a subscriber or a recorder): the rest are not computed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Demand {
+    pub deformed_mesh: bool,
+    pub surface_marker: bool,
+    pub tool_feedback: bool,
+    pub warped_volume: bool,
+    pub dpcm_height: bool,
+    pub dpcm_image: bool,
+    pub raycast: bool,
+    pub diagnostics: bool,
+}
+
+impl Demand {
+    pub const ALL: Demand = Demand { deformed_mesh: true, surface_marker: true, tool_feedback: true, warped_volume: true, dpcm_height: true, dpcm_image: true, raycast: true, diagnostics: true };
+    pub const NONE: Demand = Demand { deformed_mesh: false, surface_marker: false, tool_feedback: false, warped_volume: false, dpcm_height: false, dpcm_image: false, raycast: false, diagnostics: false };
+}
+
+/// What one tick produced; `None` where the output was not wanted or nothing changed.
+#[derive(Debug, Clone, Default)]
+pub struct Outputs {
+    /// Whether the solver stepped (it sleeps while the mesh rests untouched).
+    pub stepped: bool,
+    pub tool_feedback: Option<WrenchStamped>,
+    pub deformed_mesh: Option<DeformedMesh>,
+    pub surface_marker: Option<Marker>,
+    /// A new warped volume is in [`Pipeline::warped_volume`].
+    pub warped_volume: bool,
+    pub dpcm_height: Option<Image>,
+    pub dpcm_image: Option<Image>,
+    pub raycast: Option<Image>,
+    pub diagnostics: Option<DiagnosticArray>,
+}
+
+/// Milliseconds the last run of each stage took.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct StageTimes {
+    pub solver: f64,
+    pub warp: f64,
+    pub dpcm: f64,
+    pub raycast: f64,
+}
+
+struct ToolState {
+    pose_topic: String,
+    wrench_topic: String,
+    last_pose: Option<Time>,
+    last_wrench: Option<Time>,
+    /// The tool as the stages see it (the solver holds a copy).
+    tool: crate::solver::Tool,
+}
+
+struct DpcmStage {
+    engine: DpcmEngine,
+    config: DpcmConfig,
+    calibration: Calibration,
+    steps_per_tick: usize,
+    last_image_time: f64,
+    /// No marker in reach and the surface at rest: steps are skipped, and the last images
+    /// repeat once a second for subscribers that join late.
+    asleep: bool,
+    last_displacement: Vec<f32>,
+    last_heights: Vec<f32>,
+}
+
+/// Seconds of simulated time between surface markers.
+const MARKER_PERIOD: f64 = 0.1;
+/// Mesh kinetic energy (J) under which, with no tool touching or pushing, the solver sleeps.
+const SLEEP_ENERGY: f64 = 1e-9;
+/// Steps the mesh must stay that quiet first.
+const SLEEP_AFTER: u32 = 20;
+
+pub struct Pipeline {
+    scene: Scene,
+    volume: Arc<Volume>,
+    mesh: TetMesh,
+    /// `None` when the scene disables the solver.
+    engine: Option<Engine>,
+    backend: BackendChoice,
+    allow_software_gpu: bool,
+    tools: Vec<ToolState>,
+    limits: InputLimits,
+    counters: InputCounters,
+    /// Warp and raycast, when the scene has either.
+    frames: Option<frames::Frames>,
+    /// The warped volume's grid (known before the first warp: the publisher needs it).
+    warp_grid: Option<Grid>,
+    mode: FrameMode,
+    dpcm: Option<DpcmStage>,
+    paused: bool,
+    quiet_steps: u32,
+    asleep: bool,
+    last_report: Option<StepReport>,
+    last_diagnostics: f64,
+    last_marker: f64,
+    times: StageTimes,
+    /// Positions after the last step, world units.
+    positions: Vec<Vector3<f64>>,
+}
+
+impl Pipeline {
+    /// Loads the scene and initialises the stages it enables (and only those).
+    pub fn new(scene: Scene, backend: BackendChoice, allow_software_gpu: bool, limits: InputLimits, mode: FrameMode) -> Result<Self, PipelineError> {
+        if !scene.stages.solver && scene.stages.warp {
+            return Err(PipelineError::Invalid("the warp stage follows the solver's mesh: enable stages.solver too".into()));
+        }
+        let LoadedScene { scene, volume, mesh, model } = scene.load()?;
+        let tools: Vec<ToolState> = scene
+            .tools
+            .iter()
+            .enumerate()
+            .map(|(i, config)| {
+                let mut tool = crate::solver::Tool::new(config.shape, config.contact_stiffness);
+                tool.spread_radius = config.spread_radius;
+                if let Some(p) = config.path.as_ref().map(|path| path.position(0.0)) {
+                    tool.world_from_tool = nalgebra::Isometry3::translation(p.x, p.y, p.z);
+                }
+                ToolState { pose_topic: config.pose_topic(i), wrench_topic: config.wrench_topic(i), last_pose: None, last_wrench: None, tool }
+            })
+            .collect();
+        let engine = match scene.stages.solver {
+            true => {
+                let engine = Engine::new(backend, allow_software_gpu, &model, scene.solver.clone(), tools.iter().map(|t| t.tool.clone()).collect())?;
+                tracing::info!("solver: {} ({} nodes, {} tets)", engine.name(), mesh.nodes().len(), mesh.tets().len());
+                Some(engine)
+            }
+            false => None,
+        };
+        let positions = engine.as_ref().map_or_else(|| mesh.nodes().to_vec(), Engine::positions);
+        let volume = Arc::new(volume);
+        let mut pipeline = Self {
+            scene,
+            volume,
+            mesh,
+            engine,
+            backend,
+            allow_software_gpu,
+            tools,
+            limits,
+            counters: InputCounters::default(),
+            frames: None,
+            warp_grid: None,
+            mode,
+            dpcm: None,
+            paused: false,
+            quiet_steps: 0,
+            asleep: false,
+            last_report: None,
+            last_diagnostics: f64::NEG_INFINITY,
+            last_marker: f64::NEG_INFINITY,
+            times: StageTimes::default(),
+            positions,
+        };
+        pipeline.init_stages()?;
+        Ok(pipeline)
+    }
+
+    fn init_stages(&mut self) -> Result<(), PipelineError> {
+        let stages = self.scene.stages;
+        self.frames = None;
+        self.warp_grid = None;
+        self.dpcm = None;
+        let warp = match stages.warp {
+            false => None,
+            true => {
+                let config = &self.scene.warp;
+                if !(config.rate_hz.is_finite() && config.rate_hz > 0.0 && config.tolerance.is_finite() && config.tolerance >= 0.0) {
+                    return Err(PipelineError::Invalid(format!("warp: rate_hz {} must be > 0 and tolerance {} >= 0", config.rate_hz, config.tolerance)));
+                }
+                let to_file = 1.0 / self.scene.file_to_world;
+                let mut rest = self.mesh.clone();
+                rest.map_nodes(|p| p * to_file);
+                let deformed: Vec<_> = self.positions.iter().map(|p| p * to_file).collect();
+                let options = WarpOptions { background: self.volume.range().0, keep_uncovered: true, ..Default::default() };
+                let start = Instant::now();
+                let (warp, _) = IncrementalWarp::new(self.volume.clone(), Arc::new(rest), &deformed, self.volume.grid(), options)?;
+                self.times.warp = start.elapsed().as_secs_f64() * 1e3;
+                self.warp_grid = Some(warp.grid().clone());
+                Some((warp, config.tolerance * to_file))
+            }
+        };
+        let raycast = match stages.raycast {
+            false => None,
+            true => {
+                let c = &self.scene.camera;
+                if !(c.rate_hz.is_finite() && c.rate_hz > 0.0) {
+                    return Err(PipelineError::Invalid(format!("camera: rate_hz {} must be > 0", c.rate_hz)));
+                }
+                let to_file = 1.0 / self.scene.file_to_world;
+                let point = |p: [f64; 3]| Point3::from(Vector3::from(p) * to_file);
+                let camera = Camera::look_at(point(c.eye), point(c.target), Vector3::from(c.up), Projection::Perspective { fov_y_deg: c.fov_y_deg }, c.width, c.height)?;
+                let tf = TransferFunction::preset(&c.transfer_function)?;
+                let params = RaycastParams { step: c.step, ..Default::default() };
+                // Prepared once here so that a bad parameter fails at start, not mid-run.
+                VolumeRaycaster::new(&self.volume, &tf, &params)?;
+                Some(frames::RaycastSetup { tf, params, camera })
+            }
+        };
+        if warp.is_some() || raycast.is_some() {
+            let worker = frames::FrameWorker { warp, raycast, volume: self.volume.clone(), sequence: 0 };
+            self.frames = Some(frames::Frames::new(worker, self.mode, self.scene.warp.rate_hz, self.scene.camera.rate_hz)?);
+        }
+        if stages.dpcm {
+            let c = &self.scene.dpcm;
+            let mut config = if c.preset.ends_with(".yaml") || c.preset.ends_with(".yml") { DpcmConfig::load(std::path::Path::new(&c.preset))? } else { DpcmConfig::preset(&c.preset)? };
+            if let Some([w, h]) = c.size {
+                (config.width, config.height) = (w, h);
+            }
+            if let Some(spacing) = c.spacing {
+                config.spacing = spacing;
+            }
+            let engine = DpcmEngine::new(&config, self.backend, self.allow_software_gpu)?;
+            let steps_per_tick = (self.scene.solver.dt / config.dt).round().max(1.0) as usize;
+            let calibration = Calibration { world_from_grid: nalgebra::Isometry3::translation(c.origin[0], c.origin[1], c.origin[2]), spacing: config.spacing };
+            tracing::info!("DPCM: {} {}x{}, {} steps per solver step", engine.name(), config.width, config.height, steps_per_tick);
+            self.dpcm = Some(DpcmStage { engine, config, calibration, steps_per_tick, last_image_time: f64::NEG_INFINITY, asleep: false, last_heights: Vec::new(), last_displacement: Vec::new() });
+        }
+        Ok(())
+    }
+
+    pub fn scene(&self) -> &Scene {
+        &self.scene
+    }
+    pub fn mesh(&self) -> &TetMesh {
+        &self.mesh
+    }
+    pub fn positions(&self) -> &[Vector3<f64>] {
+        &self.positions
+    }
+    pub fn asleep(&self) -> bool {
+        self.asleep
+    }
+    pub fn paused(&self) -> bool {
+        self.paused
+    }
+    pub fn counters(&self) -> &InputCounters {
+        &self.counters
+    }
+    pub fn backend_name(&self) -> String {
+        self.engine.as_ref().map_or_else(|| "off".into(), Engine::name)
+    }
+    pub fn last_report(&self) -> Option<&StepReport> {
+        self.last_report.as_ref()
+    }
+    pub fn times(&self) -> StageTimes {
+        self.times
+    }
+    /// The pose and wrench topics of each tool.
+    pub fn tool_topics(&self) -> Vec<(String, String)> {
+        self.tools.iter().map(|t| (t.pose_topic.clone(), t.wrench_topic.clone())).collect()
+    }
+
+    /// The latest warped volume (grid in file units, samples, sequence), once one is made.
+    pub fn warped_volume(&self) -> Option<&WarpedVolume> {
+        self.frames.as_ref().and_then(|f| f.latest.as_ref())
+    }
+
+    /// The grid warped volumes come on, when the scene warps.
+    pub fn warped_grid(&self) -> Option<&Grid> {
+        self.warp_grid.as_ref()
+    }
+
+    pub fn pause(&mut self) {
+        self.paused = true;
+    }
+    pub fn resume(&mut self) {
+        self.paused = false;
+    }
+
+    /// Back to the rest state: the mesh, the DPCM surface and the tools' input history.
+    pub fn reset(&mut self) -> Result<(), PipelineError> {
+        let model_scene = self.scene.clone();
+        let replacement = Self::new(model_scene, self.backend, self.allow_software_gpu, self.limits.clone(), self.mode)?;
+        let paused = self.paused;
+        *self = replacement;
+        self.paused = paused;
+        Ok(())
+    }
+
+    /// Replaces the scene; on error the running one is kept.
+    pub fn load_scene(&mut self, scene: Scene) -> Result<(), PipelineError> {
+        *self = Self::new(scene, self.backend, self.allow_software_gpu, self.limits.clone(), self.mode)?;
+        Ok(())
+    }
+
+    /// Applies a tool pose; refused ones are counted and leave the tool where it was.
+    pub fn apply_pose(&mut self, topic: &str, msg: &PoseStamped, now: Time) -> Result<(), Rejection> {
+        let outcome = self.pose_outcome(topic, msg, now);
+        self.counters.record(&outcome);
+        outcome
+    }
+
+    fn pose_outcome(&mut self, topic: &str, msg: &PoseStamped, now: Time) -> Result<(), Rejection> {
+        let Some(index) = self.tools.iter().position(|t| t.pose_topic == topic) else { return Err(Rejection::UnknownTopic { topic: topic.into() }) };
+        let checker = Checker { limits: &self.limits, world_frame: &self.scene.frame_id, now };
+        let world_from_tool = checker.pose(topic, msg, self.tools[index].last_pose)?;
+        let state = &mut self.tools[index];
+        state.last_pose = Some(msg.header.stamp);
+        if state.tool.world_from_tool != world_from_tool {
+            state.tool.world_from_tool = world_from_tool;
+            self.wake();
+        }
+        Ok(())
+    }
+
+    /// Applies a commanded tool force.
+    pub fn apply_wrench(&mut self, topic: &str, msg: &WrenchStamped, now: Time) -> Result<(), Rejection> {
+        let outcome = self.wrench_outcome(topic, msg, now);
+        self.counters.record(&outcome);
+        outcome
+    }
+
+    fn wrench_outcome(&mut self, topic: &str, msg: &WrenchStamped, now: Time) -> Result<(), Rejection> {
+        let Some(index) = self.tools.iter().position(|t| t.wrench_topic == topic) else { return Err(Rejection::UnknownTopic { topic: topic.into() }) };
+        let checker = Checker { limits: &self.limits, world_frame: &self.scene.frame_id, now };
+        let force = checker.wrench(topic, msg, self.tools[index].last_wrench)?;
+        let state = &mut self.tools[index];
+        state.last_wrench = Some(msg.header.stamp);
+        if state.tool.applied_force != force {
+            state.tool.applied_force = force;
+            self.wake();
+        }
+        Ok(())
+    }
+
+    /// Moves scripted tools along their paths (the demo); tools without a path stay.
+    pub fn follow_scripts(&mut self, t: f64) {
+        let mut moved = false;
+        for (state, config) in self.tools.iter_mut().zip(&self.scene.tools) {
+            let Some(p) = config.path.as_ref().map(|path| path.position(t)) else { continue };
+            let iso = nalgebra::Isometry3::translation(p.x, p.y, p.z);
+            moved |= state.tool.world_from_tool != iso;
+            state.tool.world_from_tool = iso;
+        }
+        if moved {
+            self.wake();
+        }
+    }
+
+    fn wake(&mut self) {
+        self.asleep = false;
+        self.quiet_steps = 0;
+        if let Some(f) = &mut self.frames {
+            f.raycast_stale = true;
+        }
+    }
+
+    /// One solver step (unless paused or asleep), then every wanted output that changed.
+    /// `stamp` stamps the outputs.
+    pub fn tick(&mut self, stamp: Time, demand: &Demand) -> Result<Outputs, PipelineError> {
+        let mut out = Outputs::default();
+        if let (Some(engine), false, false) = (&mut self.engine, self.paused, self.asleep) {
+            for (index, state) in self.tools.iter().enumerate() {
+                let tool = engine.tool_mut(index)?;
+                tool.world_from_tool = state.tool.world_from_tool;
+                tool.applied_force = state.tool.applied_force;
+            }
+            let start = Instant::now();
+            let report = engine.step()?;
+            self.times.solver = start.elapsed().as_secs_f64() * 1e3;
+            self.positions = engine.positions();
+            let touching = report.reaction_force.iter().any(|f| *f != 0.0) || self.tools.iter().any(|t| t.tool.applied_force != Vector3::zeros());
+            self.quiet_steps = if report.kinetic_energy < SLEEP_ENERGY && !touching { self.quiet_steps + 1 } else { 0 };
+            self.asleep = self.quiet_steps >= SLEEP_AFTER;
+            self.last_report = Some(report);
+            out.stepped = true;
+            if let Some(f) = &mut self.frames {
+                (f.warp_stale, f.raycast_stale) = (true, true);
+            }
+        }
+        // Output rates run on the stamps' clock (bag time in replays, wall time live), which
+        // goes on while the solver sleeps.
+        let clock = stamp.as_secs();
+        if let (Some(report), true) = (&self.last_report, demand.tool_feedback && out.stepped) {
+            out.tool_feedback = Some(outputs::feedback(report, stamp, &self.scene.frame_id));
+        }
+        if out.stepped && demand.deformed_mesh {
+            out.deformed_mesh = Some(outputs::deformed_mesh(&self.mesh, &self.positions, self.last_report.as_ref().map_or(0, |r| r.step), stamp, &self.scene.frame_id));
+        }
+        // The marker repeats every triangle corner (hundreds of kB): 10 Hz is what a viewer needs.
+        if out.stepped && demand.surface_marker && clock - self.last_marker >= MARKER_PERIOD - 1e-9 {
+            self.last_marker = clock;
+            out.surface_marker = Some(outputs::surface_marker(&self.mesh, &self.positions, stamp, &self.scene.frame_id));
+        }
+        let to_file = 1.0 / self.scene.file_to_world;
+        if let Some(frames) = &mut self.frames {
+            let (positions, tools, scene) = (&self.positions, &self.tools, &self.scene);
+            let done = frames.tick(
+                clock,
+                stamp,
+                demand.warped_volume,
+                demand.raycast,
+                || positions.iter().map(|p| p * to_file).collect(),
+                || {
+                    tools
+                        .iter()
+                        .zip(&scene.tools)
+                        .take(crate::render::raycast::MAX_TOOLS)
+                        .map(|(t, c)| {
+                            let (a, b) = t.tool.segment();
+                            ToolPicture { tip: (a * to_file).into(), tail: (b * to_file).into(), radius: c.shape.radius() * to_file, color: [0.75, 0.78, 0.82] }
+                        })
+                        .collect()
+                },
+            )?;
+            out.warped_volume = done.warped.is_some();
+            out.raycast = done.image;
+            self.times.warp = done.warp_ms.unwrap_or(self.times.warp);
+            self.times.raycast = done.raycast_ms.unwrap_or(self.times.raycast);
+        }
+        if demand.dpcm_height || demand.dpcm_image {
+            let (height, image) = self.run_dpcm(clock, stamp, demand)?;
+            (out.dpcm_height, out.dpcm_image) = (height, image);
+        }
+        if demand.diagnostics && clock - self.last_diagnostics >= 1.0 - 1e-9 {
+            self.last_diagnostics = clock;
+            out.diagnostics = Some(outputs::diagnostics(self, stamp));
+        }
+        Ok(out)
+    }
+
+    fn run_dpcm(&mut self, clock: f64, stamp: Time, demand: &Demand) -> Result<(Option<Image>, Option<Image>), PipelineError> {
+        let Some(d) = &mut self.dpcm else { return Ok((None, None)) };
+        if self.paused {
+            return Ok((None, None));
+        }
+        // Markers out of reach of the grid are left out (their footprint misses it).
+        let reach = d.config.marker.threshold / d.config.spacing;
+        let markers: Vec<_> = (self.tools.iter().enumerate())
+            .map(|(i, t)| d.calibration.marker(i as u32, Point3::from(t.tool.tip())))
+            .filter(|m| m.col >= -reach && m.row >= -reach && m.col <= d.config.width as f64 + reach && m.row <= d.config.height as f64 + reach && m.height.abs() <= d.config.marker.threshold)
+            .collect();
+        if !markers.is_empty() {
+            d.asleep = false;
+        }
+        let period = if d.asleep { 1.0 } else { 1.0 / self.scene.dpcm.rate_hz };
+        if !d.asleep {
+            let start = Instant::now();
+            for _ in 0..d.steps_per_tick {
+                d.engine.step(&markers);
+            }
+            self.times.dpcm = start.elapsed().as_secs_f64() * 1e3;
+        }
+        if clock - d.last_image_time < period - 1e-9 {
+            return Ok((None, None));
+        }
+        d.last_image_time = clock;
+        let (heights, displacement) = if d.asleep { (d.last_heights.clone(), d.last_displacement.clone()) } else { d.engine.heights_and_displacement()? };
+        // At rest when nothing touches it and no phyxel moved a nanometre since the last image.
+        let settled = d.last_heights.len() == heights.len() && heights.iter().zip(&d.last_heights).all(|(a, b)| (a - b).abs() < 1e-9);
+        d.asleep = markers.is_empty() && settled;
+        d.last_heights.clone_from(&heights);
+        d.last_displacement.clone_from(&displacement);
+        let (w, h) = (d.config.width, d.config.height);
+        let height = demand.dpcm_height.then(|| outputs::float_image(&heights, w, h, stamp, "dpcm"));
+        let image = demand.dpcm_image.then(|| {
+            let picture = crate::dpcm::render::colour_map(&displacement, w, h, &d.config.render);
+            outputs::rgb_image(picture.rgb, w, h, stamp, "dpcm")
+        });
+        Ok((height, image))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::msgs::{Header, Pose};
+
+    /// The default scene, small: 600 tets, solver only unless `stages` says more.
+    fn scene(stages: crate::scene::Stages) -> Scene {
+        let mut scene = Scene::default_scene().unwrap();
+        if let crate::scene::MeshSource::VolumeLattice { target_tets, .. } = &mut scene.mesh {
+            *target_tets = 600;
+        }
+        scene.stages = stages;
+        (scene.camera.width, scene.camera.height, scene.camera.step) = (32, 24, 4.0);
+        scene.dpcm.size = Some([32, 32]);
+        scene
+    }
+
+    fn pipeline(scene: Scene) -> Pipeline {
+        Pipeline::new(scene, BackendChoice::Cpu, false, InputLimits { max_age: None, ..Default::default() }, FrameMode::Lockstep).unwrap()
+    }
+
+    fn pose(t: f64, z: f64) -> PoseStamped {
+        let mut msg = PoseStamped { header: Header { stamp: Time::from_secs(t), frame_id: "world".into() }, pose: Pose::default() };
+        msg.pose.position.z = z;
+        msg
+    }
+
+    #[test]
+    fn disabled_stages_are_never_initialised_and_unwanted_outputs_not_computed() {
+        let mut p = pipeline(scene(crate::scene::Stages::default()));
+        assert!(p.frames.is_none() && p.dpcm.is_none() && p.warped_grid().is_none());
+        let out = p.tick(Time::from_secs(0.01), &Demand::NONE).unwrap();
+        assert!(out.stepped, "the solver runs whoever listens: feedback is its product");
+        assert!(out.tool_feedback.is_none() && out.deformed_mesh.is_none() && out.surface_marker.is_none() && out.diagnostics.is_none());
+        let out = p.tick(Time::from_secs(0.02), &Demand::ALL).unwrap();
+        let (mesh, feedback) = (out.deformed_mesh.unwrap(), out.tool_feedback.unwrap());
+        assert_eq!(mesh.positions.len(), 3 * p.mesh().nodes().len());
+        assert_eq!(mesh.triangles.len(), 3 * p.mesh().boundary().len());
+        let report = p.last_report().unwrap();
+        assert_eq!((mesh.step, feedback.wrench.force.z), (report.step, report.reaction_force[2]));
+        assert!(out.raycast.is_none() && out.dpcm_height.is_none() && !out.warped_volume, "disabled stages give nothing");
+    }
+
+    #[test]
+    fn the_solver_sleeps_at_rest_and_wakes_when_a_tool_moves() {
+        let mut s = scene(crate::scene::Stages::default());
+        s.solver.gravity = [0.0; 3];
+        s.tools[0].path = None;
+        let mut p = pipeline(s);
+        // The probe starts far above: nothing touches, nothing moves.
+        p.apply_pose("tool_pose", &pose(0.0, 0.5), Time::from_secs(0.0)).unwrap();
+        let stepped: Vec<bool> = (1..=40).map(|k| p.tick(Time::from_secs(k as f64 * 0.01), &Demand::ALL).unwrap().stepped).collect();
+        assert_eq!(stepped.iter().filter(|s| **s).count(), SLEEP_AFTER as usize, "asleep after {SLEEP_AFTER} quiet steps");
+        assert!(p.asleep());
+        // Pressing 5 mm into the top node nearest the centre wakes it, and it stays awake
+        // while the tool touches (contact acts on nodes: aim at one on this coarse mesh).
+        let top = p.mesh().nodes().iter().filter(|n| n.z > 0.06).min_by(|a, b| (a.x.hypot(a.y)).total_cmp(&b.x.hypot(b.y))).copied().unwrap();
+        let mut press = pose(0.5, top.z + 0.02);
+        (press.pose.position.x, press.pose.position.y) = (top.x, top.y);
+        p.apply_pose("tool_pose", &press, Time::from_secs(0.5)).unwrap();
+        for k in 0..50 {
+            let stepped = p.tick(Time::from_secs(0.5 + k as f64 * 0.01), &Demand::ALL).unwrap().stepped;
+            assert!(stepped, "step {k} after the press: {:?}", p.last_report());
+        }
+        assert!(p.last_report().unwrap().reaction_force[2] > 0.5);
+        // A refused pose leaves the tool where it was and is counted.
+        assert!(p.apply_pose("tool_pose", &pose(1.0, f64::NAN), Time::from_secs(1.0)).is_err());
+        assert!(p.apply_pose("elsewhere", &pose(1.0, 0.0), Time::from_secs(1.0)).is_err());
+        assert_eq!(p.counters().total_rejected(), 2);
+        assert_eq!(p.tools[0].tool.tip().z, top.z + 0.02);
+    }
+
+    #[test]
+    fn warp_and_raycast_run_only_when_something_changed() {
+        let stages = crate::scene::Stages { solver: true, warp: true, dpcm: true, raycast: true };
+        let mut p = pipeline(scene(stages));
+        let first = p.tick(Time::from_secs(0.01), &Demand::ALL).unwrap();
+        assert!(first.warped_volume && first.raycast.is_some());
+        let warped = p.warped_volume().unwrap();
+        assert_eq!((warped.data.len(), warped.sequence), (256 * 160 * 122, 1));
+        // Within the rate limit nothing is redone.
+        let next = p.tick(Time::from_secs(0.02), &Demand::ALL).unwrap();
+        assert!(!next.warped_volume && next.raycast.is_none());
+        // Paused: no step; the motion of step 2 is warped once when due, then nothing more.
+        p.pause();
+        let mut paused_warps = 0;
+        for k in 3..30 {
+            let out = p.tick(Time::from_secs(k as f64 * 0.01), &Demand::ALL).unwrap();
+            assert!(!out.stepped);
+            paused_warps += usize::from(out.warped_volume);
+        }
+        assert_eq!(paused_warps, 1);
+        p.resume();
+        let mut warps = 0;
+        for k in 30..60 {
+            warps += usize::from(p.tick(Time::from_secs(k as f64 * 0.01), &Demand::ALL).unwrap().warped_volume);
+        }
+        assert_eq!(warps, 3, "10 Hz of simulated time over 0.3 s");
+        // Reset brings the rest state back.
+        p.reset().unwrap();
+        assert!(p.last_report().is_none() && p.positions() == p.mesh().nodes());
+    }
+
+    #[test]
+    fn background_frames_never_hold_the_solver_up() {
+        let stages = crate::scene::Stages { solver: true, warp: true, dpcm: false, raycast: true };
+        let mut p = Pipeline::new(scene(stages), BackendChoice::Cpu, false, InputLimits { max_age: None, ..Default::default() }, FrameMode::Background).unwrap();
+        let first = p.tick(Time::from_secs(0.01), &Demand::ALL).unwrap();
+        assert!(first.stepped && first.raycast.is_none() && !first.warped_volume, "the frame is in flight, not waited for");
+        let start = std::time::Instant::now();
+        let mut steps_meanwhile = 0;
+        let image = loop {
+            let out = p.tick(Time::from_secs(0.01), &Demand::ALL).unwrap();
+            if let Some(image) = out.raycast {
+                assert!(out.warped_volume, "the warp came along with the picture");
+                break image;
+            }
+            steps_meanwhile += usize::from(out.stepped);
+            assert!(start.elapsed() < std::time::Duration::from_secs(60), "no frame came back");
+        };
+        assert!(steps_meanwhile >= 1, "the solver stepped while the frame was made");
+        assert_eq!((image.width, image.height), (32, 24));
+        assert_eq!(p.warped_volume().unwrap().sequence, 1);
+    }
+}

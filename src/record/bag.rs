@@ -1,0 +1,292 @@
+//! rosbag2-compatible MCAP recording: profile `ros2`, `ros2msg` schemas with their
+//! dependencies, `cdr` messages, `offered_qos_profiles` on every channel. Chunks are small
+//! and flushed as they fill, so a crash or a full disk loses at most the open chunk: what
+//! was written before stays readable.
+
+use std::collections::{BTreeMap, HashMap};
+use std::fs::File;
+use std::io::{BufWriter, Seek, Write};
+use std::path::{Path, PathBuf};
+
+use mcap::records::MessageHeader;
+
+use super::Qos;
+use crate::msgs::{self, Message, MsgError};
+
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum RecordError {
+    #[error("{path}: {message}")]
+    File { path: PathBuf, message: String },
+    #[error("{path}: recording stopped after an earlier error: {first}")]
+    Stopped { path: PathBuf, first: String },
+    #[error(transparent)]
+    Message(#[from] MsgError),
+    #[error("{path}: {message}")]
+    Read { path: PathBuf, message: String },
+}
+
+/// Messages per chunk are bounded by bytes: 1 MiB chunks keep the loss on a crash small.
+const CHUNK_BYTES: u64 = 1 << 20;
+
+/// An MCAP file being written. The first write error stops the recording (reported once,
+/// by the call that met it); the node goes on without it.
+pub struct Recorder<W: Write + Seek = BufWriter<File>> {
+    path: PathBuf,
+    writer: Option<mcap::Writer<W>>,
+    schemas: HashMap<&'static str, u16>,
+    channels: HashMap<String, u16>,
+    sequence: u32,
+    messages: u64,
+    failure: Option<String>,
+    /// The sink as the failure left it (no summary written onto a half-written chunk).
+    failed_sink: Option<W>,
+}
+
+/// What a finished recording holds.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct RecordSummary {
+    pub messages: u64,
+    pub channels: usize,
+}
+
+impl Recorder {
+    pub fn create(path: &Path) -> Result<Self, RecordError> {
+        if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+            std::fs::create_dir_all(dir).map_err(|e| RecordError::File { path: path.to_owned(), message: format!("cannot create its folder: {e}") })?;
+        }
+        let file = File::create(path).map_err(|e| RecordError::File { path: path.to_owned(), message: e.to_string() })?;
+        Self::new(path, BufWriter::new(file))
+    }
+}
+
+impl<W: Write + Seek> Recorder<W> {
+    /// A recording into `sink`; `path` names it in errors.
+    pub fn new(path: &Path, sink: W) -> Result<Self, RecordError> {
+        let writer = mcap::WriteOptions::new()
+            .profile("ros2")
+            .library(concat!("defvol ", env!("CARGO_PKG_VERSION")))
+            .chunk_size(Some(CHUNK_BYTES))
+            .create(sink)
+            .map_err(|e| RecordError::File { path: path.to_owned(), message: e.to_string() })?;
+        Ok(Self { path: path.to_owned(), writer: Some(writer), schemas: HashMap::new(), channels: HashMap::new(), sequence: 0, messages: 0, failure: None, failed_sink: None })
+    }
+
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// Whether an error stopped the recording.
+    pub fn failure(&self) -> Option<&str> {
+        self.failure.as_deref()
+    }
+
+    /// The error and its causes ("… : No space left on device"), recorded as the failure.
+    fn fail_with(&mut self, error: &dyn std::error::Error) -> RecordError {
+        let mut message = error.to_string();
+        let mut source = error.source();
+        while let Some(cause) = source {
+            message = format!("{message}: {cause}");
+            source = cause.source();
+        }
+        self.fail(message)
+    }
+
+    fn fail(&mut self, message: String) -> RecordError {
+        self.failure = Some(message.clone());
+        // No summary after a failed write: readers still get every finished chunk.
+        self.failed_sink = self.writer.take().map(mcap::Writer::into_inner);
+        RecordError::File { path: self.path.clone(), message }
+    }
+
+    /// Records `msg` on `topic` (fully qualified, as `ros2 bag` lists it) at `log_time_ns`.
+    pub fn write<T: Message>(&mut self, topic: &str, qos: Qos, msg: &T, log_time_ns: u64) -> Result<(), RecordError> {
+        let data = msgs::encode(msg)?;
+        self.write_encoded(topic, T::NAME, qos, &data, log_time_ns)
+    }
+
+    /// Records an already CDR-encoded message of type `type_name`.
+    pub fn write_encoded(&mut self, topic: &str, type_name: &'static str, qos: Qos, data: &[u8], log_time_ns: u64) -> Result<(), RecordError> {
+        if let Some(first) = &self.failure {
+            return Err(RecordError::Stopped { path: self.path.clone(), first: first.clone() });
+        }
+        let channel = match self.channels.get(topic) {
+            Some(id) => *id,
+            None => {
+                let schema_text = msgs::ros2msg_schema(type_name)?;
+                let Some(writer) = self.writer.as_mut() else { return Err(RecordError::Stopped { path: self.path.clone(), first: String::new() }) };
+                let schema = match self.schemas.get(type_name) {
+                    Some(id) => Ok(*id),
+                    None => writer.add_schema(type_name, "ros2msg", schema_text.as_bytes()),
+                };
+                let metadata = BTreeMap::from([("offered_qos_profiles".to_owned(), qos.offered_profiles_yaml())]);
+                let added = schema.and_then(|schema| writer.add_channel(schema, topic, "cdr", &metadata).map(|channel| (schema, channel)));
+                let (schema, channel) = added.map_err(|e| self.fail_with(&e))?;
+                self.schemas.insert(type_name, schema);
+                self.channels.insert(topic.to_owned(), channel);
+                channel
+            }
+        };
+        self.sequence = self.sequence.wrapping_add(1);
+        let header = MessageHeader { channel_id: channel, sequence: self.sequence, log_time: log_time_ns, publish_time: log_time_ns };
+        let Some(writer) = self.writer.as_mut() else { return Err(RecordError::Stopped { path: self.path.clone(), first: String::new() }) };
+        writer.write_to_known_channel(&header, data).map_err(|e| self.fail_with(&e))?;
+        self.messages += 1;
+        Ok(())
+    }
+
+    /// Writes the summary; after an error, reports what was kept.
+    pub fn finish(mut self) -> Result<RecordSummary, RecordError> {
+        let summary = RecordSummary { messages: self.messages, channels: self.channels.len() };
+        if let Some(first) = self.failure.take() {
+            return Err(RecordError::Stopped { path: self.path.clone(), first });
+        }
+        let Some(mut writer) = self.writer.take() else { return Ok(summary) };
+        writer.finish().map_err(|e| RecordError::File { path: self.path.clone(), message: e.to_string() })?;
+        writer.into_inner().flush().map_err(|e| RecordError::File { path: self.path.clone(), message: e.to_string() })?;
+        Ok(summary)
+    }
+}
+
+impl<W: Write + Seek> Drop for Recorder<W> {
+    fn drop(&mut self) {
+        // A recorder dropped without `finish` (an error path) still closes its file properly.
+        if let Some(mut writer) = self.writer.take() {
+            if let Err(e) = writer.finish() {
+                tracing::warn!("{}: closing the recording: {e}", self.path.display());
+            }
+        }
+    }
+}
+
+/// A message read back from a bag.
+#[derive(Debug, Clone, PartialEq)]
+pub struct BagMessage {
+    pub topic: String,
+    pub type_name: String,
+    pub log_time_ns: u64,
+    pub data: Vec<u8>,
+}
+
+/// Every message of `topics` (all when empty) in log-time order. A bag cut short (no
+/// summary: a crash or a full disk while recording) is read up to its last whole chunk.
+pub fn read_messages(path: &Path, topics: &[&str]) -> Result<Vec<BagMessage>, RecordError> {
+    let bytes = std::fs::read(path).map_err(|e| RecordError::Read { path: path.to_owned(), message: e.to_string() })?;
+    let mut out = Vec::new();
+    for message in mcap::MessageStream::new(&bytes).map_err(|e| RecordError::Read { path: path.to_owned(), message: e.to_string() })? {
+        let message = match message {
+            Ok(m) => m,
+            // A truncated tail is where the recording stopped; what came before counts.
+            Err(mcap::McapError::UnexpectedEof | mcap::McapError::UnexpectedEoc) if !out.is_empty() => {
+                tracing::warn!("{}: the bag ends mid-record (recording cut short); read {} messages", path.display(), out.len());
+                break;
+            }
+            Err(e) => return Err(RecordError::Read { path: path.to_owned(), message: e.to_string() }),
+        };
+        if !topics.is_empty() && !topics.contains(&message.channel.topic.as_str()) {
+            continue;
+        }
+        let type_name = message.channel.schema.as_ref().map(|s| s.name.clone()).unwrap_or_default();
+        out.push(BagMessage { topic: message.channel.topic.clone(), type_name, log_time_ns: message.log_time, data: message.data.into_owned() });
+    }
+    out.sort_by_key(|m| m.log_time_ns);
+    Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::msgs::{Header, PoseStamped, Time, WrenchStamped};
+    use std::io::Cursor;
+
+    fn pose(t: f64, x: f64) -> PoseStamped {
+        let mut msg = PoseStamped { header: Header { stamp: Time::from_secs(t), frame_id: "world".into() }, ..Default::default() };
+        msg.pose.position.x = x;
+        msg
+    }
+
+    #[test]
+    fn bags_hold_ros2_channels_and_decode_to_what_was_written() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("s.mcap");
+        let mut rec = Recorder::create(&path).unwrap();
+        for i in 0..50 {
+            rec.write("/tool_pose", Qos::SensorData, &pose(i as f64 * 0.01, i as f64), 1_000 + i * 10_000_000).unwrap();
+        }
+        rec.write("/tool_feedback", Qos::Reliable, &WrenchStamped::default(), 5).unwrap();
+        assert_eq!(rec.finish().unwrap(), RecordSummary { messages: 51, channels: 2 });
+        let bytes = std::fs::read(&path).unwrap();
+        let summary = mcap::Summary::read(&bytes).unwrap().unwrap();
+        let channel = summary.channels.values().find(|c| c.topic == "/tool_pose").unwrap();
+        assert_eq!(channel.message_encoding, "cdr");
+        let schema = channel.schema.as_ref().unwrap();
+        assert_eq!((schema.name.as_str(), schema.encoding.as_str()), ("geometry_msgs/msg/PoseStamped", "ros2msg"));
+        assert!(std::str::from_utf8(&schema.data).unwrap().contains("MSG: std_msgs/Header"));
+        assert!(channel.metadata["offered_qos_profiles"].contains("reliability: 2"));
+        // The header record after the magic: opcode 0x01, length, then the profile string.
+        assert_eq!((bytes[8], &bytes[17..21], &bytes[21..25]), (0x01, &4u32.to_le_bytes()[..], &b"ros2"[..]));
+        let poses = read_messages(&path, &["/tool_pose"]).unwrap();
+        assert_eq!(poses.len(), 50);
+        assert_eq!(msgs::decode::<PoseStamped>(&poses[7].data, "t").unwrap(), pose(0.07, 7.0));
+        // Everything, in log-time order: the feedback (t = 5 ns) first.
+        assert_eq!(read_messages(&path, &[]).unwrap()[0].topic, "/tool_feedback");
+    }
+
+    /// A sink that fails once `room` bytes are written, like a disk filling up.
+    struct FillingDisk {
+        inner: Cursor<Vec<u8>>,
+        room: usize,
+    }
+    impl Write for FillingDisk {
+        fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+            let left = self.room.saturating_sub(self.inner.get_ref().len());
+            if left == 0 {
+                return Err(std::io::Error::new(std::io::ErrorKind::StorageFull, "No space left on device"));
+            }
+            self.inner.write(&buf[..buf.len().min(left)])
+        }
+        fn flush(&mut self) -> std::io::Result<()> {
+            Ok(())
+        }
+    }
+    impl Seek for FillingDisk {
+        fn seek(&mut self, pos: std::io::SeekFrom) -> std::io::Result<u64> {
+            self.inner.seek(pos)
+        }
+    }
+
+    #[test]
+    fn a_full_disk_stops_the_recording_and_keeps_what_was_written() {
+        let room = 3 * CHUNK_BYTES as usize + 1000;
+        let disk = FillingDisk { inner: Cursor::new(Vec::new()), room };
+        let mut rec = Recorder::new(Path::new("full.mcap"), disk).unwrap();
+        // Noise, so that zstd cannot shrink it below the disk's size.
+        let mut state = 0x9e37_79b9_7f4a_7c15u64;
+        let noise = (0..200_000).map(|_| {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            state as u8
+        });
+        let big = crate::msgs::Image { data: noise.collect(), ..Default::default() };
+        let mut written = 0;
+        let error = loop {
+            match rec.write("/raycast/image", Qos::SensorData, &big, written * 1000) {
+                Ok(()) => written += 1,
+                Err(e) => break e,
+            }
+            assert!(written < 1000, "the disk never filled");
+        };
+        assert!(error.to_string().contains("full.mcap") && error.to_string().contains("space"), "{error}");
+        assert!(matches!(rec.write("/raycast/image", Qos::SensorData, &big, 0), Err(RecordError::Stopped { .. })));
+        // The bytes on the "disk" read back as a bag up to the last whole chunk.
+        let bytes = rec.failed_sink.take().unwrap().inner.into_inner();
+        assert!(rec.finish().is_err());
+        let dir = tempfile::tempdir().unwrap();
+        let kept = dir.path().join("kept.mcap");
+        std::fs::write(&kept, &bytes).unwrap();
+        let read = read_messages(&kept, &[]).unwrap();
+        assert!(read.len() >= 10 && read.len() <= written as usize, "{} of {written} messages kept", read.len());
+        assert_eq!(msgs::decode::<crate::msgs::Image>(&read[3].data, "kept").unwrap().data, big.data);
+    }
+}

@@ -1,0 +1,114 @@
+//! Session logs for the rerun viewer: the deformed surface as a Mesh3D, the tools with
+//! their transforms and shapes, the raycast and DPCM images, and the diagnostics as plots,
+//! on a `sim_time` timeline.
+
+use std::path::Path;
+
+use crate::msgs::{DeformedMesh, DiagnosticArray, Image, WrenchStamped};
+use crate::scene::ToolConfig;
+use crate::solver::ToolShape;
+
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum RerunError {
+    #[error("rerun: {0}")]
+    Stream(String),
+    #[error("rerun: {0}")]
+    Log(String),
+}
+
+pub struct RerunLog {
+    stream: rerun::RecordingStream,
+}
+
+impl RerunLog {
+    /// A log written to an `.rrd` file.
+    pub fn save(path: &Path) -> Result<Self, RerunError> {
+        let stream = rerun::RecordingStreamBuilder::new("defvol").save(path).map_err(|e| RerunError::Stream(format!("{}: {e}", path.display())))?;
+        Ok(Self { stream })
+    }
+
+    /// A log streamed to a running viewer (`rerun+http://127.0.0.1:9876/proxy`).
+    pub fn connect(url: &str) -> Result<Self, RerunError> {
+        let stream = rerun::RecordingStreamBuilder::new("defvol").connect_grpc_opts(url.to_owned()).map_err(|e| RerunError::Stream(format!("{url}: {e}")))?;
+        Ok(Self { stream })
+    }
+
+    fn log(&self, path: &str, what: &impl rerun::AsComponents) -> Result<(), RerunError> {
+        self.stream.log(path, what).map_err(|e| RerunError::Log(format!("{path}: {e}")))
+    }
+
+    /// The tools' shapes, once (they move through their transforms).
+    pub fn log_tool_shapes(&self, tools: &[ToolConfig]) -> Result<(), RerunError> {
+        for tool in tools {
+            let path = format!("world/tools/{}", tool.name);
+            let logged = match tool.shape {
+                ToolShape::Sphere { radius } => self.stream.log_static(path.as_str(), &rerun::Ellipsoids3D::from_radii([radius as f32]).with_colors([rerun::Color::from_rgb(190, 200, 210)])),
+                ToolShape::Capsule { radius, length } => {
+                    self.stream.log_static(path.as_str(), &rerun::Capsules3D::from_lengths_and_radii([length as f32], [radius as f32]).with_colors([rerun::Color::from_rgb(190, 200, 210)]))
+                }
+            };
+            logged.map_err(|e| RerunError::Log(format!("{path}: {e}")))?;
+        }
+        Ok(())
+    }
+
+    pub fn set_time(&self, sim_time: f64) {
+        self.stream.set_duration_secs("sim_time", sim_time);
+    }
+
+    pub fn log_tool_pose(&self, name: &str, world_from_tool: &nalgebra::Isometry3<f64>) -> Result<(), RerunError> {
+        let (t, q) = (world_from_tool.translation.vector.cast::<f32>(), world_from_tool.rotation.quaternion().cast::<f32>());
+        self.log(&format!("world/tools/{name}"), &rerun::Transform3D::from_translation_rotation([t.x, t.y, t.z], rerun::Quaternion::from_xyzw([q.i, q.j, q.k, q.w])))
+    }
+
+    /// The boundary surface coloured by displacement, and the peak displacement as a plot.
+    pub fn log_mesh(&self, mesh: &DeformedMesh) -> Result<(), RerunError> {
+        let positions: Vec<[f32; 3]> = mesh.positions.chunks_exact(3).map(|p| [p[0], p[1], p[2]]).collect();
+        let triangles: Vec<[u32; 3]> = mesh.triangles.chunks_exact(3).map(|t| [t[0], t[1], t[2]]).collect();
+        let peak = mesh.scalars.iter().fold(1e-9f32, |m, d| m.max(*d));
+        let colors: Vec<rerun::Color> = mesh
+            .scalars
+            .iter()
+            .map(|d| {
+                let c = colorous::VIRIDIS.eval_continuous(f64::from(d / peak));
+                rerun::Color::from_rgb(c.r, c.g, c.b)
+            })
+            .collect();
+        self.log("world/organ", &rerun::Mesh3D::new(positions).with_triangle_indices(triangles).with_vertex_colors(colors))?;
+        self.log("plots/max_displacement_m", &rerun::Scalars::single(f64::from(peak)))
+    }
+
+    pub fn log_feedback(&self, feedback: &WrenchStamped) -> Result<(), RerunError> {
+        let f = feedback.wrench.force;
+        self.log("plots/tool_force_n", &rerun::Scalars::new([f.x, f.y, f.z]))
+    }
+
+    /// An RGB8/RGBA8 image, or a 32FC1 one as a depth image (metres).
+    pub fn log_image(&self, path: &str, image: &Image) -> Result<(), RerunError> {
+        let size = [image.width, image.height];
+        match image.encoding.as_str() {
+            "rgba8" => self.log(path, &rerun::Image::from_rgba32(image.data.clone(), size)),
+            "rgb8" => self.log(path, &rerun::Image::from_rgb24(image.data.clone(), size)),
+            "32FC1" => self.log(path, &rerun::DepthImage::from_data_type_and_bytes(image.data.clone(), size, rerun::ChannelDatatype::F32).with_meter(1.0)),
+            other => Err(RerunError::Log(format!("{path}: no rerun form for encoding {other}"))),
+        }
+    }
+
+    /// Every numeric diagnostic value as a plot under `diagnostics/<status>/<key>`.
+    pub fn log_diagnostics(&self, diagnostics: &DiagnosticArray) -> Result<(), RerunError> {
+        for status in &diagnostics.status {
+            let group = status.name.trim_start_matches("defvol: ");
+            for kv in &status.values {
+                if let Ok(value) = kv.value.parse::<f64>() {
+                    self.log(&format!("diagnostics/{group}/{}", kv.key), &rerun::Scalars::single(value))?;
+                }
+            }
+        }
+        Ok(())
+    }
+
+    pub fn flush(&self) -> Result<(), RerunError> {
+        self.stream.flush_blocking().map_err(|e| RerunError::Stream(e.to_string()))
+    }
+}

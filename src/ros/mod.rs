@@ -1,0 +1,9 @@
+//! The ROS 2 side: arguments and parameters (always built: they are plain parsing), the
+//! DDS participant and the node (the `ros` feature). The node is a thin layer: it turns
+//! topics into pipeline inputs and pipeline outputs into topics.
+
+pub mod args;
+#[cfg(feature = "ros")]
+pub mod dds;
+#[cfg(feature = "ros")]
+pub mod node;

@@ -1,0 +1,491 @@
+//! The ROS 2 node: tool poses and wrenches in, the pipeline's outputs out, parameters and
+//! services served, the session recorded. All computing is in [`crate::pipeline`]; this
+//! file only moves messages.
+
+use std::collections::BTreeMap;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{mpsc, Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use ros2_client::{MessageTypeName, Name, Node, NodeName, ParameterValue, Publisher, QosProfile, Server, ServiceMapping, ServiceTypeName, Subscription};
+use serde_yaml_ng::Value;
+
+use super::args::{self, RosArgs};
+use super::dds::{self, Discovery};
+use crate::engine::BackendChoice;
+use crate::msgs::{DeformedMesh, DiagnosticArray, Image, LoadSceneRequest, Marker, Message, PoseStamped, Time, TriggerRequest, TriggerResponse, WarpedVolumeInfo, WrenchStamped};
+use crate::pipeline::inputs::InputLimits;
+use crate::pipeline::{Demand, FrameMode, Pipeline, PipelineError};
+use crate::record::Qos;
+use crate::scene::Scene;
+use crate::session::{qualified, topics, RecordOptions, Session, SessionError};
+
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum NodeError {
+    #[error(transparent)]
+    Args(#[from] args::ArgsError),
+    #[error(transparent)]
+    Dds(#[from] dds::DdsError),
+    #[error("ROS 2: {0}")]
+    Ros(String),
+    #[error(transparent)]
+    Pipeline(#[from] PipelineError),
+    #[error(transparent)]
+    Session(#[from] SessionError),
+    #[cfg(feature = "shm")]
+    #[error(transparent)]
+    Shm(#[from] crate::shm::ShmError),
+}
+
+fn ros_err(what: &str) -> impl Fn(ros2_client::CreateError) -> NodeError + '_ {
+    move |e| NodeError::Ros(format!("{what}: {e:?}"))
+}
+
+macro_rules! ros_messages {
+    ($($ty:ty),*) => {
+        $(impl ros2_client::Message for $ty {})*
+    };
+}
+ros_messages!(PoseStamped, WrenchStamped, DeformedMesh, Marker, Image, WarpedVolumeInfo, DiagnosticArray, TriggerRequest, TriggerResponse, LoadSceneRequest);
+
+/// How the node runs, beside its scene.
+#[derive(Debug, Clone)]
+pub struct NodeSettings {
+    pub ros: RosArgs,
+    pub record: RecordOptions,
+    pub backend: BackendChoice,
+    pub allow_software_gpu: bool,
+    pub open_discovery: bool,
+    /// Stop after this long (tests, benchmarks); run until Ctrl-C when `None`.
+    pub run_for: Option<Duration>,
+}
+
+fn type_name<T: Message>() -> MessageTypeName {
+    let mut parts = T::NAME.split('/');
+    let (package, name) = (parts.next().unwrap_or_default(), parts.last().unwrap_or_default());
+    MessageTypeName::new(package, name)
+}
+
+/// The QoS profiles of the node's topics (inputs: sensor data, so that both reliable and
+/// best-effort publishers connect; reliable writers never wait on a slow reader).
+pub fn qos(kind: Qos) -> QosProfile {
+    use ros2_client::qos::{Durability, History, Reliability, WhenFull};
+    let base = QosProfile::subscription_default();
+    match kind {
+        Qos::SensorData => base.history(History::KeepLast { depth: 5 }),
+        Qos::Reliable => base.reliability(Reliability::Reliable { when_full: WhenFull::Fail }).history(History::KeepLast { depth: 10 }),
+        Qos::Latched => base.reliability(Reliability::Reliable { when_full: WhenFull::Fail }).durability(Durability::TransientLocal).history(History::KeepLast { depth: 1 }),
+    }
+}
+
+struct Topics<'a> {
+    namespace: &'a str,
+    remaps: &'a BTreeMap<String, String>,
+}
+
+impl Topics<'_> {
+    /// The fully qualified name of a relative topic, remaps applied.
+    fn resolve(&self, topic: &str) -> String {
+        let remapped = self.remaps.get(topic).map_or(topic, String::as_str);
+        qualified(self.namespace, remapped)
+    }
+
+    fn publisher<T: Message + ros2_client::Message>(&self, node: &mut Node, topic: &str, kind: Qos) -> Result<(String, Publisher<T>), NodeError> {
+        let full = self.resolve(topic);
+        let name = Name::parse(&full).map_err(|e| NodeError::Ros(format!("topic {full}: {e:?}")))?;
+        let t = node.create_topic(&name, type_name::<T>(), &qos(kind)).map_err(ros_err(&full))?;
+        let publisher = node.create_publisher(&t, Some(qos(kind))).map_err(ros_err(&full))?;
+        Ok((full, publisher))
+    }
+
+    fn subscription<T: Message + ros2_client::Message + 'static>(&self, node: &mut Node, topic: &str) -> Result<(String, Subscription<T>), NodeError> {
+        let full = self.resolve(topic);
+        let name = Name::parse(&full).map_err(|e| NodeError::Ros(format!("topic {full}: {e:?}")))?;
+        let t = node.create_topic(&name, type_name::<T>(), &qos(Qos::SensorData)).map_err(ros_err(&full))?;
+        // Sensor-data QoS, but a deep queue: 1 kHz trackers send several poses per tick, and
+        // every one is checked and recorded.
+        let deep = qos(Qos::SensorData).history(ros2_client::qos::History::KeepLast { depth: 64 });
+        let subscription = node.create_subscription(&t, Some(deep)).map_err(ros_err(&full))?;
+        Ok((full, subscription))
+    }
+
+    fn server<Req: ros2_client::Message + Clone + 'static, Resp: ros2_client::Message + 'static>(&self, node: &mut Node, service: &str, package: &str, ty: &str) -> Result<Server<Req, Resp>, NodeError> {
+        let full = self.resolve(service);
+        let name = Name::parse(&full).map_err(|e| NodeError::Ros(format!("service {full}: {e:?}")))?;
+        let q = qos(Qos::Reliable);
+        node.create_server(ServiceMapping::Enhanced, &name, &ServiceTypeName::new(package, ty), q.clone(), q).map_err(ros_err(&full))
+    }
+}
+
+struct Publishers {
+    feedback: (String, Publisher<WrenchStamped>),
+    mesh: (String, Publisher<DeformedMesh>),
+    marker: (String, Publisher<Marker>),
+    raycast: (String, Publisher<Image>),
+    dpcm_height: (String, Publisher<Image>),
+    dpcm_image: (String, Publisher<Image>),
+    warped_info: (String, Publisher<WarpedVolumeInfo>),
+    diagnostics: (String, Publisher<DiagnosticArray>),
+}
+
+struct ToolSubscriptions {
+    pose_topic: String,
+    wrench_topic: String,
+    pose: Subscription<PoseStamped>,
+    wrench: Subscription<WrenchStamped>,
+}
+
+/// A parameter as YAML (how the scene reads it).
+fn yaml_of(value: &ParameterValue) -> Value {
+    match value {
+        ParameterValue::NotSet => Value::Null,
+        ParameterValue::Boolean(b) => Value::Bool(*b),
+        ParameterValue::Integer(i) => Value::from(*i),
+        ParameterValue::Double(d) => Value::from(*d),
+        ParameterValue::String(s) => Value::String(s.clone()),
+        ParameterValue::ByteArray(v) => Value::Sequence(v.iter().map(|b| Value::from(*b)).collect()),
+        ParameterValue::BooleanArray(v) => Value::Sequence(v.iter().map(|b| Value::Bool(*b)).collect()),
+        ParameterValue::IntegerArray(v) => Value::Sequence(v.iter().map(|i| Value::from(*i)).collect()),
+        ParameterValue::DoubleArray(v) => Value::Sequence(v.iter().map(|d| Value::from(*d)).collect()),
+        ParameterValue::StringArray(v) => Value::Sequence(v.iter().map(|s| Value::String(s.clone())).collect()),
+    }
+}
+
+/// A YAML value as a ROS parameter (integers stay integers, lists become arrays).
+fn parameter_of(value: &Value) -> ParameterValue {
+    match value {
+        Value::Bool(b) => ParameterValue::Boolean(*b),
+        Value::Number(n) if n.is_i64() => ParameterValue::Integer(n.as_i64().unwrap_or_default()),
+        Value::Number(n) => ParameterValue::Double(n.as_f64().unwrap_or_default()),
+        Value::String(s) => ParameterValue::String(s.clone()),
+        Value::Sequence(items) if items.iter().all(Value::is_bool) => ParameterValue::BooleanArray(items.iter().filter_map(Value::as_bool).collect()),
+        Value::Sequence(items) if items.iter().all(|v| v.as_i64().is_some()) => ParameterValue::IntegerArray(items.iter().filter_map(Value::as_i64).collect()),
+        Value::Sequence(items) if items.iter().all(Value::is_number) => ParameterValue::DoubleArray(items.iter().filter_map(Value::as_f64).collect()),
+        Value::Sequence(items) => ParameterValue::StringArray(items.iter().map(|v| serde_yaml_ng::to_string(v).unwrap_or_default().trim().to_owned()).collect()),
+        Value::Null => ParameterValue::NotSet,
+        other => ParameterValue::String(serde_yaml_ng::to_string(other).unwrap_or_default().trim().to_owned()),
+    }
+}
+
+/// Runs the node until Ctrl-C (or `run_for`); the recording is closed properly either way.
+pub fn run(settings: NodeSettings) -> Result<(), NodeError> {
+    let scene = args::scene_from_parameters(&settings.ros.parameters)?;
+    let limits = InputLimits::default();
+    let mut pipeline = Pipeline::new(scene, settings.backend, settings.allow_software_gpu, limits, FrameMode::Background)?;
+
+    let (domain, discovery) = dds::settings(|name| std::env::var(name).ok(), settings.open_discovery)?;
+    let context = dds::context(domain, discovery)?;
+    tracing::info!("DDS domain {domain}, discovery {}", if discovery == Discovery::Localhost { "on 127.0.0.1 only" } else { "open to the subnet" });
+    let node_name = NodeName::new(&settings.ros.namespace, &settings.ros.node_name).map_err(|e| NodeError::Ros(format!("node name: {e:?}")))?;
+
+    // Every scene field is a declared parameter; a change is checked, then reloads the scene.
+    let (changes, changed) = mpsc::channel::<(String, Value)>();
+    let mut options = ros2_client::NodeOptions::new().enable_rosout(true).start_parameter_services(true);
+    let mut declared = args::scene_parameters(pipeline.scene());
+    declared.extend(settings.ros.parameters.clone());
+    for (name, value) in &declared {
+        options = options.declare_parameter(name, parameter_of(value));
+    }
+    // The values in force: a set action repeating one of them (declaring does) changes nothing.
+    let parameters = Arc::new(Mutex::new(declared));
+    let validator_parameters = parameters.clone();
+    options = options.parameter_validator(Box::new(move |name, value| {
+        let Ok(mut candidate) = validator_parameters.lock().map(|p| p.clone()) else { return Err("parameter store poisoned".into()) };
+        candidate.insert(name.to_owned(), yaml_of(value));
+        args::check_scene(&candidate).map(drop)
+    }));
+    let changes = Mutex::new(changes);
+    options = options.parameter_set_action(Box::new(move |name, value| {
+        let sent = changes.lock().map_err(|_| "parameter channel poisoned".to_owned())?.send((name.to_owned(), yaml_of(value)));
+        sent.map_err(|_| "the node is stopping".to_owned())
+    }));
+    let mut node = context.new_node(node_name, options).map_err(|e| NodeError::Ros(format!("node: {e:?}")))?;
+    let spinner = node.spinner().map_err(ros_err("spinner"))?;
+    std::thread::spawn(move || {
+        if let Err(e) = futures::executor::block_on(spinner.spin()) {
+            tracing::error!("ROS 2 spinner stopped: {e:?}");
+        }
+    });
+
+    let topics = Topics { namespace: &settings.ros.namespace, remaps: &settings.ros.remaps };
+    let publishers = Publishers {
+        feedback: topics.publisher(&mut node, topics::TOOL_FEEDBACK, Qos::SensorData)?,
+        mesh: topics.publisher(&mut node, topics::DEFORMED_MESH, Qos::Reliable)?,
+        marker: topics.publisher(&mut node, topics::SURFACE_MARKER, Qos::Reliable)?,
+        raycast: topics.publisher(&mut node, topics::RAYCAST_IMAGE, Qos::SensorData)?,
+        dpcm_height: topics.publisher(&mut node, topics::DPCM_HEIGHT, Qos::SensorData)?,
+        dpcm_image: topics.publisher(&mut node, topics::DPCM_IMAGE, Qos::SensorData)?,
+        warped_info: topics.publisher(&mut node, topics::WARPED_VOLUME_INFO, Qos::Latched)?,
+        diagnostics: topics.publisher(&mut node, topics::DIAGNOSTICS, Qos::Reliable)?,
+    };
+    let mut tools = subscribe_tools(&topics, &mut node, &pipeline)?;
+    let reset: Server<TriggerRequest, TriggerResponse> = topics.server(&mut node, "reset", "std_srvs", "Trigger")?;
+    let pause: Server<TriggerRequest, TriggerResponse> = topics.server(&mut node, "pause", "std_srvs", "Trigger")?;
+    let resume: Server<TriggerRequest, TriggerResponse> = topics.server(&mut node, "resume", "std_srvs", "Trigger")?;
+    let load: Server<LoadSceneRequest, TriggerResponse> = topics.server(&mut node, "load_scene", "defvol", "LoadScene")?;
+
+    #[cfg(feature = "shm")]
+    let mut shm = match pipeline.warped_grid() {
+        Some(grid) => Some(crate::shm::WarpedVolumePublisher::new(&pipeline.scene().warp.service, grid)?),
+        None => None,
+    };
+    let mut session = Session::open(&settings.ros.namespace, &settings.record, &pipeline)?;
+    let stop = Arc::new(AtomicBool::new(false));
+    let stop_flag = stop.clone();
+    if let Err(e) = ctrlc::set_handler(move || stop_flag.store(true, Ordering::SeqCst)) {
+        tracing::warn!("no Ctrl-C handler ({e}); stop the node with SIGTERM");
+    }
+    tracing::info!("node {} up: tools on {:?}", node.fully_qualified_name(), tools.iter().map(|t| &t.pose_topic).collect::<Vec<_>>());
+
+    let started = Instant::now();
+    let period = Duration::from_secs_f64(pipeline.scene().solver.dt);
+    let mut next_tick = Instant::now();
+    let mut demand = Demand::NONE;
+    let mut ticks: u64 = 0;
+    while !stop.load(Ordering::SeqCst) && settings.run_for.is_none_or(|limit| started.elapsed() < limit) {
+        let now = node_now();
+        let mut inputs = 0;
+        for tool in &tools {
+            inputs += drain(&tool.pose, |msg| {
+                if pipeline.apply_pose(&tool.pose_topic, &msg, now).is_ok() {
+                    session.record_pose(&qualified(&settings.ros.namespace, &tool.pose_topic), &msg, &tool.pose_topic, None);
+                }
+            });
+            inputs += drain(&tool.wrench, |msg| {
+                if pipeline.apply_wrench(&tool.wrench_topic, &msg, now).is_ok() {
+                    session.record_wrench(&qualified(&settings.ros.namespace, &tool.wrench_topic), &msg);
+                }
+            });
+        }
+        serve(&reset, |_| result(pipeline.reset().map(|()| "reset to the rest state".into()).map_err(|e| e.to_string())));
+        serve(&pause, |_| {
+            pipeline.pause();
+            result(Ok("paused".into()))
+        });
+        serve(&resume, |_| {
+            pipeline.resume();
+            result(Ok("running".into()))
+        });
+        let mut reloaded = false;
+        serve(&load, |request| {
+            let loaded = scene_of(&request.scene).and_then(|scene| pipeline.load_scene(scene).map_err(|e| e.to_string()));
+            reloaded = loaded.is_ok();
+            result(loaded.map(|()| "scene loaded".into()).map_err(|e| format!("kept the running scene: {e}")))
+        });
+        while let Ok((name, value)) = changed.try_recv() {
+            let Ok(mut store) = parameters.lock() else { break };
+            if store.get(&name) == Some(&value) || (parameter_of(&value) == parameter_of(store.get(&name).unwrap_or(&Value::Null))) {
+                continue;
+            }
+            store.insert(name.clone(), value);
+            match args::scene_from_parameters(&store).map_err(|e| e.to_string()).and_then(|scene| pipeline.load_scene(scene).map_err(|e| e.to_string())) {
+                Ok(()) => {
+                    tracing::info!("parameter {name} set: scene reloaded");
+                    reloaded = true;
+                }
+                Err(e) => tracing::error!("parameter {name}: {e}; kept the running scene"),
+            }
+        }
+        if reloaded {
+            tools = subscribe_tools(&topics, &mut node, &pipeline)?;
+            #[cfg(feature = "shm")]
+            {
+                // The old publisher goes first: the service allows one.
+                drop(shm.take());
+                shm = match pipeline.warped_grid() {
+                    Some(grid) => Some(crate::shm::WarpedVolumePublisher::new(&pipeline.scene().warp.service, grid)?),
+                    None => None,
+                };
+            }
+        }
+
+        // Who listens decides what runs (checked at 10 Hz: discovery changes slowly).
+        if ticks % 10 == 0 {
+            let recorded = session.recording();
+            #[cfg(feature = "shm")]
+            let shm_listens = shm.as_ref().is_some_and(crate::shm::WarpedVolumePublisher::has_subscribers);
+            #[cfg(not(feature = "shm"))]
+            let shm_listens = false;
+            demand = Demand {
+                tool_feedback: recorded || listened(&node, &publishers.feedback),
+                deformed_mesh: recorded || listened(&node, &publishers.mesh),
+                surface_marker: recorded || listened(&node, &publishers.marker),
+                raycast: recorded || listened(&node, &publishers.raycast),
+                dpcm_height: recorded || listened(&node, &publishers.dpcm_height),
+                dpcm_image: recorded || listened(&node, &publishers.dpcm_image),
+                warped_volume: recorded || shm_listens || listened(&node, &publishers.warped_info),
+                diagnostics: true,
+            };
+        }
+        ticks += 1;
+        let stamp = node_now();
+        match pipeline.tick(stamp, &demand) {
+            Ok(out) => {
+                session.record_outputs(&out, &pipeline, stamp);
+                #[cfg(feature = "shm")]
+                if let (true, Some(shm), Some(warped)) = (out.warped_volume, shm.as_mut(), pipeline.warped_volume()) {
+                    if let Err(e) = shm.publish(&warped.grid, &warped.data, warped.sequence, stamp) {
+                        tracing::warn!("warped volume not sent: {e}");
+                    }
+                }
+                let info = out.warped_volume.then(|| crate::session::warped_info(&pipeline, stamp)).flatten();
+                publish(&publishers.feedback, out.tool_feedback);
+                publish(&publishers.mesh, out.deformed_mesh);
+                publish(&publishers.marker, out.surface_marker);
+                publish(&publishers.raycast, out.raycast);
+                publish(&publishers.dpcm_height, out.dpcm_height);
+                publish(&publishers.dpcm_image, out.dpcm_image);
+                publish(&publishers.warped_info, info);
+                publish(&publishers.diagnostics, out.diagnostics);
+            }
+            // A failed step (a diverging solver, say) is reported; the node stays up and
+            // can be reset or given another scene.
+            Err(e) => {
+                tracing::error!("step failed: {e}; pausing (call reset or load_scene)");
+                pipeline.pause();
+            }
+        }
+        // Real time: one tick per solver step; asleep with nothing coming in, poll gently.
+        next_tick += if pipeline.asleep() && inputs == 0 { period.max(Duration::from_millis(20)) } else { period };
+        let now = Instant::now();
+        if next_tick > now {
+            std::thread::sleep(next_tick - now);
+        } else if now - next_tick > period * 5 {
+            next_tick = now;
+        }
+    }
+    node.stop_spinner();
+    session.finish()?;
+    Ok(())
+}
+
+fn subscribe_tools(topics: &Topics<'_>, node: &mut Node, pipeline: &Pipeline) -> Result<Vec<ToolSubscriptions>, NodeError> {
+    pipeline
+        .tool_topics()
+        .into_iter()
+        .map(|(pose_topic, wrench_topic)| {
+            let (_, pose) = topics.subscription(node, &pose_topic)?;
+            let (_, wrench) = topics.subscription(node, &wrench_topic)?;
+            Ok(ToolSubscriptions { pose_topic, wrench_topic, pose, wrench })
+        })
+        .collect()
+}
+
+fn listened<T: serde::Serialize>(node: &Node, publisher: &(String, Publisher<T>)) -> bool {
+    node.subscription_count(&publisher.0) > 0
+}
+
+fn node_now() -> Time {
+    let since_epoch = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap_or_default();
+    Time::from_nanos(since_epoch.as_nanos() as u64)
+}
+
+/// Takes every waiting sample; undecodable ones are logged and skipped.
+fn drain<T: serde::de::DeserializeOwned + 'static>(subscription: &Subscription<T>, mut apply: impl FnMut(T)) -> usize {
+    let mut n = 0;
+    loop {
+        match subscription.take() {
+            Ok(Some((msg, _))) => {
+                apply(msg);
+                n += 1;
+            }
+            Ok(None) => return n,
+            Err(e) => {
+                tracing::warn!("a tool sample could not be read: {e:?}");
+                return n;
+            }
+        }
+    }
+}
+
+fn result(outcome: Result<String, String>) -> TriggerResponse {
+    match outcome {
+        Ok(message) => TriggerResponse { success: true, message },
+        Err(message) => {
+            tracing::error!("{message}");
+            TriggerResponse { success: false, message }
+        }
+    }
+}
+
+fn serve<Req: ros2_client::Message + Clone + 'static>(server: &Server<Req, TriggerResponse>, mut handle: impl FnMut(Req) -> TriggerResponse) {
+    while let Ok(Some((id, request))) = server.receive_request() {
+        if let Err(e) = server.send_response(id, handle(request)) {
+            tracing::warn!("service reply not sent: {e:?}");
+        }
+    }
+}
+
+fn publish<T: Message + std::fmt::Debug>(publisher: &(String, Publisher<T>), msg: Option<T>) {
+    let Some(msg) = msg else { return };
+    if let Err(e) = publisher.1.publish(msg) {
+        tracing::debug!("{}: not sent ({e:?})", publisher.0);
+    }
+}
+
+/// A scene from a `load_scene` request: a file path, or YAML text.
+fn scene_of(text: &str) -> Result<Scene, String> {
+    let path = std::path::Path::new(text.trim());
+    if !text.contains('\n') && path.exists() {
+        return Scene::from_file(path).map_err(|e| e.to_string());
+    }
+    Scene::parse(text, "load_scene request").map_err(|e| e.to_string())
+}
+
+/// The node's own options, outside `--ros-args` (each also a node parameter).
+#[derive(Debug, clap::Parser)]
+#[command(name = "defvol_node", about = "The defvol ROS 2 node: tool poses in; deformed meshes, warped volumes, DPCM surfaces and raycast images out")]
+struct NodeCli {
+    /// Record every input and output topic to this MCAP file (rosbag2's format).
+    #[arg(long)]
+    record: Option<std::path::PathBuf>,
+    /// Log the session to this rerun file (.rrd).
+    #[arg(long)]
+    rerun: Option<std::path::PathBuf>,
+    /// Stream the session to a running rerun viewer (e.g. rerun+http://127.0.0.1:9876/proxy).
+    #[arg(long)]
+    rerun_connect: Option<String>,
+    #[arg(long, value_enum, default_value = "auto")]
+    backend: BackendChoice,
+    #[arg(long)]
+    allow_software_gpu: bool,
+    /// Let DDS discovery reach other hosts (as ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET does).
+    #[arg(long)]
+    open_discovery: bool,
+    /// Stop after this many seconds (default: run until Ctrl-C).
+    #[arg(long)]
+    seconds: Option<f64>,
+}
+
+/// Settings from a command line: the node's options, then `--ros-args …`; node
+/// parameters (`-p record:=…`, `-p backend:=cpu`) fill what the options leave unset.
+pub fn settings_from_args(args: &[String]) -> Result<NodeSettings, NodeError> {
+    use clap::Parser as _;
+    let ros = RosArgs::parse(args, "defvol")?;
+    let mut argv = vec!["defvol_node".to_owned()];
+    argv.extend(ros.rest.iter().cloned());
+    let cli = NodeCli::try_parse_from(argv).map_err(|e| NodeError::Ros(e.to_string()))?;
+    let text = |name: &str| match ros.parameters.get(name) {
+        Some(Value::String(s)) if !s.is_empty() => Some(s.clone()),
+        _ => None,
+    };
+    let flag = |name: &str| ros.parameters.get(name).and_then(Value::as_bool).unwrap_or(false);
+    let backend = match text("backend") {
+        Some(name) => clap::ValueEnum::from_str(&name, true).map_err(|_| args::ArgsError::Parameter { name: "backend".into(), message: format!("`{name}` is not auto, cpu, cpu-f64 or gpu") })?,
+        None => cli.backend,
+    };
+    let run_for = match cli.seconds {
+        Some(s) if s.is_finite() && s > 0.0 => Some(Duration::from_secs_f64(s)),
+        Some(s) => return Err(NodeError::Ros(format!("--seconds {s} must be positive"))),
+        None => None,
+    };
+    Ok(NodeSettings {
+        record: RecordOptions { mcap: cli.record.or_else(|| text("record").map(Into::into)), rerun_file: cli.rerun.or_else(|| text("rerun").map(Into::into)), rerun_connect: cli.rerun_connect },
+        backend,
+        allow_software_gpu: cli.allow_software_gpu || flag("allow_software_gpu"),
+        open_discovery: cli.open_discovery || flag("dds.open_discovery"),
+        run_for,
+        ros,
+    })
+}

@@ -1,0 +1,232 @@
+//! A run of the pipeline with its records: the topic names every driver (node, demo,
+//! replay) uses, and the writing of inputs and outputs to MCAP and rerun. A recording that
+//! fails stops with one error in the log and in `diagnostics`; the run goes on.
+
+use std::path::PathBuf;
+
+use crate::msgs::{Message, PoseStamped, Time, WrenchStamped};
+use crate::pipeline::{Demand, Outputs, Pipeline};
+use crate::record::Qos;
+
+/// Output topics, relative to the node's namespace.
+pub mod topics {
+    pub const TOOL_FEEDBACK: &str = "tool_feedback";
+    pub const DEFORMED_MESH: &str = "deformed_mesh";
+    pub const SURFACE_MARKER: &str = "surface_marker";
+    pub const RAYCAST_IMAGE: &str = "raycast/image";
+    pub const DPCM_HEIGHT: &str = "dpcm/height";
+    pub const DPCM_IMAGE: &str = "dpcm/image";
+    pub const WARPED_VOLUME_INFO: &str = "warped_volume/info";
+    pub const DIAGNOSTICS: &str = "diagnostics";
+}
+
+/// `topic` under `namespace` ("/" or "/robot"), as ROS names it.
+pub fn qualified(namespace: &str, topic: &str) -> String {
+    if topic.starts_with('/') {
+        return topic.to_owned();
+    }
+    format!("{}/{topic}", namespace.trim_end_matches('/'))
+}
+
+/// Where a session's records go.
+#[derive(Debug, Clone, Default)]
+pub struct RecordOptions {
+    pub mcap: Option<PathBuf>,
+    pub rerun_file: Option<PathBuf>,
+    pub rerun_connect: Option<String>,
+}
+
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum SessionError {
+    #[cfg(feature = "mcap")]
+    #[error(transparent)]
+    Record(#[from] crate::record::bag::RecordError),
+    #[cfg(feature = "rerun")]
+    #[error(transparent)]
+    Rerun(#[from] crate::record::rerun_log::RerunError),
+    #[error("{0} needs defvol built with the `{1}` feature")]
+    NotBuilt(&'static str, &'static str),
+}
+
+/// The records of one run.
+pub struct Session {
+    namespace: String,
+    #[cfg(feature = "mcap")]
+    bag: Option<crate::record::bag::Recorder>,
+    #[cfg(feature = "rerun")]
+    rerun: Option<crate::record::rerun_log::RerunLog>,
+    /// The first recording error, for diagnostics.
+    pub record_error: Option<String>,
+}
+
+impl Session {
+    pub fn open(namespace: &str, options: &RecordOptions, pipeline: &Pipeline) -> Result<Self, SessionError> {
+        #[cfg(not(feature = "mcap"))]
+        if options.mcap.is_some() {
+            return Err(SessionError::NotBuilt("--record", "mcap"));
+        }
+        #[cfg(not(feature = "rerun"))]
+        if options.rerun_file.is_some() || options.rerun_connect.is_some() {
+            return Err(SessionError::NotBuilt("--rerun", "rerun"));
+        }
+        let _ = pipeline;
+        Ok(Self {
+            namespace: namespace.to_owned(),
+            #[cfg(feature = "mcap")]
+            bag: options.mcap.as_deref().map(crate::record::bag::Recorder::create).transpose()?,
+            #[cfg(feature = "rerun")]
+            rerun: {
+                let log = match (&options.rerun_file, &options.rerun_connect) {
+                    (Some(path), _) => Some(crate::record::rerun_log::RerunLog::save(path)?),
+                    (None, Some(url)) => Some(crate::record::rerun_log::RerunLog::connect(url)?),
+                    (None, None) => None,
+                };
+                if let Some(log) = &log {
+                    log.log_tool_shapes(&pipeline.scene().tools)?;
+                }
+                log
+            },
+            record_error: None,
+        })
+    }
+
+    /// Whether anything is recorded (then every output is wanted).
+    pub fn recording(&self) -> bool {
+        #[cfg(feature = "mcap")]
+        if self.bag.is_some() {
+            return true;
+        }
+        #[cfg(feature = "rerun")]
+        if self.rerun.is_some() {
+            return true;
+        }
+        false
+    }
+
+    /// What the records want computed.
+    pub fn demand(&self) -> Demand {
+        if self.recording() { Demand::ALL } else { Demand::NONE }
+    }
+
+    fn note_error(&mut self, what: &str, error: impl std::fmt::Display) {
+        if self.record_error.is_none() {
+            tracing::error!("{what} stopped: {error}; the run goes on without it");
+            self.record_error = Some(format!("{what}: {error}"));
+        }
+    }
+
+    #[cfg_attr(not(feature = "mcap"), allow(unused_variables))]
+    fn bag_write<T: Message>(&mut self, topic: &str, qos: Qos, msg: &T, stamp: Time) {
+        #[cfg(feature = "mcap")]
+        if let Some(bag) = &mut self.bag {
+            if bag.failure().is_none() {
+                let topic = qualified(&self.namespace, topic);
+                if let Err(e) = bag.write(&topic, qos, msg, stamp.as_nanos()) {
+                    self.note_error("MCAP recording", e);
+                }
+            }
+        }
+    }
+
+    pub fn record_pose(&mut self, topic: &str, msg: &PoseStamped, tool_name: &str, world_from_tool: Option<&nalgebra::Isometry3<f64>>) {
+        self.bag_write(topic, Qos::SensorData, msg, msg.header.stamp);
+        #[cfg(feature = "rerun")]
+        if let (Some(log), Some(pose)) = (&self.rerun, world_from_tool) {
+            log.set_time(msg.header.stamp.as_secs());
+            if let Err(e) = log.log_tool_pose(tool_name, pose) {
+                self.note_error("rerun log", e);
+            }
+        }
+        #[cfg(not(feature = "rerun"))]
+        let _ = (tool_name, world_from_tool);
+    }
+
+    pub fn record_wrench(&mut self, topic: &str, msg: &WrenchStamped) {
+        self.bag_write(topic, Qos::SensorData, msg, msg.header.stamp);
+    }
+
+    /// Records every output of a tick.
+    pub fn record_outputs(&mut self, out: &Outputs, pipeline: &Pipeline, stamp: Time) {
+        use topics::*;
+        if let Some(m) = &out.tool_feedback {
+            self.bag_write(TOOL_FEEDBACK, Qos::SensorData, m, stamp);
+        }
+        if let Some(m) = &out.deformed_mesh {
+            self.bag_write(DEFORMED_MESH, Qos::Reliable, m, stamp);
+        }
+        if let Some(m) = &out.surface_marker {
+            self.bag_write(SURFACE_MARKER, Qos::Reliable, m, stamp);
+        }
+        if let Some(m) = &out.raycast {
+            self.bag_write(RAYCAST_IMAGE, Qos::SensorData, m, stamp);
+        }
+        if let Some(m) = &out.dpcm_height {
+            self.bag_write(DPCM_HEIGHT, Qos::SensorData, m, stamp);
+        }
+        if let Some(m) = &out.dpcm_image {
+            self.bag_write(DPCM_IMAGE, Qos::SensorData, m, stamp);
+        }
+        if let (true, Some(info)) = (out.warped_volume, warped_info(pipeline, stamp)) {
+            self.bag_write(WARPED_VOLUME_INFO, Qos::Latched, &info, stamp);
+        }
+        if let Some(m) = &out.diagnostics {
+            let mut m = m.clone();
+            if let Some(error) = &self.record_error {
+                m.status.push(crate::msgs::DiagnosticStatus { level: crate::msgs::DiagnosticStatus::ERROR, name: "defvol: recording".into(), message: error.clone(), ..Default::default() });
+            }
+            self.bag_write(DIAGNOSTICS, Qos::Reliable, &m, stamp);
+        }
+        #[cfg(feature = "rerun")]
+        if let Some(log) = &self.rerun {
+            log.set_time(stamp.as_secs());
+            let mut logged = Ok(());
+            if let Some(m) = &out.deformed_mesh {
+                logged = logged.and_then(|()| log.log_mesh(m));
+            }
+            if let Some(m) = &out.tool_feedback {
+                logged = logged.and_then(|()| log.log_feedback(m));
+            }
+            for (path, image) in [("camera/raycast", &out.raycast), ("dpcm/height", &out.dpcm_height), ("dpcm/image", &out.dpcm_image)] {
+                if let Some(image) = image {
+                    logged = logged.and_then(|()| log.log_image(path, image));
+                }
+            }
+            if let Some(m) = &out.diagnostics {
+                logged = logged.and_then(|()| log.log_diagnostics(m));
+            }
+            if let Err(e) = logged {
+                self.note_error("rerun log", e);
+            }
+        }
+    }
+
+    /// Closes the records; reports what each holds.
+    pub fn finish(self) -> Result<(), SessionError> {
+        #[cfg(feature = "rerun")]
+        if let Some(log) = &self.rerun {
+            log.flush()?;
+        }
+        #[cfg(feature = "mcap")]
+        if let Some(bag) = self.bag {
+            let path = bag.path().to_owned();
+            let summary = bag.finish()?;
+            tracing::info!("wrote {} ({} messages on {} topics)", path.display(), summary.messages, summary.channels);
+        }
+        Ok(())
+    }
+}
+
+/// The `warped_volume/info` message for the pipeline's latest warp.
+pub fn warped_info(pipeline: &Pipeline, stamp: Time) -> Option<crate::msgs::WarpedVolumeInfo> {
+    let warped = pipeline.warped_volume()?;
+    let grid = &warped.grid;
+    Some(crate::msgs::WarpedVolumeInfo {
+        header: crate::msgs::Header { stamp, frame_id: pipeline.scene().frame_id.clone() },
+        service_name: pipeline.scene().warp.service.clone(),
+        sequence: warped.sequence,
+        dims: grid.dims.map(|d| d as u32),
+        spacing: grid.spacing,
+        origin: grid.origin,
+    })
+}

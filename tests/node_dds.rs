@@ -1,0 +1,192 @@
+//! The node over DDS. Every test here runs inside a private network namespace (only a
+//! loopback interface): a test that finds a real interface re-runs itself through
+//! `tests/netns-run`, so no run of the suite can put DDS traffic on a real network.
+#![cfg(feature = "ros")]
+
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command};
+use std::time::{Duration, Instant};
+
+use defvol::msgs::{self, DeformedMesh, DiagnosticArray, Header, Image, Marker, Pose, PoseStamped, Time, TriggerRequest, TriggerResponse, WarpedVolumeInfo, WrenchStamped};
+use defvol::record::{bag, Qos};
+use defvol::ros::dds::{self, Discovery};
+use defvol::ros::node::qos;
+use ros2_client::{MessageTypeName, Name, NodeName, NodeOptions, ServiceMapping, ServiceTypeName};
+
+/// True inside a network namespace whose only interface is `lo` (`/proc/self/net/dev`
+/// lists this process's namespace; /sys/class/net would show the host's).
+fn private_network() -> bool {
+    let Ok(dev) = std::fs::read_to_string("/proc/self/net/dev") else { return false };
+    let names: Vec<&str> = dev.lines().skip(2).filter_map(|l| l.split(':').next()).map(str::trim).collect();
+    names == ["lo"]
+}
+
+/// Runs `test` inside a private network namespace: directly when already in one, else by
+/// re-running this test binary, filtered to `name`, through tests/netns-run.
+fn isolated(name: &str, test: impl FnOnce()) {
+    if private_network() {
+        test();
+        return;
+    }
+    // Once re-run, the namespace must be private: never recurse.
+    assert!(std::env::var_os("DEFVOL_NETNS_RERUN").is_none(), "{name}: still on a real interface after tests/netns-run");
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/netns-run");
+    let status = Command::new(script).arg(std::env::current_exe().unwrap()).args(["--exact", name, "--nocapture", "--test-threads", "1"]).env("DEFVOL_NETNS_RERUN", "1").status().unwrap();
+    assert!(status.success(), "{name} failed inside its network namespace");
+}
+
+fn scene() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/small_scene.yaml")
+}
+
+fn start_node(dir: &Path, seconds: u32) -> Child {
+    Command::new(env!("CARGO_BIN_EXE_defvol_node"))
+        .args(["--backend", "cpu", "--seconds", &seconds.to_string(), "--record"])
+        .arg(dir.join("node.mcap"))
+        .args(["--ros-args", "-r", "__ns:=/robot", "-p"])
+        .arg(format!("scene_file:={}", scene().display()))
+        .env("ROS_DOMAIN_ID", "17")
+        .spawn()
+        .unwrap()
+}
+
+fn type_name<T: msgs::Message>() -> MessageTypeName {
+    let parts: Vec<&str> = T::NAME.split('/').collect();
+    MessageTypeName::new(parts[0], parts[2])
+}
+
+fn pose_at(z: f64) -> PoseStamped {
+    let since = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap();
+    let mut msg = PoseStamped { header: Header { stamp: Time::from_nanos(since.as_nanos() as u64), frame_id: "world".into() }, pose: Pose::default() };
+    msg.pose.position.z = z;
+    msg
+}
+
+#[test]
+fn a_second_participant_drives_the_node_and_receives_every_output() {
+    isolated("a_second_participant_drives_the_node_and_receives_every_output", || {
+        let dir = tempfile::tempdir().unwrap();
+        let mut node_process = start_node(dir.path(), 14);
+        // A second context: in loopback-only mode a participant does not hear itself.
+        let context = dds::context(17, Discovery::Localhost).unwrap();
+        let mut peer = context.new_node(NodeName::new("/", "peer").unwrap(), NodeOptions::new()).unwrap();
+        macro_rules! subscribe {
+            ($ty:ty, $topic:expr, $kind:expr) => {{
+                let t = peer.create_topic(&Name::parse($topic).unwrap(), type_name::<$ty>(), &qos($kind)).unwrap();
+                peer.create_subscription::<$ty>(&t, Some(qos($kind))).unwrap()
+            }};
+        }
+        let feedback = subscribe!(WrenchStamped, "/robot/tool_feedback", Qos::SensorData);
+        let meshes = subscribe!(DeformedMesh, "/robot/deformed_mesh", Qos::Reliable);
+        let markers = subscribe!(Marker, "/robot/surface_marker", Qos::Reliable);
+        let raycast = subscribe!(Image, "/robot/raycast/image", Qos::SensorData);
+        let heights = subscribe!(Image, "/robot/dpcm/height", Qos::SensorData);
+        let dpcm_images = subscribe!(Image, "/robot/dpcm/image", Qos::SensorData);
+        let warped = subscribe!(WarpedVolumeInfo, "/robot/warped_volume/info", Qos::Latched);
+        let diagnostics = subscribe!(DiagnosticArray, "/robot/diagnostics", Qos::Reliable);
+        let pose_topic = peer.create_topic(&Name::parse("/robot/tool_pose").unwrap(), type_name::<PoseStamped>(), &qos(Qos::Reliable)).unwrap();
+        let poses = peer.create_publisher::<PoseStamped>(&pose_topic, Some(qos(Qos::Reliable))).unwrap();
+        let pause = peer
+            .create_client::<TriggerRequest, TriggerResponse>(ServiceMapping::Enhanced, &Name::parse("/robot/pause").unwrap(), &ServiceTypeName::new("std_srvs", "Trigger"), qos(Qos::Reliable), qos(Qos::Reliable))
+            .unwrap();
+
+        let mut counts = [0usize; 8];
+        let (mut peak_force, mut peak_displacement, mut refused_nan) = (0.0f64, 0.0f32, false);
+        let mut warped_info = None;
+        let mut pause_reply = None;
+        let start = Instant::now();
+        let mut sent = 0;
+        while start.elapsed() < Duration::from_secs(11) {
+            // Down from 10 cm to 7 cm over two seconds, then held; one NaN pose on the way.
+            let s = (start.elapsed().as_secs_f64() / 2.0).min(1.0);
+            poses.publish(pose_at(0.10 - 0.03 * s)).unwrap();
+            if sent % 100 == 50 {
+                poses.publish(pose_at(f64::NAN)).unwrap();
+            }
+            sent += 1;
+            while let Ok(Some((m, _))) = feedback.take() {
+                counts[0] += 1;
+                peak_force = peak_force.max(m.wrench.force.z);
+            }
+            while let Ok(Some((m, _))) = meshes.take() {
+                counts[1] += 1;
+                assert_eq!(m.positions.len(), 3 * m.scalars.len());
+                peak_displacement = peak_displacement.max(m.scalars.iter().fold(0.0, |a, b| a.max(*b)));
+            }
+            while let Ok(Some((m, _))) = markers.take() {
+                counts[2] += 1;
+                assert_eq!((m.kind, m.points.len() % 3, m.colors.len()), (Marker::TRIANGLE_LIST, 0, m.points.len()));
+            }
+            while let Ok(Some((m, _))) = raycast.take() {
+                counts[3] += 1;
+                assert_eq!((m.width, m.height, m.encoding.as_str(), m.data.len()), (64, 48, "rgba8", 64 * 48 * 4));
+            }
+            while let Ok(Some((m, _))) = heights.take() {
+                counts[4] += 1;
+                assert_eq!((m.encoding.as_str(), m.data.len()), ("32FC1", 64 * 64 * 4));
+            }
+            while let Ok(Some((m, _))) = dpcm_images.take() {
+                counts[5] += 1;
+                assert_eq!(m.encoding, "rgb8");
+            }
+            while let Ok(Some((m, _))) = warped.take() {
+                counts[6] += 1;
+                warped_info = Some(m);
+            }
+            while let Ok(Some((m, _))) = diagnostics.take() {
+                counts[7] += 1;
+                refused_nan |= m.status.iter().any(|s| s.name == "defvol: inputs" && s.values.iter().any(|kv| kv.key == "rejected_not_finite"));
+            }
+            if start.elapsed() > Duration::from_secs(9) && pause_reply.is_none() {
+                if let Ok(Some((_, reply))) = pause.receive_response() {
+                    pause_reply = Some(reply);
+                } else if sent % 50 == 0 {
+                    let _ = pause.send_request(TriggerRequest::default());
+                }
+            }
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        let status = node_process.wait().unwrap();
+        assert!(status.success(), "the node exited with {status}");
+        eprintln!("received {counts:?}; peak force {peak_force} N, displacement {peak_displacement} m");
+        assert!(counts.iter().all(|c| *c > 0), "every output topic delivers: {counts:?}");
+        assert!(peak_force > 1.0 && peak_displacement > 1e-3, "the probe pressed in: {peak_force} N, {peak_displacement} m");
+        assert!(refused_nan, "diagnostics report the NaN pose");
+        let info = warped_info.unwrap();
+        assert_eq!((info.service_name.as_str(), info.dims), ("defvol/warped_volume", [256, 160, 122]));
+        assert_eq!(pause_reply.map(|r| (r.success, r.message)), Some((true, "paused".to_owned())));
+        // The node's recording holds what went over the wire.
+        let recorded = bag::read_messages(&dir.path().join("node.mcap"), &["/robot/tool_pose", "/robot/deformed_mesh"]).unwrap();
+        assert!(recorded.iter().filter(|m| m.topic == "/robot/tool_pose").count() > 100);
+        assert!(recorded.iter().any(|m| m.topic == "/robot/deformed_mesh"));
+    });
+}
+
+#[test]
+fn a_cyclone_dds_peer_sees_ros2_types() {
+    isolated("a_cyclone_dds_peer_sees_ros2_types", || {
+        let have = Command::new("python3").args(["-c", "import cyclonedds.domain"]).output().is_ok_and(|o| o.status.success());
+        if !have {
+            assert!(std::env::var_os("DEFVOL_REQUIRE_INTEROP").is_none(), "python3 cyclonedds is missing (tests/run.sh installs it)");
+            eprintln!("skipped: python3 cyclonedds is not installed");
+            return;
+        }
+        let dir = tempfile::tempdir().unwrap();
+        let mut node_process = start_node(dir.path(), 12);
+        let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/interop/cyclone_peer.py");
+        let out = Command::new("python3").arg(script).args(["8", "/robot"]).env("ROS_DOMAIN_ID", "17").env("CYCLONEDDS_URI", "<CycloneDDS><Domain id=\"17\"><General><Interfaces><NetworkInterface name=\"lo\"/></Interfaces></General></Domain></CycloneDDS>").output().unwrap();
+        let text = String::from_utf8_lossy(&out.stdout);
+        assert!(out.status.success(), "{text}{}", String::from_utf8_lossy(&out.stderr));
+        assert!(node_process.wait().unwrap().success());
+        let got: serde_json::Value = serde_json::from_str(text.lines().last().unwrap()).unwrap();
+        eprintln!("{got}");
+        assert!(got["feedback"].as_u64().unwrap() > 0 && got["meshes"].as_u64().unwrap() > 0 && got["diagnostics"].as_u64().unwrap() > 0, "{got}");
+        assert!(got["max_force_z"].as_f64().unwrap() > 1.0, "its poses reached the solver: {got}");
+        assert_eq!(got["rejected_nan"], true, "{got}");
+        // And the Cyclone peer's poses are in the node's recording, as it sent them.
+        let poses = bag::read_messages(&dir.path().join("node.mcap"), &["/robot/tool_pose"]).unwrap();
+        assert!(poses.len() > 50, "{} poses recorded", poses.len());
+        let last = msgs::decode::<PoseStamped>(&poses.last().unwrap().data, "recorded").unwrap();
+        assert!((last.pose.position.z - 0.07).abs() < 1e-9, "{last:?}");
+    });
+}

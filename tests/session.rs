@@ -1,0 +1,137 @@
+//! `defvol demo` and `defvol replay` end to end: the bag is rosbag2-compatible (read back
+//! by Foxglove's independent ROS 2 MCAP reader), the rerun log verifies with rerun's own
+//! CLI, and a CPU replay is deterministic to the bit.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use defvol::msgs::{self, DeformedMesh, WrenchStamped};
+use defvol::record::bag;
+
+fn defvol() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_defvol"))
+}
+
+fn scene() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/small_scene.yaml")
+}
+
+fn run(cmd: &mut Command) -> String {
+    let out = cmd.output().unwrap();
+    let text = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    assert!(out.status.success(), "{cmd:?} failed:\n{text}");
+    text
+}
+
+/// Whether an interop tool exists; under tests/run.sh (DEFVOL_REQUIRE_INTEROP=1) it must.
+fn have(what: &str, check: &mut Command) -> bool {
+    let ok = check.output().is_ok_and(|o| o.status.success());
+    if !ok {
+        assert!(std::env::var_os("DEFVOL_REQUIRE_INTEROP").is_none(), "{what} is missing (tests/run.sh installs it)");
+        eprintln!("skipped: {what} is not installed (tests/run.sh installs it)");
+    }
+    ok
+}
+
+fn demo(dir: &Path, rerun: bool) -> PathBuf {
+    let mut cmd = defvol();
+    cmd.args(["demo", "--seconds", "0.6", "--backend", "cpu", "--scene"]).arg(scene()).arg("--out").arg(dir);
+    if !rerun {
+        cmd.arg("--no-rerun");
+    }
+    run(&mut cmd);
+    dir.join("demo.mcap")
+}
+
+fn decoded<T: msgs::Message>(path: &Path, topic: &str) -> Vec<(u64, T, Vec<u8>)> {
+    bag::read_messages(path, &[topic]).unwrap().into_iter().map(|m| (m.log_time_ns, msgs::decode::<T>(&m.data, topic).unwrap(), m.data)).collect()
+}
+
+#[test]
+fn a_cpu_replay_repeats_the_demo_bit_for_bit() {
+    let dir = tempfile::tempdir().unwrap();
+    let demo_bag = demo(dir.path(), false);
+    let replays: Vec<PathBuf> = (0..2)
+        .map(|i| {
+            let out = dir.path().join(format!("replay{i}.mcap"));
+            run(defvol().arg("replay").arg(&demo_bag).arg("--scene").arg(scene()).arg("--out").arg(&out));
+            out
+        })
+        .collect();
+    let meshes: Vec<_> = [&demo_bag, &replays[0], &replays[1]].iter().map(|p| decoded::<DeformedMesh>(p, "/deformed_mesh")).collect();
+    assert_eq!(meshes[0].len(), 60, "one mesh per solver step");
+    assert!(meshes[0].last().unwrap().1.scalars.iter().any(|d| *d > 1e-3), "the probe deformed the mesh");
+    for other in &meshes[1..] {
+        assert_eq!(other.len(), meshes[0].len());
+        for (a, b) in meshes[0].iter().zip(other) {
+            assert_eq!((a.0, &a.2), (b.0, &b.2), "step {}: the same stamp and the same bytes", a.1.step);
+        }
+    }
+    let feedback: Vec<_> = [&demo_bag, &replays[0]].iter().map(|p| decoded::<WrenchStamped>(p, "/tool_feedback")).collect();
+    assert_eq!(feedback[0].iter().map(|f| &f.2).collect::<Vec<_>>(), feedback[1].iter().map(|f| &f.2).collect::<Vec<_>>());
+    assert!(feedback[0].last().unwrap().1.wrench.force.z > 1.0, "the organ pushes back on the probe");
+    // The replay's bag holds its inputs too: it replays in turn.
+    assert_eq!(bag::read_messages(&replays[0], &["/tool_pose"]).unwrap().len(), 60);
+}
+
+#[test]
+fn replay_names_a_bag_without_tool_inputs() {
+    let dir = tempfile::tempdir().unwrap();
+    let demo_bag = demo(dir.path(), false);
+    let out = defvol().arg("replay").arg(&demo_bag).arg("--scene").arg(scene()).args(["--namespace", "/robot"]).output().unwrap();
+    let text = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && text.contains("/robot/tool_pose") && text.contains("\"/tool_pose\""), "{text}");
+    let broken = dir.path().join("broken.mcap");
+    std::fs::write(&broken, b"not an mcap file").unwrap();
+    let out = defvol().arg("replay").arg(&broken).output().unwrap();
+    let text = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && text.contains("broken.mcap"), "{text}");
+}
+
+#[test]
+fn the_bag_reads_back_with_a_rosbag2_reader() {
+    if !have("python3 with mcap-ros2-support", Command::new("python3").args(["-c", "import mcap_ros2.decoder"])) {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let bag_path = demo(dir.path(), false);
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/interop/read_bag.py");
+    let text = run(Command::new("python3").arg(script).arg(&bag_path));
+    let read: serde_json::Value = serde_json::from_str(text.lines().last().unwrap()).unwrap();
+    assert_eq!(read["profile"], "ros2");
+    for topic in ["/tool_pose", "/tool_feedback", "/deformed_mesh", "/surface_marker", "/raycast/image", "/dpcm/height", "/dpcm/image", "/warped_volume/info", "/diagnostics"] {
+        assert!(read["topics"][topic].as_u64().unwrap_or(0) > 0, "{topic} missing from {}", read["topics"]);
+        assert_eq!(read["qos"][topic], true, "{topic} has offered_qos_profiles");
+    }
+    assert_eq!(read["schemas"]["/surface_marker"], "visualization_msgs/msg/Marker");
+    // The values it decodes are the ones written, field for field.
+    let ours = decoded::<DeformedMesh>(&bag_path, "/deformed_mesh");
+    let theirs = read["meshes"].as_array().unwrap();
+    assert_eq!(theirs.len(), ours.len());
+    for (t, (_, o, _)) in theirs.iter().zip(&ours) {
+        assert_eq!(t["step"].as_u64().unwrap(), o.step);
+        assert_eq!(t["nodes"].as_u64().unwrap() as usize, o.positions.len() / 3);
+        let first: Vec<f32> = t["first"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap() as f32).collect();
+        assert_eq!(first, o.positions[..3]);
+        assert_eq!(t["peak"].as_f64().unwrap() as f32, o.scalars.iter().fold(f32::MIN, |m, v| m.max(*v)));
+    }
+    let feedback = decoded::<WrenchStamped>(&bag_path, "/tool_feedback");
+    let z: Vec<f64> = read["feedback_z"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect();
+    assert_eq!(z, feedback.iter().map(|f| f.1.wrench.force.z).collect::<Vec<_>>());
+    assert_eq!(read["images"]["/raycast/image"], serde_json::json!([64, 48, "rgba8", 64 * 48 * 4]));
+    assert_eq!(read["images"]["/dpcm/height"], serde_json::json!([64, 64, "32FC1", 64 * 64 * 4]));
+}
+
+#[cfg(feature = "rerun")]
+#[test]
+fn the_rerun_log_passes_rerun_verify() {
+    if !have("the rerun CLI (rerun-sdk)", Command::new("rerun").arg("--version")) {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    demo(dir.path(), true);
+    let rrd = dir.path().join("demo.rrd");
+    assert!(std::fs::metadata(&rrd).unwrap().len() > 10_000);
+    let text = run(Command::new("rerun").args(["rrd", "verify"]).arg(&rrd));
+    assert!(text.contains("1 file verified without error"), "{text}");
+}
