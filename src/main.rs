@@ -446,7 +446,7 @@ fn row_printer(json: bool, header: &str, table_row: fn(&bench::BenchRow) -> Stri
 }
 
 fn main() -> Result<()> {
-    tracing_subscriber::fmt().with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info,rustdds=warn,ros2_client=warn".into())).with_target(false).init();
+    tracing_subscriber::fmt().with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info,rustdds=error,ros2_client=warn".into())).with_target(false).init();
     match Cli::parse().command {
         Command::Simulate(args) => simulate(args),
         Command::Warp(args) => warp_command(args),

@@ -53,7 +53,7 @@ pub enum SessionError {
 pub struct Session {
     namespace: String,
     #[cfg(feature = "mcap")]
-    bag: Option<crate::record::bag::Recorder>,
+    bag: Option<crate::record::bag::BagThread>,
     #[cfg(feature = "rerun")]
     rerun: Option<crate::record::rerun_log::RerunLog>,
     /// The first recording error, for diagnostics.
@@ -74,7 +74,7 @@ impl Session {
         Ok(Self {
             namespace: namespace.to_owned(),
             #[cfg(feature = "mcap")]
-            bag: options.mcap.as_deref().map(crate::record::bag::Recorder::create).transpose()?,
+            bag: options.mcap.as_deref().map(crate::record::bag::BagThread::create).transpose()?,
             #[cfg(feature = "rerun")]
             rerun: {
                 let log = match (&options.rerun_file, &options.rerun_connect) {
@@ -119,12 +119,10 @@ impl Session {
     #[cfg_attr(not(feature = "mcap"), allow(unused_variables))]
     fn bag_write<T: Message>(&mut self, topic: &str, qos: Qos, msg: &T, stamp: Time) {
         #[cfg(feature = "mcap")]
-        if let Some(bag) = &mut self.bag {
-            if bag.failure().is_none() {
-                let topic = qualified(&self.namespace, topic);
-                if let Err(e) = bag.write(&topic, qos, msg, stamp.as_nanos()) {
-                    self.note_error("MCAP recording", e);
-                }
+        if let Some(bag) = &self.bag {
+            // After a failure every write says so; the log and diagnostics take the first.
+            if let Err(e) = bag.write(&qualified(&self.namespace, topic), qos, msg, stamp.as_nanos()) {
+                self.note_error("MCAP recording", e);
             }
         }
     }

@@ -11,7 +11,8 @@ use defvol::msgs::{self, DeformedMesh, DiagnosticArray, Header, Image, Marker, P
 use defvol::record::{bag, Qos};
 use defvol::ros::dds::{self, Discovery};
 use defvol::ros::node::qos;
-use ros2_client::{MessageTypeName, Name, NodeName, NodeOptions, ServiceMapping, ServiceTypeName};
+use ros2_client::rcl_interfaces::{SetParametersRequest, SetParametersResponse};
+use ros2_client::{MessageTypeName, Name, NodeName, NodeOptions, Parameter, ParameterValue, ServiceMapping, ServiceTypeName};
 
 /// True inside a network namespace whose only interface is `lo` (`/proc/self/net/dev`
 /// lists this process's namespace; /sys/class/net would show the host's).
@@ -90,6 +91,11 @@ fn a_second_participant_drives_the_node_and_receives_every_output() {
             .create_client::<TriggerRequest, TriggerResponse>(ServiceMapping::Enhanced, &Name::parse("/robot/pause").unwrap(), &ServiceTypeName::new("std_srvs", "Trigger"), qos(Qos::Reliable), qos(Qos::Reliable))
             .unwrap();
 
+        let set_parameters = peer
+            .create_client::<SetParametersRequest, SetParametersResponse>(ServiceMapping::Enhanced, &Name::parse("/robot/defvol/set_parameters").unwrap(), &ServiceTypeName::new("rcl_interfaces", "SetParameters"), qos(Qos::Reliable), qos(Qos::Reliable))
+            .unwrap();
+        let impossible = || SetParametersRequest { parameter: vec![Parameter { name: "solver.dt".into(), value: ParameterValue::Double(-1.0) }.into()] };
+        let mut parameter_reply = None;
         let mut counts = [0usize; 8];
         let (mut peak_force, mut peak_displacement, mut refused_nan) = (0.0f64, 0.0f32, false);
         let mut warped_info = None;
@@ -137,6 +143,13 @@ fn a_second_participant_drives_the_node_and_receives_every_output() {
                 counts[7] += 1;
                 refused_nan |= m.status.iter().any(|s| s.name == "defvol: inputs" && s.values.iter().any(|kv| kv.key == "rejected_not_finite"));
             }
+            if start.elapsed() > Duration::from_secs(7) && parameter_reply.is_none() {
+                if let Ok(Some((_, reply))) = set_parameters.receive_response() {
+                    parameter_reply = Some(reply);
+                } else if sent % 50 == 0 {
+                    let _ = set_parameters.send_request(impossible());
+                }
+            }
             if start.elapsed() > Duration::from_secs(9) && pause_reply.is_none() {
                 if let Ok(Some((_, reply))) = pause.receive_response() {
                     pause_reply = Some(reply);
@@ -155,6 +168,10 @@ fn a_second_participant_drives_the_node_and_receives_every_output() {
         let info = warped_info.unwrap();
         assert_eq!((info.service_name.as_str(), info.dims), ("defvol/warped_volume", [256, 160, 122]));
         assert_eq!(pause_reply.map(|r| (r.success, r.message)), Some((true, "paused".to_owned())));
+        // The parameter services check a scene change before taking it.
+        let results = parameter_reply.expect("set_parameters answered").results;
+        assert_eq!(results.len(), 1);
+        assert!(!results[0].successful && results[0].reason.contains("dt"), "{:?}", results[0]);
         // The node's recording holds what went over the wire.
         let recorded = bag::read_messages(&dir.path().join("node.mcap"), &["/robot/tool_pose", "/robot/deformed_mesh"]).unwrap();
         assert!(recorded.iter().filter(|m| m.topic == "/robot/tool_pose").count() > 100);

@@ -39,6 +39,9 @@ pub struct NodeBenchOptions {
 pub const TABLE_HEADER: &str = "case                          backend   p50 ms   p99 ms    max ms   rate Hz  notes";
 
 pub fn table_row(row: &BenchRow) -> String {
+    if row.runs == 0 {
+        return format!("{:<29} {:<8} {:>7} {:>8} {:>9} {:>9}  {}", row.case, row.backend, "-", "-", "-", "-", row.params["note"].as_str().unwrap_or_default());
+    }
     let p99 = row.params["p99_ms"].as_f64().map_or("-".into(), |v| format!("{v:.3}"));
     let notes = row.params["note"].as_str().unwrap_or_default();
     format!("{:<29} {:<8} {:>7.3} {:>8} {:>9.3} {:>9.0}  {notes}", row.case, row.backend, row.time_ms.median, p99, row.time_ms.max, 1e3 / row.time_ms.median.max(1e-9))

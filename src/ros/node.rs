@@ -355,7 +355,8 @@ pub fn run(settings: NodeSettings) -> Result<(), NodeError> {
             next_tick = now;
         }
     }
-    node.stop_spinner();
+    // Dropping the node stops its spinner.
+    drop(node);
     session.finish()?;
     Ok(())
 }
