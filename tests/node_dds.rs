@@ -40,12 +40,16 @@ fn scene() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/small_scene.yaml")
 }
 
-fn start_node(dir: &Path, seconds: u32) -> Child {
+/// A node on the small scene; its shared-memory service is its own (/dev/shm is shared by
+/// every network namespace, and tests run side by side).
+fn start_node(dir: &Path, seconds: u32, test: &str) -> Child {
     Command::new(env!("CARGO_BIN_EXE_defvol_node"))
         .args(["--backend", "cpu", "--seconds", &seconds.to_string(), "--record"])
         .arg(dir.join("node.mcap"))
         .args(["--ros-args", "-r", "__ns:=/robot", "-p"])
         .arg(format!("scene_file:={}", scene().display()))
+        .arg("-p")
+        .arg(format!("warp.service:=defvol/{test}_{}", std::process::id()))
         .env("ROS_DOMAIN_ID", "17")
         .spawn()
         .unwrap()
@@ -67,7 +71,7 @@ fn pose_at(z: f64) -> PoseStamped {
 fn a_second_participant_drives_the_node_and_receives_every_output() {
     isolated("a_second_participant_drives_the_node_and_receives_every_output", || {
         let dir = tempfile::tempdir().unwrap();
-        let mut node_process = start_node(dir.path(), 14);
+        let mut node_process = start_node(dir.path(), 14, "second_participant");
         // A second context: in loopback-only mode a participant does not hear itself.
         let context = dds::context(17, Discovery::Localhost).unwrap();
         let mut peer = context.new_node(NodeName::new("/", "peer").unwrap(), NodeOptions::new()).unwrap();
@@ -166,7 +170,8 @@ fn a_second_participant_drives_the_node_and_receives_every_output() {
         assert!(peak_force > 1.0 && peak_displacement > 1e-3, "the probe pressed in: {peak_force} N, {peak_displacement} m");
         assert!(refused_nan, "diagnostics report the NaN pose");
         let info = warped_info.unwrap();
-        assert_eq!((info.service_name.as_str(), info.dims), ("defvol/warped_volume", [256, 160, 122]));
+        assert!(info.service_name.starts_with("defvol/second_participant_"), "{info:?}");
+        assert_eq!(info.dims, [256, 160, 122]);
         assert_eq!(pause_reply.map(|r| (r.success, r.message)), Some((true, "paused".to_owned())));
         // The parameter services check a scene change before taking it.
         let results = parameter_reply.expect("set_parameters answered").results;
@@ -189,7 +194,7 @@ fn a_cyclone_dds_peer_sees_ros2_types() {
             return;
         }
         let dir = tempfile::tempdir().unwrap();
-        let mut node_process = start_node(dir.path(), 12);
+        let mut node_process = start_node(dir.path(), 12, "cyclone");
         let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/interop/cyclone_peer.py");
         let out = Command::new("python3").arg(script).args(["8", "/robot"]).env("ROS_DOMAIN_ID", "17").env("CYCLONEDDS_URI", "<CycloneDDS><Domain id=\"17\"><General><Interfaces><NetworkInterface name=\"lo\"/></Interfaces></General></Domain></CycloneDDS>").output().unwrap();
         let text = String::from_utf8_lossy(&out.stdout);

@@ -33,9 +33,6 @@ pub enum NodeError {
     Pipeline(#[from] PipelineError),
     #[error(transparent)]
     Session(#[from] SessionError),
-    #[cfg(feature = "shm")]
-    #[error(transparent)]
-    Shm(#[from] crate::shm::ShmError),
 }
 
 fn ros_err(what: &str) -> impl Fn(ros2_client::CreateError) -> NodeError + '_ {
@@ -226,10 +223,7 @@ pub fn run(settings: NodeSettings) -> Result<(), NodeError> {
     let load: Server<LoadSceneRequest, TriggerResponse> = topics.server(&mut node, "load_scene", "defvol", "LoadScene")?;
 
     #[cfg(feature = "shm")]
-    let mut shm = match pipeline.warped_grid() {
-        Some(grid) => Some(crate::shm::WarpedVolumePublisher::new(&pipeline.scene().warp.service, grid)?),
-        None => None,
-    };
+    let mut shm = shm_publisher(&pipeline);
     let mut session = Session::open(&settings.ros.namespace, &settings.record, &pipeline)?;
     let stop = Arc::new(AtomicBool::new(false));
     let stop_flag = stop.clone();
@@ -293,10 +287,7 @@ pub fn run(settings: NodeSettings) -> Result<(), NodeError> {
             {
                 // The old publisher goes first: the service allows one.
                 drop(shm.take());
-                shm = match pipeline.warped_grid() {
-                    Some(grid) => Some(crate::shm::WarpedVolumePublisher::new(&pipeline.scene().warp.service, grid)?),
-                    None => None,
-                };
+                shm = shm_publisher(&pipeline);
             }
         }
 
@@ -359,6 +350,21 @@ pub fn run(settings: NodeSettings) -> Result<(), NodeError> {
     drop(node);
     session.finish()?;
     Ok(())
+}
+
+/// The warped-volume publisher; without one (no room in /dev/shm, the service taken by
+/// another node) the node runs on, saying why once: `warped_volume/info` still comes.
+#[cfg(feature = "shm")]
+fn shm_publisher(pipeline: &Pipeline) -> Option<crate::shm::WarpedVolumePublisher> {
+    let grid = pipeline.warped_grid()?;
+    let service = &pipeline.scene().warp.service;
+    match crate::shm::WarpedVolumePublisher::new(service, grid) {
+        Ok(publisher) => Some(publisher),
+        Err(e) => {
+            tracing::error!("{e}; warped volumes are not shared (another node on `{service}`? give each its own `-p warp.service:=…`)");
+            None
+        }
+    }
 }
 
 fn subscribe_tools(topics: &Topics<'_>, node: &mut Node, pipeline: &Pipeline) -> Result<Vec<ToolSubscriptions>, NodeError> {
