@@ -100,7 +100,7 @@ impl FrameWorker {
 }
 
 enum Runner {
-    Inline(FrameWorker),
+    Inline(Box<FrameWorker>),
     Thread { jobs: SyncSender<FrameJob>, results: Receiver<Result<FrameDone, PipelineError>>, in_flight: bool },
 }
 
@@ -123,7 +123,7 @@ impl Frames {
     pub fn new(worker: FrameWorker, mode: FrameMode, warp_rate: f64, raycast_rate: f64) -> Result<Self, PipelineError> {
         let (has_warp, has_raycast) = (worker.warp.is_some(), worker.raycast.is_some());
         let runner = match mode {
-            FrameMode::Lockstep => Runner::Inline(worker),
+            FrameMode::Lockstep => Runner::Inline(Box::new(worker)),
             FrameMode::Background => {
                 // Its own threads: the solver's parallel loops never queue behind a frame.
                 let threads = (std::thread::available_parallelism().map_or(2, usize::from) / 2).max(1);

@@ -60,7 +60,7 @@ pub struct NodeSettings {
 
 fn type_name<T: Message>() -> MessageTypeName {
     let mut parts = T::NAME.split('/');
-    let (package, name) = (parts.next().unwrap_or_default(), parts.last().unwrap_or_default());
+    let (package, name) = (parts.next().unwrap_or_default(), parts.next_back().unwrap_or_default());
     MessageTypeName::new(package, name)
 }
 
@@ -292,7 +292,7 @@ pub fn run(settings: NodeSettings) -> Result<(), NodeError> {
         }
 
         // Who listens decides what runs (checked at 10 Hz: discovery changes slowly).
-        if ticks % 10 == 0 {
+        if ticks.is_multiple_of(10) {
             let recorded = session.recording();
             #[cfg(feature = "shm")]
             let shm_listens = shm.as_ref().is_some_and(crate::shm::WarpedVolumePublisher::has_subscribers);
