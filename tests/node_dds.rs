@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command};
 use std::time::{Duration, Instant};
 
-use defvol::msgs::{self, DeformedMesh, DiagnosticArray, Header, Image, Marker, Pose, PoseStamped, Time, TriggerRequest, TriggerResponse, WarpedVolumeInfo, WrenchStamped};
+use defvol::msgs::{self, DeformedMesh, DiagnosticArray, Header, Image, LoadSceneRequest, Marker, Pose, PoseStamped, Time, TriggerRequest, TriggerResponse, WarpedVolumeInfo, WrenchStamped};
 use defvol::record::{bag, Qos};
 use defvol::ros::dds::{self, Discovery};
 use defvol::ros::node::qos;
@@ -98,6 +98,10 @@ fn a_second_participant_drives_the_node_and_receives_every_output() {
         let set_parameters = peer
             .create_client::<SetParametersRequest, SetParametersResponse>(ServiceMapping::Enhanced, &Name::parse("/robot/defvol/set_parameters").unwrap(), &ServiceTypeName::new("rcl_interfaces", "SetParameters"), qos(Qos::Reliable), qos(Qos::Reliable))
             .unwrap();
+        let load_scene = peer
+            .create_client::<LoadSceneRequest, TriggerResponse>(ServiceMapping::Enhanced, &Name::parse("/robot/load_scene").unwrap(), &ServiceTypeName::new("defvol", "LoadScene"), qos(Qos::Reliable), qos(Qos::Reliable))
+            .unwrap();
+        let mut load_reply = None;
         let impossible = || SetParametersRequest { parameter: vec![Parameter { name: "solver.dt".into(), value: ParameterValue::Double(-1.0) }.into()] };
         let mut parameter_reply = None;
         let mut counts = [0usize; 8];
@@ -154,6 +158,13 @@ fn a_second_participant_drives_the_node_and_receives_every_output() {
                     let _ = set_parameters.send_request(impossible());
                 }
             }
+            if start.elapsed() > Duration::from_secs(8) && load_reply.is_none() {
+                if let Ok(Some((_, reply))) = load_scene.receive_response() {
+                    load_reply = Some(reply);
+                } else if sent % 50 == 25 {
+                    let _ = load_scene.send_request(LoadSceneRequest { scene: "volume: [phantom\nmesh: {}".into() });
+                }
+            }
             if start.elapsed() > Duration::from_secs(9) && pause_reply.is_none() {
                 if let Ok(Some((_, reply))) = pause.receive_response() {
                     pause_reply = Some(reply);
@@ -173,6 +184,9 @@ fn a_second_participant_drives_the_node_and_receives_every_output() {
         assert!(info.service_name.starts_with("defvol/second_participant_"), "{info:?}");
         assert_eq!(info.dims, [256, 160, 122]);
         assert_eq!(pause_reply.map(|r| (r.success, r.message)), Some((true, "paused".to_owned())));
+        // A broken scene is refused by name and the running one kept.
+        let load = load_reply.expect("load_scene answered");
+        assert!(!load.success && load.message.contains("kept the running scene") && load.message.contains("load_scene request"), "{load:?}");
         // The parameter services check a scene change before taking it.
         let results = parameter_reply.expect("set_parameters answered").results;
         assert_eq!(results.len(), 1);
