@@ -5,7 +5,7 @@
 use std::path::PathBuf;
 
 use crate::msgs::{Message, PoseStamped, Time, WrenchStamped};
-use crate::pipeline::{Demand, Outputs, Pipeline};
+use crate::pipeline::{Outputs, Pipeline};
 use crate::record::Qos;
 
 /// Output topics, relative to the node's namespace.
@@ -70,6 +70,7 @@ impl Session {
         if options.rerun_file.is_some() || options.rerun_connect.is_some() {
             return Err(SessionError::NotBuilt("--rerun", "rerun"));
         }
+        #[cfg(not(feature = "rerun"))]
         let _ = pipeline;
         Ok(Self {
             namespace: namespace.to_owned(),
@@ -102,11 +103,6 @@ impl Session {
             return true;
         }
         false
-    }
-
-    /// What the records want computed.
-    pub fn demand(&self) -> Demand {
-        if self.recording() { Demand::ALL } else { Demand::NONE }
     }
 
     fn note_error(&mut self, what: &str, error: impl std::fmt::Display) {

@@ -2,7 +2,7 @@
 //! latency of the pipeline at 1 kHz input, the cost of recording, and the delivery time of
 //! a warped volume through iceoryx2 beside DDS for the same bytes.
 
-use std::time::{Duration, Instant};
+use std::time::Instant;
 
 use serde_json::json;
 
@@ -152,6 +152,7 @@ fn shm_delivery(mib: usize, cpu: &str) -> Result<BenchRow, NodeBenchError> {
     use iceoryx2::prelude::*;
     use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
     use std::sync::Arc;
+    use std::time::Duration;
 
     let err = |e: &dyn std::fmt::Debug| NodeBenchError::Setup(format!("iceoryx2: {e:?}"));
     let elements = mib * (1 << 20) / 4;
@@ -234,6 +235,7 @@ fn dds_delivery(mib: usize, cpu: &str) -> Result<BenchRow, NodeBenchError> {
     use crate::ros::dds::{context, Discovery};
     use crate::ros::node::qos;
     use ros2_client::{MessageTypeName, Name, NodeName, NodeOptions};
+    use std::time::Duration;
 
     // This process's network namespace (/sys/class/net would show the host's).
     let dev = std::fs::read_to_string("/proc/self/net/dev").unwrap_or_default();
