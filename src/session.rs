@@ -123,17 +123,19 @@ impl Session {
         }
     }
 
-    pub fn record_pose(&mut self, topic: &str, msg: &PoseStamped, tool_name: &str, world_from_tool: Option<&nalgebra::Isometry3<f64>>) {
+    /// Records a tool pose as received; `tool` (its name and accepted pose) moves the tool in
+    /// the rerun log.
+    pub fn record_pose(&mut self, topic: &str, msg: &PoseStamped, tool: Option<(&str, nalgebra::Isometry3<f64>)>) {
         self.bag_write(topic, Qos::SensorData, msg, msg.header.stamp);
         #[cfg(feature = "rerun")]
-        if let (Some(log), Some(pose)) = (&self.rerun, world_from_tool) {
+        if let (Some(log), Some((name, pose))) = (&self.rerun, tool) {
             log.set_time(msg.header.stamp.as_secs());
-            if let Err(e) = log.log_tool_pose(tool_name, pose) {
+            if let Err(e) = log.log_tool_pose(name, &pose) {
                 self.note_error("rerun log", e);
             }
         }
         #[cfg(not(feature = "rerun"))]
-        let _ = (tool_name, world_from_tool);
+        let _ = tool;
     }
 
     pub fn record_wrench(&mut self, topic: &str, msg: &WrenchStamped) {

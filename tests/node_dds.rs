@@ -14,18 +14,10 @@ use defvol::ros::node::qos;
 use ros2_client::rcl_interfaces::{SetParametersRequest, SetParametersResponse};
 use ros2_client::{MessageTypeName, Name, NodeName, NodeOptions, Parameter, ParameterValue, ServiceMapping, ServiceTypeName};
 
-/// True inside a network namespace whose only interface is `lo` (`/proc/self/net/dev`
-/// lists this process's namespace; /sys/class/net would show the host's).
-fn private_network() -> bool {
-    let Ok(dev) = std::fs::read_to_string("/proc/self/net/dev") else { return false };
-    let names: Vec<&str> = dev.lines().skip(2).filter_map(|l| l.split(':').next()).map(str::trim).collect();
-    names == ["lo"]
-}
-
 /// Runs `test` inside a private network namespace: directly when already in one, else by
 /// re-running this test binary, filtered to `name`, through tests/netns-run.
 fn isolated(name: &str, test: impl FnOnce()) {
-    if private_network() {
+    if dds::private_network() {
         test();
         return;
     }

@@ -81,7 +81,7 @@ fn pose_to_feedback(scene: Scene, opts: &NodeBenchOptions, record: Option<&std::
         pose.pose.position.z = z;
         let start = Instant::now();
         let _ = pipeline.apply_pose("tool_pose", &pose, stamp);
-        session.record_pose("/tool_pose", &pose, "probe", None);
+        session.record_pose("/tool_pose", &pose, pipeline.tool_on("tool_pose"));
         let out = pipeline.tick(stamp, &demand)?;
         session.record_outputs(&out, &pipeline, stamp);
         if k >= opts.settle {
@@ -237,9 +237,6 @@ fn dds_delivery(mib: usize, cpu: &str) -> Result<BenchRow, NodeBenchError> {
     use ros2_client::{MessageTypeName, Name, NodeName, NodeOptions};
     use std::time::Duration;
 
-    // This process's network namespace (/sys/class/net would show the host's).
-    let dev = std::fs::read_to_string("/proc/self/net/dev").unwrap_or_default();
-    let names: Vec<&str> = dev.lines().skip(2).filter_map(|l| l.split(':').next()).map(str::trim).collect();
     let row = |samples: Vec<f64>, note: String| BenchRow {
         stage: "node",
         case: format!("volume_{mib}mib_dds"),
@@ -251,7 +248,7 @@ fn dds_delivery(mib: usize, cpu: &str) -> Result<BenchRow, NodeBenchError> {
         error: None,
         work: json!({"bytes": mib << 20}),
     };
-    if names != ["lo"] {
+    if !crate::ros::dds::private_network() {
         return Ok(row(Vec::new(), "skipped: run inside a private network namespace (tests/netns-run)".into()));
     }
     let setup = |e: &dyn std::fmt::Debug| NodeBenchError::Setup(format!("DDS: {e:?}"));

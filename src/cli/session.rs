@@ -108,7 +108,7 @@ pub fn demo(args: DemoArgs) -> Result<()> {
             if let Err(rejection) = pipeline.apply_pose(pose_topic, &msg, stamp) {
                 tracing::warn!("{rejection}");
             }
-            session.record_pose(&qualified("/", pose_topic), &msg, &tool.name, Some(&world_from_tool));
+            session.record_pose(&qualified("/", pose_topic), &msg, pipeline.tool_on(pose_topic));
         }
         match pipeline.tick(stamp, &Demand::ALL) {
             Ok(out) => session.record_outputs(&out, &pipeline, stamp),
@@ -185,9 +185,8 @@ pub fn replay(args: ReplayArgs) -> Result<()> {
             // The outputs bag holds the inputs too, so that it replays in turn.
             let refused = match input {
                 Input::Pose(topic, msg) => {
-                    let tool = topics.iter().position(|(t, _)| t == topic).and_then(|i| pipeline.scene().tools.get(i)).map(|t| t.name.clone()).unwrap_or_default();
                     let outcome = pipeline.apply_pose(topic, msg, stamp);
-                    session.record_pose(&qualified(&args.namespace, topic), msg, &tool, None);
+                    session.record_pose(&qualified(&args.namespace, topic), msg, pipeline.tool_on(topic));
                     outcome.err()
                 }
                 Input::Wrench(topic, msg) => {

@@ -297,6 +297,12 @@ impl Pipeline {
     pub fn times(&self) -> StageTimes {
         self.times
     }
+    /// The tool on `pose_topic`: its name and `world_from_tool`, as the stages see it.
+    pub fn tool_on(&self, pose_topic: &str) -> Option<(&str, nalgebra::Isometry3<f64>)> {
+        let index = self.tools.iter().position(|t| t.pose_topic == pose_topic)?;
+        Some((self.scene.tools[index].name.as_str(), self.tools[index].tool.world_from_tool))
+    }
+
     /// The pose and wrench topics of each tool.
     pub fn tool_topics(&self) -> Vec<(String, String)> {
         self.tools.iter().map(|t| (t.pose_topic.clone(), t.wrench_topic.clone())).collect()

@@ -46,6 +46,14 @@ pub fn settings(env: impl Fn(&str) -> Option<String>, open: bool) -> Result<(u16
     Ok((domain, discovery))
 }
 
+/// Whether this process sits in a network namespace whose only interface is `lo`
+/// (`/proc/self/net/dev` lists this process's namespace; /sys/class/net the host's).
+pub fn private_network() -> bool {
+    let Ok(dev) = std::fs::read_to_string("/proc/self/net/dev") else { return false };
+    let names: Vec<&str> = dev.lines().skip(2).filter_map(|l| l.split(':').next()).map(str::trim).collect();
+    names == ["lo"]
+}
+
 /// A ros2-client context on a participant built for `discovery`.
 pub fn context(domain: u16, discovery: Discovery) -> Result<ros2_client::Context, DdsError> {
     let builder = rustdds::DomainParticipantBuilder::new(domain);

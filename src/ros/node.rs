@@ -243,7 +243,7 @@ pub fn run(settings: NodeSettings) -> Result<(), NodeError> {
         for tool in &tools {
             inputs += drain(&tool.pose, |msg| {
                 if pipeline.apply_pose(&tool.pose_topic, &msg, now).is_ok() {
-                    session.record_pose(&qualified(&settings.ros.namespace, &tool.pose_topic), &msg, &tool.pose_topic, None);
+                    session.record_pose(&qualified(&settings.ros.namespace, &tool.pose_topic), &msg, pipeline.tool_on(&tool.pose_topic));
                 }
             });
             inputs += drain(&tool.wrench, |msg| {
