@@ -233,6 +233,12 @@ enum BenchStage {
         /// Lattice meshes (tets) over the phantom for the tetrahedral-mesh raycaster.
         #[arg(long, value_delimiter = ',', default_value = "112000,157000")]
         meshes: Vec<usize>,
+        /// Also time the GPU raycasters (volume and mesh), read-back included.
+        #[arg(long)]
+        gpu: bool,
+        /// Let a software adapter (llvmpipe) run the GPU rows.
+        #[arg(long)]
+        allow_software_gpu: bool,
         #[arg(long)]
         json: bool,
     },
@@ -465,8 +471,9 @@ fn main() -> Result<()> {
             bench::node::run(&opts, row_printer(json, bench::node::TABLE_HEADER, bench::node::table_row))?;
             Ok(())
         }
-        Command::Bench { stage: BenchStage::Render { sizes, steps, runs, reference_step, no_warped, meshes, json } } => {
-            let opts = bench::render::RenderBenchOptions { sizes, steps, runs, reference_step, warped: !no_warped, meshes };
+        Command::Bench { stage: BenchStage::Render { sizes, steps, runs, reference_step, no_warped, meshes, gpu, allow_software_gpu, json } } => {
+            let gpu = gpu.then_some(defvol::gpu_policy::GpuChoice { allow_software: allow_software_gpu, required: true });
+            let opts = bench::render::RenderBenchOptions { sizes, steps, runs, reference_step, warped: !no_warped, meshes, gpu };
             bench::render::run(&opts, row_printer(json, bench::render::TABLE_HEADER, bench::render::table_row))?;
             Ok(())
         }

@@ -12,6 +12,7 @@ use crate::mesh::generate::{self, CellSplit};
 use crate::render::camera::{Camera, Projection};
 use crate::render::raycast::{self, RaycastParams, Shading, VolumeRaycaster};
 use crate::render::transfer::TransferFunction;
+use crate::render::tet_raycast::{self, TetRaycastParams, TetRaycaster};
 use crate::render::RenderError;
 use crate::volume::{phantom, Volume};
 
@@ -24,6 +25,8 @@ pub struct RenderBenchOptions {
     pub warped: bool,
     /// Lattice meshes over the phantom for the tetrahedral-mesh raycaster (tets).
     pub meshes: Vec<usize>,
+    /// Also time the GPU raycasters.
+    pub gpu: Option<crate::gpu_policy::GpuChoice>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -33,6 +36,8 @@ pub enum RenderBenchError {
     Render(#[from] RenderError),
     #[error("preparing the phantom: {0}")]
     Setup(String),
+    #[error("GPU frame: {0}")]
+    Gpu(String),
 }
 
 /// The benchmark view: from the front-left, above, the whole phantom in frame.
@@ -99,6 +104,16 @@ pub fn run(opts: &RenderBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result
             }
         }
     }
+    #[cfg(feature = "gpu")]
+    let gpu = opts.gpu.and_then(|choice| choice.context()).map(std::sync::Arc::new);
+    #[cfg(feature = "gpu")]
+    if let Some(ctx) = &gpu {
+        for (name, volume) in &volumes {
+            for &size in &opts.sizes {
+                volume_gpu_rows(ctx, name, volume, &tf, size, opts, &mut emit)?;
+            }
+        }
+    }
     for &target in &opts.meshes {
         let (lo, hi) = source.bounds();
         let mesh = generate::lattice_for_box(lo, hi, target, CellSplit::Five).map_err(|e| RenderBenchError::Setup(e.to_string()))?;
@@ -106,44 +121,138 @@ pub fn run(opts: &RenderBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result
         let scalars: Vec<f32> = mesh.nodes().iter().map(|p| source.sample_world(*p).unwrap_or(outside)).collect();
         for &size in &opts.sizes {
             let camera = phantom_camera(&source, size)?;
-            let step = opts.steps.iter().copied().fold(f64::INFINITY, f64::min).max(0.25);
-            let params = crate::render::tet_raycast::TetRaycastParams { step, ..Default::default() };
-            let start = Instant::now();
-            let mut raycaster = crate::render::tet_raycast::TetRaycaster::new(&mesh, &scalars, &tf, &params)?;
-            let prepare_ms = start.elapsed().as_secs_f64() * 1e3;
-            raycaster.render(&camera)?;
-            let mut samples = Vec::with_capacity(opts.runs);
-            for _ in 0..opts.runs {
-                // Each frame refreshes planes and gradients, as after a deformation step.
-                let start = Instant::now();
-                raycaster.update(mesh.nodes())?;
-                raycaster.render(&camera)?;
-                samples.push(start.elapsed().as_secs_f64() * 1e3);
+            let background = [0.0, 0.0, 0.0, 1.0];
+            // The f64 walk with the exact transfer function; no finer than 0.25 mm, which
+            // is already below a level of error at these tet sizes.
+            let reference_step = opts.reference_step.max(0.25);
+            let reference = tet_raycast::reference(&mesh, mesh.nodes(), &scalars, &camera, &tf, &TetRaycastParams { step: reference_step, background, ..Default::default() })?;
+            let case = format!("mesh{}k_{size}", mesh.tets().len() / 1000);
+            for &step in &opts.steps {
+                for preintegrated in [true, false] {
+                    let params = TetRaycastParams { step, preintegrated, background, ..Default::default() };
+                    let start = Instant::now();
+                    let mut raycaster = TetRaycaster::new(&mesh, &scalars, &tf, &params)?;
+                    let prepare_ms = start.elapsed().as_secs_f64() * 1e3;
+                    let mut image = raycaster.render(&camera)?;
+                    let (mut samples, mut updates) = (Vec::with_capacity(opts.runs), Vec::with_capacity(opts.runs));
+                    for _ in 0..opts.runs {
+                        // Each frame refreshes planes and gradients, as after a deformation step.
+                        let start = Instant::now();
+                        raycaster.update(mesh.nodes())?;
+                        updates.push(start.elapsed().as_secs_f64() * 1e3);
+                        image = raycaster.render(&camera)?;
+                        samples.push(start.elapsed().as_secs_f64() * 1e3);
+                    }
+                    emit(&BenchRow {
+                        stage: "render",
+                        case: case.clone(),
+                        backend: "cpu".into(),
+                        device: device.clone(),
+                        params: json!({"mode": "tet_mesh", "prepare_ms": prepare_ms, "update_ms": time_stats(updates).median, "step_mm": step, "preintegrated": preintegrated, "shading": "none", "reference_step_mm": reference_step, "tf": "ct_soft_tissue"}),
+                        runs: samples.len(),
+                        time_ms: time_stats(samples),
+                        error: Some(ErrorMeasure { metric: "psnr_db", value: image.psnr(&reference), reference: "f64 tet walk" }),
+                        work: json!({"rays": size * size, "tets": mesh.tets().len()}),
+                    });
+                    #[cfg(feature = "gpu")]
+                    if let Some(ctx) = &gpu {
+                        mesh_gpu_row(ctx, &raycaster, &camera, &reference, &case, step, &mut emit)?;
+                    }
+                }
             }
+        }
+    }
+    Ok(())
+}
+
+/// Frames timed on the GPU, read-back included, after one to settle.
+#[cfg(feature = "gpu")]
+fn gpu_frames(runs: usize, mut frame: impl FnMut() -> Result<crate::render::Rendered, crate::gpu::raycast::GpuRenderError>) -> Result<(crate::render::Rendered, Vec<f64>), crate::gpu::raycast::GpuRenderError> {
+    let mut image = frame()?;
+    let mut samples = Vec::with_capacity(runs);
+    for _ in 0..runs {
+        let start = Instant::now();
+        image = frame()?;
+        samples.push(start.elapsed().as_secs_f64() * 1e3);
+    }
+    Ok((image, samples))
+}
+
+#[cfg(feature = "gpu")]
+fn volume_gpu_rows(ctx: &std::sync::Arc<crate::gpu::GpuContext>, name: &str, volume: &Volume, tf: &TransferFunction, size: usize, opts: &RenderBenchOptions, emit: &mut impl FnMut(&BenchRow)) -> Result<(), RenderBenchError> {
+    use crate::gpu::raycast::GpuVolumeRaycaster;
+    let camera = phantom_camera(volume, size)?;
+    let background = [0.0, 0.0, 0.0, 1.0];
+    let reference = raycast::reference(volume, &camera, tf, opts.reference_step, background)?;
+    for &step in &opts.steps {
+        for preintegrated in [true, false] {
+            let params = RaycastParams { step, preintegrated, shading: Shading::None, background, ..Default::default() };
+            let prepared = VolumeRaycaster::new(volume, tf, &params)?;
+            let raycaster = match GpuVolumeRaycaster::new(ctx.clone(), &prepared) {
+                Ok(r) => r,
+                Err(e) => {
+                    tracing::warn!("GPU raycaster unavailable: {e}");
+                    return Ok(());
+                }
+            };
+            let (image, samples) = gpu_frames(opts.runs, || raycaster.render(&camera)).map_err(|e| RenderBenchError::Gpu(e.to_string()))?;
             emit(&BenchRow {
                 stage: "render",
-                case: format!("mesh{}k_{size}", mesh.tets().len() / 1000),
-                backend: "cpu".into(),
-                device: device.clone(),
-                params: json!({"mode": "tet_mesh", "prepare_ms": prepare_ms, "step_mm": step, "preintegrated": false, "shading": "none", "tf": "ct_soft_tissue"}),
+                case: format!("{name}_{size}"),
+                backend: "gpu".into(),
+                device: ctx.describe(),
+                params: json!({"mode": "composite", "step_mm": step, "preintegrated": preintegrated, "shading": "none", "reference_step_mm": opts.reference_step, "tf": "ct_soft_tissue", "includes_readback": true}),
                 runs: samples.len(),
                 time_ms: time_stats(samples),
-                error: None,
-                work: json!({"rays": size * size, "tets": mesh.tets().len()}),
+                error: Some(ErrorMeasure { metric: "psnr_db", value: image.psnr(&reference), reference: "f64 point sampling" }),
+                work: json!({"rays": size * size, "voxels": volume.len()}),
             });
         }
     }
     Ok(())
 }
 
-pub const TABLE_HEADER: &str = "case                   step  preint shading     median ms    fps   PSNR dB";
+/// The GPU twin of a CPU mesh row: positions uploaded and geometry refreshed every frame.
+#[cfg(feature = "gpu")]
+fn mesh_gpu_row(ctx: &std::sync::Arc<crate::gpu::GpuContext>, prepared: &TetRaycaster, camera: &Camera, reference: &[[f64; 4]], case: &str, step: f64, emit: &mut impl FnMut(&BenchRow)) -> Result<(), RenderBenchError> {
+    use crate::gpu::tet_raycast::GpuTetRaycaster;
+    let gpu_err = |e: crate::gpu::raycast::GpuRenderError| RenderBenchError::Gpu(e.to_string());
+    let mut raycaster = match GpuTetRaycaster::new(ctx.clone(), prepared) {
+        Ok(r) => r,
+        Err(e) => {
+            tracing::warn!("GPU tet raycaster unavailable: {e}");
+            return Ok(());
+        }
+    };
+    let nodes = prepared.mesh().nodes();
+    let (image, samples) = gpu_frames(3, || {
+        raycaster.update(nodes)?;
+        raycaster.render(camera)
+    })
+    .map_err(gpu_err)?;
+    emit(&BenchRow {
+        stage: "render",
+        case: case.to_owned(),
+        backend: "gpu".into(),
+        device: ctx.describe(),
+        params: json!({"mode": "tet_mesh", "step_mm": step, "preintegrated": prepared.params().preintegrated, "shading": "none", "tf": "ct_soft_tissue", "includes_readback": true}),
+        runs: samples.len(),
+        time_ms: time_stats(samples),
+        error: Some(ErrorMeasure { metric: "psnr_db", value: image.psnr(reference), reference: "f64 tet walk" }),
+        work: json!({"rays": camera.width * camera.height, "tets": prepared.mesh().tets().len()}),
+    });
+    Ok(())
+}
+
+pub const TABLE_HEADER: &str = "case                   backend  step  preint shading     median ms    fps   PSNR dB";
 
 pub fn table_row(row: &BenchRow) -> String {
     let p = &row.params;
     let error = row.error.as_ref().map_or("-".to_owned(), |e| format!("{:.1}", e.value));
     format!(
-        "{:<22} {:>5} {:>6} {:<10} {:>10.1} {:>6.1} {:>9}",
+        "{:<22} {:<7} {:>5} {:>6} {:<10} {:>10.1} {:>6.1} {:>9}",
         row.case,
+        row.backend,
         p["step_mm"],
         p["preintegrated"],
         p["shading"].as_str().unwrap_or("?"),

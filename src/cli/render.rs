@@ -7,6 +7,7 @@ use nalgebra::{Point3, Vector3};
 
 use defvol::render::camera::{Camera, Projection};
 use defvol::render::raycast::{self, Mode, RaycastParams, Shading};
+use defvol::render::tet_raycast::{TetRaycastParams, TetRaycaster};
 use defvol::render::transfer::TransferFunction;
 use defvol::volume::{phantom, Volume};
 
@@ -53,9 +54,10 @@ pub struct RenderArgs {
     iso: f64,
     #[arg(long, value_enum, default_value = "gradient")]
     shading: Shading,
-    /// Sample spacing along rays (world units).
-    #[arg(long, default_value_t = 1.0)]
-    step: f64,
+    /// Sample spacing along rays (world units; default 1). With --mesh and pre-integration:
+    /// the longest piece of a tet's segment one table lookup covers (default 4).
+    #[arg(long)]
+    step: Option<f64>,
     /// Point sampling instead of pre-integrated segments.
     #[arg(long)]
     no_preintegration: bool,
@@ -86,6 +88,24 @@ fn render_on_backend(args: &RenderArgs, prepared: &raycast::VolumeRaycaster, cam
             match defvol::gpu::raycast::GpuVolumeRaycaster::new(std::sync::Arc::new(ctx), prepared).and_then(|g| g.render(camera)) {
                 Ok(image) => return Ok((image, name)),
                 Err(e) => tracing::warn!("GPU raycaster not used: {e}; the CPU path runs"),
+            }
+        }
+    }
+    #[cfg(not(feature = "gpu"))]
+    let _ = (args.backend, args.allow_software_gpu);
+    Ok((prepared.render(camera)?, format!("cpu ({} threads)", rayon::current_num_threads())))
+}
+
+/// As [`render_on_backend`], for the tetrahedral-mesh raycaster.
+fn mesh_on_backend(args: &RenderArgs, prepared: &TetRaycaster, camera: &Camera) -> Result<(defvol::render::Rendered, String)> {
+    #[cfg(feature = "gpu")]
+    if matches!(args.backend, defvol::engine::BackendChoice::Auto | defvol::engine::BackendChoice::Gpu) {
+        let choice = defvol::gpu_policy::GpuChoice { allow_software: args.allow_software_gpu, required: args.backend == defvol::engine::BackendChoice::Gpu };
+        if let Some(ctx) = choice.context() {
+            let name = ctx.describe();
+            match defvol::gpu::tet_raycast::GpuTetRaycaster::new(std::sync::Arc::new(ctx), prepared).and_then(|g| g.render(camera)) {
+                Ok(image) => return Ok((image, name)),
+                Err(e) => tracing::warn!("GPU tet raycaster not used: {e}; the CPU path runs"),
             }
         }
     }
@@ -140,7 +160,7 @@ pub fn run(args: RenderArgs) -> Result<()> {
         }
     };
     let tools = args.tool.iter().map(|t| tool(t)).collect::<Result<Vec<_>>>()?;
-    let params = RaycastParams { mode: args.mode, step: args.step, preintegrated: !args.no_preintegration, shading: args.shading, iso_value: args.iso, tools, ..Default::default() };
+    let params = RaycastParams { mode: args.mode, step: args.step.unwrap_or(1.0), preintegrated: !args.no_preintegration, shading: args.shading, iso_value: args.iso, tools, ..Default::default() };
     let started = std::time::Instant::now();
     let (image, on) = match &args.mesh {
         Some(path) => {
@@ -157,9 +177,12 @@ pub fn run(args: RenderArgs) -> Result<()> {
                     mesh.nodes().iter().map(|p| volume.sample_world(*p).unwrap_or(outside)).collect()
                 }
             };
-            let tet_params = defvol::render::tet_raycast::TetRaycastParams { step: args.step, background: params.background, ..Default::default() };
-            let raycaster = defvol::render::tet_raycast::TetRaycaster::new(&mesh, &scalars, &tf, &tet_params)?;
-            (raycaster.render(&camera)?, format!("cpu ({} threads), {} tets", rayon::current_num_threads(), mesh.tets().len()))
+            let preintegrated = !args.no_preintegration;
+            let step = args.step.unwrap_or(if preintegrated { 4.0 } else { 1.0 });
+            let tet_params = TetRaycastParams { step, preintegrated, background: params.background, tools: params.tools.clone(), ambient: params.ambient, ..Default::default() };
+            let raycaster = TetRaycaster::new(&mesh, &scalars, &tf, &tet_params)?;
+            let (image, on) = mesh_on_backend(&args, &raycaster, &camera)?;
+            (image, format!("{on}, {} tets", mesh.tets().len()))
         }
         None => {
             let prepared = raycast::VolumeRaycaster::new(&volume, &tf, &params)?;

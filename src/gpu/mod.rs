@@ -7,6 +7,7 @@
 pub mod dpcm;
 pub mod raycast;
 pub mod solver;
+pub mod tet_raycast;
 pub mod warp;
 
 use wgpu::util::DeviceExt;

@@ -70,7 +70,7 @@ pub struct ToolPicture {
 }
 
 impl ToolPicture {
-    fn validate(&self) -> Result<(), RenderError> {
+    pub(crate) fn validate(&self) -> Result<(), RenderError> {
         let finite = self.tip.iter().chain(&self.tail).chain(&self.color).all(|v| v.is_finite());
         if !(finite && self.radius.is_finite() && self.radius > 0.0) {
             return Err(RenderError::Parameter(format!("tool {self:?}: positions must be finite and the radius > 0")));
@@ -103,6 +103,19 @@ impl ToolPicture {
         }
         None
     }
+}
+
+/// The nearest tool along a world ray: distance and its lit, opaque colour (what the ray
+/// sees behind the tissue in front of it).
+pub(crate) fn nearest_tool(tools: &[ToolPicture], ambient: f64, origin: &Point3<f64>, direction: &Vector3<f64>, light: &Vector3<f64>) -> Option<(f32, [f32; 4])> {
+    tools
+        .iter()
+        .filter_map(|tool| tool.hit(origin, direction).map(|(t, n)| (t, tool, n)))
+        .min_by(|a, b| a.0.total_cmp(&b.0))
+        .map(|(t, tool, n)| {
+            let shade = ambient + (1.0 - ambient) * n.dot(light).max(0.0);
+            (t as f32, [(tool.color[0] * shade) as f32, (tool.color[1] * shade) as f32, (tool.color[2] * shade) as f32, 1.0])
+        })
 }
 
 impl Default for RaycastParams {
@@ -336,26 +349,11 @@ impl Caster<'_> {
         }
     }
 
-    /// Premultiplied RGBA over the background, and the depth where opacity passed 0.5.
-    /// The nearest tool along the ray: distance and its lit, opaque colour.
-    fn tool(&self, origin: &Point3<f64>, direction: &Vector3<f64>, light: &Vector3<f64>) -> Option<(f32, [f32; 4])> {
-        let ambient = self.params.ambient;
-        self.params
-            .tools
-            .iter()
-            .filter_map(|tool| tool.hit(origin, direction).map(|(t, n)| (t, tool, n)))
-            .min_by(|a, b| a.0.total_cmp(&b.0))
-            .map(|(t, tool, n)| {
-                let shade = ambient + (1.0 - ambient) * n.dot(light).max(0.0);
-                (t as f32, [(tool.color[0] * shade) as f32, (tool.color[1] * shade) as f32, (tool.color[2] * shade) as f32, 1.0])
-            })
-    }
-
     /// Premultiplied RGBA over the background (or the tool), and the depth where opacity
     /// passed 0.5 (or the tool's surface).
     fn cast(&self, origin: &Point3<f64>, direction: &Vector3<f64>) -> ([f32; 4], f32) {
         let light = self.params.light.map_or(-direction, |l| Vector3::from(l).normalize());
-        let tool = self.tool(origin, direction, &light);
+        let tool = nearest_tool(&self.params.tools, self.params.ambient, origin, direction, &light);
         // A tool hides what lies behind it: it is the background of the ray from its surface.
         let (bg, behind) = match tool {
             Some((t, color)) => (color, t),

@@ -1,64 +1,211 @@
-//! The tetrahedral-mesh raycaster (seed 000, section 5), CPU path: rays enter through the
-//! mesh's front-facing boundary faces and walk face neighbours, leaving each tet through the
-//! face with the smallest ray parameter ahead; the scalar is linear inside each tet (a
-//! gradient per tet), so each segment is integrated from its entry and exit values. A ray
-//! that leaves a non-convex mesh re-enters at its next boundary hit. Face planes and
-//! gradients are refreshed with [`TetRaycaster::update`] after every deformation step.
+//! The tetrahedral-mesh raycaster (seed 000, section 5), CPU path, line by line the twin of
+//! `shaders/tet_raycast.wgsl`:
+//! - boundary faces are binned into 8x8-pixel tiles ([`bin_boundary`]); a ray's entry is
+//!   the nearest front-facing boundary face of its tile;
+//! - the walk leaves each tet through the face with the smallest ray parameter ahead and
+//!   goes on in the face neighbour; the scalar is linear inside a tet (a gradient per tet);
+//! - each tet's segment is one lookup in the 3D pre-integrated table on (front scalar, back
+//!   scalar, length) ([`SegmentTable`]), or point samples when pre-integration is off;
+//! - a ray that leaves a non-convex mesh looks for its next boundary hit and re-enters;
+//! - a ray that starts inside the mesh (the camera in the organ) meets an exit face first:
+//!   it walks back from there to the tet holding its origin and starts there;
+//! - a tool hit ends the ray: the tool is what lies behind the tissue in front of it.
+//!
+//! Face planes and gradients are refreshed with [`TetRaycaster::update`] after every
+//! deformation step. Geometry is kept in f32 relative to the rest mesh's centre (`anchor`),
+//! as the GPU holds it. [`reference`] is the independent f64 integral the tests use.
 
+use bytemuck::{Pod, Zeroable};
 use nalgebra::{Matrix3, Point3, Vector3};
 use rayon::prelude::*;
 
 use super::camera::{Camera, Projection};
-use super::transfer::{Tables, TransferFunction};
+use super::raycast::{nearest_tool, ToolPicture, MAX_TOOLS};
+use super::transfer::{SegmentTable, Tables, TransferFunction};
 use super::{RenderError, Rendered};
 use crate::mesh::{TetMesh, TET_FACES};
 
 #[derive(Debug, Clone, PartialEq)]
 pub struct TetRaycastParams {
-    /// Longest sub-step a segment is integrated in (world units).
+    /// Pre-integrated: the longest piece a segment is looked up in (the table's length
+    /// range; longer segments are split). Point-sampled: the sub-step. World units.
     pub step: f64,
+    pub preintegrated: bool,
     pub early_termination: f64,
     pub background: [f64; 4],
+    /// Tools drawn into the picture, opaque, at their depth (up to [`MAX_TOOLS`]).
+    pub tools: Vec<ToolPicture>,
+    /// Ambient share of the tools' headlight shading.
+    pub ambient: f64,
 }
 
 impl Default for TetRaycastParams {
     fn default() -> Self {
-        Self { step: 1.0, early_termination: 0.999, background: [0.0, 0.0, 0.0, 1.0] }
+        Self { step: 4.0, preintegrated: true, early_termination: 0.999, background: [0.0, 0.0, 0.0, 1.0], tools: Vec::new(), ambient: 0.35 }
     }
 }
 
-/// Per tet: outward face planes (n, n·x on the face) and the scalar's gradient and offset.
-#[derive(Debug, Clone, Copy, Default)]
-struct TetGeometry {
-    planes: [[f64; 4]; 4],
-    gradient: [f64; 4],
+/// Side of the square pixel tiles boundary faces are binned into (the GPU's workgroup).
+pub const TILE: usize = 8;
+/// Entry face of a walk that starts inside a tet (the camera in the mesh).
+pub(crate) const NO_FACE: u32 = 4;
+/// The most boundary crossings into the mesh one ray follows.
+pub(crate) const MAX_ENTRIES: usize = 64;
+/// The most tets one walk crosses.
+pub(crate) const MAX_WALK: usize = 1 << 16;
+/// Longest run of zero-length segments before a walk is abandoned: a ray through an edge
+/// or a vertex can circle the tets around it without moving on.
+pub(crate) const MAX_STALL: u32 = 64;
+/// The most pieces a long segment is split into.
+pub(crate) const MAX_PIECES: usize = 4096;
+
+/// Per tet, as the GPU reads it: outward face planes (n, n·x on the face; face k opposite
+/// vertex k) and the scalar's gradient and offset (s(x) = g·x + w), anchored coordinates.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Default, Pod, Zeroable)]
+pub(crate) struct TetGeometry {
+    pub(crate) planes: [[f32; 4]; 4],
+    pub(crate) gradient: [f32; 4],
+}
+
+/// Planes and gradient of one tet in f64 (degenerate tets get zero normals and a constant
+/// scalar, so rays pass them without a contribution).
+fn tet_geometry(x: &[Vector3<f64>; 4], s: &[f64; 4]) -> ([[f64; 4]; 4], [f64; 4]) {
+    let mut planes = [[0.0; 4]; 4];
+    for (k, face) in TET_FACES.iter().enumerate() {
+        let (a, b, c) = (x[face[0]], x[face[1]], x[face[2]]);
+        let mut n = (b - a).cross(&(c - a));
+        // Outward: away from the opposite vertex (inverted tets stay consistent).
+        if n.dot(&(x[k] - a)) > 0.0 {
+            n = -n;
+        }
+        let n = n.try_normalize(1e-300).unwrap_or_else(Vector3::zeros);
+        planes[k] = [n.x, n.y, n.z, n.dot(&a)];
+    }
+    let m = Matrix3::from_rows(&[(x[1] - x[0]).transpose(), (x[2] - x[0]).transpose(), (x[3] - x[0]).transpose()]);
+    let grad = m.try_inverse().map_or_else(Vector3::zeros, |inv| inv * Vector3::new(s[1] - s[0], s[2] - s[0], s[3] - s[0]));
+    let offset = if grad == Vector3::zeros() { (s[0] + s[1] + s[2] + s[3]) / 4.0 } else { s[0] - grad.dot(&x[0]) };
+    (planes, [grad.x, grad.y, grad.z, offset])
+}
+
+/// Boundary faces (tet · 4 + face) binned into the image's tiles: tile t holds
+/// `faces[start[t]..start[t + 1]]`.
+#[derive(Debug, Clone)]
+pub(crate) struct Bins {
+    pub(crate) tiles: [usize; 2],
+    pub(crate) start: Vec<u32>,
+    pub(crate) faces: Vec<u32>,
+}
+
+impl Bins {
+    pub(crate) fn tile(&self, px: usize, py: usize) -> &[u32] {
+        let t = (py / TILE) * self.tiles[0] + px / TILE;
+        &self.faces[self.start[t] as usize..self.start[t + 1] as usize]
+    }
+}
+
+/// Bins each boundary face into the tiles its projected box covers. A face wholly behind
+/// the camera is dropped (rays only go forward); one crossing the eye's plane covers every
+/// tile.
+pub(crate) fn bin_boundary(tets: &[[u32; 4]], boundary: &[u32], positions: &[Vector3<f64>], camera: &Camera) -> Bins {
+    let (w, h) = (camera.width, camera.height);
+    let tiles = [w.div_ceil(TILE), h.div_ceil(TILE)];
+    let camera_from_world = camera.world_from_camera.inverse();
+    let aspect = w as f64 / h as f64;
+    let tile_box = |face: u32| -> Option<[usize; 4]> {
+        let nodes = tets[(face >> 2) as usize];
+        let corners = TET_FACES[(face & 3) as usize].map(|i| camera_from_world * Point3::from(positions[nodes[i] as usize]));
+        if corners.iter().all(|c| c.z <= 0.0) {
+            return None;
+        }
+        let mut lo = [f64::INFINITY; 2];
+        let mut hi = [f64::NEG_INFINITY; 2];
+        for c in &corners {
+            let (u, v) = match camera.projection {
+                Projection::Perspective { fov_y_deg } => {
+                    if c.z <= 1e-9 {
+                        return Some([0, tiles[0] - 1, 0, tiles[1] - 1]);
+                    }
+                    let t = (fov_y_deg.to_radians() / 2.0).tan();
+                    (c.x / c.z / (t * aspect), c.y / c.z / t)
+                }
+                Projection::Orthographic { height } => (c.x / (height / 2.0 * aspect), c.y / (height / 2.0)),
+            };
+            let (px, py) = ((u + 1.0) / 2.0 * w as f64 - 0.5, (v + 1.0) / 2.0 * h as f64 - 0.5);
+            lo = [lo[0].min(px), lo[1].min(py)];
+            hi = [hi[0].max(px), hi[1].max(py)];
+        }
+        // One pixel of margin: the hit test has a tolerance, the box must not be tighter.
+        if hi[0] < -1.0 || hi[1] < -1.0 || lo[0] > w as f64 || lo[1] > h as f64 {
+            return None;
+        }
+        let tile = |v: f64, n: usize| ((v.max(0.0) as usize) / TILE).min(n - 1);
+        Some([tile(lo[0] - 1.0, tiles[0]), tile(hi[0] + 1.0, tiles[0]), tile(lo[1] - 1.0, tiles[1]), tile(hi[1] + 1.0, tiles[1])])
+    };
+    let boxes: Vec<(u32, [usize; 4])> = boundary.par_iter().filter_map(|&f| tile_box(f).map(|b| (f, b))).collect();
+    let mut count = vec![0u32; tiles[0] * tiles[1] + 1];
+    for (_, [x0, x1, y0, y1]) in &boxes {
+        for ty in *y0..=*y1 {
+            for c in &mut count[ty * tiles[0] + x0..=ty * tiles[0] + x1] {
+                *c += 1;
+            }
+        }
+    }
+    let mut start = Vec::with_capacity(count.len());
+    let mut total = 0u32;
+    for c in &count {
+        start.push(total);
+        total += c;
+    }
+    let mut fill = start.clone();
+    let mut faces = vec![0u32; total as usize];
+    for (f, [x0, x1, y0, y1]) in &boxes {
+        for ty in *y0..=*y1 {
+            for tx in *x0..=*x1 {
+                let slot = &mut fill[ty * tiles[0] + tx];
+                faces[*slot as usize] = *f;
+                *slot += 1;
+            }
+        }
+    }
+    Bins { tiles, start, faces }
+}
+
+/// A boundary face a ray crosses.
+#[derive(Debug, Clone, Copy)]
+struct Hit {
+    t: f32,
+    tet: u32,
+    face: u32,
+    /// The face looks toward the ray (an entry), not away (an exit).
+    front: bool,
+}
+
+type V3 = Vector3<f32>;
+
+#[inline]
+fn plane_t(plane: &[f32; 4], o: &V3, d: &V3) -> (f32, f32) {
+    let denom = plane[0] * d.x + plane[1] * d.y + plane[2] * d.z;
+    (denom, (plane[3] - (plane[0] * o.x + plane[1] * o.y + plane[2] * o.z)) / denom)
 }
 
 pub struct TetRaycaster<'a> {
     mesh: &'a TetMesh,
     scalars: Vec<f32>,
-    positions: Vec<Vector3<f64>>,
-    geometry: Vec<TetGeometry>,
-    /// Boundary faces as (tet, face).
-    boundary: Vec<(u32, u8)>,
-    tables: Tables,
-    params: TetRaycastParams,
-}
-
-/// A boundary face ready for rasterising: corners, pixel box (x0, x1, y0, y1), and the
-/// entry it makes.
-struct ProjectedFace {
-    corners: [Vector3<f64>; 3],
-    pixels: (usize, usize, usize, usize),
-    entry: Entry,
-}
-
-/// One boundary crossing into the mesh along a pixel's ray.
-#[derive(Debug, Clone, Copy)]
-struct Entry {
-    t: f64,
-    tet: u32,
-    face: u8,
+    pub(crate) positions: Vec<Vector3<f64>>,
+    pub(crate) anchor: Vector3<f64>,
+    pub(crate) geometry: Vec<TetGeometry>,
+    /// Per tet and face: the neighbour across it as tet · 4 + its face, or -1.
+    pub(crate) links: Vec<[i32; 4]>,
+    /// Boundary faces as tet · 4 + face.
+    pub(crate) boundary: Vec<u32>,
+    pub(crate) table: SegmentTable,
+    pub(crate) tables: Tables,
+    /// How far outside a face's triangle a hit still counts (world units).
+    pub(crate) tolerance: f32,
+    /// Scalars outside this open interval are transparent ([`TransferFunction::visible_span`]).
+    pub(crate) visible: (f32, f32),
+    pub(crate) params: TetRaycastParams,
 }
 
 impl<'a> TetRaycaster<'a> {
@@ -70,218 +217,390 @@ impl<'a> TetRaycaster<'a> {
         if !(params.step.is_finite() && params.step > 0.0) {
             return Err(RenderError::Parameter(format!("step {} must be finite and > 0", params.step)));
         }
+        if !(params.early_termination.is_finite() && params.early_termination > 0.0 && params.early_termination <= 1.0) {
+            return Err(RenderError::Parameter(format!("early termination {} must be in (0, 1]", params.early_termination)));
+        }
+        if params.tools.len() > MAX_TOOLS {
+            return Err(RenderError::Parameter(format!("{} tools; a picture draws up to {MAX_TOOLS}", params.tools.len())));
+        }
+        for tool in &params.tools {
+            tool.validate()?;
+        }
         let range = scalars.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), s| (lo.min(*s), hi.max(*s)));
         let tf = tf.resolve(range)?;
-        let boundary = mesh.neighbours().iter().enumerate().flat_map(|(t, n)| (0..4u8).filter(move |&k| n[k as usize] < 0).map(move |k| (t as u32, k))).collect();
-        let mut raycaster = Self { mesh, scalars: scalars.to_vec(), positions: Vec::new(), geometry: Vec::new(), boundary, tables: Tables::new(&tf, range, params.step, false), params: params.clone() };
+        let neighbours = mesh.neighbours();
+        let links = neighbours
+            .iter()
+            .enumerate()
+            .map(|(t, n)| {
+                n.map(|m| match usize::try_from(m) {
+                    Ok(m) => neighbours[m].iter().position(|&b| b == t as i32).map_or(-1, |face| (m * 4 + face) as i32),
+                    Err(_) => -1,
+                })
+            })
+            .collect();
+        let boundary = neighbours.iter().enumerate().flat_map(|(t, n)| (0..4u32).filter(move |&k| n[k as usize] < 0).map(move |k| t as u32 * 4 + k)).collect();
+        let (lo, hi) = mesh.nodes().iter().fold((Vector3::repeat(f64::INFINITY), Vector3::repeat(f64::NEG_INFINITY)), |(lo, hi), p| (lo.inf(p), hi.sup(p)));
+        let (anchor, diagonal) = if mesh.nodes().is_empty() { (Vector3::zeros(), 1.0) } else { ((lo + hi) / 2.0, (hi - lo).norm()) };
+        let table = if params.preintegrated { SegmentTable::new(&tf, range, params.step) } else { SegmentTable { lo: 0.0, hi: 1.0, max_len: 1.0, level_scale: 1.0, length_scale: 1.0, entries: Vec::new() } };
+        let far = |v: f64| v.clamp(-1e30, 1e30) as f32;
+        let visible = tf.visible_span();
+        let mut raycaster = Self {
+            mesh,
+            scalars: scalars.to_vec(),
+            positions: Vec::new(),
+            anchor,
+            geometry: Vec::new(),
+            links,
+            boundary,
+            table,
+            tables: Tables::new(&tf, range, params.step, false),
+            tolerance: (1e-5 * diagonal.max(1e-9)) as f32,
+            visible: (far(visible.0), far(visible.1)),
+            params: params.clone(),
+        };
         raycaster.update(mesh.nodes())?;
         Ok(raycaster)
     }
 
+    pub fn mesh(&self) -> &TetMesh {
+        self.mesh
+    }
+
+    pub fn scalars(&self) -> &[f32] {
+        &self.scalars
+    }
+
+    pub fn params(&self) -> &TetRaycastParams {
+        &self.params
+    }
+
     /// New node positions (a deformation step): face planes and gradients recomputed.
     pub fn update(&mut self, positions: &[Vector3<f64>]) -> Result<(), RenderError> {
-        if positions.len() != self.mesh.nodes().len() || positions.iter().any(|p| !p.iter().all(|v| v.is_finite())) {
-            return Err(RenderError::Parameter(format!("{} positions for {} nodes (all must be finite)", positions.len(), self.mesh.nodes().len())));
-        }
+        check_positions(positions, self.mesh.nodes().len())?;
         self.positions = positions.to_vec();
-        let scalars = &self.scalars;
+        let (scalars, anchor) = (&self.scalars, self.anchor);
         self.geometry = self
             .mesh
             .tets()
             .par_iter()
             .map(|tet| {
-                let x = tet.map(|i| positions[i as usize]);
-                let mut g = TetGeometry::default();
-                for (k, face) in TET_FACES.iter().enumerate() {
-                    let (a, b, c) = (x[face[0]], x[face[1]], x[face[2]]);
-                    let mut n = (b - a).cross(&(c - a));
-                    // Outward: away from the opposite vertex (inverted tets stay consistent).
-                    if n.dot(&(x[k] - a)) > 0.0 {
-                        n = -n;
-                    }
-                    let n = n.try_normalize(1e-300).unwrap_or_else(Vector3::zeros);
-                    g.planes[k] = [n.x, n.y, n.z, n.dot(&a)];
-                }
-                let s = tet.map(|i| f64::from(scalars[i as usize]));
-                let m = Matrix3::from_rows(&[(x[1] - x[0]).transpose(), (x[2] - x[0]).transpose(), (x[3] - x[0]).transpose()]);
-                let grad = m.try_inverse().map_or_else(Vector3::zeros, |inv| inv * Vector3::new(s[1] - s[0], s[2] - s[0], s[3] - s[0]));
-                let offset = if grad == Vector3::zeros() { (s[0] + s[1] + s[2] + s[3]) / 4.0 } else { s[0] - grad.dot(&x[0]) };
-                g.gradient = [grad.x, grad.y, grad.z, offset];
-                g
+                let (planes, gradient) = tet_geometry(&tet.map(|i| positions[i as usize] - anchor), &tet.map(|i| f64::from(scalars[i as usize])));
+                TetGeometry { planes: planes.map(|p| p.map(|v| v as f32)), gradient: gradient.map(|v| v as f32) }
             })
             .collect();
         Ok(())
     }
 
-    fn scalar(&self, tet: u32, p: &Vector3<f64>) -> f32 {
-        let g = self.geometry[tet as usize].gradient;
-        (g[0] * p.x + g[1] * p.y + g[2] * p.z + g[3]) as f32
-    }
-
-    /// Front-facing boundary hits of every pixel's ray, nearest first: boundary faces
-    /// projected to the image, each pixel centre in their box tested exactly.
-    fn entries(&self, camera: &Camera) -> Vec<Vec<Entry>> {
-        let (w, h) = (camera.width, camera.height);
-        let camera_from_world = camera.world_from_camera.inverse();
-        // Pixel box of a face; the whole image when a vertex is not in front of the camera.
-        let pixel_box = |pts: &[Vector3<f64>; 3]| -> (usize, usize, usize, usize) {
-            let aspect = w as f64 / h as f64;
-            let mut lo = [f64::INFINITY; 2];
-            let mut hi = [f64::NEG_INFINITY; 2];
-            for p in pts {
-                let c = camera_from_world * Point3::from(*p);
-                let (u, v) = match camera.projection {
-                    Projection::Perspective { fov_y_deg } => {
-                        if c.z <= 1e-9 {
-                            return (0, w, 0, h);
-                        }
-                        let t = (fov_y_deg.to_radians() / 2.0).tan();
-                        (c.x / c.z / (t * aspect), c.y / c.z / t)
-                    }
-                    Projection::Orthographic { height } => (c.x / (height / 2.0 * aspect), c.y / (height / 2.0)),
-                };
-                let (px, py) = ((u + 1.0) / 2.0 * w as f64 - 0.5, (v + 1.0) / 2.0 * h as f64 - 0.5);
-                lo = [lo[0].min(px), lo[1].min(py)];
-                hi = [hi[0].max(px), hi[1].max(py)];
-            }
-            let clamp = |v: f64, n: usize| v.max(0.0).min(n as f64) as usize;
-            (clamp(lo[0].floor(), w), clamp(hi[0].ceil() + 1.0, w), clamp(lo[1].floor(), h), clamp(hi[1].ceil() + 1.0, h))
-        };
-        let faces: Vec<ProjectedFace> = self
-            .boundary
-            .iter()
-            .map(|&(tet, k)| {
-                let nodes = self.mesh.tets()[tet as usize];
-                let corners = TET_FACES[k as usize].map(|i| self.positions[nodes[i] as usize]);
-                ProjectedFace { pixels: pixel_box(&corners), corners, entry: Entry { t: 0.0, tet, face: k } }
-            })
-            .collect();
-        let mut rows: Vec<Vec<usize>> = vec![Vec::new(); h];
-        for (f, face) in faces.iter().enumerate() {
-            for row in &mut rows[face.pixels.2..face.pixels.3] {
-                row.push(f);
-            }
-        }
-        rows.par_iter()
-            .enumerate()
-            .flat_map_iter(|(py, row)| {
-                let mut pixels: Vec<Vec<Entry>> = vec![Vec::new(); w];
-                for &f in row {
-                    let ProjectedFace { corners: pts, pixels: (x0, x1, _, _), entry } = &faces[f];
-                    let plane = self.geometry[entry.tet as usize].planes[entry.face as usize];
-                    for (px, pixel) in pixels.iter_mut().enumerate().take(*x1).skip(*x0) {
-                        let (o, d) = camera.ray(px, py);
-                        if Vector3::new(plane[0], plane[1], plane[2]).dot(&d) >= 0.0 {
-                            continue; // back-facing: an exit, not an entry
-                        }
-                        if let Some(t) = ray_triangle(&o.coords, &d, pts) {
-                            pixel.push(Entry { t, ..*entry });
-                        }
-                    }
-                }
-                for pixel in &mut pixels {
-                    pixel.sort_by(|a, b| a.t.total_cmp(&b.t));
-                }
-                pixels
-            })
-            .collect()
-    }
-
     /// One frame seen by `camera`.
     pub fn render(&self, camera: &Camera) -> Result<Rendered, RenderError> {
         camera.validate()?;
-        let entries = self.entries(camera);
+        let bins = bin_boundary(self.mesh.tets(), &self.boundary, &self.positions, camera);
         let (w, h) = (camera.width, camera.height);
-        let pixels: Vec<([f32; 4], f32)> = entries.par_iter().enumerate().map(|(i, list)| self.cast(camera, i % w, i / w, list)).collect();
-        let rgba = pixels.iter().flat_map(|(c, _)| c.map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)).collect();
-        let depth = pixels.iter().map(|(_, d)| *d).collect();
+        // Tile by tile, as the GPU's workgroups: neighbouring rays cross the same tets while
+        // their geometry is still in cache.
+        let tiles: Vec<Vec<([f32; 4], f32)>> = (0..bins.tiles[0] * bins.tiles[1])
+            .into_par_iter()
+            .map(|tile| {
+                let (tx, ty) = (tile % bins.tiles[0] * TILE, tile / bins.tiles[0] * TILE);
+                let faces = bins.tile(tx, ty);
+                let mut pixels = Vec::with_capacity(TILE * TILE);
+                for py in ty..(ty + TILE).min(h) {
+                    for px in tx..(tx + TILE).min(w) {
+                        let (origin, direction) = camera.ray(px, py);
+                        let tool = nearest_tool(&self.params.tools, self.params.ambient, &origin, &direction, &-direction);
+                        let o = (origin.coords - self.anchor).cast::<f32>();
+                        pixels.push(self.cast(faces, &o, &direction.cast::<f32>(), tool));
+                    }
+                }
+                pixels
+            })
+            .collect();
+        let mut rgba = vec![0u8; w * h * 4];
+        let mut depth = vec![f32::INFINITY; w * h];
+        for (tile, pixels) in tiles.iter().enumerate() {
+            let (tx, ty) = (tile % bins.tiles[0] * TILE, tile / bins.tiles[0] * TILE);
+            let tile_w = (tx + TILE).min(w) - tx;
+            for (k, (color, d)) in pixels.iter().enumerate() {
+                let i = (ty + k / tile_w) * w + tx + k % tile_w;
+                rgba[i * 4..i * 4 + 4].copy_from_slice(&color.map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8));
+                depth[i] = *d;
+            }
+        }
         Ok(Rendered { width: w, height: h, rgba, depth })
     }
 
-    fn cast(&self, camera: &Camera, px: usize, py: usize, entries: &[Entry]) -> ([f32; 4], f32) {
-        let (o, d) = camera.ray(px, py);
-        let o = o.coords;
-        let neighbours = self.mesh.neighbours();
+    /// One ray: premultiplied RGBA over the background (or the tool), and the depth where
+    /// opacity passed 0.5 (or the tool's surface).
+    fn cast(&self, faces: &[u32], o: &V3, d: &V3, tool: Option<(f32, [f32; 4])>) -> ([f32; 4], f32) {
+        let (bg, t_stop) = match tool {
+            Some((t, color)) => (color, t),
+            None => (self.params.background.map(|c| c as f32), f32::INFINITY),
+        };
         let termination = self.params.early_termination as f32;
         let mut acc = [0.0f32; 4];
         let mut depth = f32::INFINITY;
-        let mut left_at = f64::NEG_INFINITY;
-        'entries: for entry in entries {
-            if entry.t < left_at - 1e-9 {
-                continue;
+        let mut t_from = 0.0f32;
+        let mut walked = false;
+        for _ in 0..MAX_ENTRIES {
+            let after = if walked { t_from + self.tolerance } else { t_from };
+            let Some(hit) = self.nearest_hit(faces, o, d, after) else { break };
+            if hit.t >= t_stop {
+                break;
             }
-            let (mut tet, mut face_in, mut t_in) = (entry.tet, entry.face, entry.t);
-            // A ray through an edge or a vertex can circle the tets around it without moving
-            // on: a walk that stalls that long is abandoned (the next entry takes over).
-            let mut stalled = 0;
-            for _ in 0..4 * self.mesh.tets().len().max(1) {
-                let planes = self.geometry[tet as usize].planes;
-                let mut exit: Option<(f64, usize)> = None;
-                for (k, plane) in planes.iter().enumerate() {
-                    if k == face_in as usize {
-                        continue;
-                    }
-                    let denom = plane[0] * d.x + plane[1] * d.y + plane[2] * d.z;
-                    if denom <= 1e-15 {
-                        continue;
-                    }
-                    let t = (plane[3] - (plane[0] * o.x + plane[1] * o.y + plane[2] * o.z)) / denom;
-                    if exit.is_none_or(|(best, _)| t < best) {
-                        exit = Some((t, k));
-                    }
-                }
-                let Some((t_exit, k_exit)) = exit else { break };
-                let t_out = t_exit.max(t_in);
-                stalled = if t_out - t_in <= 1e-9 * (1.0 + t_in.abs()) { stalled + 1 } else { 0 };
-                if stalled > 64 {
-                    left_at = t_out;
-                    break;
-                }
-                let (s_in, s_out) = (self.scalar(tet, &(o + d * t_in)), self.scalar(tet, &(o + d * t_out)));
-                self.integrate(&mut acc, &mut depth, t_in, t_out, s_in, s_out);
-                if acc[3] >= termination {
-                    break 'entries;
-                }
-                let next = neighbours[tet as usize][k_exit];
-                if next < 0 {
-                    left_at = t_out;
-                    break;
-                }
-                let Some(back) = neighbours[next as usize].iter().position(|&n| n == tet as i32) else { break };
-                (tet, face_in, t_in) = (next as u32, back as u8, t_out);
+            let start = if hit.front {
+                (hit.tet, hit.face, hit.t)
+            } else if !walked {
+                // The first boundary ahead is an exit: the ray starts inside the mesh.
+                self.locate_back(hit.tet, o, d, t_from)
+            } else {
+                t_from = hit.t;
+                continue;
+            };
+            walked = true;
+            t_from = self.walk(start, o, d, t_stop, &mut acc, &mut depth);
+            if acc[3] >= termination || t_from >= t_stop {
+                break;
             }
         }
-        let bg = self.params.background.map(|c| c as f32);
         let rest = 1.0 - acc[3];
-        ([acc[0] + rest * bg[0] * bg[3], acc[1] + rest * bg[1] * bg[3], acc[2] + rest * bg[2] * bg[3], acc[3] + rest * bg[3]], depth)
+        let color = [acc[0] + rest * bg[0] * bg[3], acc[1] + rest * bg[1] * bg[3], acc[2] + rest * bg[2] * bg[3], acc[3] + rest * bg[3]];
+        (color, if depth.is_finite() { depth } else { t_stop })
     }
 
-    /// The segment [t0, t1] with the scalar linear from s0 to s1, in midpoint sub-steps no
-    /// longer than the step.
-    fn integrate(&self, acc: &mut [f32; 4], depth: &mut f32, t0: f64, t1: f64, s0: f32, s1: f32) {
-        let len = (t1 - t0) as f32;
-        if len <= 0.0 {
-            return;
-        }
-        let n = ((len / self.params.step as f32).ceil() as usize).clamp(1, 1 << 16);
-        let ds = len / n as f32;
-        for m in 0..n {
-            let f = (m as f32 + 0.5) / n as f32;
-            let e = self.tables.sample(s0 + (s1 - s0) * f);
-            let alpha = 1.0 - (-e[3] * ds).exp();
-            if alpha <= 0.0 {
+    /// The nearest boundary face of the tile crossed beyond `after`: the hit on the face's
+    /// plane counts when it lies within `tolerance` of the tet's three other planes.
+    fn nearest_hit(&self, faces: &[u32], o: &V3, d: &V3, after: f32) -> Option<Hit> {
+        let mut best: Option<Hit> = None;
+        for &id in faces {
+            let (tet, k) = (id >> 2, id & 3);
+            let planes = &self.geometry[tet as usize].planes;
+            let (denom, t) = plane_t(&planes[k as usize], o, d);
+            if denom == 0.0 || !(t > after) || best.is_some_and(|b| t >= b.t) {
                 continue;
             }
-            let weight = 1.0 - acc[3];
-            for c in 0..3 {
-                acc[c] += weight * e[c] * alpha;
+            let p = o + d * t;
+            let on_face = (0..4).filter(|&j| j != k as usize).all(|j| {
+                let q = &planes[j];
+                q[0] * p.x + q[1] * p.y + q[2] * p.z - q[3] <= self.tolerance
+            });
+            if on_face {
+                best = Some(Hit { t, tet, face: k, front: denom < 0.0 });
             }
-            acc[3] += weight * alpha;
+        }
+        best
+    }
+
+    /// From the tet behind an exit face, back along the ray to the tet holding the point at
+    /// `t_from`: (tet, the face the ray came in through, t_from).
+    fn locate_back(&self, tet: u32, o: &V3, d: &V3, t_from: f32) -> (u32, u32, f32) {
+        let mut tet = tet;
+        for _ in 0..MAX_WALK {
+            let planes = &self.geometry[tet as usize].planes;
+            let mut entry_t = f32::NEG_INFINITY;
+            let mut entry_k = NO_FACE;
+            for (k, plane) in planes.iter().enumerate() {
+                let (denom, t) = plane_t(plane, o, d);
+                if denom < -1e-7 && t > entry_t {
+                    entry_t = t;
+                    entry_k = k as u32;
+                }
+            }
+            if entry_k == NO_FACE || entry_t <= t_from {
+                return (tet, entry_k, t_from);
+            }
+            let link = self.links[tet as usize][entry_k as usize];
+            if link < 0 {
+                return (tet, entry_k, entry_t);
+            }
+            tet = (link >> 2) as u32;
+        }
+        (tet, NO_FACE, t_from)
+    }
+
+    /// Walks from `start` (tet, entry face, t) through face neighbours until the ray
+    /// leaves the mesh, reaches `t_stop` or is opaque: where it stopped.
+    fn walk(&self, start: (u32, u32, f32), o: &V3, d: &V3, t_stop: f32, acc: &mut [f32; 4], depth: &mut f32) -> f32 {
+        let (mut tet, mut face_in, mut t_in) = start;
+        let termination = self.params.early_termination as f32;
+        let mut stalled = 0;
+        let scalar = |g: &[f32; 4], t: f32| g[0] * (o.x + d.x * t) + g[1] * (o.y + d.y * t) + g[2] * (o.z + d.z * t) + g[3];
+        // The scalar is continuous across faces: a tet's entry value is the last exit value.
+        let mut s_in = scalar(&self.geometry[tet as usize].gradient, t_in);
+        for _ in 0..MAX_WALK {
+            let g = &self.geometry[tet as usize];
+            // The exit is the smallest num/denom over faces ahead, compared without dividing.
+            let (mut num, mut den) = (0.0f32, 0.0f32);
+            let mut exit_k = NO_FACE;
+            for (k, plane) in g.planes.iter().enumerate() {
+                let denom = plane[0] * d.x + plane[1] * d.y + plane[2] * d.z;
+                if k as u32 == face_in || !(denom > 1e-7) {
+                    continue;
+                }
+                let n = plane[3] - (plane[0] * o.x + plane[1] * o.y + plane[2] * o.z);
+                if exit_k == NO_FACE || n * den < num * denom {
+                    (num, den, exit_k) = (n, denom, k as u32);
+                }
+            }
+            if exit_k == NO_FACE {
+                return t_in;
+            }
+            let t_out = (num / den).max(t_in).min(t_stop);
+            stalled = if t_out - t_in <= 1e-6 * (1.0 + t_in.abs()) { stalled + 1 } else { 0 };
+            if stalled > MAX_STALL {
+                return t_out;
+            }
+            let s_out = scalar(&g.gradient, t_out);
+            if s_in.max(s_out) > self.visible.0 && s_in.min(s_out) < self.visible.1 {
+                self.integrate(acc, depth, t_in, t_out, s_in, s_out);
+            }
+            if acc[3] >= termination || t_out >= t_stop {
+                return t_out;
+            }
+            let link = self.links[tet as usize][exit_k as usize];
+            if link < 0 {
+                return t_out;
+            }
+            (tet, face_in, t_in, s_in) = ((link >> 2) as u32, (link & 3) as u32, t_out, s_out);
+        }
+        t_in
+    }
+
+    /// The segment [t0, t1], its scalar linear from s0 to s1, in pieces no longer than the
+    /// step: table lookups, or point samples at the pieces' middles.
+    fn integrate(&self, acc: &mut [f32; 4], depth: &mut f32, t0: f32, t1: f32, s0: f32, s1: f32) {
+        let len = t1 - t0;
+        if !(len > 0.0) {
+            return;
+        }
+        let n = ((len / self.params.step as f32).ceil() as usize).clamp(1, MAX_PIECES);
+        let piece = len / n as f32;
+        for m in 0..n {
+            let e = if self.params.preintegrated {
+                let (f0, f1) = (m as f32 / n as f32, (m + 1) as f32 / n as f32);
+                self.table.lookup(s0 + (s1 - s0) * f0, s0 + (s1 - s0) * f1, piece)
+            } else {
+                let e = self.tables.sample(s0 + (s1 - s0) * ((m as f32 + 0.5) / n as f32));
+                let alpha = 1.0 - (-e[3] * piece).exp();
+                [e[0] * alpha, e[1] * alpha, e[2] * alpha, alpha]
+            };
+            let weight = 1.0 - acc[3];
+            for c in 0..4 {
+                acc[c] += weight * e[c];
+            }
             if depth.is_infinite() && acc[3] >= 0.5 {
-                *depth = t0 as f32 + f * len;
+                *depth = t0 + (m as f32 + 0.5) * piece;
             }
         }
     }
+}
+
+fn check_positions(positions: &[Vector3<f64>], nodes: usize) -> Result<(), RenderError> {
+    if positions.len() != nodes || positions.iter().any(|p| !p.iter().all(|v| v.is_finite())) {
+        return Err(RenderError::Parameter(format!("{} positions for {nodes} nodes (all must be finite)", positions.len())));
+    }
+    Ok(())
+}
+
+/// The f64 reference: every boundary face of the ray's tile tested exactly (Möller-Trumbore),
+/// the walk in f64, the exact transfer function at the middles of sub-steps no longer than
+/// `step`; a ray starting inside the mesh starts in the tet found by testing every tet.
+/// Linear RGBA per pixel, rows top to bottom.
+pub fn reference(mesh: &TetMesh, positions: &[Vector3<f64>], scalars: &[f32], camera: &Camera, tf: &TransferFunction, params: &TetRaycastParams) -> Result<Vec<[f64; 4]>, RenderError> {
+    camera.validate()?;
+    check_positions(positions, mesh.nodes().len())?;
+    if scalars.len() != mesh.nodes().len() || !(params.step.is_finite() && params.step > 0.0) {
+        return Err(RenderError::Parameter(format!("{} scalars for {} nodes, step {}", scalars.len(), mesh.nodes().len(), params.step)));
+    }
+    let range = scalars.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), s| (lo.min(*s), hi.max(*s)));
+    let tf = tf.resolve(range)?;
+    let geometry: Vec<_> = mesh.tets().iter().map(|tet| tet_geometry(&tet.map(|i| positions[i as usize]), &tet.map(|i| f64::from(scalars[i as usize])))).collect();
+    let neighbours = mesh.neighbours();
+    let boundary: Vec<u32> = neighbours.iter().enumerate().flat_map(|(t, n)| (0..4u32).filter(move |&k| n[k as usize] < 0).map(move |k| t as u32 * 4 + k)).collect();
+    let bins = bin_boundary(mesh.tets(), &boundary, positions, camera);
+    let containing = |p: &Vector3<f64>| {
+        geometry.iter().position(|(planes, _)| planes.iter().all(|q| q[0] * p.x + q[1] * p.y + q[2] * p.z - q[3] <= 1e-9 * (1.0 + q[3].abs())) && planes.iter().any(|q| q[0] != 0.0 || q[1] != 0.0 || q[2] != 0.0))
+    };
+    let eye_tet = matches!(camera.projection, Projection::Perspective { .. }).then(|| containing(&camera.world_from_camera.translation.vector)).flatten();
+    let (w, h) = (camera.width, camera.height);
+    Ok((0..w * h)
+        .into_par_iter()
+        .map(|i| {
+            let (px, py) = (i % w, i / w);
+            let (origin, d) = camera.ray(px, py);
+            let o = origin.coords;
+            let tool = nearest_tool(&params.tools, params.ambient, &origin, &d, &-d);
+            let (bg, t_stop) = match tool {
+                Some((t, c)) => (c.map(f64::from), f64::from(t)),
+                None => (params.background, f64::INFINITY),
+            };
+            let mut hits: Vec<(f64, u32, bool)> = bins
+                .tile(px, py)
+                .iter()
+                .filter_map(|&f| {
+                    let nodes = mesh.tets()[(f >> 2) as usize];
+                    let corners = TET_FACES[(f & 3) as usize].map(|k| positions[nodes[k] as usize]);
+                    let plane = geometry[(f >> 2) as usize].0[(f & 3) as usize];
+                    ray_triangle(&o, &d, &corners).map(|t| (t, f, Vector3::new(plane[0], plane[1], plane[2]).dot(&d) < 0.0))
+                })
+                .collect();
+            hits.sort_by(|a, b| a.0.total_cmp(&b.0));
+            let mut starts: Vec<(usize, Option<usize>, f64)> = hits.iter().filter(|h| h.2).map(|h| ((h.1 >> 2) as usize, Some((h.1 & 3) as usize), h.0)).collect();
+            if hits.first().is_some_and(|h| !h.2) {
+                if let Some(tet) = if matches!(camera.projection, Projection::Perspective { .. }) { eye_tet } else { containing(&o) } {
+                    starts.insert(0, (tet, None, 0.0));
+                }
+            }
+            let mut acc = [0.0f64; 4];
+            let mut left_at = f64::NEG_INFINITY;
+            'entries: for (tet0, face0, t0) in starts {
+                if t0 < left_at - 1e-9 || t0 >= t_stop {
+                    continue;
+                }
+                let (mut tet, mut face_in, mut t_in) = (tet0, face0, t0);
+                let mut stalled = 0;
+                for _ in 0..MAX_WALK {
+                    let (planes, g) = &geometry[tet];
+                    let exit = (0..4)
+                        .filter(|&k| Some(k) != face_in)
+                        .filter_map(|k| {
+                            let q = planes[k];
+                            let denom = q[0] * d.x + q[1] * d.y + q[2] * d.z;
+                            (denom > 1e-12).then(|| ((q[3] - (q[0] * o.x + q[1] * o.y + q[2] * o.z)) / denom, k))
+                        })
+                        .min_by(|a, b| a.0.total_cmp(&b.0));
+                    let Some((t_exit, k_exit)) = exit else { break };
+                    let t_out = t_exit.max(t_in).min(t_stop);
+                    stalled = if t_out - t_in <= 1e-9 * (1.0 + t_in.abs()) { stalled + 1 } else { 0 };
+                    if stalled > MAX_STALL {
+                        left_at = t_out;
+                        break;
+                    }
+                    let s = |t: f64| g[0] * (o.x + d.x * t) + g[1] * (o.y + d.y * t) + g[2] * (o.z + d.z * t) + g[3];
+                    let n = ((t_out - t_in) / params.step).ceil().max(1.0) as usize;
+                    let ds = (t_out - t_in) / n as f64;
+                    for m in 0..n {
+                        let (color, tau) = tf.eval(s(t_in + (m as f64 + 0.5) * ds));
+                        let alpha = (1.0 - acc[3]) * (1.0 - (-tau * ds).exp());
+                        for c in 0..3 {
+                            acc[c] += alpha * color[c];
+                        }
+                        acc[3] += alpha;
+                    }
+                    left_at = t_out;
+                    if t_out >= t_stop {
+                        break 'entries;
+                    }
+                    let next = neighbours[tet][k_exit];
+                    let Ok(next) = usize::try_from(next) else { break };
+                    let Some(back) = neighbours[next].iter().position(|&b| b == tet as i32) else { break };
+                    (tet, face_in, t_in) = (next, Some(back), t_out);
+                }
+            }
+            let rest = 1.0 - acc[3];
+            [acc[0] + rest * bg[0] * bg[3], acc[1] + rest * bg[1] * bg[3], acc[2] + rest * bg[2] * bg[3], acc[3] + rest * bg[3]]
+        })
+        .collect())
 }
 
 /// Möller-Trumbore: the ray parameter where it crosses the triangle (edges included).

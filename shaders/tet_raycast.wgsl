@@ -1,0 +1,411 @@
+// The tetrahedral-mesh raycaster, line by line the twin of src/render/tet_raycast.rs:
+// `geometry` is TetRaycaster::update (tet_geometry), one invocation per tet; `render` is
+// TetRaycaster::render and cast, with nearest_hit, locate_back, walk and integrate,
+// SegmentTable::lookup, Tables::sample, Camera::ray and raycast::nearest_tool, one
+// invocation per pixel. Coordinates are anchored (world minus the rest mesh's centre).
+
+struct Params {
+    // world_from_camera: rotation columns and the anchored eye.
+    cam_x: vec4<f32>,
+    cam_y: vec4<f32>,
+    cam_z: vec4<f32>,
+    cam_pos: vec4<f32>,
+    // width, height, tiles across, flags (1 pre-integrated)
+    image: vec4<u32>,
+    // perspective (1) or orthographic (0), tan(fov/2) or ortho height, aspect, step
+    proj: vec4<f32>,
+    // segment table lo, hi, longest length; hit tolerance
+    table: vec4<f32>,
+    // table levels per scalar unit and per unit length; the visible scalars' open interval
+    scales: vec4<f32>,
+    // lut lo, lut hi, early termination, ambient
+    lut: vec4<f32>,
+    background: vec4<f32>,
+    // tets, tools, where the 1D lut starts in `tables`, tiles in all
+    counts: vec4<u32>,
+    // per tool: anchored tip and radius, anchored tail, colour
+    tools: array<vec4<f32>, 12>,
+}
+
+struct TetGeometry {
+    planes: array<vec4<f32>, 4>,
+    gradient: vec4<f32>,
+}
+
+struct Hit {
+    t: f32,
+    tet: u32,
+    face: u32,
+    front: bool,
+    found: bool,
+}
+
+const TILE: u32 = 8u;
+const NO_FACE: u32 = 4u;
+const MAX_ENTRIES: u32 = 64u;
+const MAX_WALK: u32 = 65536u;
+const MAX_STALL: u32 = 64u;
+const MAX_PIECES: u32 = 4096u;
+const LEVELS: u32 = 128u;
+const LENGTHS: u32 = 32u;
+const LUT_SIZE: u32 = 1024u;
+const FAR: f32 = 1e30;
+
+@group(0) @binding(0) var<uniform> p: Params;
+@group(0) @binding(1) var<storage, read_write> geo: array<TetGeometry>;
+@group(0) @binding(2) var<storage, read> links: array<vec4<i32>>;
+@group(0) @binding(3) var<storage, read> tiles: array<u32>;
+@group(0) @binding(4) var<storage, read> tables: array<vec4<f32>>;
+@group(0) @binding(5) var<storage, read_write> out: array<u32>;
+@group(0) @binding(6) var<storage, read> nodes: array<vec4<f32>>;
+@group(0) @binding(7) var<storage, read> tets: array<vec4<u32>>;
+
+// tet_geometry: outward face planes (face k opposite vertex k) and the scalar's gradient.
+@compute @workgroup_size(64)
+fn geometry(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let t = gid.x;
+    if t >= p.counts.x {
+        return;
+    }
+    let ids = tets[t];
+    var x = array<vec3<f32>, 4>(nodes[ids.x].xyz, nodes[ids.y].xyz, nodes[ids.z].xyz, nodes[ids.w].xyz);
+    let s = vec4<f32>(nodes[ids.x].w, nodes[ids.y].w, nodes[ids.z].w, nodes[ids.w].w);
+    var faces = array<vec3<u32>, 4>(vec3<u32>(1u, 2u, 3u), vec3<u32>(0u, 3u, 2u), vec3<u32>(0u, 1u, 3u), vec3<u32>(0u, 2u, 1u));
+    var g: TetGeometry;
+    for (var k = 0u; k < 4u; k++) {
+        let f = faces[k];
+        let a = x[f.x];
+        var n = cross(x[f.y] - a, x[f.z] - a);
+        if dot(n, x[k] - a) > 0.0 {
+            n = -n;
+        }
+        let len = length(n);
+        if len > 0.0 {
+            n = n / len;
+        } else {
+            n = vec3<f32>(0.0);
+        }
+        g.planes[k] = vec4<f32>(n, dot(n, a));
+    }
+    // The rows of M are the edges from vertex 0; M⁻¹'s columns are the rows' cross products over det.
+    let r0 = x[1] - x[0];
+    let r1 = x[2] - x[0];
+    let r2 = x[3] - x[0];
+    let det = dot(r0, cross(r1, r2));
+    var grad = vec3<f32>(0.0);
+    if det != 0.0 {
+        grad = (cross(r1, r2) * (s.y - s.x) + cross(r2, r0) * (s.z - s.x) + cross(r0, r1) * (s.w - s.x)) / det;
+    }
+    var offset = (s.x + s.y + s.z + s.w) / 4.0;
+    if any(grad != vec3<f32>(0.0)) {
+        offset = s.x - dot(grad, x[0]);
+    }
+    g.gradient = vec4<f32>(grad, offset);
+    geo[t] = g;
+}
+
+// plane_t: (n·d, the ray parameter on the plane)
+fn plane_t(q: vec4<f32>, o: vec3<f32>, d: vec3<f32>) -> vec2<f32> {
+    let denom = q.x * d.x + q.y * d.y + q.z * d.z;
+    return vec2<f32>(denom, (q.w - (q.x * o.x + q.y * o.y + q.z * o.z)) / denom);
+}
+
+// Tables::sample
+fn lut_sample(s: f32) -> vec4<f32> {
+    let x = clamp((s - p.lut.x) / (p.lut.y - p.lut.x), 0.0, 1.0) * f32(LUT_SIZE - 1u);
+    let i = min(u32(x), LUT_SIZE - 2u);
+    let f = x - f32(i);
+    let a = tables[p.counts.z + i];
+    let b = tables[p.counts.z + i + 1u];
+    return a + (b - a) * f;
+}
+
+fn table_at(i: u32, j: u32, l: u32, fz: f32) -> vec4<f32> {
+    let a = tables[(i * LEVELS + j) * LENGTHS + l];
+    let b = tables[(i * LEVELS + j) * LENGTHS + l + 1u];
+    return a + (b - a) * fz;
+}
+
+// SegmentTable::lookup
+fn lookup(front: f32, back: f32, len: f32) -> vec4<f32> {
+    let n = f32(LEVELS - 1u);
+    let x = clamp((front - p.table.x) * p.scales.x, 0.0, n);
+    let y = clamp((back - p.table.x) * p.scales.x, 0.0, n);
+    let z = clamp(len * p.scales.y, 0.0, f32(LENGTHS - 1u));
+    let i = min(u32(x), LEVELS - 2u);
+    let j = min(u32(y), LEVELS - 2u);
+    let l = min(u32(z), LENGTHS - 2u);
+    let fx = x - f32(i);
+    let fy = y - f32(j);
+    let fz = z - f32(l);
+    let a = table_at(i, j, l, fz);
+    let b = table_at(i, j + 1u, l, fz);
+    let c = table_at(i + 1u, j, l, fz);
+    let d = table_at(i + 1u, j + 1u, l, fz);
+    let top = a + (b - a) * fy;
+    let bottom = c + (d - c) * fy;
+    return top + (bottom - top) * fx;
+}
+
+struct Start {
+    tet: u32,
+    face: u32,
+    t: f32,
+}
+
+struct Accumulator {
+    acc: vec4<f32>,
+    depth: f32,
+}
+
+// TetRaycaster::integrate
+fn integrate(state: ptr<function, Accumulator>, t0: f32, t1: f32, s0: f32, s1: f32) {
+    let len = t1 - t0;
+    if !(len > 0.0) {
+        return;
+    }
+    let step = p.proj.w;
+    let n = clamp(u32(ceil(len / step)), 1u, MAX_PIECES);
+    let piece = len / f32(n);
+    for (var m = 0u; m < n; m++) {
+        var e: vec4<f32>;
+        if (p.image.w & 1u) != 0u {
+            let f0 = f32(m) / f32(n);
+            let f1 = f32(m + 1u) / f32(n);
+            e = lookup(s0 + (s1 - s0) * f0, s0 + (s1 - s0) * f1, piece);
+        } else {
+            let q = lut_sample(s0 + (s1 - s0) * ((f32(m) + 0.5) / f32(n)));
+            let alpha = 1.0 - exp(-q.w * piece);
+            e = vec4<f32>(q.xyz * alpha, alpha);
+        }
+        let weight = 1.0 - (*state).acc.w;
+        (*state).acc += weight * e;
+        if (*state).depth >= FAR && (*state).acc.w >= 0.5 {
+            (*state).depth = t0 + (f32(m) + 0.5) * piece;
+        }
+    }
+}
+
+// TetRaycaster::nearest_hit
+fn nearest_hit(first: u32, last: u32, o: vec3<f32>, d: vec3<f32>, after: f32) -> Hit {
+    var best = Hit(0.0, 0u, 0u, false, false);
+    let base = p.counts.w + 1u;
+    for (var i = first; i < last; i++) {
+        let id = tiles[base + i];
+        let tet = id >> 2u;
+        let k = id & 3u;
+        let pt = plane_t(geo[tet].planes[k], o, d);
+        if pt.x == 0.0 || !(pt.y > after) || (best.found && pt.y >= best.t) {
+            continue;
+        }
+        let q = o + d * pt.y;
+        var on_face = true;
+        for (var j = 0u; j < 4u; j++) {
+            let plane = geo[tet].planes[j];
+            if j != k && plane.x * q.x + plane.y * q.y + plane.z * q.z - plane.w > p.table.w {
+                on_face = false;
+            }
+        }
+        if on_face {
+            best = Hit(pt.y, tet, k, pt.x < 0.0, true);
+        }
+    }
+    return best;
+}
+
+// TetRaycaster::locate_back: (tet, entry face, t)
+fn locate_back(start: u32, o: vec3<f32>, d: vec3<f32>, t_from: f32) -> Start {
+    var tet = start;
+    for (var n = 0u; n < MAX_WALK; n++) {
+        var entry_t = -FAR;
+        var entry_k = NO_FACE;
+        for (var k = 0u; k < 4u; k++) {
+            let pt = plane_t(geo[tet].planes[k], o, d);
+            if pt.x < -1e-7 && pt.y > entry_t {
+                entry_t = pt.y;
+                entry_k = k;
+            }
+        }
+        if entry_k == NO_FACE || entry_t <= t_from {
+            return Start(tet, entry_k, t_from);
+        }
+        let link = links[tet][entry_k];
+        if link < 0 {
+            return Start(tet, entry_k, entry_t);
+        }
+        tet = u32(link) >> 2u;
+    }
+    return Start(tet, NO_FACE, t_from);
+}
+
+fn scalar(g: vec4<f32>, o: vec3<f32>, d: vec3<f32>, t: f32) -> f32 {
+    return g.x * (o.x + d.x * t) + g.y * (o.y + d.y * t) + g.z * (o.z + d.z * t) + g.w;
+}
+
+// TetRaycaster::walk: where the ray stopped.
+fn walk(state: ptr<function, Accumulator>, start: Start, o: vec3<f32>, d: vec3<f32>, t_stop: f32) -> f32 {
+    var tet = start.tet;
+    var face_in = start.face;
+    var t_in = start.t;
+    var stalled = 0u;
+    var s_in = scalar(geo[tet].gradient, o, d, t_in);
+    for (var n = 0u; n < MAX_WALK; n++) {
+        var num = 0.0;
+        var den = 0.0;
+        var exit_k = NO_FACE;
+        for (var k = 0u; k < 4u; k++) {
+            let plane = geo[tet].planes[k];
+            let denom = plane.x * d.x + plane.y * d.y + plane.z * d.z;
+            if k == face_in || !(denom > 1e-7) {
+                continue;
+            }
+            let q = plane.w - (plane.x * o.x + plane.y * o.y + plane.z * o.z);
+            if exit_k == NO_FACE || q * den < num * denom {
+                num = q;
+                den = denom;
+                exit_k = k;
+            }
+        }
+        if exit_k == NO_FACE {
+            return t_in;
+        }
+        let t_out = min(max(num / den, t_in), t_stop);
+        if t_out - t_in <= 1e-6 * (1.0 + abs(t_in)) {
+            stalled += 1u;
+        } else {
+            stalled = 0u;
+        }
+        if stalled > MAX_STALL {
+            return t_out;
+        }
+        let s_out = scalar(geo[tet].gradient, o, d, t_out);
+        if max(s_in, s_out) > p.scales.z && min(s_in, s_out) < p.scales.w {
+            integrate(state, t_in, t_out, s_in, s_out);
+        }
+        if (*state).acc.w >= p.lut.z || t_out >= t_stop {
+            return t_out;
+        }
+        let link = links[tet][exit_k];
+        if link < 0 {
+            return t_out;
+        }
+        tet = u32(link) >> 2u;
+        face_in = u32(link) & 3u;
+        t_in = t_out;
+        s_in = s_out;
+    }
+    return t_in;
+}
+
+// ToolPicture::hit and raycast::nearest_tool, headlight: (t, lit colour), t < 0 for none.
+fn tool_hit(origin: vec3<f32>, dir: vec3<f32>) -> vec4<f32> {
+    let light = -dir;
+    var best = vec4<f32>(-1.0, 0.0, 0.0, 0.0);
+    var best_t = FAR;
+    for (var k = 0u; k < p.counts.y; k++) {
+        let a = p.tools[3u * k].xyz;
+        let radius = p.tools[3u * k].w;
+        let ab = p.tools[3u * k + 1u].xyz - a;
+        var t = 0.0;
+        for (var n = 0; n < 128; n++) {
+            let q = origin + dir * t;
+            var h = 0.0;
+            if dot(ab, ab) > 0.0 {
+                h = clamp(dot(q - a, ab) / dot(ab, ab), 0.0, 1.0);
+            }
+            let outward = q - (a + ab * h);
+            let dist = length(outward) - radius;
+            if dist < 1e-6 * (1.0 + t) {
+                if t < best_t {
+                    best_t = t;
+                    var normal = -dir;
+                    if length(outward) > 1e-12 {
+                        normal = outward / length(outward);
+                    }
+                    let f = p.lut.w + (1.0 - p.lut.w) * max(dot(normal, light), 0.0);
+                    best = vec4<f32>(t, p.tools[3u * k + 2u].xyz * f);
+                }
+                break;
+            }
+            t += dist;
+            if t > 1e7 {
+                break;
+            }
+        }
+    }
+    return best;
+}
+
+fn pack(c: vec4<f32>) -> u32 {
+    let b = vec4<u32>(round(clamp(c, vec4<f32>(0.0), vec4<f32>(1.0)) * 255.0));
+    return b.x | (b.y << 8u) | (b.z << 16u) | (b.w << 24u);
+}
+
+@compute @workgroup_size(8, 8)
+fn render(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let w = p.image.x;
+    let h = p.image.y;
+    if gid.x >= w || gid.y >= h {
+        return;
+    }
+    let pixel = gid.y * w + gid.x;
+    // Camera::ray
+    let u = ((f32(gid.x) + 0.5) / f32(w)) * 2.0 - 1.0;
+    let v = ((f32(gid.y) + 0.5) / f32(h)) * 2.0 - 1.0;
+    var local_origin = vec3<f32>(0.0);
+    var local_dir = vec3<f32>(0.0, 0.0, 1.0);
+    if p.proj.x > 0.5 {
+        local_dir = normalize(vec3<f32>(u * p.proj.y * p.proj.z, v * p.proj.y, 1.0));
+    } else {
+        local_origin = vec3<f32>(u * p.proj.y / 2.0 * p.proj.z, v * p.proj.y / 2.0, 0.0);
+    }
+    let o = p.cam_pos.xyz + p.cam_x.xyz * local_origin.x + p.cam_y.xyz * local_origin.y + p.cam_z.xyz * local_origin.z;
+    let d = p.cam_x.xyz * local_dir.x + p.cam_y.xyz * local_dir.y + p.cam_z.xyz * local_dir.z;
+
+    // cast
+    let tool = tool_hit(o, d);
+    var bg = p.background;
+    var t_stop = FAR;
+    if tool.x >= 0.0 {
+        bg = vec4<f32>(tool.yzw, 1.0);
+        t_stop = tool.x;
+    }
+    let tile = (gid.y / TILE) * p.image.z + gid.x / TILE;
+    let first = tiles[tile];
+    let last = tiles[tile + 1u];
+    var state = Accumulator(vec4<f32>(0.0), FAR);
+    var t_from = 0.0;
+    var walked = false;
+    for (var e = 0u; e < MAX_ENTRIES; e++) {
+        var after = t_from;
+        if walked {
+            after = t_from + p.table.w;
+        }
+        let hit = nearest_hit(first, last, o, d, after);
+        if !hit.found || hit.t >= t_stop {
+            break;
+        }
+        var start = Start(hit.tet, hit.face, hit.t);
+        if !hit.front {
+            if walked {
+                t_from = hit.t;
+                continue;
+            }
+            // The first boundary ahead is an exit: the ray starts inside the mesh.
+            start = locate_back(hit.tet, o, d, t_from);
+        }
+        walked = true;
+        t_from = walk(&state, start, o, d, t_stop);
+        if state.acc.w >= p.lut.z || t_from >= t_stop {
+            break;
+        }
+    }
+    let rest = 1.0 - state.acc.w;
+    let color = vec4<f32>(state.acc.xyz + rest * bg.xyz * bg.w, state.acc.w + rest * bg.w);
+    var depth = state.depth;
+    if depth >= FAR {
+        depth = t_stop;
+    }
+    out[pixel] = pack(color);
+    out[w * h + pixel] = bitcast<u32>(depth);
+}
