@@ -365,4 +365,28 @@ mod tet_mesh {
         let v = ((c.y / (height / 2.0) + 1.0) / 2.0 * camera.height as f64) as usize;
         (u, v)
     }
+
+    #[test]
+    fn bad_input_to_the_tet_raycaster_is_refused_and_keeps_the_last_good_frame() {
+        let mesh = cube();
+        let scalars = vec![100.0f32; mesh.nodes().len()];
+        let tf = flat([0.2, 0.6, 1.0], 0.05);
+        let empty = TransferFunction { points: Vec::new(), relative: false };
+        assert!(matches!(TetRaycaster::new(&mesh, &scalars, &empty, &TetRaycastParams::default()), Err(RenderError::TransferFunction(_))));
+        let mut nan = scalars.clone();
+        nan[3] = f32::NAN;
+        assert!(matches!(TetRaycaster::new(&mesh, &nan, &tf, &TetRaycastParams::default()), Err(RenderError::Parameter(_))));
+        assert!(matches!(TetRaycaster::new(&mesh, &scalars, &tf, &TetRaycastParams { step: 0.0, ..Default::default() }), Err(RenderError::Parameter(_))));
+        let mut raycaster = TetRaycaster::new(&mesh, &scalars, &tf, &TetRaycastParams::default()).unwrap();
+        let camera = Camera::look_at(Point3::new(10.0, 10.0, -50.0), Point3::new(10.0, 10.0, 10.0), Vector3::y(), Projection::Perspective { fov_y_deg: 40.0 }, 16, 16).unwrap();
+        let before = raycaster.render(&camera).unwrap();
+        let mut moved = mesh.nodes().to_vec();
+        moved[0].x = f64::NAN;
+        assert!(matches!(raycaster.update(&moved), Err(RenderError::Parameter(_))));
+        assert_eq!(raycaster.render(&camera).unwrap(), before, "a refused update changed the picture");
+        // Looking away from the mesh: the background, not a crash.
+        let away = Camera::look_at(Point3::new(10.0, 10.0, -50.0), Point3::new(10.0, 10.0, -100.0), Vector3::y(), Projection::Perspective { fov_y_deg: 40.0 }, 16, 16).unwrap();
+        let image = raycaster.render(&away).unwrap();
+        assert!(image.rgba.chunks_exact(4).all(|p| p == [0, 0, 0, 255]) && image.depth.iter().all(|d| d.is_infinite()));
+    }
 }

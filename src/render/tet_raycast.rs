@@ -376,7 +376,7 @@ impl<'a> TetRaycaster<'a> {
             let (tet, k) = (id >> 2, id & 3);
             let planes = &self.geometry[tet as usize].planes;
             let (denom, t) = plane_t(&planes[k as usize], o, d);
-            if denom == 0.0 || !(t > after) || best.is_some_and(|b| t >= b.t) {
+            if denom == 0.0 || t <= after || t.is_nan() || best.is_some_and(|b| t >= b.t) {
                 continue;
             }
             let p = o + d * t;
@@ -434,7 +434,7 @@ impl<'a> TetRaycaster<'a> {
             let mut exit_k = NO_FACE;
             for (k, plane) in g.planes.iter().enumerate() {
                 let denom = plane[0] * d.x + plane[1] * d.y + plane[2] * d.z;
-                if k as u32 == face_in || !(denom > 1e-7) {
+                if k as u32 == face_in || denom <= 1e-7 || denom.is_nan() {
                     continue;
                 }
                 let n = plane[3] - (plane[0] * o.x + plane[1] * o.y + plane[2] * o.z);
@@ -470,7 +470,7 @@ impl<'a> TetRaycaster<'a> {
     /// step: table lookups, or point samples at the pieces' middles.
     fn integrate(&self, acc: &mut [f32; 4], depth: &mut f32, t0: f32, t1: f32, s0: f32, s1: f32) {
         let len = t1 - t0;
-        if !(len > 0.0) {
+        if len <= 0.0 || len.is_nan() {
             return;
         }
         let n = ((len / self.params.step as f32).ceil() as usize).clamp(1, MAX_PIECES);
