@@ -1,5 +1,5 @@
 // The tetrahedral-mesh raycaster, line by line the twin of src/render/tet_raycast.rs:
-// `geometry` is TetRaycaster::update (tet_geometry), one invocation per tet; `render` is
+// `geometry` is TetRaycaster::update (tet_geometry_f32), one invocation per tet; `render` is
 // TetRaycaster::render and cast, with nearest_hit, locate_back, walk and integrate,
 // SegmentTable::lookup, Tables::sample, Camera::ray and raycast::nearest_tool, one
 // invocation per pixel. Coordinates are anchored (world minus the rest mesh's centre).
@@ -165,16 +165,20 @@ fn integrate(state: ptr<function, Accumulator>, t0: f32, t1: f32, s0: f32, s1: f
         return;
     }
     let step = p.proj.w;
-    let n = clamp(u32(ceil(len / step)), 1u, MAX_PIECES);
-    let piece = len / f32(n);
+    var n = 1u;
+    if len > step {
+        n = min(u32(ceil(len / step)), MAX_PIECES);
+    }
+    let inv_n = 1.0 / f32(n);
+    let piece = len * inv_n;
     for (var m = 0u; m < n; m++) {
         var e: vec4<f32>;
         if (p.image.w & 1u) != 0u {
-            let f0 = f32(m) / f32(n);
-            let f1 = f32(m + 1u) / f32(n);
+            let f0 = f32(m) * inv_n;
+            let f1 = f32(m + 1u) * inv_n;
             e = lookup(s0 + (s1 - s0) * f0, s0 + (s1 - s0) * f1, piece);
         } else {
-            let q = lut_sample(s0 + (s1 - s0) * ((f32(m) + 0.5) / f32(n)));
+            let q = lut_sample(s0 + (s1 - s0) * ((f32(m) + 0.5) * inv_n));
             let alpha = 1.0 - exp(-q.w * piece);
             e = vec4<f32>(q.xyz * alpha, alpha);
         }

@@ -68,8 +68,8 @@ pub(crate) struct TetGeometry {
     pub(crate) gradient: [f32; 4],
 }
 
-/// Planes and gradient of one tet in f64 (degenerate tets get zero normals and a constant
-/// scalar, so rays pass them without a contribution).
+/// Planes and gradient of one tet in f64, for the reference (degenerate tets get zero
+/// normals and a constant scalar, so rays pass them without a contribution).
 fn tet_geometry(x: &[Vector3<f64>; 4], s: &[f64; 4]) -> ([[f64; 4]; 4], [f64; 4]) {
     let mut planes = [[0.0; 4]; 4];
     for (k, face) in TET_FACES.iter().enumerate() {
@@ -86,6 +86,30 @@ fn tet_geometry(x: &[Vector3<f64>; 4], s: &[f64; 4]) -> ([[f64; 4]; 4], [f64; 4]
     let grad = m.try_inverse().map_or_else(Vector3::zeros, |inv| inv * Vector3::new(s[1] - s[0], s[2] - s[0], s[3] - s[0]));
     let offset = if grad == Vector3::zeros() { (s[0] + s[1] + s[2] + s[3]) / 4.0 } else { s[0] - grad.dot(&x[0]) };
     (planes, [grad.x, grad.y, grad.z, offset])
+}
+
+/// The `geometry` kernel's arithmetic, in f32 on anchored positions: planes and gradient of
+/// one tet.
+fn tet_geometry_f32(x: &[V3; 4], s: &[f32; 4]) -> TetGeometry {
+    let mut g = TetGeometry::default();
+    for (k, face) in TET_FACES.iter().enumerate() {
+        let a = x[face[0]];
+        let mut n = (x[face[1]] - a).cross(&(x[face[2]] - a));
+        if n.dot(&(x[k] - a)) > 0.0 {
+            n = -n;
+        }
+        let len = n.norm();
+        n = if len > 0.0 { n / len } else { V3::zeros() };
+        g.planes[k] = [n.x, n.y, n.z, n.dot(&a)];
+    }
+    // The rows of M are the edges from vertex 0; M⁻¹'s columns are the rows' cross products
+    // over det.
+    let (r0, r1, r2) = (x[1] - x[0], x[2] - x[0], x[3] - x[0]);
+    let det = r0.dot(&r1.cross(&r2));
+    let grad = if det != 0.0 { (r1.cross(&r2) * (s[1] - s[0]) + r2.cross(&r0) * (s[2] - s[0]) + r0.cross(&r1) * (s[3] - s[0])) / det } else { V3::zeros() };
+    let offset = if grad != V3::zeros() { s[0] - grad.dot(&x[0]) } else { (s[0] + s[1] + s[2] + s[3]) / 4.0 };
+    g.gradient = [grad.x, grad.y, grad.z, offset];
+    g
 }
 
 /// Boundary faces (tet · 4 + face) binned into the image's tiles: tile t holds
@@ -279,16 +303,9 @@ impl<'a> TetRaycaster<'a> {
     pub fn update(&mut self, positions: &[Vector3<f64>]) -> Result<(), RenderError> {
         check_positions(positions, self.mesh.nodes().len())?;
         self.positions = positions.to_vec();
-        let (scalars, anchor) = (&self.scalars, self.anchor);
-        self.geometry = self
-            .mesh
-            .tets()
-            .par_iter()
-            .map(|tet| {
-                let (planes, gradient) = tet_geometry(&tet.map(|i| positions[i as usize] - anchor), &tet.map(|i| f64::from(scalars[i as usize])));
-                TetGeometry { planes: planes.map(|p| p.map(|v| v as f32)), gradient: gradient.map(|v| v as f32) }
-            })
-            .collect();
+        let anchored: Vec<V3> = positions.iter().map(|p| (p - self.anchor).cast::<f32>()).collect();
+        let scalars = &self.scalars;
+        self.geometry = self.mesh.tets().par_iter().map(|tet| tet_geometry_f32(&tet.map(|i| anchored[i as usize]), &tet.map(|i| scalars[i as usize]))).collect();
         Ok(())
     }
 
@@ -473,14 +490,16 @@ impl<'a> TetRaycaster<'a> {
         if len <= 0.0 || len.is_nan() {
             return;
         }
-        let n = ((len / self.params.step as f32).ceil() as usize).clamp(1, MAX_PIECES);
-        let piece = len / n as f32;
+        let step = self.params.step as f32;
+        let n = if len <= step { 1 } else { ((len / step).ceil() as usize).min(MAX_PIECES) };
+        let inv_n = 1.0 / n as f32;
+        let piece = len * inv_n;
         for m in 0..n {
             let e = if self.params.preintegrated {
-                let (f0, f1) = (m as f32 / n as f32, (m + 1) as f32 / n as f32);
+                let (f0, f1) = (m as f32 * inv_n, (m + 1) as f32 * inv_n);
                 self.table.lookup(s0 + (s1 - s0) * f0, s0 + (s1 - s0) * f1, piece)
             } else {
-                let e = self.tables.sample(s0 + (s1 - s0) * ((m as f32 + 0.5) / n as f32));
+                let e = self.tables.sample(s0 + (s1 - s0) * ((m as f32 + 0.5) * inv_n));
                 let alpha = 1.0 - (-e[3] * piece).exp();
                 [e[0] * alpha, e[1] * alpha, e[2] * alpha, alpha]
             };

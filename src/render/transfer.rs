@@ -281,9 +281,12 @@ impl SegmentTable {
     #[inline]
     pub fn lookup(&self, front: f32, back: f32, len: f32) -> [f32; 4] {
         let (n, lengths) = (SEGMENT_LEVELS, SEGMENT_LENGTHS);
-        let level = |s: f32| ((s - self.lo) * self.level_scale).clamp(0.0, (n - 1) as f32);
+        // Plain comparisons rather than `clamp`: the callers' values are finite, and this
+        // is the innermost lookup of the tet raycaster.
+        let limit = |v: f32, top: f32| if v > 0.0 { if v < top { v } else { top } } else { 0.0 };
+        let level = |s: f32| limit((s - self.lo) * self.level_scale, (n - 1) as f32);
         let (x, y) = (level(front), level(back));
-        let z = (len * self.length_scale).clamp(0.0, (lengths - 1) as f32);
+        let z = limit(len * self.length_scale, (lengths - 1) as f32);
         let (i, j, l) = ((x as usize).min(n - 2), (y as usize).min(n - 2), (z as usize).min(lengths - 2));
         let (fx, fy, fz) = (x - i as f32, y - j as f32, z - l as f32);
         let at = |i: usize, j: usize| {
