@@ -70,6 +70,14 @@ fn lut_sample(s: f32) -> vec4<f32> {
     return lut[i] + (lut[i + 1u] - lut[i]) * f;
 }
 
+// Tables::sample_step: a full step's premultiplied colour and α (stored after the lut).
+fn lut_sample_step(s: f32) -> vec4<f32> {
+    let x = clamp((s - p.tf.x) / (p.tf.y - p.tf.x), 0.0, 1.0) * f32(LUT_SIZE - 1u);
+    let i = min(u32(x), LUT_SIZE - 2u);
+    let f = x - f32(i);
+    return lut[LUT_SIZE + i] + (lut[LUT_SIZE + i + 1u] - lut[LUT_SIZE + i]) * f;
+}
+
 fn segment(front: f32, back: f32) -> vec4<f32> {
     let n = f32(PRE_SIZE - 1u);
     let x = clamp((front - p.tf.z) / (p.tf.w - p.tf.z), 0.0, 1.0) * n;
@@ -310,6 +318,7 @@ fn render(@builtin(global_invocation_id) gid: vec3<u32>) {
     var front = 0.0;
     var has_front = false;
     var may_skip = true;
+    var visible_until = -1e30;
     var k = 0u;
     loop {
         if k > steps {
@@ -323,9 +332,11 @@ fn render(@builtin(global_invocation_id) gid: vec3<u32>) {
             break;
         }
         let t0 = t_near + f32(k) * step;
-        if skipping && may_skip {
+        if skipping && may_skip && t0 >= visible_until {
             let p0 = o + d * t0;
-            if !visible_at(p0) {
+            if visible_at(p0) {
+                visible_until = cell_exit(p0, d, t0);
+            } else {
                 let inside = u32(floor((cell_exit(p0, d, t0) - t_near) / step));
                 if inside > k {
                     k = inside;
@@ -359,6 +370,10 @@ fn render(@builtin(global_invocation_id) gid: vec3<u32>) {
                 }
                 color = seg.xyz * scale;
             }
+        } else if k < steps {
+            let e = lut_sample_step(sample(middle));
+            color = e.xyz;
+            alpha = e.w;
         } else {
             let e = lut_sample(sample(middle));
             alpha = 1.0 - exp(-e.w * len);

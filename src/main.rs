@@ -230,8 +230,9 @@ enum BenchStage {
         /// Only the phantom as it is (no warped copy).
         #[arg(long)]
         no_warped: bool,
-        /// Lattice meshes (tets) over the phantom for the tetrahedral-mesh raycaster.
-        #[arg(long, value_delimiter = ',', default_value = "112000,157000")]
+        /// Lattice meshes (tets) over the phantom for the tetrahedral-mesh raycaster; none
+        /// when given without values.
+        #[arg(long, value_delimiter = ',', num_args = 0.., default_value = "112000,157000")]
         meshes: Vec<usize>,
         /// Also time the GPU raycasters (volume and mesh), read-back included.
         #[arg(long)]

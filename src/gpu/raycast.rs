@@ -81,7 +81,7 @@ impl GpuVolumeRaycaster {
         };
         let buffers = [
             ctx.storage_buffer("raycast volume", bytemuck::cast_slice(volume.data())),
-            ctx.storage_buffer("raycast lut", bytemuck::cast_slice(&tables.lut)),
+            ctx.storage_buffer("raycast lut", bytemuck::cast_slice(&tables.lut.iter().chain(&tables.stepped).copied().collect::<Vec<_>>())),
             ctx.storage_buffer("raycast preintegrated", bytemuck::cast_slice(pre)),
             ctx.storage_buffer("raycast cells", bytemuck::cast_slice(&visible)),
         ];

@@ -276,12 +276,21 @@ impl<'a> VolumeRaycaster<'a> {
         let (w, h) = (camera.width, camera.height);
         let mut rgba = vec![0u8; w * h * 4];
         let mut depth = vec![f32::INFINITY; w * h];
-        rgba.par_chunks_mut(w * 4).zip(depth.par_chunks_mut(w)).enumerate().for_each(|(py, (row, depth_row))| {
-            for px in 0..w {
-                let (origin, direction) = camera.ray(px, py);
-                let (color, d) = caster.cast(&origin, &direction);
-                row[px * 4..px * 4 + 4].copy_from_slice(&color.map(|c| (c.clamp(0.0, 1.0) * 255.0).round() as u8));
-                depth_row[px] = d;
+        // Bands of TILE rows walked tile by tile: neighbouring rays read the same voxels
+        // while they are still in cache.
+        const TILE: usize = 8;
+        rgba.par_chunks_mut(w * 4 * TILE).zip(depth.par_chunks_mut(w * TILE)).enumerate().for_each(|(band, (rows, depth_rows))| {
+            let band_h = depth_rows.len() / w;
+            for tx in (0..w).step_by(TILE) {
+                for dy in 0..band_h {
+                    for px in tx..(tx + TILE).min(w) {
+                        let (origin, direction) = camera.ray(px, band * TILE + dy);
+                        let (color, d) = caster.cast(&origin, &direction);
+                        let i = dy * w + px;
+                        rows[i * 4..i * 4 + 4].copy_from_slice(&color.map(|c| (c.clamp(0.0, 1.0) * 255.0).round() as u8));
+                        depth_rows[i] = d;
+                    }
+                }
             }
         });
         Ok(Rendered { width: w, height: h, rgba, depth })
@@ -312,7 +321,9 @@ impl Caster<'_> {
         let [nx, ny, nz] = self.volume.dims();
         let data = self.volume.data();
         let axis = |v: f32, n: usize| {
-            let v = v.clamp(0.0, (n - 1) as f32);
+            // Plain comparisons rather than `clamp` (points are finite here): the hot loop.
+            let top = (n - 1) as f32;
+            let v = if v > 0.0 { if v < top { v } else { top } } else { 0.0 };
             let i = (v as usize).min(n.saturating_sub(2));
             (i, v - i as f32)
         };
@@ -406,6 +417,9 @@ impl Caster<'_> {
         let mut depth = f32::INFINITY;
         let mut front: Option<f32> = None;
         let mut may_skip = true;
+        // Until where the ray stays in the visible cell it was last found in: cells are
+        // looked up once per cell, not per segment.
+        let mut visible_until = f32::NEG_INFINITY;
         let mut k = 0usize;
         while k <= full {
             let len = if k < full { step } else { remainder };
@@ -413,9 +427,11 @@ impl Caster<'_> {
                 break;
             }
             let t0 = t_near + k as f32 * step;
-            if let (Some(cells), true) = (self.cells, may_skip) {
+            if let (Some(cells), true) = (self.cells, may_skip && t0 >= visible_until) {
                 let p0 = o + d * t0;
-                if !cells.visible_at(&p0) {
+                if cells.visible_at(&p0) {
+                    visible_until = cells.exit(&p0, d, t0);
+                } else {
                     // Segments wholly inside an invisible cell add nothing; the one that
                     // crosses out of it is integrated.
                     let inside = ((cells.exit(&p0, d, t0) - t_near) / step).floor() as usize;
@@ -442,6 +458,9 @@ impl Caster<'_> {
                     let scale = if seg[3] > 0.0 { alpha / seg[3] } else { len / step };
                     ([seg[0] * scale, seg[1] * scale, seg[2] * scale], alpha)
                 }
+            } else if k < full {
+                let e = self.tables.sample_step(self.sample(&middle));
+                ([e[0], e[1], e[2]], e[3])
             } else {
                 let e = self.tables.sample(self.sample(&middle));
                 let alpha = 1.0 - (-e[3] * len).exp();

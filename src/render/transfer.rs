@@ -124,6 +124,9 @@ pub struct Tables {
     pub hi: f32,
     /// r, g, b, τ per unit length.
     pub lut: Vec<[f32; 4]>,
+    /// The same entries as a full step's premultiplied r, g, b and α (α = 1 - e^(-τ·step)):
+    /// point sampling without an exponential per sample.
+    pub stepped: Vec<[f32; 4]>,
     /// Premultiplied r, g, b and α of a segment of `step` from front level i to back level j
     /// (row i, column j) over [pre_lo, pre_hi]; empty unless asked for.
     pub preintegrated: Vec<[f32; 4]>,
@@ -150,8 +153,15 @@ impl Tables {
                 [c[0] as f32, c[1] as f32, c[2] as f32, tau as f32]
             })
             .collect();
+        let stepped = (0..LUT_SIZE)
+            .map(|i| {
+                let (c, tau) = tf.eval(at(i, LUT_SIZE));
+                let alpha = 1.0 - (-tau * step).exp();
+                [(c[0] * alpha) as f32, (c[1] * alpha) as f32, (c[2] * alpha) as f32, alpha as f32]
+            })
+            .collect();
         let preintegrated = if preintegrate { preintegrate_table(tf, pre_lo, pre_hi, step) } else { Vec::new() };
-        Self { lo: lo as f32, hi: hi as f32, lut, preintegrated, pre_lo: pre_lo as f32, pre_hi: pre_hi as f32, step: step as f32 }
+        Self { lo: lo as f32, hi: hi as f32, lut, stepped, preintegrated, pre_lo: pre_lo as f32, pre_hi: pre_hi as f32, step: step as f32 }
     }
 
     /// (r, g, b, τ) at `s`, linear between table entries.
@@ -161,6 +171,16 @@ impl Tables {
         let i = (x as usize).min(LUT_SIZE - 2);
         let f = x - i as f32;
         let (a, b) = (self.lut[i], self.lut[i + 1]);
+        [0, 1, 2, 3].map(|c| a[c] + (b[c] - a[c]) * f)
+    }
+
+    /// A full step's premultiplied colour and α at `s`, linear between table entries.
+    #[inline]
+    pub fn sample_step(&self, s: f32) -> [f32; 4] {
+        let x = ((s - self.lo) / (self.hi - self.lo)).clamp(0.0, 1.0) * (LUT_SIZE - 1) as f32;
+        let i = (x as usize).min(LUT_SIZE - 2);
+        let f = x - i as f32;
+        let (a, b) = (self.stepped[i], self.stepped[i + 1]);
         [0, 1, 2, 3].map(|c| a[c] + (b[c] - a[c]) * f)
     }
 
