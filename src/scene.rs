@@ -133,6 +133,18 @@ impl Default for DpcmStageConfig {
     }
 }
 
+/// What the raycast camera looks at.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CameraShows {
+    /// The source volume as the warp deforms it (as it is when the warp stage is off).
+    #[default]
+    Volume,
+    /// The deformed tetrahedral mesh raycast directly (seed 000, section 5), its node values
+    /// sampled from the source at rest: the picture needs no warp.
+    Mesh,
+}
+
 /// The raycast camera and what it shows.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -146,7 +158,9 @@ pub struct CameraConfig {
     pub height: usize,
     /// Transfer-function preset: ct_soft_tissue, ct_bone or mri.
     pub transfer_function: String,
-    /// Ray step in the volume's file units.
+    pub shows: CameraShows,
+    /// Ray step in the volume's file units (for `shows: mesh`, the longest piece of a tet's
+    /// segment one pre-integrated lookup covers).
     pub step: f64,
     /// Most frames per second of simulated time.
     pub rate_hz: f64,
@@ -162,6 +176,7 @@ impl Default for CameraConfig {
             width: 320,
             height: 240,
             transfer_function: "ct_soft_tissue".into(),
+            shows: CameraShows::Volume,
             step: 1.0,
             rate_hz: 10.0,
         }

@@ -156,7 +156,7 @@ pub fn run(opts: &RenderBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result
                     });
                     #[cfg(feature = "gpu")]
                     if let Some(ctx) = &gpu {
-                        mesh_gpu_row(ctx, &raycaster, &camera, &reference, &case, step, &mut emit)?;
+                        mesh_gpu_row(ctx, &raycaster, mesh.nodes(), &camera, &reference, &case, step, &mut emit)?;
                     }
                 }
             }
@@ -214,7 +214,7 @@ fn volume_gpu_rows(ctx: &std::sync::Arc<crate::gpu::GpuContext>, name: &str, vol
 
 /// The GPU twin of a CPU mesh row: positions uploaded and geometry refreshed every frame.
 #[cfg(feature = "gpu")]
-fn mesh_gpu_row(ctx: &std::sync::Arc<crate::gpu::GpuContext>, prepared: &TetRaycaster, camera: &Camera, reference: &[[f64; 4]], case: &str, step: f64, emit: &mut impl FnMut(&BenchRow)) -> Result<(), RenderBenchError> {
+fn mesh_gpu_row(ctx: &std::sync::Arc<crate::gpu::GpuContext>, prepared: &TetRaycaster, nodes: &[nalgebra::Vector3<f64>], camera: &Camera, reference: &[[f64; 4]], case: &str, step: f64, emit: &mut impl FnMut(&BenchRow)) -> Result<(), RenderBenchError> {
     use crate::gpu::tet_raycast::GpuTetRaycaster;
     let gpu_err = |e: crate::gpu::raycast::GpuRenderError| RenderBenchError::Gpu(e.to_string());
     let mut raycaster = match GpuTetRaycaster::new(ctx.clone(), prepared) {
@@ -224,7 +224,6 @@ fn mesh_gpu_row(ctx: &std::sync::Arc<crate::gpu::GpuContext>, prepared: &TetRayc
             return Ok(());
         }
     };
-    let nodes = prepared.mesh().nodes();
     let (image, samples) = gpu_frames(3, || {
         raycaster.update(nodes)?;
         raycaster.render(camera)
@@ -239,7 +238,7 @@ fn mesh_gpu_row(ctx: &std::sync::Arc<crate::gpu::GpuContext>, prepared: &TetRayc
         runs: samples.len(),
         time_ms: time_stats(samples),
         error: Some(ErrorMeasure { metric: "psnr_db", value: image.psnr(reference), reference: "f64 tet walk" }),
-        work: json!({"rays": camera.width * camera.height, "tets": prepared.mesh().tets().len()}),
+        work: json!({"rays": camera.width * camera.height, "tets": prepared.tets().len()}),
     });
     Ok(())
 }

@@ -56,8 +56,7 @@ impl GpuTetRaycaster {
     /// Uploads the prepared mesh, links and tables, and computes the geometry of the
     /// prepared raycaster's current positions.
     pub fn new(ctx: Arc<GpuContext>, prepared: &TetRaycaster) -> Result<Self, GpuRenderError> {
-        let mesh = prepared.mesh();
-        let tets = mesh.tets().to_vec();
+        let tets = prepared.tets().to_vec();
         let limit = ctx.device.limits().max_storage_buffer_binding_size;
         let bytes = (tets.len() * std::mem::size_of::<TetGeometry>()) as u64;
         if bytes > limit {
@@ -74,7 +73,7 @@ impl GpuTetRaycaster {
         let geometry = ctx.storage_buffer("tet geometry", &vec![0u8; bytes.max(80) as usize]);
         let links = ctx.storage_buffer("tet links", bytemuck::cast_slice(&prepared.links));
         let tables_buffer = ctx.storage_buffer("tet tables", bytemuck::cast_slice(&tables));
-        let nodes = ctx.storage_buffer("tet nodes", &vec![0u8; (mesh.nodes().len() * 16).max(16)]);
+        let nodes = ctx.storage_buffer("tet nodes", &vec![0u8; (prepared.scalars().len() * 16).max(16)]);
         let tet_buffer = ctx.storage_buffer("tet ids", bytemuck::cast_slice(&tet_ids));
         let placeholders = [ctx.storage_buffer("tet tiles placeholder", &[0u8; 16]), ctx.storage_buffer("tet out placeholder", &[0u8; 16])];
         let a = prepared.anchor;

@@ -13,6 +13,7 @@ use super::{outputs, PipelineError};
 use crate::msgs::{Image, Time};
 use crate::render::camera::Camera;
 use crate::render::raycast::{RaycastParams, ToolPicture, VolumeRaycaster};
+use crate::render::tet_raycast::TetRaycaster;
 use crate::render::transfer::TransferFunction;
 use crate::volume::{Grid, Volume};
 use crate::warp::{IncrementalWarp, WarpStats};
@@ -39,6 +40,8 @@ pub(super) struct RaycastSetup {
     pub tf: TransferFunction,
     pub params: RaycastParams,
     pub camera: Camera,
+    /// The deformed mesh raycast directly instead of the volume (`camera.shows: mesh`).
+    pub mesh: Option<TetRaycaster>,
 }
 
 /// What the worker owns: the incremental warp and the camera.
@@ -51,8 +54,9 @@ pub(super) struct FrameWorker {
 
 struct FrameJob {
     stamp: Time,
-    /// Deformed positions in the volume's units, when the warp is due.
-    warp_to: Option<Vec<Vector3<f64>>>,
+    /// Deformed positions in the volume's units, when the warp or a mesh picture is due.
+    positions: Option<Vec<Vector3<f64>>>,
+    warp: bool,
     /// The tools as the picture shows them, when a frame is due.
     render: Option<Vec<ToolPicture>>,
     /// Copy the warped samples out for publishing.
@@ -71,7 +75,7 @@ pub(super) struct FrameDone {
 impl FrameWorker {
     fn run(&mut self, job: FrameJob) -> Result<FrameDone, PipelineError> {
         let mut done = FrameDone::default();
-        if let (Some(deformed), Some((warp, tolerance))) = (&job.warp_to, &mut self.warp) {
+        if let (true, Some(deformed), Some((warp, tolerance))) = (job.warp, &job.positions, &mut self.warp) {
             let start = Instant::now();
             let stats = warp.update(deformed, *tolerance)?;
             self.sequence += 1;
@@ -82,16 +86,25 @@ impl FrameWorker {
         }
         if let (Some(tools), Some(r)) = (job.render, &mut self.raycast) {
             let start = Instant::now();
-            r.params.tools = tools;
-            let warped;
-            let volume = match &self.warp {
-                Some((w, _)) => {
-                    warped = Volume::from_grid(w.grid(), w.data().to_vec(), "warped volume")?;
-                    &warped
+            let rendered = match (&mut r.mesh, &job.positions) {
+                (Some(mesh), Some(deformed)) => {
+                    mesh.update(deformed)?;
+                    mesh.set_tools(tools)?;
+                    mesh.render(&r.camera)?
                 }
-                None => &*self.volume,
+                _ => {
+                    r.params.tools = tools;
+                    let warped;
+                    let volume = match &self.warp {
+                        Some((w, _)) => {
+                            warped = Volume::from_grid(w.grid(), w.data().to_vec(), "warped volume")?;
+                            &warped
+                        }
+                        None => &*self.volume,
+                    };
+                    VolumeRaycaster::new(volume, &r.tf, &r.params)?.render(&r.camera)?
+                }
             };
-            let rendered = VolumeRaycaster::new(volume, &r.tf, &r.params)?.render(&r.camera)?;
             done.raycast_ms = Some(start.elapsed().as_secs_f64() * 1e3);
             done.image = Some(outputs::rgba_image(rendered.rgba, rendered.width, rendered.height, job.stamp, "raycast_camera"));
         }
@@ -109,6 +122,8 @@ pub(super) struct Frames {
     runner: Runner,
     has_warp: bool,
     has_raycast: bool,
+    /// The picture is the deformed mesh: it needs positions, not the warp.
+    renders_mesh: bool,
     warp_period: f64,
     raycast_period: f64,
     last_warp: f64,
@@ -122,6 +137,7 @@ pub(super) struct Frames {
 impl Frames {
     pub fn new(worker: FrameWorker, mode: FrameMode, warp_rate: f64, raycast_rate: f64) -> Result<Self, PipelineError> {
         let (has_warp, has_raycast) = (worker.warp.is_some(), worker.raycast.is_some());
+        let renders_mesh = worker.raycast.as_ref().is_some_and(|r| r.mesh.is_some());
         let runner = match mode {
             FrameMode::Lockstep => Runner::Inline(Box::new(worker)),
             FrameMode::Background => {
@@ -148,6 +164,7 @@ impl Frames {
             runner,
             has_warp,
             has_raycast,
+            renders_mesh,
             warp_period: 1.0 / warp_rate,
             raycast_period: 1.0 / raycast_rate,
             last_warp: f64::NEG_INFINITY,
@@ -177,12 +194,13 @@ impl Frames {
         }
         let due = |last: f64, period: f64| clock - last >= period - 1e-9;
         let render = self.has_raycast && want_image && self.raycast_stale && due(self.last_raycast, self.raycast_period);
-        // A picture shows the current deformation: it brings a stale warp along.
-        let warp = self.has_warp && self.warp_stale && ((want_warp && due(self.last_warp, self.warp_period)) || render);
+        // A picture of the volume shows the current deformation: it brings a stale warp
+        // along. A picture of the mesh needs only the positions.
+        let warp = self.has_warp && self.warp_stale && ((want_warp && due(self.last_warp, self.warp_period)) || (render && !self.renders_mesh));
         if !(warp || render) {
             return Ok(self.keep(done));
         }
-        let job = FrameJob { stamp, warp_to: warp.then(positions), render: render.then(tools), share: want_warp };
+        let job = FrameJob { stamp, positions: (warp || (render && self.renders_mesh)).then(positions), warp, render: render.then(tools), share: want_warp };
         if warp {
             (self.last_warp, self.warp_stale) = (clock, false);
             self.raycast_stale = true;

@@ -21,9 +21,10 @@ use crate::mesh::TetMesh;
 use crate::msgs::{DeformedMesh, DiagnosticArray, Image, Marker, PoseStamped, Time, WrenchStamped};
 use crate::render::camera::{Camera, Projection};
 use crate::render::raycast::{RaycastParams, ToolPicture, VolumeRaycaster};
+use crate::render::tet_raycast::{TetRaycastParams, TetRaycaster};
 use crate::render::transfer::TransferFunction;
 use crate::render::RenderError;
-use crate::scene::{LoadedScene, Scene, SceneError};
+use crate::scene::{CameraShows, LoadedScene, Scene, SceneError};
 use crate::solver::{SolverError, StepReport};
 use crate::volume::{Grid, Volume, VolumeError};
 use crate::warp::{IncrementalWarp, WarpError, WarpOptions};
@@ -243,9 +244,21 @@ impl Pipeline {
                 let camera = Camera::look_at(point(c.eye), point(c.target), Vector3::from(c.up), Projection::Perspective { fov_y_deg: c.fov_y_deg }, c.width, c.height)?;
                 let tf = TransferFunction::preset(&c.transfer_function)?;
                 let params = RaycastParams { step: c.step, ..Default::default() };
-                // Prepared once here so that a bad parameter fails at start, not mid-run.
-                VolumeRaycaster::new(&self.volume, &tf, &params)?;
-                Some(frames::RaycastSetup { tf, params, camera })
+                let mesh = match c.shows {
+                    CameraShows::Volume => {
+                        // Prepared once here so that a bad parameter fails at start, not mid-run.
+                        VolumeRaycaster::new(&self.volume, &tf, &params)?;
+                        None
+                    }
+                    CameraShows::Mesh => {
+                        let mut rest = self.mesh.clone();
+                        rest.map_nodes(|p| p * to_file);
+                        let outside = self.volume.range().0;
+                        let scalars: Vec<f32> = rest.nodes().iter().map(|p| self.volume.sample_world(*p).unwrap_or(outside)).collect();
+                        Some(TetRaycaster::new(&rest, &scalars, &tf, &TetRaycastParams { step: c.step, ..Default::default() })?)
+                    }
+                };
+                Some(frames::RaycastSetup { tf, params, camera, mesh })
             }
         };
         if warp.is_some() || raycast.is_some() {
@@ -620,6 +633,46 @@ mod tests {
         // Reset brings the rest state back.
         p.reset().unwrap();
         assert!(p.last_report().is_none() && p.positions() == p.mesh().nodes());
+    }
+
+    #[test]
+    fn a_mesh_camera_needs_no_warp_and_shows_the_current_deformation() {
+        let stages = crate::scene::Stages { solver: true, warp: false, dpcm: false, raycast: true };
+        let mut s = scene(stages);
+        s.camera.shows = CameraShows::Mesh;
+        // The probe out of the picture (the reference draws no tools), gravity deforming.
+        s.tools[0].path = None;
+        let mut p = pipeline(s.clone());
+        p.apply_pose("tool_pose", &pose(0.0, 5.0), Time::from_secs(0.0)).unwrap();
+        assert!(p.warped_grid().is_none(), "the warp is not built for a mesh picture");
+        let mut image = None;
+        for k in 1..=20 {
+            image = p.tick(Time::from_secs(k as f64 * 0.01), &Demand::ALL).unwrap().raycast.or(image);
+        }
+        let image = image.unwrap();
+        // Paused, the next frame shows the positions the f64 reference is given.
+        p.pause();
+        let frame = (21..40).find_map(|k| p.tick(Time::from_secs(k as f64 * 0.01), &Demand::ALL).unwrap().raycast).unwrap();
+        assert_eq!(frame.data.len(), image.data.len());
+        let to_file = 1.0 / s.file_to_world;
+        let mut rest = p.mesh().clone();
+        rest.map_nodes(|q| q * to_file);
+        let deformed: Vec<Vector3<f64>> = p.positions().iter().map(|q| q * to_file).collect();
+        let outside = p.volume.range().0;
+        let scalars: Vec<f32> = rest.nodes().iter().map(|q| p.volume.sample_world(*q).unwrap_or(outside)).collect();
+        let c = &s.camera;
+        let point = |q: [f64; 3]| Point3::from(Vector3::from(q) * to_file);
+        let camera = Camera::look_at(point(c.eye), point(c.target), Vector3::from(c.up), Projection::Perspective { fov_y_deg: c.fov_y_deg }, c.width, c.height).unwrap();
+        let tf = TransferFunction::preset(&c.transfer_function).unwrap();
+        let reference = crate::render::tet_raycast::reference(&rest, &deformed, &scalars, &camera, &tf, &TetRaycastParams { step: 0.25, ..Default::default() }).unwrap();
+        let rendered = crate::render::Rendered { width: c.width, height: c.height, rgba: frame.data.clone(), depth: Vec::new() };
+        assert!(reference.iter().filter(|q| q[0] > 0.05).count() > c.width * c.height / 10, "the organ is out of view");
+        let (mean, max) = rendered.errors(&reference);
+        assert!(mean < 0.5 && max < 8.0, "against the f64 reference: mean {mean:.2}, max {max:.1} levels");
+        // The organ has sagged visibly: the same reference at rest is further off.
+        let at_rest = crate::render::tet_raycast::reference(&rest, rest.nodes(), &scalars, &camera, &tf, &TetRaycastParams { step: 0.25, ..Default::default() }).unwrap();
+        let (rest_mean, _) = rendered.errors(&at_rest);
+        assert!(rest_mean > 2.0 * mean, "mean error {rest_mean:.2} levels against the rest pose, {mean:.2} against the deformed one");
     }
 
     #[test]

@@ -213,8 +213,9 @@ fn plane_t(plane: &[f32; 4], o: &V3, d: &V3) -> (f32, f32) {
     (denom, (plane[3] - (plane[0] * o.x + plane[1] * o.y + plane[2] * o.z)) / denom)
 }
 
-pub struct TetRaycaster<'a> {
-    mesh: &'a TetMesh,
+/// A mesh prepared for rendering: it owns what it needs, so a frame worker can keep one.
+pub struct TetRaycaster {
+    tets: Vec<[u32; 4]>,
     scalars: Vec<f32>,
     pub(crate) positions: Vec<Vector3<f64>>,
     pub(crate) anchor: Vector3<f64>,
@@ -232,9 +233,9 @@ pub struct TetRaycaster<'a> {
     pub(crate) params: TetRaycastParams,
 }
 
-impl<'a> TetRaycaster<'a> {
+impl TetRaycaster {
     /// `scalars`: one value per node (the values the transfer function maps).
-    pub fn new(mesh: &'a TetMesh, scalars: &[f32], tf: &TransferFunction, params: &TetRaycastParams) -> Result<Self, RenderError> {
+    pub fn new(mesh: &TetMesh, scalars: &[f32], tf: &TransferFunction, params: &TetRaycastParams) -> Result<Self, RenderError> {
         if scalars.len() != mesh.nodes().len() || scalars.iter().any(|s| !s.is_finite()) {
             return Err(RenderError::Parameter(format!("{} scalars for {} nodes (all must be finite)", scalars.len(), mesh.nodes().len())));
         }
@@ -270,7 +271,7 @@ impl<'a> TetRaycaster<'a> {
         let far = |v: f64| v.clamp(-1e30, 1e30) as f32;
         let visible = tf.visible_span();
         let mut raycaster = Self {
-            mesh,
+            tets: mesh.tets().to_vec(),
             scalars: scalars.to_vec(),
             positions: Vec::new(),
             anchor,
@@ -287,8 +288,20 @@ impl<'a> TetRaycaster<'a> {
         Ok(raycaster)
     }
 
-    pub fn mesh(&self) -> &TetMesh {
-        self.mesh
+    pub fn tets(&self) -> &[[u32; 4]] {
+        &self.tets
+    }
+
+    /// The tools drawn into the next frames (up to [`MAX_TOOLS`]).
+    pub fn set_tools(&mut self, tools: Vec<ToolPicture>) -> Result<(), RenderError> {
+        if tools.len() > MAX_TOOLS {
+            return Err(RenderError::Parameter(format!("{} tools; a picture draws up to {MAX_TOOLS}", tools.len())));
+        }
+        for tool in &tools {
+            tool.validate()?;
+        }
+        self.params.tools = tools;
+        Ok(())
     }
 
     pub fn scalars(&self) -> &[f32] {
@@ -301,18 +314,18 @@ impl<'a> TetRaycaster<'a> {
 
     /// New node positions (a deformation step): face planes and gradients recomputed.
     pub fn update(&mut self, positions: &[Vector3<f64>]) -> Result<(), RenderError> {
-        check_positions(positions, self.mesh.nodes().len())?;
+        check_positions(positions, self.scalars.len())?;
         self.positions = positions.to_vec();
         let anchored: Vec<V3> = positions.iter().map(|p| (p - self.anchor).cast::<f32>()).collect();
         let scalars = &self.scalars;
-        self.geometry = self.mesh.tets().par_iter().map(|tet| tet_geometry_f32(&tet.map(|i| anchored[i as usize]), &tet.map(|i| scalars[i as usize]))).collect();
+        self.geometry = self.tets.par_iter().map(|tet| tet_geometry_f32(&tet.map(|i| anchored[i as usize]), &tet.map(|i| scalars[i as usize]))).collect();
         Ok(())
     }
 
     /// One frame seen by `camera`.
     pub fn render(&self, camera: &Camera) -> Result<Rendered, RenderError> {
         camera.validate()?;
-        let bins = bin_boundary(self.mesh.tets(), &self.boundary, &self.positions, camera);
+        let bins = bin_boundary(&self.tets, &self.boundary, &self.positions, camera);
         let (w, h) = (camera.width, camera.height);
         // Tile by tile, as the GPU's workgroups: neighbouring rays cross the same tets while
         // their geometry is still in cache.
