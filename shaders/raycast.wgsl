@@ -1,6 +1,7 @@
 // The volume raycaster, one invocation per pixel: line by line the twin of
 // src/render/raycast.rs (Caster::cast, composite, iso, shade, sample; Tables::sample and
-// segment; MacroCells::visible_at and exit; clip) and of Camera::ray.
+// segment; MacroCells::visible_at and exit; clip); Camera::ray and the tools are
+// camera_tools.wgsl's, compiled in front of this file.
 
 struct Params {
     // world_from_camera: rotation columns and the eye.
@@ -166,51 +167,6 @@ fn clip(o: vec3<f32>, d: vec3<f32>) -> vec2<f32> {
     return vec2<f32>(near, far);
 }
 
-// ToolPicture::hit (sphere tracing a capsule), then Caster::tool: (t, lit colour), t < 0
-// when no tool is hit.
-fn tool_hit(origin: vec3<f32>, dir: vec3<f32>, light: vec3<f32>) -> vec4<f32> {
-    var best = vec4<f32>(-1.0, 0.0, 0.0, 0.0);
-    var best_t = 1e30;
-    for (var k = 0u; k < p.shading.y; k++) {
-        let a = p.tools[3u * k].xyz;
-        let radius = p.tools[3u * k].w;
-        let ab = p.tools[3u * k + 1u].xyz - a;
-        var t = 0.0;
-        for (var n = 0; n < 128; n++) {
-            let q = origin + dir * t;
-            var h = 0.0;
-            if dot(ab, ab) > 0.0 {
-                h = clamp(dot(q - a, ab) / dot(ab, ab), 0.0, 1.0);
-            }
-            let outward = q - (a + ab * h);
-            let dist = length(outward) - radius;
-            if dist < 1e-6 * (1.0 + t) {
-                if t < best_t {
-                    best_t = t;
-                    var normal = -dir;
-                    if length(outward) > 1e-12 {
-                        normal = outward / length(outward);
-                    }
-                    let f = p.misc.x + (1.0 - p.misc.x) * max(dot(normal, light), 0.0);
-                    let c = p.tools[3u * k + 2u].xyz * f;
-                    best = vec4<f32>(t, c);
-                }
-                break;
-            }
-            t += dist;
-            if t > 1e7 {
-                break;
-            }
-        }
-    }
-    return best;
-}
-
-fn pack(c: vec4<f32>) -> u32 {
-    let b = vec4<u32>(round(clamp(c, vec4<f32>(0.0), vec4<f32>(1.0)) * 255.0));
-    return b.x | (b.y << 8u) | (b.z << 16u) | (b.w << 24u);
-}
-
 @compute @workgroup_size(8, 8)
 fn render(@builtin(global_invocation_id) gid: vec3<u32>) {
     let w = p.image.x;
@@ -219,25 +175,16 @@ fn render(@builtin(global_invocation_id) gid: vec3<u32>) {
         return;
     }
     let pixel = gid.y * w + gid.x;
-    // Camera::ray
-    let u = ((f32(gid.x) + 0.5) / f32(w)) * 2.0 - 1.0;
-    let v = ((f32(gid.y) + 0.5) / f32(h)) * 2.0 - 1.0;
-    var local_origin = vec3<f32>(0.0);
-    var local_dir = vec3<f32>(0.0, 0.0, 1.0);
-    if p.proj.x > 0.5 {
-        local_dir = normalize(vec3<f32>(u * p.proj.y * p.proj.z, v * p.proj.y, 1.0));
-    } else {
-        local_origin = vec3<f32>(u * p.proj.y / 2.0 * p.proj.z, v * p.proj.y / 2.0, 0.0);
-    }
-    let world_origin = p.cam_pos.xyz + p.cam_x.xyz * local_origin.x + p.cam_y.xyz * local_origin.y + p.cam_z.xyz * local_origin.z;
-    let world_dir = p.cam_x.xyz * local_dir.x + p.cam_y.xyz * local_dir.y + p.cam_z.xyz * local_dir.z;
+    let ray = camera_ray(gid.xy, vec2<u32>(w, h), p.cam_x.xyz, p.cam_y.xyz, p.cam_z.xyz, p.cam_pos.xyz, p.proj);
+    let world_origin = ray.origin;
+    let world_dir = ray.dir;
     let o = index_from_world(world_origin - p.vol_origin.xyz);
     let d = index_from_world(world_dir);
     var light = -world_dir;
     if p.light.w > 0.5 {
         light = normalize(p.light.xyz);
     }
-    let tool = tool_hit(world_origin, world_dir, light);
+    let tool = tool_hit(p.tools, p.shading.y, p.misc.x, world_origin, world_dir, light);
     var bg = p.background;
     var behind = 1e30;
     if tool.x >= 0.0 {

@@ -1,8 +1,8 @@
 // The tetrahedral-mesh raycaster, line by line the twin of src/render/tet_raycast.rs:
 // `geometry` is TetRaycaster::update (tet_geometry_f32), one invocation per tet; `render` is
 // TetRaycaster::render and cast, with nearest_hit, locate_back, walk and integrate,
-// SegmentTable::lookup, Tables::sample, Camera::ray and raycast::nearest_tool, one
-// invocation per pixel. Coordinates are anchored (world minus the rest mesh's centre).
+// SegmentTable::lookup and Tables::sample, one invocation per pixel (Camera::ray and the
+// tools are camera_tools.wgsl's). Coordinates are anchored (world minus the rest mesh's centre).
 
 struct Params {
     // world_from_camera: rotation columns and the anchored eye.
@@ -301,50 +301,6 @@ fn walk(state: ptr<function, Accumulator>, start: Start, o: vec3<f32>, d: vec3<f
     return t_in;
 }
 
-// ToolPicture::hit and raycast::nearest_tool, headlight: (t, lit colour), t < 0 for none.
-fn tool_hit(origin: vec3<f32>, dir: vec3<f32>) -> vec4<f32> {
-    let light = -dir;
-    var best = vec4<f32>(-1.0, 0.0, 0.0, 0.0);
-    var best_t = FAR;
-    for (var k = 0u; k < p.counts.y; k++) {
-        let a = p.tools[3u * k].xyz;
-        let radius = p.tools[3u * k].w;
-        let ab = p.tools[3u * k + 1u].xyz - a;
-        var t = 0.0;
-        for (var n = 0; n < 128; n++) {
-            let q = origin + dir * t;
-            var h = 0.0;
-            if dot(ab, ab) > 0.0 {
-                h = clamp(dot(q - a, ab) / dot(ab, ab), 0.0, 1.0);
-            }
-            let outward = q - (a + ab * h);
-            let dist = length(outward) - radius;
-            if dist < 1e-6 * (1.0 + t) {
-                if t < best_t {
-                    best_t = t;
-                    var normal = -dir;
-                    if length(outward) > 1e-12 {
-                        normal = outward / length(outward);
-                    }
-                    let f = p.lut.w + (1.0 - p.lut.w) * max(dot(normal, light), 0.0);
-                    best = vec4<f32>(t, p.tools[3u * k + 2u].xyz * f);
-                }
-                break;
-            }
-            t += dist;
-            if t > 1e7 {
-                break;
-            }
-        }
-    }
-    return best;
-}
-
-fn pack(c: vec4<f32>) -> u32 {
-    let b = vec4<u32>(round(clamp(c, vec4<f32>(0.0), vec4<f32>(1.0)) * 255.0));
-    return b.x | (b.y << 8u) | (b.z << 16u) | (b.w << 24u);
-}
-
 @compute @workgroup_size(8, 8)
 fn render(@builtin(global_invocation_id) gid: vec3<u32>) {
     let w = p.image.x;
@@ -353,21 +309,12 @@ fn render(@builtin(global_invocation_id) gid: vec3<u32>) {
         return;
     }
     let pixel = gid.y * w + gid.x;
-    // Camera::ray
-    let u = ((f32(gid.x) + 0.5) / f32(w)) * 2.0 - 1.0;
-    let v = ((f32(gid.y) + 0.5) / f32(h)) * 2.0 - 1.0;
-    var local_origin = vec3<f32>(0.0);
-    var local_dir = vec3<f32>(0.0, 0.0, 1.0);
-    if p.proj.x > 0.5 {
-        local_dir = normalize(vec3<f32>(u * p.proj.y * p.proj.z, v * p.proj.y, 1.0));
-    } else {
-        local_origin = vec3<f32>(u * p.proj.y / 2.0 * p.proj.z, v * p.proj.y / 2.0, 0.0);
-    }
-    let o = p.cam_pos.xyz + p.cam_x.xyz * local_origin.x + p.cam_y.xyz * local_origin.y + p.cam_z.xyz * local_origin.z;
-    let d = p.cam_x.xyz * local_dir.x + p.cam_y.xyz * local_dir.y + p.cam_z.xyz * local_dir.z;
+    let ray = camera_ray(gid.xy, vec2<u32>(w, h), p.cam_x.xyz, p.cam_y.xyz, p.cam_z.xyz, p.cam_pos.xyz, p.proj);
+    let o = ray.origin;
+    let d = ray.dir;
 
     // cast
-    let tool = tool_hit(o, d);
+    let tool = tool_hit(p.tools, p.counts.y, p.lut.w, o, d, -d);
     var bg = p.background;
     var t_stop = FAR;
     if tool.x >= 0.0 {

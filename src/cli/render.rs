@@ -78,14 +78,24 @@ pub struct RenderArgs {
     depth_out: Option<PathBuf>,
 }
 
+/// A raycaster prepared on the CPU (tables, topology), to run on the backend asked for.
+enum Prepared<'a> {
+    Volume(raycast::VolumeRaycaster<'a>),
+    Mesh(TetRaycaster),
+}
+
 /// The GPU path when asked for and possible, else the CPU path (with a log line saying why).
-fn render_on_backend(args: &RenderArgs, prepared: &raycast::VolumeRaycaster, camera: &Camera) -> Result<(defvol::render::Rendered, String)> {
+fn render_on_backend(args: &RenderArgs, prepared: &Prepared, camera: &Camera) -> Result<(defvol::render::Rendered, String)> {
     #[cfg(feature = "gpu")]
     if matches!(args.backend, defvol::engine::BackendChoice::Auto | defvol::engine::BackendChoice::Gpu) {
         let choice = defvol::gpu_policy::GpuChoice { allow_software: args.allow_software_gpu, required: args.backend == defvol::engine::BackendChoice::Gpu };
         if let Some(ctx) = choice.context() {
-            let name = ctx.describe();
-            match defvol::gpu::raycast::GpuVolumeRaycaster::new(std::sync::Arc::new(ctx), prepared).and_then(|g| g.render(camera)) {
+            let (name, ctx) = (ctx.describe(), std::sync::Arc::new(ctx));
+            let image = match prepared {
+                Prepared::Volume(p) => defvol::gpu::raycast::GpuVolumeRaycaster::new(ctx, p).and_then(|g| g.render(camera)),
+                Prepared::Mesh(p) => defvol::gpu::tet_raycast::GpuTetRaycaster::new(ctx, p).and_then(|g| g.render(camera)),
+            };
+            match image {
                 Ok(image) => return Ok((image, name)),
                 Err(e) => tracing::warn!("GPU raycaster not used: {e}; the CPU path runs"),
             }
@@ -93,25 +103,11 @@ fn render_on_backend(args: &RenderArgs, prepared: &raycast::VolumeRaycaster, cam
     }
     #[cfg(not(feature = "gpu"))]
     let _ = (args.backend, args.allow_software_gpu);
-    Ok((prepared.render(camera)?, format!("cpu ({} threads)", rayon::current_num_threads())))
-}
-
-/// As [`render_on_backend`], for the tetrahedral-mesh raycaster.
-fn mesh_on_backend(args: &RenderArgs, prepared: &TetRaycaster, camera: &Camera) -> Result<(defvol::render::Rendered, String)> {
-    #[cfg(feature = "gpu")]
-    if matches!(args.backend, defvol::engine::BackendChoice::Auto | defvol::engine::BackendChoice::Gpu) {
-        let choice = defvol::gpu_policy::GpuChoice { allow_software: args.allow_software_gpu, required: args.backend == defvol::engine::BackendChoice::Gpu };
-        if let Some(ctx) = choice.context() {
-            let name = ctx.describe();
-            match defvol::gpu::tet_raycast::GpuTetRaycaster::new(std::sync::Arc::new(ctx), prepared).and_then(|g| g.render(camera)) {
-                Ok(image) => return Ok((image, name)),
-                Err(e) => tracing::warn!("GPU tet raycaster not used: {e}; the CPU path runs"),
-            }
-        }
-    }
-    #[cfg(not(feature = "gpu"))]
-    let _ = (args.backend, args.allow_software_gpu);
-    Ok((prepared.render(camera)?, format!("cpu ({} threads)", rayon::current_num_threads())))
+    let image = match prepared {
+        Prepared::Volume(p) => p.render(camera)?,
+        Prepared::Mesh(p) => p.render(camera)?,
+    };
+    Ok((image, format!("cpu ({} threads)", rayon::current_num_threads())))
 }
 
 fn tool(text: &str) -> Result<raycast::ToolPicture> {
@@ -181,12 +177,12 @@ pub fn run(args: RenderArgs) -> Result<()> {
             let step = args.step.unwrap_or(if preintegrated { 4.0 } else { 1.0 });
             let tet_params = TetRaycastParams { step, preintegrated, background: params.background, tools: params.tools.clone(), ambient: params.ambient, ..Default::default() };
             let raycaster = TetRaycaster::new(&mesh, &scalars, &tf, &tet_params)?;
-            let (image, on) = mesh_on_backend(&args, &raycaster, &camera)?;
+            let (image, on) = render_on_backend(&args, &Prepared::Mesh(raycaster), &camera)?;
             (image, format!("{on}, {} tets", mesh.tets().len()))
         }
         None => {
             let prepared = raycast::VolumeRaycaster::new(&volume, &tf, &params)?;
-            render_on_backend(&args, &prepared, &camera)?
+            render_on_backend(&args, &Prepared::Volume(prepared), &camera)?
         }
     };
     tracing::info!("rendered {w}x{h} on {on} in {:.1} ms", started.elapsed().as_secs_f64() * 1e3);

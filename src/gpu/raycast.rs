@@ -72,7 +72,7 @@ impl GpuVolumeRaycaster {
             return Err(GpuRenderError::TooLarge { needed_mib: bytes.div_ceil(1 << 20), limit_mib: limit >> 20 });
         }
         use super::Binding::{Read, ReadWrite, Uniform};
-        let Kernels { layout, pipelines: [pipeline] } = ctx.kernels("raycast.wgsl", include_str!("../../shaders/raycast.wgsl"), &[Uniform, Read, Read, Read, Read, ReadWrite, ReadWrite], ["render"]);
+        let Kernels { layout, pipelines: [pipeline] } = ctx.kernels("raycast.wgsl", concat!(include_str!("../../shaders/camera_tools.wgsl"), include_str!("../../shaders/raycast.wgsl")), &[Uniform, Read, Read, Read, Read, ReadWrite, ReadWrite], ["render"]);
         let tables = &prepared.tables;
         let pre: &[[f32; 4]] = if tables.preintegrated.is_empty() { &[[0.0; 4]] } else { &tables.preintegrated };
         let (cell_dims, visible): ([usize; 3], Vec<u32>) = match &prepared.cells {

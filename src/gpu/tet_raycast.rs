@@ -64,7 +64,7 @@ impl GpuTetRaycaster {
         }
         use super::Binding::{Read, ReadWrite, Uniform};
         let Kernels { layout, pipelines: [geometry_pipeline, render_pipeline] } =
-            ctx.kernels("tet_raycast.wgsl", include_str!("../../shaders/tet_raycast.wgsl"), &[Uniform, ReadWrite, Read, Read, Read, ReadWrite, Read, Read], ["geometry", "render"]);
+            ctx.kernels("tet_raycast.wgsl", concat!(include_str!("../../shaders/camera_tools.wgsl"), include_str!("../../shaders/tet_raycast.wgsl")), &[Uniform, ReadWrite, Read, Read, Read, ReadWrite, Read, Read], ["geometry", "render"]);
         let params = prepared.params();
         let table = &prepared.table;
         let lut_start = table.entries.len();
