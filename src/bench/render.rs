@@ -156,7 +156,7 @@ pub fn run(opts: &RenderBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result
                     });
                     #[cfg(feature = "gpu")]
                     if let Some(ctx) = &gpu {
-                        mesh_gpu_row(ctx, &raycaster, mesh.nodes(), &camera, &reference, &case, step, &mut emit)?;
+                        mesh_gpu_row(ctx, &raycaster, mesh.nodes(), &camera, &reference, &case, &mut emit)?;
                     }
                 }
             }
@@ -214,7 +214,7 @@ fn volume_gpu_rows(ctx: &std::sync::Arc<crate::gpu::GpuContext>, name: &str, vol
 
 /// The GPU twin of a CPU mesh row: positions uploaded and geometry refreshed every frame.
 #[cfg(feature = "gpu")]
-fn mesh_gpu_row(ctx: &std::sync::Arc<crate::gpu::GpuContext>, prepared: &TetRaycaster, nodes: &[nalgebra::Vector3<f64>], camera: &Camera, reference: &[[f64; 4]], case: &str, step: f64, emit: &mut impl FnMut(&BenchRow)) -> Result<(), RenderBenchError> {
+fn mesh_gpu_row(ctx: &std::sync::Arc<crate::gpu::GpuContext>, prepared: &TetRaycaster, nodes: &[nalgebra::Vector3<f64>], camera: &Camera, reference: &[[f64; 4]], case: &str, emit: &mut impl FnMut(&BenchRow)) -> Result<(), RenderBenchError> {
     use crate::gpu::tet_raycast::GpuTetRaycaster;
     let gpu_err = |e: crate::gpu::raycast::GpuRenderError| RenderBenchError::Gpu(e.to_string());
     let mut raycaster = match GpuTetRaycaster::new(ctx.clone(), prepared) {
@@ -234,7 +234,7 @@ fn mesh_gpu_row(ctx: &std::sync::Arc<crate::gpu::GpuContext>, prepared: &TetRayc
         case: case.to_owned(),
         backend: "gpu".into(),
         device: ctx.describe(),
-        params: json!({"mode": "tet_mesh", "step_mm": step, "preintegrated": prepared.params().preintegrated, "shading": "none", "tf": "ct_soft_tissue", "includes_readback": true}),
+        params: json!({"mode": "tet_mesh", "step_mm": prepared.params().step, "preintegrated": prepared.params().preintegrated, "shading": "none", "tf": "ct_soft_tissue", "includes_readback": true}),
         runs: samples.len(),
         time_ms: time_stats(samples),
         error: Some(ErrorMeasure { metric: "psnr_db", value: image.psnr(reference), reference: "f64 tet walk" }),
