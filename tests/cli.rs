@@ -148,7 +148,7 @@ fn render_writes_an_image_and_a_depth_map_and_names_bad_input() {
 }
 
 #[test]
-fn render_draws_a_tetrahedral_mesh_with_scalars_sampled_from_the_volume() {
+fn render_draws_a_tetrahedral_mesh_with_sampled_or_named_scalars() {
     let dir = tempfile::tempdir().unwrap();
     let phantom = defvol::volume::phantom::phantom([64, 40, 31], 4.0).unwrap();
     let (lo, hi) = phantom.bounds();
@@ -164,4 +164,17 @@ fn render_draws_a_tetrahedral_mesh_with_scalars_sampled_from_the_volume() {
     assert!(hit > 48 * 48 / 10, "the mesh covers {hit} pixels");
     let out = defvol().args(["render", "--mesh-scale", "0", "--mesh"]).arg(&mesh_path).arg("--out").arg(&png).output().unwrap();
     assert!(!out.status.success() && String::from_utf8_lossy(&out.stderr).contains("--mesh-scale"));
+    // Node values from a named point array: uniform dense tissue everywhere is opaque
+    // wherever the mesh is, unlike the phantom's air-filled corners.
+    let mut labelled = mesh.clone();
+    labelled.set_scalars(vec![700.0; mesh.nodes().len()]).unwrap();
+    let labelled_path = dir.path().join("labelled.vtu");
+    defvol::io::write_mesh(&labelled_path, &labelled, None).unwrap();
+    let out = defvol().args(["render", "--size", "48x48", "--scalars", "scalar", "--mesh"]).arg(&labelled_path).arg("--out").arg(&png).arg("--depth-out").arg(&depth).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let dense = defvol::io::read_volume(&depth).unwrap().data().iter().filter(|v| **v > 0.0).count();
+    assert!(dense > hit, "uniform dense tissue covers {dense} pixels, the phantom's values {hit}");
+    let out = defvol().args(["render", "--scalars", "dose", "--mesh"]).arg(&labelled_path).arg("--out").arg(&png).output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("`dose`") && err.contains("scalar"), "{err}");
 }

@@ -21,6 +21,10 @@ pub struct RenderArgs {
     /// phantom) at the nodes.
     #[arg(long)]
     mesh: Option<PathBuf>,
+    /// With --mesh: the node values to render, a named one-component point array of the
+    /// .vtu/.vtk file (instead of its scalars or values sampled from the volume).
+    #[arg(long, requires = "mesh")]
+    scalars: Option<String>,
     /// Volume units per mesh unit (1000 for a metre mesh, as `simulate` writes, over a
     /// millimetre volume).
     #[arg(long, default_value_t = 1.0)]
@@ -166,8 +170,9 @@ pub fn run(args: RenderArgs) -> Result<()> {
             }
             let scale = args.mesh_scale;
             mesh.map_nodes(|p| p * scale);
-            let scalars: Vec<f32> = match (mesh.scalars(), &args.volume) {
-                (Some(s), None) => s.to_vec(),
+            let scalars: Vec<f32> = match (&args.scalars, mesh.scalars(), &args.volume) {
+                (Some(name), _, _) => defvol::io::read_mesh_point_array(path, name)?,
+                (None, Some(s), None) => s.to_vec(),
                 _ => {
                     let outside = volume.range().0;
                     mesh.nodes().iter().map(|p| volume.sample_world(*p).unwrap_or(outside)).collect()

@@ -46,6 +46,16 @@ fn file_name(path: &Path) -> String {
 const MESH_TYPES: &str = ".vtu, .vtk, .msh, .node/.ele";
 const VOLUME_TYPES: &str = ".nii, .nii.gz, .nrrd, .nhdr, .mha, .mhd";
 
+/// A named one-component point array of a VTK mesh (`.vtu`/`.vtk`): node values to render
+/// when the file holds several (dose, temperature, a segmentation's labels).
+pub fn read_mesh_point_array(path: &Path, name: &str) -> Result<Vec<f32>, IoError> {
+    let file = file_name(path);
+    if !(file.ends_with(".vtu") || file.ends_with(".vtk")) {
+        return Err(IoError::UnsupportedExtension { path: path.to_owned(), expected: ".vtu, .vtk (named point arrays)" });
+    }
+    vtk::read_point_array(path, name)
+}
+
 /// Reads a tetrahedral mesh (VTK `.vtu`/`.vtk`, Gmsh `.msh` 4.1 or 2.2, TetGen `.node`/`.ele`).
 pub fn read_mesh(path: &Path) -> Result<TetMesh, IoError> {
     let name = file_name(path);
@@ -255,6 +265,23 @@ mod tests {
         let m = read_mesh(&path).unwrap();
         assert_eq!(m.tets().len(), 2);
         assert_eq!(m.nodes().len(), 5);
+    }
+
+    #[test]
+    fn a_named_point_array_is_read_and_a_missing_one_named_with_those_there() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut mesh = crate::mesh::generate::bar(0.3).unwrap();
+        let values: Vec<f32> = (0..mesh.nodes().len()).map(|i| 10.0 + i as f32).collect();
+        mesh.set_scalars(values.clone()).unwrap();
+        for name in ["m.vtu", "m.vtk"] {
+            let path = dir.path().join(name);
+            write_mesh(&path, &mesh, None).unwrap();
+            assert_eq!(read_mesh_point_array(&path, "scalar").unwrap(), values, "{name}");
+            let err = read_mesh_point_array(&path, "dose").unwrap_err().to_string();
+            assert!(err.contains("`dose`") && err.contains("\"scalar\"") && err.contains(name), "{err}");
+        }
+        let msh = dir.path().join("m.msh");
+        assert!(matches!(read_mesh_point_array(&msh, "scalar"), Err(IoError::UnsupportedExtension { .. })));
     }
 
     #[test]

@@ -13,6 +13,29 @@ use super::{malformed, IoError};
 pub(super) type MeshParts = (Vec<Vector3<f64>>, Vec<[u32; 4]>, Option<Vec<f32>>);
 
 pub(super) fn read(path: &Path) -> Result<MeshParts, IoError> {
+    let (nodes, tets, point_data) = read_with_point_data(path)?;
+    // The mesh's own scalars: the first array tagged as scalars.
+    let scalars = point_data.into_iter().find_map(|a| if a.tagged_scalars { a.values } else { None });
+    Ok((nodes, tets, scalars))
+}
+
+/// The named one-component point array; an error lists the arrays the file has.
+pub(super) fn read_point_array(path: &Path, name: &str) -> Result<Vec<f32>, IoError> {
+    let (_, _, point_data) = read_with_point_data(path)?;
+    let names: Vec<&str> = point_data.iter().filter(|a| a.values.is_some()).map(|a| a.name.as_str()).collect();
+    let message = format!("no one-component point array `{name}`; it has {names:?}");
+    point_data.into_iter().find(|a| a.name == name).and_then(|a| a.values).ok_or_else(|| malformed(path, message))
+}
+
+/// A point array: its values when it has one numeric component.
+struct PointArray {
+    name: String,
+    values: Option<Vec<f32>>,
+    /// Tagged as scalars (legacy SCALARS, XML Scalars="…"), not just a generic array.
+    tagged_scalars: bool,
+}
+
+fn read_with_point_data(path: &Path) -> Result<(Vec<Vector3<f64>>, Vec<[u32; 4]>, Vec<PointArray>), IoError> {
     if !path.exists() {
         return Err(IoError::Io { path: path.to_owned(), source: std::io::Error::new(std::io::ErrorKind::NotFound, "file not found") });
     }
@@ -50,11 +73,17 @@ pub(super) fn read(path: &Path) -> Result<MeshParts, IoError> {
             other => return Err(malformed(path, format!("cell {cell} has type {other:?}; only linear tetrahedra are supported"))),
         }
     }
-    let scalars = piece.data.point.into_iter().find_map(|a| match a {
-        Attribute::DataArray(DataArray { elem: ElementType::Scalars { num_comp: 1, .. }, data, .. }) => data.cast_into::<f32>(),
-        _ => None,
-    });
-    Ok((nodes, tets, scalars))
+    let point_data = piece
+        .data
+        .point
+        .into_iter()
+        .map(|a| match a {
+            Attribute::DataArray(DataArray { name, elem: ElementType::Scalars { num_comp: 1, .. }, data }) => PointArray { name, values: data.cast_into::<f32>(), tagged_scalars: true },
+            Attribute::DataArray(DataArray { name, elem: ElementType::Generic(1), data }) => PointArray { name, values: data.cast_into::<f32>(), tagged_scalars: false },
+            Attribute::DataArray(DataArray { name, .. }) | Attribute::Field { name, .. } => PointArray { name, values: None, tagged_scalars: false },
+        })
+        .collect();
+    Ok((nodes, tets, point_data))
 }
 
 pub(super) fn write(path: &Path, nodes: &[Vector3<f64>], tets: &[[u32; 4]], scalars: Option<&[f32]>) -> Result<(), IoError> {
