@@ -14,7 +14,7 @@ use crate::msgs::{Image, Time};
 use crate::render::camera::Camera;
 use crate::render::raycast::{RaycastParams, ToolPicture, VolumeRaycaster};
 use crate::render::tet_raycast::TetRaycaster;
-use crate::render::transfer::TransferFunction;
+use crate::render::transfer::Tables;
 use crate::volume::{Grid, Volume};
 use crate::warp::{IncrementalWarp, WarpStats};
 
@@ -37,7 +37,8 @@ pub struct WarpedVolume {
 }
 
 pub(super) struct RaycastSetup {
-    pub tf: TransferFunction,
+    /// Built once over the source's range: the warped volume stays within it.
+    pub tables: Arc<Tables>,
     pub params: RaycastParams,
     pub camera: Camera,
     /// The deformed mesh raycast directly instead of the volume (`camera.shows: mesh`).
@@ -102,7 +103,7 @@ impl FrameWorker {
                         }
                         None => &*self.volume,
                     };
-                    VolumeRaycaster::new(volume, &r.tf, &r.params)?.render(&r.camera)?
+                    VolumeRaycaster::with_tables(volume, r.tables.clone(), &r.params)?.render(&r.camera)?
                 }
             };
             done.raycast_ms = Some(start.elapsed().as_secs_f64() * 1e3);

@@ -244,10 +244,11 @@ impl Pipeline {
                 let camera = Camera::look_at(point(c.eye), point(c.target), Vector3::from(c.up), Projection::Perspective { fov_y_deg: c.fov_y_deg }, c.width, c.height)?;
                 let tf = TransferFunction::preset(&c.transfer_function)?;
                 let params = RaycastParams { step: c.step, ..Default::default() };
+                // Prepared once here, so that a bad parameter fails at start, not mid-run.
+                let tables = Arc::new(VolumeRaycaster::tables_for(self.volume.range(), &tf, &params)?);
                 let mesh = match c.shows {
                     CameraShows::Volume => {
-                        // Prepared once here so that a bad parameter fails at start, not mid-run.
-                        VolumeRaycaster::new(&self.volume, &tf, &params)?;
+                        VolumeRaycaster::with_tables(&self.volume, tables.clone(), &params)?;
                         None
                     }
                     CameraShows::Mesh => {
@@ -258,7 +259,7 @@ impl Pipeline {
                         Some(TetRaycaster::new(&rest, &scalars, &tf, &TetRaycastParams { step: c.step, ..Default::default() })?)
                     }
                 };
-                Some(frames::RaycastSetup { tf, params, camera, mesh })
+                Some(frames::RaycastSetup { tables, params, camera, mesh })
             }
         };
         if warp.is_some() || raycast.is_some() {
