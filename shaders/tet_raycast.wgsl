@@ -38,6 +38,8 @@ struct Hit {
     face: u32,
     front: bool,
     found: bool,
+    // the farthest crossing of a front-facing face's plane beyond `after`
+    fronts_until: f32,
 }
 
 const TILE: u32 = 8u;
@@ -192,14 +194,21 @@ fn integrate(state: ptr<function, Accumulator>, t0: f32, t1: f32, s0: f32, s1: f
 
 // TetRaycaster::nearest_hit
 fn nearest_hit(first: u32, last: u32, o: vec3<f32>, d: vec3<f32>, after: f32) -> Hit {
-    var best = Hit(0.0, 0u, 0u, false, false);
+    var best = Hit(0.0, 0u, 0u, false, false, -FAR);
+    var fronts_until = -FAR;
     let base = p.counts.w + 1u;
     for (var i = first; i < last; i++) {
         let id = tiles[base + i];
         let tet = id >> 2u;
         let k = id & 3u;
         let pt = plane_t(geo[tet].planes[k], o, d);
-        if pt.x == 0.0 || !(pt.y > after) || (best.found && pt.y >= best.t) {
+        if pt.x == 0.0 || !(pt.y > after) {
+            continue;
+        }
+        if pt.x < 0.0 {
+            fronts_until = max(fronts_until, pt.y);
+        }
+        if best.found && pt.y >= best.t {
             continue;
         }
         let q = o + d * pt.y;
@@ -211,9 +220,10 @@ fn nearest_hit(first: u32, last: u32, o: vec3<f32>, d: vec3<f32>, after: f32) ->
             }
         }
         if on_face {
-            best = Hit(pt.y, tet, k, pt.x < 0.0, true);
+            best = Hit(pt.y, tet, k, pt.x < 0.0, true, 0.0);
         }
     }
+    best.fronts_until = fronts_until;
     return best;
 }
 
@@ -347,7 +357,7 @@ fn render(@builtin(global_invocation_id) gid: vec3<u32>) {
         }
         walked = true;
         t_from = walk(&state, start, o, d, t_stop);
-        if state.acc.w >= p.lut.z || t_from >= t_stop {
+        if state.acc.w >= p.lut.z || t_from >= t_stop || t_from + p.table.w >= hit.fronts_until {
             break;
         }
     }

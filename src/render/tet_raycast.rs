@@ -374,7 +374,8 @@ impl TetRaycaster {
         let mut walked = false;
         for _ in 0..MAX_ENTRIES {
             let after = if walked { t_from + self.tolerance } else { t_from };
-            let Some(hit) = self.nearest_hit(faces, o, d, after) else { break };
+            let (hit, fronts_until) = self.nearest_hit(faces, o, d, after);
+            let Some(hit) = hit else { break };
             if hit.t >= t_stop {
                 break;
             }
@@ -389,7 +390,8 @@ impl TetRaycaster {
             };
             walked = true;
             t_from = self.walk(start, o, d, t_stop, &mut acc, &mut depth);
-            if acc[3] >= termination || t_from >= t_stop {
+            // No front face's plane lies ahead: the ray cannot enter the mesh again.
+            if acc[3] >= termination || t_from >= t_stop || t_from + self.tolerance >= fronts_until {
                 break;
             }
         }
@@ -400,13 +402,22 @@ impl TetRaycaster {
 
     /// The nearest boundary face of the tile crossed beyond `after`: the hit on the face's
     /// plane counts when it lies within `tolerance` of the tet's three other planes.
-    fn nearest_hit(&self, faces: &[u32], o: &V3, d: &V3, after: f32) -> Option<Hit> {
+    /// Also: the farthest crossing of a front-facing face's plane beyond `after`, a bound
+    /// on where the ray could enter again (beyond it, no rescan is needed).
+    fn nearest_hit(&self, faces: &[u32], o: &V3, d: &V3, after: f32) -> (Option<Hit>, f32) {
         let mut best: Option<Hit> = None;
+        let mut fronts_until = f32::NEG_INFINITY;
         for &id in faces {
             let (tet, k) = (id >> 2, id & 3);
             let planes = &self.geometry[tet as usize].planes;
             let (denom, t) = plane_t(&planes[k as usize], o, d);
-            if denom == 0.0 || t <= after || t.is_nan() || best.is_some_and(|b| t >= b.t) {
+            if denom == 0.0 || t <= after || t.is_nan() {
+                continue;
+            }
+            if denom < 0.0 {
+                fronts_until = fronts_until.max(t);
+            }
+            if best.is_some_and(|b| t >= b.t) {
                 continue;
             }
             let p = o + d * t;
@@ -418,7 +429,7 @@ impl TetRaycaster {
                 best = Some(Hit { t, tet, face: k, front: denom < 0.0 });
             }
         }
-        best
+        (best, fronts_until)
     }
 
     /// From the tet behind an exit face, back along the ray to the tet holding the point at
