@@ -36,7 +36,8 @@ enum Command {
     /// DIR/demo.mcap (a rosbag2 MCAP) and DIR/demo.rrd (a rerun log).
     Demo(cli::session::DemoArgs),
     /// Run the pipeline from the tool poses and wrenches of a recorded bag.
-    Replay(cli::session::ReplayArgs),
+    #[cfg(feature = "mcap")]
+    Replay(cli::replay::ReplayArgs),
     /// The ROS 2 node (as `defvol_node`): `defvol node [--record F.mcap] --ros-args -p …`.
     #[cfg(feature = "ros")]
     Node {
@@ -460,7 +461,8 @@ fn main() -> Result<()> {
         Command::Dpcm(args) => cli::dpcm::run(args),
         Command::Render(args) => cli::render::run(args),
         Command::Demo(args) => cli::session::demo(args),
-        Command::Replay(args) => cli::session::replay(args),
+        #[cfg(feature = "mcap")]
+        Command::Replay(args) => cli::replay::replay(args),
         #[cfg(feature = "ros")]
         Command::Node { args } => {
             let settings = defvol::ros::node::settings_from_args(&args)?;

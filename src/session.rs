@@ -51,6 +51,7 @@ pub enum SessionError {
 
 /// The records of one run.
 pub struct Session {
+    #[cfg_attr(not(feature = "mcap"), allow(dead_code))]
     namespace: String,
     #[cfg(feature = "mcap")]
     bag: Option<crate::record::bag::BagThread>,
@@ -105,6 +106,7 @@ impl Session {
         false
     }
 
+    #[cfg_attr(not(feature = "mcap"), allow(dead_code))]
     fn note_error(&mut self, what: &str, error: impl std::fmt::Display) {
         if self.record_error.is_none() {
             tracing::error!("{what} stopped: {error}; the run goes on without it");

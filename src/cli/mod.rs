@@ -1,3 +1,5 @@
 pub mod dpcm;
 pub mod render;
+#[cfg(feature = "mcap")]
+pub mod replay;
 pub mod session;
