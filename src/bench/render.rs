@@ -66,6 +66,8 @@ pub fn run(opts: &RenderBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result
         volumes.push(("phantom_warped", warped_phantom(&source)?));
     }
     let tf = TransferFunction::preset("ct_soft_tissue")?;
+    #[cfg(feature = "gpu")]
+    let gpu = opts.gpu.and_then(|choice| choice.context()).map(std::sync::Arc::new);
     for (name, volume) in &volumes {
         for &size in &opts.sizes {
             let camera = phantom_camera(volume, size)?;
@@ -100,17 +102,11 @@ pub fn run(opts: &RenderBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result
                         error,
                         work: json!({"rays": size * size, "voxels": volume.len()}),
                     });
+                    #[cfg(feature = "gpu")]
+                    if let (Some(ctx), Shading::None) = (&gpu, shading) {
+                        volume_gpu_row(ctx, &raycaster, &camera, &reference, &format!("{name}_{size}"), opts, &mut emit)?;
+                    }
                 }
-            }
-        }
-    }
-    #[cfg(feature = "gpu")]
-    let gpu = opts.gpu.and_then(|choice| choice.context()).map(std::sync::Arc::new);
-    #[cfg(feature = "gpu")]
-    if let Some(ctx) = &gpu {
-        for (name, volume) in &volumes {
-            for &size in &opts.sizes {
-                volume_gpu_rows(ctx, name, volume, &tf, size, opts, &mut emit)?;
             }
         }
     }
@@ -178,37 +174,30 @@ fn gpu_frames(runs: usize, mut frame: impl FnMut() -> Result<crate::render::Rend
     Ok((image, samples))
 }
 
+/// The GPU twin of a CPU volume row: the same prepared tables and macro cells.
 #[cfg(feature = "gpu")]
-fn volume_gpu_rows(ctx: &std::sync::Arc<crate::gpu::GpuContext>, name: &str, volume: &Volume, tf: &TransferFunction, size: usize, opts: &RenderBenchOptions, emit: &mut impl FnMut(&BenchRow)) -> Result<(), RenderBenchError> {
+fn volume_gpu_row(ctx: &std::sync::Arc<crate::gpu::GpuContext>, prepared: &VolumeRaycaster, camera: &Camera, reference: &[[f64; 4]], case: &str, opts: &RenderBenchOptions, emit: &mut impl FnMut(&BenchRow)) -> Result<(), RenderBenchError> {
     use crate::gpu::raycast::GpuVolumeRaycaster;
-    let camera = phantom_camera(volume, size)?;
-    let background = [0.0, 0.0, 0.0, 1.0];
-    let reference = raycast::reference(volume, &camera, tf, opts.reference_step, background)?;
-    for &step in &opts.steps {
-        for preintegrated in [true, false] {
-            let params = RaycastParams { step, preintegrated, shading: Shading::None, background, ..Default::default() };
-            let prepared = VolumeRaycaster::new(volume, tf, &params)?;
-            let raycaster = match GpuVolumeRaycaster::new(ctx.clone(), &prepared) {
-                Ok(r) => r,
-                Err(e) => {
-                    tracing::warn!("GPU raycaster unavailable: {e}");
-                    return Ok(());
-                }
-            };
-            let (image, samples) = gpu_frames(opts.runs, || raycaster.render(&camera)).map_err(|e| RenderBenchError::Gpu(e.to_string()))?;
-            emit(&BenchRow {
-                stage: "render",
-                case: format!("{name}_{size}"),
-                backend: "gpu".into(),
-                device: ctx.describe(),
-                params: json!({"mode": "composite", "step_mm": step, "preintegrated": preintegrated, "shading": "none", "reference_step_mm": opts.reference_step, "tf": "ct_soft_tissue", "includes_readback": true}),
-                runs: samples.len(),
-                time_ms: time_stats(samples),
-                error: Some(ErrorMeasure { metric: "psnr_db", value: image.psnr(&reference), reference: "f64 point sampling" }),
-                work: json!({"rays": size * size, "voxels": volume.len()}),
-            });
+    let raycaster = match GpuVolumeRaycaster::new(ctx.clone(), prepared) {
+        Ok(r) => r,
+        Err(e) => {
+            tracing::warn!("GPU raycaster unavailable: {e}");
+            return Ok(());
         }
-    }
+    };
+    let (image, samples) = gpu_frames(opts.runs, || raycaster.render(camera)).map_err(|e| RenderBenchError::Gpu(e.to_string()))?;
+    let params = &prepared.params;
+    emit(&BenchRow {
+        stage: "render",
+        case: case.to_owned(),
+        backend: "gpu".into(),
+        device: ctx.describe(),
+        params: json!({"mode": "composite", "step_mm": params.step, "preintegrated": params.preintegrated, "shading": "none", "reference_step_mm": opts.reference_step, "tf": "ct_soft_tissue", "includes_readback": true}),
+        runs: samples.len(),
+        time_ms: time_stats(samples),
+        error: Some(ErrorMeasure { metric: "psnr_db", value: image.psnr(reference), reference: "f64 point sampling" }),
+        work: json!({"rays": camera.width * camera.height, "voxels": prepared.volume.len()}),
+    });
     Ok(())
 }
 

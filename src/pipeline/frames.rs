@@ -36,13 +36,18 @@ pub struct WarpedVolume {
     pub stats: WarpStats,
 }
 
+/// What the camera's frames are made from.
+pub(super) enum Picture {
+    /// The volume as the warp deforms it; the tables are built once, over the source's range
+    /// (the warped volume stays within it).
+    Volume { tables: Arc<Tables>, params: RaycastParams },
+    /// The deformed mesh raycast directly (`camera.shows: mesh`).
+    Mesh(Box<TetRaycaster>),
+}
+
 pub(super) struct RaycastSetup {
-    /// Built once over the source's range: the warped volume stays within it.
-    pub tables: Arc<Tables>,
-    pub params: RaycastParams,
     pub camera: Camera,
-    /// The deformed mesh raycast directly instead of the volume (`camera.shows: mesh`).
-    pub mesh: Option<TetRaycaster>,
+    pub picture: Picture,
 }
 
 /// What the worker owns: the incremental warp and the camera.
@@ -87,14 +92,16 @@ impl FrameWorker {
         }
         if let (Some(tools), Some(r)) = (job.render, &mut self.raycast) {
             let start = Instant::now();
-            let rendered = match (&mut r.mesh, &job.positions) {
-                (Some(mesh), Some(deformed)) => {
-                    mesh.update(deformed)?;
+            let rendered = match &mut r.picture {
+                Picture::Mesh(mesh) => {
+                    if let Some(deformed) = &job.positions {
+                        mesh.update(deformed)?;
+                    }
                     mesh.set_tools(tools)?;
                     mesh.render(&r.camera)?
                 }
-                _ => {
-                    r.params.tools = tools;
+                Picture::Volume { tables, params } => {
+                    params.tools = tools;
                     let warped;
                     let volume = match &self.warp {
                         Some((w, _)) => {
@@ -103,7 +110,7 @@ impl FrameWorker {
                         }
                         None => &*self.volume,
                     };
-                    VolumeRaycaster::with_tables(volume, r.tables.clone(), &r.params)?.render(&r.camera)?
+                    VolumeRaycaster::with_tables(volume, tables.clone(), params)?.render(&r.camera)?
                 }
             };
             done.raycast_ms = Some(start.elapsed().as_secs_f64() * 1e3);
@@ -138,7 +145,7 @@ pub(super) struct Frames {
 impl Frames {
     pub fn new(worker: FrameWorker, mode: FrameMode, warp_rate: f64, raycast_rate: f64) -> Result<Self, PipelineError> {
         let (has_warp, has_raycast) = (worker.warp.is_some(), worker.raycast.is_some());
-        let renders_mesh = worker.raycast.as_ref().is_some_and(|r| r.mesh.is_some());
+        let renders_mesh = worker.raycast.as_ref().is_some_and(|r| matches!(r.picture, Picture::Mesh(_)));
         let runner = match mode {
             FrameMode::Lockstep => Runner::Inline(Box::new(worker)),
             FrameMode::Background => {

@@ -243,23 +243,23 @@ impl Pipeline {
                 let point = |p: [f64; 3]| Point3::from(Vector3::from(p) * to_file);
                 let camera = Camera::look_at(point(c.eye), point(c.target), Vector3::from(c.up), Projection::Perspective { fov_y_deg: c.fov_y_deg }, c.width, c.height)?;
                 let tf = TransferFunction::preset(&c.transfer_function)?;
-                let params = RaycastParams { step: c.step, ..Default::default() };
                 // Prepared once here, so that a bad parameter fails at start, not mid-run.
-                let tables = Arc::new(VolumeRaycaster::tables_for(self.volume.range(), &tf, &params)?);
-                let mesh = match c.shows {
+                let picture = match c.shows {
                     CameraShows::Volume => {
+                        let params = RaycastParams { step: c.step, ..Default::default() };
+                        let tables = Arc::new(VolumeRaycaster::tables_for(self.volume.range(), &tf, &params)?);
                         VolumeRaycaster::with_tables(&self.volume, tables.clone(), &params)?;
-                        None
+                        frames::Picture::Volume { tables, params }
                     }
                     CameraShows::Mesh => {
                         let mut rest = self.mesh.clone();
                         rest.map_nodes(|p| p * to_file);
                         let outside = self.volume.range().0;
                         let scalars: Vec<f32> = rest.nodes().iter().map(|p| self.volume.sample_world(*p).unwrap_or(outside)).collect();
-                        Some(TetRaycaster::new(&rest, &scalars, &tf, &TetRaycastParams { step: c.step, ..Default::default() })?)
+                        frames::Picture::Mesh(Box::new(TetRaycaster::new(&rest, &scalars, &tf, &TetRaycastParams { step: c.step, ..Default::default() })?))
                     }
                 };
-                Some(frames::RaycastSetup { tables, params, camera, mesh })
+                Some(frames::RaycastSetup { camera, picture })
             }
         };
         if warp.is_some() || raycast.is_some() {

@@ -112,6 +112,11 @@ fn tet_geometry_f32(x: &[V3; 4], s: &[f32; 4]) -> TetGeometry {
     g
 }
 
+/// The faces with no neighbour, as tet · 4 + face.
+fn boundary_faces(neighbours: &[[i32; 4]]) -> Vec<u32> {
+    neighbours.iter().enumerate().flat_map(|(t, n)| (0..4u32).filter(move |&k| n[k as usize] < 0).map(move |k| t as u32 * 4 + k)).collect()
+}
+
 /// Boundary faces (tet · 4 + face) binned into the image's tiles: tile t holds
 /// `faces[start[t]..start[t + 1]]`.
 #[derive(Debug, Clone)]
@@ -264,7 +269,7 @@ impl TetRaycaster {
                 })
             })
             .collect();
-        let boundary = neighbours.iter().enumerate().flat_map(|(t, n)| (0..4u32).filter(move |&k| n[k as usize] < 0).map(move |k| t as u32 * 4 + k)).collect();
+        let boundary = boundary_faces(neighbours);
         let (lo, hi) = mesh.nodes().iter().fold((Vector3::repeat(f64::INFINITY), Vector3::repeat(f64::NEG_INFINITY)), |(lo, hi), p| (lo.inf(p), hi.sup(p)));
         let (anchor, diagonal) = if mesh.nodes().is_empty() { (Vector3::zeros(), 1.0) } else { ((lo + hi) / 2.0, (hi - lo).norm()) };
         let table = if params.preintegrated { SegmentTable::new(&tf, range, params.step) } else { SegmentTable { lo: 0.0, hi: 1.0, max_len: 1.0, level_scale: 1.0, length_scale: 1.0, entries: Vec::new() } };
@@ -559,7 +564,7 @@ pub fn reference(mesh: &TetMesh, positions: &[Vector3<f64>], scalars: &[f32], ca
     let tf = tf.resolve(range)?;
     let geometry: Vec<_> = mesh.tets().iter().map(|tet| tet_geometry(&tet.map(|i| positions[i as usize]), &tet.map(|i| f64::from(scalars[i as usize])))).collect();
     let neighbours = mesh.neighbours();
-    let boundary: Vec<u32> = neighbours.iter().enumerate().flat_map(|(t, n)| (0..4u32).filter(move |&k| n[k as usize] < 0).map(move |k| t as u32 * 4 + k)).collect();
+    let boundary = boundary_faces(neighbours);
     let bins = bin_boundary(mesh.tets(), &boundary, positions, camera);
     let containing = |p: &Vector3<f64>| {
         geometry.iter().position(|(planes, _)| planes.iter().all(|q| q[0] * p.x + q[1] * p.y + q[2] * p.z - q[3] <= 1e-9 * (1.0 + q[3].abs())) && planes.iter().any(|q| q[0] != 0.0 || q[1] != 0.0 || q[2] != 0.0))

@@ -167,20 +167,22 @@ impl Tables {
     /// (r, g, b, τ) at `s`, linear between table entries.
     #[inline]
     pub fn sample(&self, s: f32) -> [f32; 4] {
-        let x = ((s - self.lo) / (self.hi - self.lo)).clamp(0.0, 1.0) * (LUT_SIZE - 1) as f32;
-        let i = (x as usize).min(LUT_SIZE - 2);
-        let f = x - i as f32;
-        let (a, b) = (self.lut[i], self.lut[i + 1]);
-        [0, 1, 2, 3].map(|c| a[c] + (b[c] - a[c]) * f)
+        self.interpolate(&self.lut, s)
     }
 
     /// A full step's premultiplied colour and α at `s`, linear between table entries.
     #[inline]
     pub fn sample_step(&self, s: f32) -> [f32; 4] {
+        self.interpolate(&self.stepped, s)
+    }
+
+    /// `table` (one of the `LUT_SIZE` tables over [lo, hi]) at `s`, linear between entries.
+    #[inline]
+    fn interpolate(&self, table: &[[f32; 4]], s: f32) -> [f32; 4] {
         let x = ((s - self.lo) / (self.hi - self.lo)).clamp(0.0, 1.0) * (LUT_SIZE - 1) as f32;
         let i = (x as usize).min(LUT_SIZE - 2);
         let f = x - i as f32;
-        let (a, b) = (self.stepped[i], self.stepped[i + 1]);
+        let (a, b) = (table[i], table[i + 1]);
         [0, 1, 2, 3].map(|c| a[c] + (b[c] - a[c]) * f)
     }
 
