@@ -4,9 +4,9 @@
 //! with DEFVOL_BENCH_SOFTWARE_GPU=1.
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion};
+use defvol::backend::{Backend, BackendChoice};
 use defvol::bench::cantilever;
-use defvol::engine::{BackendChoice, Engine};
-use defvol::solver::{Integrator, SolverParams};
+use defvol::solver::{Integrator, SolverEngine, SolverParams};
 
 fn solver(c: &mut Criterion) {
     let sizes: Vec<usize> = std::env::var("DEFVOL_BENCH_SIZES")
@@ -14,6 +14,9 @@ fn solver(c: &mut Criterion) {
         .map(|s| s.split(',').filter_map(|v| v.trim().parse().ok()).collect())
         .unwrap_or_else(|| vec![80, 14_000, 35_000]);
     let software = std::env::var_os("DEFVOL_BENCH_SOFTWARE_GPU").is_some();
+    // The GPU rows only where an adapter opens: the CPU row covers a machine without one.
+    let mut backends = vec![Backend::cpu()];
+    backends.extend(Backend::choose(BackendChoice::Gpu, software).ok());
     let mut group = c.benchmark_group("solver_step");
     group.sample_size(10);
     for size in sizes {
@@ -21,16 +24,13 @@ fn solver(c: &mut Criterion) {
         for integrator in Integrator::ALL {
             let dt = if integrator == Integrator::ImplicitEuler { 0.01 } else { 5e-6 };
             let params = SolverParams { integrator, dt, ..Default::default() };
-            for backend in [BackendChoice::Cpu, BackendChoice::Gpu] {
-                let Ok(mut engine) = Engine::new(backend, software, &model, params.clone(), Vec::new()) else { continue };
-                if backend == BackendChoice::Gpu && engine.name() == "cpu" {
-                    continue; // no adapter: the CPU row already covers it
-                }
+            for backend in &backends {
+                let Ok(mut engine) = SolverEngine::new(backend, &model, params.clone(), Vec::new()) else { continue };
                 let settled = (0..10).all(|_| engine.step().is_ok());
                 if !settled {
                     continue;
                 }
-                let label = format!("{}/{}", integrator.name(), if backend == BackendChoice::Cpu { "cpu" } else { "gpu" });
+                let label = format!("{}/{}", integrator.name(), engine.backend());
                 group.bench_with_input(BenchmarkId::new(label, size), &size, |b, _| b.iter(|| engine.step()));
             }
         }

@@ -1,18 +1,23 @@
 //! defvol: deformable volumes for robot and surgical-simulation stacks.
 //!
-//! The algorithms live here, independent of ROS: [`mesh`] and [`volume`] hold the data,
-//! [`io`] reads and writes it, [`solver`] deforms meshes, [`dpcm`] engraves phyxel surfaces, [`gpu`] runs the same kernels
-//! through wgpu, [`scene`] describes a run and [`bench`] measures it. [`pipeline`] chains the
-//! stages for the node, [`msgs`] are the ROS messages, [`record`] writes MCAP and rerun
-//! logs, and [`session`] ties a run to its records.
+//! `ARCHITECTURE.md` draws the layers. From the ground up: [`math`] (the scalar type);
+//! the data, [`mesh`] and [`volume`], and [`io`] for their files; [`gpu`], the wgpu plumbing
+//! that knows no stage; the stages, each one folder with its CPU path, its GPU host code,
+//! its shader and their agreement tests: [`solver`], [`warp`], [`dpcm`], [`render`];
+//! [`backend`], the one CPU-or-GPU choice a run hands every stage; [`scene`], what a run
+//! loads; [`pipeline`], the stages chained for the node without ROS; then the records and
+//! the wire: [`msgs`], [`record`], [`session`], [`shm`], [`ros`]; and [`bench`].
 
+// Errors are returned, not unwrapped (tests may unwrap).
+#![cfg_attr(not(test), deny(clippy::unwrap_used, clippy::expect_used))]
+
+pub mod backend;
 pub mod bench;
 pub mod dpcm;
-pub mod engine;
 #[cfg(feature = "gpu")]
 pub mod gpu;
-pub mod gpu_policy;
 pub mod io;
+pub mod math;
 pub mod mesh;
 pub mod msgs;
 pub mod pipeline;

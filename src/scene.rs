@@ -6,6 +6,7 @@ use std::path::{Path, PathBuf};
 use nalgebra::{Isometry3, Vector3};
 use serde::{Deserialize, Serialize};
 
+use crate::backend::BackendChoice;
 use crate::io::{self, IoError};
 use crate::mesh::generate::{self, CellSplit};
 use crate::mesh::{MeshError, TetMesh};
@@ -34,14 +35,30 @@ pub enum SceneError {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case", tag = "kind", deny_unknown_fields)]
 pub enum MeshSource {
-    File { path: PathBuf },
+    File {
+        path: PathBuf,
+    },
     /// A lattice of about `target_tets` tets embedding the volume's box.
-    VolumeLattice { target_tets: usize, split: CellSplit },
+    VolumeLattice {
+        target_tets: usize,
+        split: CellSplit,
+    },
     /// A lattice over an explicit box (world units).
-    Lattice { min: [f64; 3], max: [f64; 3], target_tets: usize, split: CellSplit },
+    Lattice {
+        min: [f64; 3],
+        max: [f64; 3],
+        target_tets: usize,
+        split: CellSplit,
+    },
     /// The seed's 80-tet bar of the given length, along x from the origin.
-    Bar { length: f64 },
-    Ellipsoid { centre: [f64; 3], radii: [f64; 3], cells_per_axis: usize },
+    Bar {
+        length: f64,
+    },
+    Ellipsoid {
+        centre: [f64; 3],
+        radii: [f64; 3],
+        cells_per_axis: usize,
+    },
 }
 
 /// A straight tool path: `from` to `to` over `duration` seconds, then held.
@@ -75,6 +92,10 @@ pub struct ToolConfig {
     pub pose_topic: Option<String>,
     #[serde(default)]
     pub wrench_topic: Option<String>,
+    /// Output topic of the reaction on this tool: `tool_feedback` for the first tool,
+    /// `<name>/tool_feedback` for the others.
+    #[serde(default)]
+    pub feedback_topic: Option<String>,
 }
 
 /// Which stages a scene runs; a stage left out is never initialised.
@@ -145,6 +166,17 @@ pub enum CameraShows {
     Mesh,
 }
 
+impl Scene {
+    /// The run's backend: `choice` (a command line's) over the scene's own, resolved once.
+    pub fn backend(
+        &self,
+        choice: Option<BackendChoice>,
+        allow_software_gpu: bool,
+    ) -> Result<crate::backend::Backend, crate::backend::BackendError> {
+        crate::backend::Backend::choose(choice.unwrap_or(self.backend), allow_software_gpu || self.allow_software_gpu)
+    }
+}
+
 /// The raycast camera and what it shows.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -208,6 +240,13 @@ pub struct Scene {
     pub dpcm: DpcmStageConfig,
     #[serde(default)]
     pub camera: CameraConfig,
+    /// Where every stage runs: `auto` (the GPU when a usable one exists), `cpu` or `gpu`.
+    /// Chosen once per run (a reloaded scene keeps the run's).
+    #[serde(default)]
+    pub backend: BackendChoice,
+    /// Let a software adapter (lavapipe, llvmpipe) count as a GPU (tests, CI).
+    #[serde(default)]
+    pub allow_software_gpu: bool,
 }
 
 fn default_frame() -> String {
@@ -217,10 +256,31 @@ fn default_frame() -> String {
 impl ToolConfig {
     /// The pose topic of the tool at `index`.
     pub fn pose_topic(&self, index: usize) -> String {
-        self.pose_topic.clone().unwrap_or_else(|| if index == 0 { "tool_pose".into() } else { format!("{}/tool_pose", self.name) })
+        self.pose_topic.clone().unwrap_or_else(|| {
+            if index == 0 {
+                "tool_pose".into()
+            } else {
+                format!("{}/tool_pose", self.name)
+            }
+        })
     }
     pub fn wrench_topic(&self, index: usize) -> String {
-        self.wrench_topic.clone().unwrap_or_else(|| if index == 0 { "tool_wrench".into() } else { format!("{}/tool_wrench", self.name) })
+        self.wrench_topic.clone().unwrap_or_else(|| {
+            if index == 0 {
+                "tool_wrench".into()
+            } else {
+                format!("{}/tool_wrench", self.name)
+            }
+        })
+    }
+    pub fn feedback_topic(&self, index: usize) -> String {
+        self.feedback_topic.clone().unwrap_or_else(|| {
+            if index == 0 {
+                "tool_feedback".into()
+            } else {
+                format!("{}/tool_feedback", self.name)
+            }
+        })
     }
 }
 
@@ -253,7 +313,11 @@ impl Scene {
             return Err(SceneError::Invalid(format!("file_to_world = {} must be positive", self.file_to_world)));
         }
         self.solver.validate()?;
-        let volume = if self.volume == "phantom" { phantom::phantom(phantom::DEFAULT_DIMS, 1.0)? } else { io::read_volume(Path::new(&self.volume))? };
+        let volume = if self.volume == "phantom" {
+            phantom::phantom(phantom::DEFAULT_DIMS, 1.0)?
+        } else {
+            io::read_volume(Path::new(&self.volume))?
+        };
         let scale = self.file_to_world;
         let mesh = match &self.mesh {
             MeshSource::File { path } => io::read_mesh(path)?,
@@ -261,9 +325,13 @@ impl Scene {
                 let (lo, hi) = volume.bounds();
                 generate::lattice_for_box(lo * scale, hi * scale, *target_tets, *split)?
             }
-            MeshSource::Lattice { min, max, target_tets, split } => generate::lattice_for_box(Vector3::from(*min), Vector3::from(*max), *target_tets, *split)?,
+            MeshSource::Lattice { min, max, target_tets, split } => {
+                generate::lattice_for_box(Vector3::from(*min), Vector3::from(*max), *target_tets, *split)?
+            }
             MeshSource::Bar { length } => generate::bar(*length)?,
-            MeshSource::Ellipsoid { centre, radii, cells_per_axis } => generate::ellipsoid(Vector3::from(*centre), Vector3::from(*radii), *cells_per_axis)?,
+            MeshSource::Ellipsoid { centre, radii, cells_per_axis } => {
+                generate::ellipsoid(Vector3::from(*centre), Vector3::from(*radii), *cells_per_axis)?
+            }
         };
         let fixed = match &self.fixed {
             Some(f) => f.select(mesh.nodes())?,
@@ -285,7 +353,8 @@ impl LoadedScene {
                 let mut tool = Tool::new(c.shape, c.contact_stiffness);
                 tool.spread_radius = c.spread_radius;
                 if let Some(path) = &c.path {
-                    tool.world_from_tool = Isometry3::translation(path.position(t).x, path.position(t).y, path.position(t).z);
+                    tool.world_from_tool =
+                        Isometry3::translation(path.position(t).x, path.position(t).y, path.position(t).z);
                 }
                 tool
             })

@@ -10,7 +10,6 @@ use crate::record::Qos;
 
 /// Output topics, relative to the node's namespace.
 pub mod topics {
-    pub const TOOL_FEEDBACK: &str = "tool_feedback";
     pub const DEFORMED_MESH: &str = "deformed_mesh";
     pub const SURFACE_MARKER: &str = "surface_marker";
     pub const RAYCAST_IMAGE: &str = "raycast/image";
@@ -147,8 +146,8 @@ impl Session {
     /// Records every output of a tick.
     pub fn record_outputs(&mut self, out: &Outputs, pipeline: &Pipeline, stamp: Time) {
         use topics::*;
-        if let Some(m) = &out.tool_feedback {
-            self.bag_write(TOOL_FEEDBACK, Qos::SensorData, m, stamp);
+        for (m, topic) in out.tool_feedback.iter().zip(pipeline.feedback_topics()) {
+            self.bag_write(&topic, Qos::SensorData, m, stamp);
         }
         if let Some(m) = &out.deformed_mesh {
             self.bag_write(DEFORMED_MESH, Qos::Reliable, m, stamp);
@@ -165,13 +164,19 @@ impl Session {
         if let Some(m) = &out.dpcm_image {
             self.bag_write(DPCM_IMAGE, Qos::SensorData, m, stamp);
         }
-        if let (true, Some(info)) = (out.warped_volume, warped_info(pipeline, stamp)) {
-            self.bag_write(WARPED_VOLUME_INFO, Qos::Latched, &info, stamp);
+        let info = out.warped_volume.then(|| warped_info(pipeline, stamp)).flatten();
+        if let Some(info) = &info {
+            self.bag_write(WARPED_VOLUME_INFO, Qos::Latched, info, stamp);
         }
         if let Some(m) = &out.diagnostics {
             let mut m = m.clone();
             if let Some(error) = &self.record_error {
-                m.status.push(crate::msgs::DiagnosticStatus { level: crate::msgs::DiagnosticStatus::ERROR, name: "defvol: recording".into(), message: error.clone(), ..Default::default() });
+                m.status.push(crate::msgs::DiagnosticStatus {
+                    level: crate::msgs::DiagnosticStatus::ERROR,
+                    name: "defvol: recording".into(),
+                    message: error.clone(),
+                    ..Default::default()
+                });
             }
             self.bag_write(DIAGNOSTICS, Qos::Reliable, &m, stamp);
         }
@@ -182,10 +187,15 @@ impl Session {
             if let Some(m) = &out.deformed_mesh {
                 logged = logged.and_then(|()| log.log_mesh(m));
             }
-            if let Some(m) = &out.tool_feedback {
-                logged = logged.and_then(|()| log.log_feedback(m));
+            for (m, config) in out.tool_feedback.iter().zip(&pipeline.scene().tools) {
+                logged = logged.and_then(|()| log.log_feedback(&config.name, m));
             }
-            for (path, image) in [("camera/raycast", &out.raycast), ("dpcm/height", &out.dpcm_height), ("dpcm/image", &out.dpcm_image)] {
+            if let Some(info) = &info {
+                logged = logged.and_then(|()| log.log_warped_volume(info, pipeline.scene().file_to_world));
+            }
+            for (path, image) in
+                [("camera/raycast", &out.raycast), ("dpcm/height", &out.dpcm_height), ("dpcm/image", &out.dpcm_image)]
+            {
                 if let Some(image) = image {
                     logged = logged.and_then(|()| log.log_image(path, image));
                 }
@@ -219,6 +229,7 @@ impl Session {
 pub fn warped_info(pipeline: &Pipeline, stamp: Time) -> Option<crate::msgs::WarpedVolumeInfo> {
     let warped = pipeline.warped_volume()?;
     let grid = &warped.grid;
+    let d = &grid.direction;
     Some(crate::msgs::WarpedVolumeInfo {
         header: crate::msgs::Header { stamp, frame_id: pipeline.scene().frame_id.clone() },
         service_name: pipeline.scene().warp.service.clone(),
@@ -226,5 +237,6 @@ pub fn warped_info(pipeline: &Pipeline, stamp: Time) -> Option<crate::msgs::Warp
         dims: grid.dims.map(|d| d as u32),
         spacing: grid.spacing,
         origin: grid.origin,
+        direction: [d[(0, 0)], d[(0, 1)], d[(0, 2)], d[(1, 0)], d[(1, 1)], d[(1, 2)], d[(2, 0)], d[(2, 1)], d[(2, 2)]],
     })
 }

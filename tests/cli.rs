@@ -13,7 +13,13 @@ fn defvol() -> Command {
 fn simulate_default_scene_writes_mesh_and_step_csv() {
     let dir = tempfile::tempdir().unwrap();
     let warped = dir.path().join("warped.nrrd");
-    let out = defvol().args(["simulate", "--steps", "12", "--tets", "800", "--backend", "cpu", "--out"]).arg(dir.path()).arg("--warp-out").arg(&warped).output().unwrap();
+    let out = defvol()
+        .args(["simulate", "--steps", "12", "--tets", "800", "--backend", "cpu", "--out"])
+        .arg(dir.path())
+        .arg("--warp-out")
+        .arg(&warped)
+        .output()
+        .unwrap();
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let csv = std::fs::read_to_string(dir.path().join("steps.csv")).unwrap();
     let rows: Vec<&str> = csv.lines().collect();
@@ -49,11 +55,25 @@ fn warp_round_trip_keeps_file_units_and_geometry() {
     use defvol::mesh::generate::{self, CellSplit};
     let dir = tempfile::tempdir().unwrap();
     let source = defvol::volume::phantom::phantom([40, 30, 20], 4.0).unwrap();
-    let rotated = defvol::volume::Volume::new(source.dims(), [4.0, 4.0, 5.0], [-80.0, 12.0, 33.0], nalgebra::Rotation3::from_euler_angles(0.1, 0.0, 0.3).into_inner(), source.data().to_vec(), "rotated").unwrap();
+    let rotated = defvol::volume::Volume::new(
+        source.dims(),
+        [4.0, 4.0, 5.0],
+        [-80.0, 12.0, 33.0],
+        nalgebra::Rotation3::from_euler_angles(0.1, 0.0, 0.3).into_inner(),
+        source.data().to_vec(),
+        "rotated",
+    )
+    .unwrap();
     let vol_path = dir.path().join("src.mha");
     defvol::io::write_volume(&vol_path, &rotated).unwrap();
     // A lattice over the volume's voxel-centre box, in its own (rotated) frame.
-    let cube = generate::lattice(nalgebra::Vector3::zeros(), nalgebra::Vector3::new(39.0, 29.0, 19.0), [4, 3, 2], CellSplit::Five).unwrap();
+    let cube = generate::lattice(
+        nalgebra::Vector3::zeros(),
+        nalgebra::Vector3::new(39.0, 29.0, 19.0),
+        [4, 3, 2],
+        CellSplit::Five,
+    )
+    .unwrap();
     let mut mesh = cube.clone();
     mesh.map_nodes(|p| rotated.world_from_index(*p));
     let rest_path = dir.path().join("rest.vtu");
@@ -75,7 +95,10 @@ fn warp_round_trip_keeps_file_units_and_geometry() {
     assert_eq!(back.dims(), rotated.dims());
     assert!((back.direction() - rotated.direction()).norm() < 1e-6);
     for a in 0..3 {
-        assert!((back.origin()[a] - rotated.origin()[a]).abs() < 1e-6 && (back.spacing()[a] - rotated.spacing()[a]).abs() < 1e-9);
+        assert!(
+            (back.origin()[a] - rotated.origin()[a]).abs() < 1e-6
+                && (back.spacing()[a] - rotated.spacing()[a]).abs() < 1e-9
+        );
     }
     let worst = back.data().iter().zip(rotated.data()).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
     assert!(worst < 1e-2, "identity warp changed values by {worst}");
@@ -84,12 +107,32 @@ fn warp_round_trip_keeps_file_units_and_geometry() {
 #[test]
 fn dpcm_preset_writes_every_rendering_and_a_motion_file_drives_it() {
     let dir = tempfile::tempdir().unwrap();
-    let out = defvol().args(["dpcm", "--preset", "loose_soil", "--size", "96x64", "--steps", "400", "--every", "200", "--backend", "cpu", "--out"]).arg(dir.path()).output().unwrap();
+    let out = defvol()
+        .args([
+            "dpcm",
+            "--preset",
+            "loose_soil",
+            "--size",
+            "96x64",
+            "--steps",
+            "400",
+            "--every",
+            "200",
+            "--backend",
+            "cpu",
+            "--out",
+        ])
+        .arg(dir.path())
+        .output()
+        .unwrap();
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    for name in ["colour.png", "bump.png", "surface.vtu", "height.mha", "frames/colour_000200.png", "frames/bump_000400.png"] {
+    for name in
+        ["colour.png", "bump.png", "surface.vtu", "height.mha", "frames/colour_000200.png", "frames/bump_000400.png"]
+    {
         assert!(dir.path().join(name).exists(), "{name} missing");
     }
-    let decoder = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(dir.path().join("colour.png")).unwrap()));
+    let decoder =
+        png::Decoder::new(std::io::BufReader::new(std::fs::File::open(dir.path().join("colour.png")).unwrap()));
     let reader = decoder.read_info().unwrap();
     assert_eq!((reader.info().width, reader.info().height), (96, 64));
     let height = defvol::io::read_volume(&dir.path().join("height.mha")).unwrap();
@@ -100,7 +143,26 @@ fn dpcm_preset_writes_every_rendering_and_a_motion_file_drives_it() {
     let motion = dir.path().join("press.csv");
     std::fs::write(&motion, "time,marker,x,y,z\n0,0,0,0,0.004\n0.2,0,0,0,0.0025\n").unwrap();
     let pressed = dir.path().join("pressed");
-    let out = defvol().args(["dpcm", "--preset", "sand", "--size", "64x64", "--steps", "200", "--render", "height", "--backend", "cpu", "--markers"]).arg(&motion).arg("--out").arg(&pressed).output().unwrap();
+    let out = defvol()
+        .args([
+            "dpcm",
+            "--preset",
+            "sand",
+            "--size",
+            "64x64",
+            "--steps",
+            "200",
+            "--render",
+            "height",
+            "--backend",
+            "cpu",
+            "--markers",
+        ])
+        .arg(&motion)
+        .arg("--out")
+        .arg(&pressed)
+        .output()
+        .unwrap();
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let h = defvol::io::read_volume(&pressed.join("height.mha")).unwrap();
     let centre = h.data()[32 * 64 + 32];
@@ -130,7 +192,13 @@ fn render_writes_an_image_and_a_depth_map_and_names_bad_input() {
     let dir = tempfile::tempdir().unwrap();
     let png = dir.path().join("view.png");
     let depth = dir.path().join("depth.mha");
-    let out = defvol().args(["render", "--size", "64x48", "--step", "2", "--out"]).arg(&png).arg("--depth-out").arg(&depth).output().unwrap();
+    let out = defvol()
+        .args(["render", "--size", "64x48", "--step", "2", "--out"])
+        .arg(&png)
+        .arg("--depth-out")
+        .arg(&depth)
+        .output()
+        .unwrap();
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let reader = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(&png).unwrap())).read_info().unwrap();
     assert_eq!((reader.info().width, reader.info().height), (64, 48));
@@ -139,7 +207,11 @@ fn render_writes_an_image_and_a_depth_map_and_names_bad_input() {
     // The phantom fills the middle of the view, some hundreds of mm from the eye.
     let centre = d.data()[24 * 64 + 32];
     assert!(centre > 100.0 && centre < 2000.0, "depth at the centre {centre}");
-    for (args, needle) in [(vec!["--tf", "pet"], "unknown transfer-function preset `pet`"), (vec!["--camera", "0,0,0:0,0,0"], "coincide"), (vec!["--size", "0x10"], "image size")] {
+    for (args, needle) in [
+        (vec!["--tf", "pet"], "unknown transfer-function preset `pet`"),
+        (vec!["--camera", "0,0,0:0,0,0"], "coincide"),
+        (vec!["--size", "0x10"], "image size"),
+    ] {
         let out = defvol().arg("render").args(&args).arg("--out").arg(dir.path().join("x.png")).output().unwrap();
         assert!(!out.status.success(), "{args:?} accepted");
         let err = String::from_utf8_lossy(&out.stderr);
@@ -157,12 +229,26 @@ fn render_draws_a_tetrahedral_mesh_with_sampled_or_named_scalars() {
     defvol::io::write_mesh(&mesh_path, &mesh, None).unwrap();
     let png = dir.path().join("mesh.png");
     let depth = dir.path().join("depth.nrrd");
-    let out = defvol().args(["render", "--size", "48x48", "--step", "4", "--mesh"]).arg(&mesh_path).arg("--out").arg(&png).arg("--depth-out").arg(&depth).output().unwrap();
+    let out = defvol()
+        .args(["render", "--size", "48x48", "--step", "4", "--mesh"])
+        .arg(&mesh_path)
+        .arg("--out")
+        .arg(&png)
+        .arg("--depth-out")
+        .arg(&depth)
+        .output()
+        .unwrap();
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let d = defvol::io::read_volume(&depth).unwrap();
     let hit = d.data().iter().filter(|v| **v > 0.0).count();
     assert!(hit > 48 * 48 / 10, "the mesh covers {hit} pixels");
-    let out = defvol().args(["render", "--mesh-scale", "0", "--mesh"]).arg(&mesh_path).arg("--out").arg(&png).output().unwrap();
+    let out = defvol()
+        .args(["render", "--mesh-scale", "0", "--mesh"])
+        .arg(&mesh_path)
+        .arg("--out")
+        .arg(&png)
+        .output()
+        .unwrap();
     assert!(!out.status.success() && String::from_utf8_lossy(&out.stderr).contains("--mesh-scale"));
     // Node values from a named point array: uniform dense tissue everywhere is opaque
     // wherever the mesh is, unlike the phantom's air-filled corners.
@@ -170,11 +256,25 @@ fn render_draws_a_tetrahedral_mesh_with_sampled_or_named_scalars() {
     labelled.set_scalars(vec![700.0; mesh.nodes().len()]).unwrap();
     let labelled_path = dir.path().join("labelled.vtu");
     defvol::io::write_mesh(&labelled_path, &labelled, None).unwrap();
-    let out = defvol().args(["render", "--size", "48x48", "--scalars", "scalar", "--mesh"]).arg(&labelled_path).arg("--out").arg(&png).arg("--depth-out").arg(&depth).output().unwrap();
+    let out = defvol()
+        .args(["render", "--size", "48x48", "--scalars", "scalar", "--mesh"])
+        .arg(&labelled_path)
+        .arg("--out")
+        .arg(&png)
+        .arg("--depth-out")
+        .arg(&depth)
+        .output()
+        .unwrap();
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let dense = defvol::io::read_volume(&depth).unwrap().data().iter().filter(|v| **v > 0.0).count();
     assert!(dense > hit, "uniform dense tissue covers {dense} pixels, the phantom's values {hit}");
-    let out = defvol().args(["render", "--scalars", "dose", "--mesh"]).arg(&labelled_path).arg("--out").arg(&png).output().unwrap();
+    let out = defvol()
+        .args(["render", "--scalars", "dose", "--mesh"])
+        .arg(&labelled_path)
+        .arg("--out")
+        .arg(&png)
+        .output()
+        .unwrap();
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success() && err.contains("`dose`") && err.contains("scalar"), "{err}");
 }

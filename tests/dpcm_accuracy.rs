@@ -6,7 +6,13 @@ use defvol::dpcm::markers::Script;
 use defvol::dpcm::{DpcmConfig, DpcmError, Interaction, Links, Marker, MarkerParams, Surface, Topology};
 
 /// 1 mm phyxels, 1 ms steps, 0.1 g: h²/m = 0.01, h/m = 10.
-fn config(width: usize, height: usize, topology: Topology, link: Option<Interaction>, ground: Interaction) -> DpcmConfig {
+fn config(
+    width: usize,
+    height: usize,
+    topology: Topology,
+    link: Option<Interaction>,
+    ground: Interaction,
+) -> DpcmConfig {
     DpcmConfig {
         description: String::new(),
         width,
@@ -100,7 +106,9 @@ fn a_disturbance_spreads_at_the_discrete_wave_speed_and_faster_with_diagonals() 
     let four = ring_speed(Topology::Four, None);
     let diagonal = ring_speed(Topology::Diagonal, None);
     let eight = ring_speed(Topology::Eight, None);
-    let expect = |v: f64, c: f64, what: &str| assert!((v / c - 1.0).abs() < 0.03, "{what}: measured {v:.4} phyxels/step, predicted {c:.4}");
+    let expect = |v: f64, c: f64, what: &str| {
+        assert!((v / c - 1.0).abs() < 0.03, "{what}: measured {v:.4} phyxels/step, predicted {c:.4}")
+    };
     expect(four, f64::sqrt(a), "four neighbours");
     expect(diagonal, f64::sqrt(2.0 * a), "diagonals only");
     expect(eight, f64::sqrt(3.0 * a), "eight neighbours");
@@ -113,7 +121,13 @@ fn a_plastic_ground_keeps_the_track_and_an_elastic_one_returns_to_rest() {
     let run = |ground: Interaction| {
         let mut c = config(64, 48, Topology::None, None, ground);
         c.marker = MarkerParams { stiffness: 100.0, damping: 5e-3, threshold: 0.005, flattening: 0.3 };
-        c.script = Script { markers: 1, pattern: defvol::dpcm::markers::Pattern::Lines, speed: 0.05, depth: 0.002, leave_after: Some(0.6) };
+        c.script = Script {
+            markers: 1,
+            pattern: defvol::dpcm::markers::Pattern::Lines,
+            speed: 0.05,
+            depth: 0.002,
+            leave_after: Some(0.6),
+        };
         let mut surface = Surface::new(&c).unwrap();
         let watched = 24 * 64 + 32; // on the marker's row, half way along
         let mut deepest = 0.0f32;
@@ -132,7 +146,11 @@ fn a_plastic_ground_keeps_the_track_and_an_elastic_one_returns_to_rest() {
     // Plastic: the rest point was dragged to the deepest point + threshold; the phyxel
     // springs back by the elastic band only.
     let expected = f64::from(deepest) + 2e-4;
-    assert!((f64::from(plastic[watched]) - expected).abs() < 0.03 * expected.abs(), "track {} m, expected {expected} m", plastic[watched]);
+    assert!(
+        (f64::from(plastic[watched]) - expected).abs() < 0.03 * expected.abs(),
+        "track {} m, expected {expected} m",
+        plastic[watched]
+    );
     // The track is permanent: far from the path nothing moved.
     assert_eq!(plastic[2 * 64 + 32], 0.0);
 }
@@ -164,7 +182,13 @@ fn shadow_energy(surface: &Surface, k_axial: f64, k_diagonal: f64, k_ground: f64
 
 #[test]
 fn without_markers_and_with_damping_energy_never_grows() {
-    let mut c = config(64, 64, Topology::Eight, Some(Interaction::DampedSpring { stiffness: 25.0, damping: 2e-4 }), Interaction::DampedSpring { stiffness: 0.5, damping: 5e-4 });
+    let mut c = config(
+        64,
+        64,
+        Topology::Eight,
+        Some(Interaction::DampedSpring { stiffness: 25.0, damping: 2e-4 }),
+        Interaction::DampedSpring { stiffness: 0.5, damping: 5e-4 },
+    );
     c.links.diagonal = Some(Interaction::DampedSpring { stiffness: 12.5, damping: 1e-4 });
     let mut surface = Surface::new(&c).unwrap();
     surface.set_heights(&gaussian(64, 64, 3.0, 1e-3)).unwrap();
@@ -191,7 +215,13 @@ fn busy_config(probability: f64) -> DpcmConfig {
     c.links.diagonal = Some(Interaction::DampedSpring { stiffness: 8.0, damping: 1e-4 });
     c.links.probability = probability;
     c.links.seed = 3;
-    c.script = Script { markers: 4, pattern: defvol::dpcm::markers::Pattern::Wander, speed: 0.08, depth: 0.0015, leave_after: None };
+    c.script = Script {
+        markers: 4,
+        pattern: defvol::dpcm::markers::Pattern::Wander,
+        speed: 0.08,
+        depth: 0.0015,
+        leave_after: None,
+    };
     c
 }
 
@@ -248,7 +278,13 @@ impl Reference {
     fn step(&mut self, c: &DpcmConfig, coeffs: &kernel::Coeffs, markers: &[(Marker, f64)]) {
         let (h, m, s) = (c.dt, c.mass, c.spacing);
         let Interaction::Plastic { stiffness: kg, damping: cg, threshold } = c.ground else { panic!() };
-        let (Some(Interaction::DampedSpring { stiffness: ka, damping: ca }), Some(Interaction::DampedSpring { stiffness: kd, damping: cd })) = (c.links.axial, c.links.diagonal) else { panic!() };
+        let (
+            Some(Interaction::DampedSpring { stiffness: ka, damping: ca }),
+            Some(Interaction::DampedSpring { stiffness: kd, damping: cd }),
+        ) = (c.links.axial, c.links.diagonal)
+        else {
+            panic!()
+        };
         let mut next = vec![0.0; self.z.len()];
         for y in 0..self.h {
             for x in 0..self.w {
@@ -302,17 +338,20 @@ fn f32_surfaces_follow_an_independent_f64_reference() {
         let c = busy_config(probability);
         let mut surface = Surface::new(&c).unwrap();
         let n = c.width * c.height;
-        let mut reference = Reference { w: c.width, h: c.height, z: vec![0.0; n], zp: vec![0.0; n], rest: vec![0.0; n] };
+        let mut reference =
+            Reference { w: c.width, h: c.height, z: vec![0.0; n], zp: vec![0.0; n], rest: vec![0.0; n] };
         let mut last = std::collections::HashMap::new();
         for step in 0..600 {
             let markers = c.script.markers_at(&c, step as f64 * c.dt);
-            let with_dz: Vec<(Marker, f64)> = markers.iter().map(|m| (*m, last.get(&m.id).map_or(0.0, |l| m.height - l))).collect();
+            let with_dz: Vec<(Marker, f64)> =
+                markers.iter().map(|m| (*m, last.get(&m.id).map_or(0.0, |l| m.height - l))).collect();
             last = markers.iter().map(|m| (m.id, m.height)).collect();
             reference.step(&c, surface.coeffs(), &with_dz);
             surface.step(&markers);
         }
         let peak = reference.z.iter().fold(0.0f64, |m, z| m.max(z.abs()));
-        let worst = surface.heights().iter().zip(&reference.z).map(|(a, b)| (f64::from(*a) - b).abs()).fold(0.0, f64::max);
+        let worst =
+            surface.heights().iter().zip(&reference.z).map(|(a, b)| (f64::from(*a) - b).abs()).fold(0.0, f64::max);
         assert!(peak > 5e-4, "the markers engraved too little: {peak}");
         assert!(worst < 2e-3 * peak, "p = {probability}: f32 off the f64 reference by {worst:e} of a peak {peak:e}");
     }
@@ -322,7 +361,15 @@ fn f32_surfaces_follow_an_independent_f64_reference() {
 fn markers_are_binned_into_exactly_the_tiles_they_reach() {
     let c = busy_config(1.0);
     let mut surface = Surface::new(&c).unwrap();
-    let mut markers: Vec<Marker> = (0..40).map(|i| Marker { id: i, col: (i * 37 % 90) as f64 - 10.0, row: (i * 11 % 70) as f64 - 8.0, height: 0.0, params: None }).collect();
+    let mut markers: Vec<Marker> = (0..40)
+        .map(|i| Marker {
+            id: i,
+            col: (i * 37 % 90) as f64 - 10.0,
+            row: (i * 11 % 70) as f64 - 8.0,
+            height: 0.0,
+            params: None,
+        })
+        .collect();
     markers.push(Marker { id: 99, col: f64::NAN, row: 3.0, height: 0.0, params: None });
     let stats = surface.bin_markers(&markers);
     assert_eq!(stats.markers_dropped, 1);
@@ -335,7 +382,10 @@ fn markers_are_binned_into_exactly_the_tiles_they_reach() {
             for tx in 0..bins.tiles_x {
                 // Brute force: does any phyxel of the tile lie within reach?
                 let touches = (ty * TILE..((ty + 1) * TILE).min(c.height)).any(|y| {
-                    (tx * TILE..((tx + 1) * TILE).min(c.width)).any(|x| (x as f64 - f64::from(m.col)).abs() <= reach + 1.0 && (y as f64 - f64::from(m.row)).abs() <= reach + 1.0)
+                    (tx * TILE..((tx + 1) * TILE).min(c.width)).any(|x| {
+                        (x as f64 - f64::from(m.col)).abs() <= reach + 1.0
+                            && (y as f64 - f64::from(m.row)).abs() <= reach + 1.0
+                    })
                 });
                 let listed = bins.tile(tx, ty).contains(&(index as u32));
                 anywhere |= listed;
@@ -346,7 +396,10 @@ fn markers_are_binned_into_exactly_the_tiles_they_reach() {
                 for y in ty * TILE..((ty + 1) * TILE).min(c.height) {
                     for x in tx * TILE..((tx + 1) * TILE).min(c.width) {
                         let pushed = kernel::marker_term(m, x as f32, y as f32, 0.0, 0.0) != 0.0;
-                        assert!(!pushed || listed, "marker {index} pushes ({x}, {y}) but tile ({tx}, {ty}) does not list it");
+                        assert!(
+                            !pushed || listed,
+                            "marker {index} pushes ({x}, {y}) but tile ({tx}, {ty}) does not list it"
+                        );
                     }
                 }
             }
@@ -362,7 +415,13 @@ fn markers_are_binned_into_exactly_the_tiles_they_reach() {
 
 #[test]
 fn impossible_parameters_are_refused_with_their_name() {
-    let base = config(32, 32, Topology::Four, Some(Interaction::Elastic { stiffness: 25.0 }), Interaction::Elastic { stiffness: 1.0 });
+    let base = config(
+        32,
+        32,
+        Topology::Four,
+        Some(Interaction::Elastic { stiffness: 25.0 }),
+        Interaction::Elastic { stiffness: 1.0 },
+    );
     let mut c = base.clone();
     c.dt = 0.01;
     let Err(DpcmError::Unstable { dt_max, .. }) = Surface::new(&c) else { panic!("dt 0.01 accepted") };
@@ -380,7 +439,12 @@ fn impossible_parameters_are_refused_with_their_name() {
     c.marker.flattening = 1.0;
     assert!(Surface::new(&c).unwrap_err().to_string().contains("marker.flattening"));
     assert!(matches!(DpcmConfig::preset("mud"), Err(DpcmError::UnknownPreset(_))));
-    let err = DpcmConfig::from_yaml("width: 10\nheight: 10\nspacing: 0.001\ndt: 0.001\nmass: 1\nground: { kind: bouncy }\n", "test.yaml").unwrap_err().to_string();
+    let err = DpcmConfig::from_yaml(
+        "width: 10\nheight: 10\nspacing: 0.001\ndt: 0.001\nmass: 1\nground: { kind: bouncy }\n",
+        "test.yaml",
+    )
+    .unwrap_err()
+    .to_string();
     assert!(err.contains("test.yaml") && err.contains("bouncy"), "{err}");
 }
 
@@ -398,7 +462,10 @@ fn every_preset_loads_and_runs_stably() {
             peak = surface.displacement().iter().fold(peak, |m, d| m.max(d.abs()));
         }
         let depth = c.script.depth as f32;
-        assert!(peak > 0.2 * depth && peak < 5.0 * depth, "{name}: peak displacement {peak} for a {depth} m deep marker");
+        assert!(
+            peak > 0.2 * depth && peak < 5.0 * depth,
+            "{name}: peak displacement {peak} for a {depth} m deep marker"
+        );
         assert!(surface.heights().iter().all(|z| z.is_finite()), "{name}");
     }
 }

@@ -43,7 +43,8 @@ fn damaged_frames_are_dropped_and_counted_and_the_parser_resynchronises() {
     assert_eq!(parser.counts.lost, 2, "frames 2 and 3 never arrived whole");
     assert!(parser.counts.malformed >= 2, "{:?}", parser.counts);
     // NaN position, index beyond the count, repeated index: each frame dropped.
-    for bad in [frame(5, &[(0, f32::NAN, 1.0)]), frame(6, &[(3, 1.0, 1.0)]), frame(7, &[(0, 1.0, 1.0), (0, 2.0, 2.0)])] {
+    for bad in [frame(5, &[(0, f32::NAN, 1.0)]), frame(6, &[(3, 1.0, 1.0)]), frame(7, &[(0, 1.0, 1.0), (0, 2.0, 2.0)])]
+    {
         let before = parser.counts.malformed;
         assert!(parser.parse(&bad.encode()).is_empty());
         assert_eq!(parser.counts.malformed, before + 1);
@@ -109,7 +110,11 @@ fn motion_files_interpolate_in_time_and_map_through_the_calibration() {
     assert!((at[1].row - 60.0).abs() < 1e-9);
     assert!(motion.markers_at(&calibration, 1.5).is_empty(), "markers leave after their last sample");
     // Bad files name the row and the problem.
-    for (text, needle) in [("time,marker,x,y,z\n0,0,1,1,nan\n", "non-finite"), ("time,marker,x,y,z\n1,0,1,1,1\n0.5,0,1,1,1\n", "back in time"), ("t,m\n1,2\n", "row 1")] {
+    for (text, needle) in [
+        ("time,marker,x,y,z\n0,0,1,1,nan\n", "non-finite"),
+        ("time,marker,x,y,z\n1,0,1,1,1\n0.5,0,1,1,1\n", "back in time"),
+        ("t,m\n1,2\n", "row 1"),
+    ] {
         std::fs::write(&path, text).unwrap();
         let err = MotionFile::load(&path).unwrap_err().to_string();
         assert!(err.contains(needle) && err.contains("motion.csv"), "{err}");
@@ -120,7 +125,10 @@ fn motion_files_interpolate_in_time_and_map_through_the_calibration() {
 fn a_tool_tip_becomes_a_marker_through_the_calibration_pose() {
     let c = DpcmConfig::preset("water").unwrap();
     // Grid rotated 90° about z and lifted 0.1 m: world +y runs along the grid's columns.
-    let calibration = Calibration { world_from_grid: Isometry3::new(Vector3::new(0.0, 0.0, 0.1), Vector3::z() * std::f64::consts::FRAC_PI_2), spacing: c.spacing };
+    let calibration = Calibration {
+        world_from_grid: Isometry3::new(Vector3::new(0.0, 0.0, 0.1), Vector3::z() * std::f64::consts::FRAC_PI_2),
+        spacing: c.spacing,
+    };
     let m = calibration.marker(7, Point3::new(-0.020, 0.030, 0.103));
     assert_eq!(m.id, 7);
     assert!((m.col - 30.0).abs() < 1e-9 && (m.row - 20.0).abs() < 1e-9 && (m.height - 0.003).abs() < 1e-12, "{m:?}");
@@ -134,7 +142,13 @@ fn the_bump_map_lights_a_tilted_plane_as_lambert_says() {
     let (w, h, spacing) = (16, 8, 0.001);
     // A plane rising 0.5 mm per phyxel along x: slope 0.5, normal (-0.5, 0, 1)/|.|.
     let d: Vec<f32> = (0..w * h).map(|i| (i % w) as f32 * 0.0005).collect();
-    let config = RenderConfig { colormap: render::ColorMap::Greys, range: Some([0.0, 0.0]), light: [-1.0, 0.0, 1.0], bump_scale: 1.0, ambient: 0.2 };
+    let config = RenderConfig {
+        colormap: render::ColorMap::Greys,
+        range: Some([0.0, 0.0]),
+        light: [-1.0, 0.0, 1.0],
+        bump_scale: 1.0,
+        ambient: 0.2,
+    };
     let image = render::bump_map(&d, w, h, spacing, &config);
     let normal = Vector3::new(-0.5, 0.0, 1.0).normalize();
     let light = Vector3::new(-1.0, 0.0, 1.0).normalize();
@@ -147,8 +161,14 @@ fn the_bump_map_lights_a_tilted_plane_as_lambert_says() {
     let config = RenderConfig { colormap: render::ColorMap::Greys, range: Some([-1.0, 1.0]), ..Default::default() };
     let img = render::colour_map(&ramp, 3, 1, &config);
     let greys = colorous::GREYS;
-    assert_eq!(img.rgb[..3], [greys.eval_continuous(0.0).r, greys.eval_continuous(0.0).g, greys.eval_continuous(0.0).b]);
-    assert_eq!(img.rgb[6..9], [greys.eval_continuous(1.0).r, greys.eval_continuous(1.0).g, greys.eval_continuous(1.0).b]);
+    assert_eq!(
+        img.rgb[..3],
+        [greys.eval_continuous(0.0).r, greys.eval_continuous(0.0).g, greys.eval_continuous(0.0).b]
+    );
+    assert_eq!(
+        img.rgb[6..9],
+        [greys.eval_continuous(1.0).r, greys.eval_continuous(1.0).g, greys.eval_continuous(1.0).b]
+    );
 }
 
 #[test]
@@ -175,7 +195,8 @@ fn textures_set_parameters_per_phyxel_and_heights_write_as_float_images() {
     render::Image { width: w, height: h, rgb }.write_png(&png).unwrap();
     let mut c = DpcmConfig::preset("loose_soil").unwrap();
     (c.width, c.height) = (64, 64);
-    c.textures = vec![ParamTexture { file: png.clone(), parameter: TexturedParameter::GroundStiffness, range: [0.5, 2.0] }];
+    c.textures =
+        vec![ParamTexture { file: png.clone(), parameter: TexturedParameter::GroundStiffness, range: [0.5, 2.0] }];
     let surface = Surface::new(&c).unwrap();
     let k = c.dt * c.dt / c.mass * 10.0; // the preset's ground stiffness, scaled
     assert!((f64::from(surface.ground_coeffs(5).0) - 0.5 * k).abs() < 1e-6 * k);
@@ -183,7 +204,11 @@ fn textures_set_parameters_per_phyxel_and_heights_write_as_float_images() {
     // A texture past the stability limit is refused, naming the step.
     c.textures[0].range = [0.5, 200.0];
     assert!(matches!(Surface::new(&c), Err(defvol::dpcm::DpcmError::Unstable { .. })));
-    c.textures[0] = ParamTexture { file: dir.path().join("missing.png"), parameter: TexturedParameter::GroundStiffness, range: [0.5, 2.0] };
+    c.textures[0] = ParamTexture {
+        file: dir.path().join("missing.png"),
+        parameter: TexturedParameter::GroundStiffness,
+        range: [0.5, 2.0],
+    };
     assert!(Surface::new(&c).unwrap_err().to_string().contains("missing.png"));
     // Heights as a float image, read back through the volume readers.
     let heights: Vec<f32> = (0..64 * 64).map(|i| i as f32 * 1e-6).collect();
@@ -202,14 +227,33 @@ fn tool_poses_recorded_in_an_mcap_bag_drive_markers() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("session.mcap");
     let mut writer = mcap::Writer::new(std::io::BufWriter::new(std::fs::File::create(&path).unwrap())).unwrap();
-    let schema = writer.add_schema("geometry_msgs/msg/PoseStamped", "ros2msg", msgs::ros2msg_schema("geometry_msgs/msg/PoseStamped").unwrap().as_bytes()).unwrap();
+    let schema = writer
+        .add_schema(
+            "geometry_msgs/msg/PoseStamped",
+            "ros2msg",
+            msgs::ros2msg_schema("geometry_msgs/msg/PoseStamped").unwrap().as_bytes(),
+        )
+        .unwrap();
     let left = writer.add_channel(schema, "/left/tool_pose", "cdr", &Default::default()).unwrap();
     let right = writer.add_channel(schema, "/right/tool_pose", "cdr", &Default::default()).unwrap();
     let other = writer.add_channel(0, "/chatter", "json", &Default::default()).unwrap();
     let t0 = 1_700_000_000_000_000_000u64;
-    let pose = |x: f64, y: f64, z: f64| PoseStamped { header: Header { stamp: Time::default(), frame_id: "world".into() }, pose: Pose { position: msgs::Point { x, y, z }, orientation: Quaternion::default() } };
+    let pose = |x: f64, y: f64, z: f64| PoseStamped {
+        header: Header { stamp: Time::default(), frame_id: "world".into() },
+        pose: Pose { position: msgs::Point { x, y, z }, orientation: Quaternion::default() },
+    };
     let mut write = |channel_id: u16, dt_ms: u64, data: &[u8]| {
-        writer.write_to_known_channel(&mcap::records::MessageHeader { channel_id, sequence: 0, log_time: t0 + dt_ms * 1_000_000, publish_time: t0 }, data).unwrap();
+        writer
+            .write_to_known_channel(
+                &mcap::records::MessageHeader {
+                    channel_id,
+                    sequence: 0,
+                    log_time: t0 + dt_ms * 1_000_000,
+                    publish_time: t0,
+                },
+                data,
+            )
+            .unwrap();
     };
     write(left, 0, &msgs::encode(&pose(0.0, 0.0, 0.01)).unwrap());
     write(other, 5, b"{}");
@@ -221,7 +265,7 @@ fn tool_poses_recorded_in_an_mcap_bag_drive_markers() {
     writer.finish().unwrap();
     drop(writer);
 
-    let (motion, counts) = MotionFile::from_mcap(&path, &[]).unwrap();
+    let (motion, counts) = defvol::record::bag::motion_from_bag(&path, &[]).unwrap();
     assert_eq!(counts.topics, vec!["/left/tool_pose".to_owned(), "/right/tool_pose".to_owned()]);
     assert_eq!((counts.messages, counts.dropped), (4, 2));
     let calibration = Calibration { world_from_grid: Isometry3::identity(), spacing: 0.001 };
@@ -233,11 +277,11 @@ fn tool_poses_recorded_in_an_mcap_bag_drive_markers() {
     assert_eq!(at.len(), 1, "the left tool's track ended at 0.2 s");
     assert!((at[0].row - 10.0).abs() < 1e-9, "{:?}", at[0]);
     // One topic by name; a topic that is not a pose, or missing, is an error naming it.
-    let (only_right, _) = MotionFile::from_mcap(&path, &["/right/tool_pose".to_owned()]).unwrap();
+    let (only_right, _) = defvol::record::bag::motion_from_bag(&path, &["/right/tool_pose".to_owned()]).unwrap();
     assert_eq!(only_right.markers_at(&calibration, 0.1).len(), 1);
-    let err = MotionFile::from_mcap(&path, &["/chatter".to_owned()]).unwrap_err().to_string();
+    let err = defvol::record::bag::motion_from_bag(&path, &["/chatter".to_owned()]).unwrap_err().to_string();
     assert!(err.contains("/chatter") && err.contains("PoseStamped"), "{err}");
     std::fs::write(dir.path().join("broken.mcap"), b"not an mcap").unwrap();
-    let err = MotionFile::from_mcap(&dir.path().join("broken.mcap"), &[]).unwrap_err().to_string();
+    let err = defvol::record::bag::motion_from_bag(&dir.path().join("broken.mcap"), &[]).unwrap_err().to_string();
     assert!(err.contains("broken.mcap"), "{err}");
 }

@@ -7,12 +7,17 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command};
 use std::time::{Duration, Instant};
 
-use defvol::msgs::{self, DeformedMesh, DiagnosticArray, Header, Image, LoadSceneRequest, Marker, Pose, PoseStamped, Time, TriggerRequest, TriggerResponse, WarpedVolumeInfo, WrenchStamped};
+use defvol::msgs::{
+    self, DeformedMesh, DiagnosticArray, Header, Image, LoadSceneRequest, Marker, Pose, PoseStamped, Time,
+    TriggerRequest, TriggerResponse, WarpedVolumeInfo, WrenchStamped,
+};
 use defvol::record::{bag, Qos};
 use defvol::ros::dds::{self, Discovery};
 use defvol::ros::node::qos;
 use ros2_client::rcl_interfaces::{SetParametersRequest, SetParametersResponse};
-use ros2_client::{MessageTypeName, Name, NodeName, NodeOptions, Parameter, ParameterValue, ServiceMapping, ServiceTypeName};
+use ros2_client::{
+    MessageTypeName, Name, NodeName, NodeOptions, Parameter, ParameterValue, ServiceMapping, ServiceTypeName,
+};
 
 /// Runs `test` inside a private network namespace: directly when already in one, else by
 /// re-running this test binary, filtered to `name`, through tests/netns-run.
@@ -22,9 +27,17 @@ fn isolated(name: &str, test: impl FnOnce()) {
         return;
     }
     // Once re-run, the namespace must be private: never recurse.
-    assert!(std::env::var_os("DEFVOL_NETNS_RERUN").is_none(), "{name}: still on a real interface after tests/netns-run");
+    assert!(
+        std::env::var_os("DEFVOL_NETNS_RERUN").is_none(),
+        "{name}: still on a real interface after tests/netns-run"
+    );
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/netns-run");
-    let status = Command::new(script).arg(std::env::current_exe().unwrap()).args(["--exact", name, "--nocapture", "--test-threads", "1"]).env("DEFVOL_NETNS_RERUN", "1").status().unwrap();
+    let status = Command::new(script)
+        .arg(std::env::current_exe().unwrap())
+        .args(["--exact", name, "--nocapture", "--test-threads", "1"])
+        .env("DEFVOL_NETNS_RERUN", "1")
+        .status()
+        .unwrap();
     assert!(status.success(), "{name} failed inside its network namespace");
 }
 
@@ -54,7 +67,10 @@ fn type_name<T: msgs::Message>() -> MessageTypeName {
 
 fn pose_at(z: f64) -> PoseStamped {
     let since = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap();
-    let mut msg = PoseStamped { header: Header { stamp: Time::from_nanos(since.as_nanos() as u64), frame_id: "world".into() }, pose: Pose::default() };
+    let mut msg = PoseStamped {
+        header: Header { stamp: Time::from_nanos(since.as_nanos() as u64), frame_id: "world".into() },
+        pose: Pose::default(),
+    };
     msg.pose.position.z = z;
     msg
 }
@@ -81,20 +97,45 @@ fn a_second_participant_drives_the_node_and_receives_every_output() {
         let dpcm_images = subscribe!(Image, "/robot/dpcm/image", Qos::SensorData);
         let warped = subscribe!(WarpedVolumeInfo, "/robot/warped_volume/info", Qos::Latched);
         let diagnostics = subscribe!(DiagnosticArray, "/robot/diagnostics", Qos::Reliable);
-        let pose_topic = peer.create_topic(&Name::parse("/robot/tool_pose").unwrap(), type_name::<PoseStamped>(), &qos(Qos::Reliable)).unwrap();
+        let pose_topic = peer
+            .create_topic(&Name::parse("/robot/tool_pose").unwrap(), type_name::<PoseStamped>(), &qos(Qos::Reliable))
+            .unwrap();
         let poses = peer.create_publisher::<PoseStamped>(&pose_topic, Some(qos(Qos::Reliable))).unwrap();
         let pause = peer
-            .create_client::<TriggerRequest, TriggerResponse>(ServiceMapping::Enhanced, &Name::parse("/robot/pause").unwrap(), &ServiceTypeName::new("std_srvs", "Trigger"), qos(Qos::Reliable), qos(Qos::Reliable))
+            .create_client::<TriggerRequest, TriggerResponse>(
+                ServiceMapping::Enhanced,
+                &Name::parse("/robot/pause").unwrap(),
+                &ServiceTypeName::new("std_srvs", "Trigger"),
+                qos(Qos::Reliable),
+                qos(Qos::Reliable),
+            )
             .unwrap();
 
         let set_parameters = peer
-            .create_client::<SetParametersRequest, SetParametersResponse>(ServiceMapping::Enhanced, &Name::parse("/robot/defvol/set_parameters").unwrap(), &ServiceTypeName::new("rcl_interfaces", "SetParameters"), qos(Qos::Reliable), qos(Qos::Reliable))
+            .create_client::<SetParametersRequest, SetParametersResponse>(
+                ServiceMapping::Enhanced,
+                &Name::parse("/robot/defvol/set_parameters").unwrap(),
+                &ServiceTypeName::new("rcl_interfaces", "SetParameters"),
+                qos(Qos::Reliable),
+                qos(Qos::Reliable),
+            )
             .unwrap();
         let load_scene = peer
-            .create_client::<LoadSceneRequest, TriggerResponse>(ServiceMapping::Enhanced, &Name::parse("/robot/load_scene").unwrap(), &ServiceTypeName::new("defvol", "LoadScene"), qos(Qos::Reliable), qos(Qos::Reliable))
+            .create_client::<LoadSceneRequest, TriggerResponse>(
+                ServiceMapping::Enhanced,
+                &Name::parse("/robot/load_scene").unwrap(),
+                &ServiceTypeName::new("defvol", "LoadScene"),
+                qos(Qos::Reliable),
+                qos(Qos::Reliable),
+            )
             .unwrap();
         let mut load_reply = None;
-        let impossible = || SetParametersRequest { parameter: vec![Parameter { name: "solver.dt".into(), value: ParameterValue::Double(-1.0) }.into()] };
+        let impossible = || SetParametersRequest {
+            parameter: vec![
+                Parameter { name: "solver.dt".into(), value: ParameterValue::Double(-1.0) }.into(),
+                Parameter { name: "backend".into(), value: ParameterValue::String("gpu".into()) }.into(),
+            ],
+        };
         let mut parameter_reply = None;
         let mut counts = [0usize; 8];
         let (mut peak_force, mut peak_displacement, mut refused_nan) = (0.0f64, 0.0f32, false);
@@ -141,7 +182,10 @@ fn a_second_participant_drives_the_node_and_receives_every_output() {
             }
             while let Ok(Some((m, _))) = diagnostics.take() {
                 counts[7] += 1;
-                refused_nan |= m.status.iter().any(|s| s.name == "defvol: inputs" && s.values.iter().any(|kv| kv.key == "rejected_not_finite"));
+                refused_nan |= m
+                    .status
+                    .iter()
+                    .any(|s| s.name == "defvol: inputs" && s.values.iter().any(|kv| kv.key == "rejected_not_finite"));
             }
             if start.elapsed() > Duration::from_secs(7) && parameter_reply.is_none() {
                 if let Ok(Some((_, reply))) = set_parameters.receive_response() {
@@ -170,7 +214,10 @@ fn a_second_participant_drives_the_node_and_receives_every_output() {
         assert!(status.success(), "the node exited with {status}");
         eprintln!("received {counts:?}; peak force {peak_force} N, displacement {peak_displacement} m");
         assert!(counts.iter().all(|c| *c > 0), "every output topic delivers: {counts:?}");
-        assert!(peak_force > 1.0 && peak_displacement > 1e-3, "the probe pressed in: {peak_force} N, {peak_displacement} m");
+        assert!(
+            peak_force > 1.0 && peak_displacement > 1e-3,
+            "the probe pressed in: {peak_force} N, {peak_displacement} m"
+        );
         assert!(refused_nan, "diagnostics report the NaN pose");
         let info = warped_info.unwrap();
         assert!(info.service_name.starts_with("defvol/second_participant_"), "{info:?}");
@@ -178,13 +225,21 @@ fn a_second_participant_drives_the_node_and_receives_every_output() {
         assert_eq!(pause_reply.map(|r| (r.success, r.message)), Some((true, "paused".to_owned())));
         // A broken scene is refused by name and the running one kept.
         let load = load_reply.expect("load_scene answered");
-        assert!(!load.success && load.message.contains("kept the running scene") && load.message.contains("load_scene request"), "{load:?}");
+        assert!(
+            !load.success
+                && load.message.contains("kept the running scene")
+                && load.message.contains("load_scene request"),
+            "{load:?}"
+        );
         // The parameter services check a scene change before taking it.
         let results = parameter_reply.expect("set_parameters answered").results;
-        assert_eq!(results.len(), 1);
+        assert_eq!(results.len(), 2);
         assert!(!results[0].successful && results[0].reason.contains("dt"), "{:?}", results[0]);
+        // The backend is the run's: a running node refuses to change it.
+        assert!(!results[1].successful && results[1].reason.contains("once per run"), "{:?}", results[1]);
         // The node's recording holds what went over the wire.
-        let recorded = bag::read_messages(&dir.path().join("node.mcap"), &["/robot/tool_pose", "/robot/deformed_mesh"]).unwrap();
+        let recorded =
+            bag::read_messages(&dir.path().join("node.mcap"), &["/robot/tool_pose", "/robot/deformed_mesh"]).unwrap();
         assert!(recorded.iter().filter(|m| m.topic == "/robot/tool_pose").count() > 100);
         assert!(recorded.iter().any(|m| m.topic == "/robot/deformed_mesh"));
     });
@@ -193,9 +248,13 @@ fn a_second_participant_drives_the_node_and_receives_every_output() {
 #[test]
 fn a_cyclone_dds_peer_sees_ros2_types() {
     isolated("a_cyclone_dds_peer_sees_ros2_types", || {
-        let have = Command::new("python3").args(["-c", "import cyclonedds.domain"]).output().is_ok_and(|o| o.status.success());
+        let have =
+            Command::new("python3").args(["-c", "import cyclonedds.domain"]).output().is_ok_and(|o| o.status.success());
         if !have {
-            assert!(std::env::var_os("DEFVOL_REQUIRE_INTEROP").is_none(), "python3 cyclonedds is missing (tests/run.sh installs it)");
+            assert!(
+                std::env::var_os("DEFVOL_REQUIRE_INTEROP").is_none(),
+                "python3 cyclonedds is missing (tests/run.sh installs it)"
+            );
             eprintln!("skipped: python3 cyclonedds is not installed");
             return;
         }
@@ -208,7 +267,12 @@ fn a_cyclone_dds_peer_sees_ros2_types() {
         assert!(node_process.wait().unwrap().success());
         let got: serde_json::Value = serde_json::from_str(text.lines().last().unwrap()).unwrap();
         eprintln!("{got}");
-        assert!(got["feedback"].as_u64().unwrap() > 0 && got["meshes"].as_u64().unwrap() > 0 && got["diagnostics"].as_u64().unwrap() > 0, "{got}");
+        assert!(
+            got["feedback"].as_u64().unwrap() > 0
+                && got["meshes"].as_u64().unwrap() > 0
+                && got["diagnostics"].as_u64().unwrap() > 0,
+            "{got}"
+        );
         assert!(got["max_force_z"].as_f64().unwrap() > 1.0, "its poses reached the solver: {got}");
         assert_eq!(got["rejected_nan"], true, "{got}");
         // And the Cyclone peer's poses are in the node's recording, as it sent them.

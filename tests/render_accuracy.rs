@@ -9,13 +9,24 @@ use defvol::render::RenderError;
 use defvol::volume::{phantom, Volume};
 
 fn flat(color: [f64; 3], opacity: f64) -> TransferFunction {
-    TransferFunction { points: vec![TfPoint { value: 0.0, color, opacity }, TfPoint { value: 200.0, color, opacity }], relative: false }
+    TransferFunction {
+        points: vec![TfPoint { value: 0.0, color, opacity }, TfPoint { value: 200.0, color, opacity }],
+        relative: false,
+    }
 }
 
 fn along_x(volume: &Volume, size: usize) -> Camera {
     let (lo, hi) = volume.bounds();
     let centre = Point3::from((lo + hi) / 2.0);
-    Camera::look_at(centre - Vector3::x() * 100.0, centre, Vector3::z(), Projection::Orthographic { height: 4.0 }, size, size).unwrap()
+    Camera::look_at(
+        centre - Vector3::x() * 100.0,
+        centre,
+        Vector3::z(),
+        Projection::Orthographic { height: 4.0 },
+        size,
+        size,
+    )
+    .unwrap()
 }
 
 #[test]
@@ -26,16 +37,31 @@ fn a_uniform_slab_absorbs_as_beer_lambert_says() {
     let tf = flat([0.2, 0.6, 1.0], 0.05);
     let alpha = 1.0 - 0.95f64.powf(19.0);
     for (preintegrated, step) in [(false, 1.0), (true, 1.0), (false, 0.7), (true, 0.7), (true, 3.0)] {
-        let params = RaycastParams { step, preintegrated, shading: Shading::None, early_termination: 1.0, background: [0.0, 0.0, 0.0, 1.0], ..Default::default() };
+        let params = RaycastParams {
+            step,
+            preintegrated,
+            shading: Shading::None,
+            early_termination: 1.0,
+            background: [0.0, 0.0, 0.0, 1.0],
+            ..Default::default()
+        };
         let image = raycast::raycast(&volume, &camera, &tf, &params).unwrap();
         let px = &image.rgba[(4 * 8 + 4) * 4..(4 * 8 + 4) * 4 + 4];
         for (c, want) in [0.2, 0.6, 1.0].iter().enumerate() {
             let want = (want * alpha * 255.0).round();
-            assert!((f64::from(px[c]) - want).abs() <= 1.0, "step {step}, preintegrated {preintegrated}: channel {c} = {}, Beer-Lambert {want}", px[c]);
+            assert!(
+                (f64::from(px[c]) - want).abs() <= 1.0,
+                "step {step}, preintegrated {preintegrated}: channel {c} = {}, Beer-Lambert {want}",
+                px[c]
+            );
         }
         // Depth: where the accumulated opacity passes 0.5 (13.5 mm in), from the eye.
         let half = (0.5f64).ln() / 0.95f64.ln();
-        assert!((f64::from(image.depth[4 * 8 + 4]) - (100.0 - 9.5 + half)).abs() <= step, "depth {}", image.depth[4 * 8 + 4]);
+        assert!(
+            (f64::from(image.depth[4 * 8 + 4]) - (100.0 - 9.5 + half)).abs() <= step,
+            "depth {}",
+            image.depth[4 * 8 + 4]
+        );
     }
     let reference = raycast::reference(&volume, &camera, &tf, 0.01, [0.0, 0.0, 0.0, 1.0]).unwrap();
     assert!((reference[4 * 8 + 4][1] - 0.6 * alpha).abs() < 1e-9, "f64 reference green {}", reference[4 * 8 + 4][1]);
@@ -46,7 +72,8 @@ fn phantom_view(size: usize) -> (Volume, Camera) {
     let (lo, hi) = volume.bounds();
     let centre = Point3::from((lo + hi) / 2.0);
     let eye = centre + Vector3::new(-150.0, -380.0, 120.0);
-    let camera = Camera::look_at(eye, centre, Vector3::z(), Projection::Perspective { fov_y_deg: 40.0 }, size, size).unwrap();
+    let camera =
+        Camera::look_at(eye, centre, Vector3::z(), Projection::Perspective { fov_y_deg: 40.0 }, size, size).unwrap();
     (volume, camera)
 }
 
@@ -62,7 +89,10 @@ fn the_phantom_matches_the_f64_reference_and_pre_integration_beats_point_samplin
     let fine = render(0.25, true);
     let psnr = fine.psnr(&reference);
     let (mean, max) = fine.errors(&reference);
-    assert!(psnr > 45.0 && mean < 0.6 && max < 12.0, "fine step: PSNR {psnr:.1} dB, mean {mean:.2}, max {max:.1} levels");
+    assert!(
+        psnr > 45.0 && mean < 0.6 && max < 12.0,
+        "fine step: PSNR {psnr:.1} dB, mean {mean:.2}, max {max:.1} levels"
+    );
     // A thin opaque band (an iso-surface-like transfer function) at a step of 4 mm (two
     // voxels): point samples step over the band, pre-integrated segments do not.
     let band = TransferFunction {
@@ -74,14 +104,35 @@ fn the_phantom_matches_the_f64_reference_and_pre_integration_beats_point_samplin
         relative: false,
     };
     let band_reference = raycast::reference(&volume, &camera, &band, 0.005, [0.0, 0.0, 0.0, 1.0]).unwrap();
-    let render_band = |step: f64, preintegrated: bool| raycast::raycast(&volume, &camera, &band, &RaycastParams { step, preintegrated, shading: Shading::None, ..Default::default() }).unwrap();
+    let render_band = |step: f64, preintegrated: bool| {
+        raycast::raycast(
+            &volume,
+            &camera,
+            &band,
+            &RaycastParams { step, preintegrated, shading: Shading::None, ..Default::default() },
+        )
+        .unwrap()
+    };
     let coarse_pre = render_band(4.0, true).psnr(&band_reference);
     let coarse_point = render_band(4.0, false).psnr(&band_reference);
     // Measured: 27.6 against 20.8 dB.
     assert!(coarse_pre > coarse_point + 5.0, "pre-integrated {coarse_pre:.1} dB vs point-sampled {coarse_point:.1} dB");
     // Skipping and early termination change nothing visible.
-    let plain = raycast::raycast(&volume, &camera, &tf, &RaycastParams { step: 0.25, shading: Shading::None, empty_space_skipping: false, early_termination: 1.0, ..Default::default() }).unwrap();
-    let (mean, max) = fine.errors(&plain.rgba.chunks_exact(4).map(|p| [0, 1, 2, 3].map(|c| f64::from(p[c]) / 255.0)).collect::<Vec<_>>());
+    let plain = raycast::raycast(
+        &volume,
+        &camera,
+        &tf,
+        &RaycastParams {
+            step: 0.25,
+            shading: Shading::None,
+            empty_space_skipping: false,
+            early_termination: 1.0,
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    let (mean, max) = fine
+        .errors(&plain.rgba.chunks_exact(4).map(|p| [0, 1, 2, 3].map(|c| f64::from(p[c]) / 255.0)).collect::<Vec<_>>());
     assert!(mean < 0.05 && max <= 1.0, "skipping/termination moved pixels: mean {mean}, max {max}");
 }
 
@@ -97,7 +148,15 @@ fn iso_surfaces_are_hit_where_the_field_crosses_and_mip_finds_the_peak() {
         .collect();
     let volume = Volume::new([n; 3], [1.0; 3], [0.0; 3], Matrix3::identity(), data, "radial").unwrap();
     let centre = Point3::new(31.5, 31.5, 31.5);
-    let camera = Camera::look_at(centre - Vector3::y() * 80.0, centre, Vector3::z(), Projection::Perspective { fov_y_deg: 30.0 }, 32, 32).unwrap();
+    let camera = Camera::look_at(
+        centre - Vector3::y() * 80.0,
+        centre,
+        Vector3::z(),
+        Projection::Perspective { fov_y_deg: 30.0 },
+        32,
+        32,
+    )
+    .unwrap();
     let tf = TransferFunction::preset("ct_bone").unwrap();
     let params = RaycastParams { mode: Mode::Iso, iso_value: 80.0, step: 0.5, ..Default::default() };
     let image = raycast::raycast(&volume, &camera, &tf, &params).unwrap();
@@ -105,10 +164,26 @@ fn iso_surfaces_are_hit_where_the_field_crosses_and_mip_finds_the_peak() {
     let (ray_origin, ray_dir) = camera.ray(16, 16);
     let miss = (centre - ray_origin).cross(&ray_dir).norm();
     let expected = (centre - ray_origin).dot(&ray_dir) - (20.0f64 * 20.0 - miss * miss).sqrt();
-    assert!((f64::from(image.depth[16 * 32 + 16]) - expected).abs() < 0.05, "iso depth {} vs {expected}", image.depth[16 * 32 + 16]);
+    assert!(
+        (f64::from(image.depth[16 * 32 + 16]) - expected).abs() < 0.05,
+        "iso depth {} vs {expected}",
+        image.depth[16 * 32 + 16]
+    );
     assert!(image.depth[0].is_infinite(), "a corner ray misses the sphere");
     // MIP through the centre sees the peak (100, minus trilinear's dip near the peak).
-    let mip = raycast::raycast(&volume, &camera, &TransferFunction { points: vec![TfPoint { value: 0.0, color: [1.0; 3], opacity: 0.5 }, TfPoint { value: 100.0, color: [1.0; 3], opacity: 0.5 }], relative: false }, &RaycastParams { mode: Mode::Mip, step: 0.25, ..Default::default() }).unwrap();
+    let mip = raycast::raycast(
+        &volume,
+        &camera,
+        &TransferFunction {
+            points: vec![
+                TfPoint { value: 0.0, color: [1.0; 3], opacity: 0.5 },
+                TfPoint { value: 100.0, color: [1.0; 3], opacity: 0.5 },
+            ],
+            relative: false,
+        },
+        &RaycastParams { mode: Mode::Mip, step: 0.25, ..Default::default() },
+    )
+    .unwrap();
     assert!(mip.rgba[(16 * 32 + 16) * 4] >= 250, "MIP {}", mip.rgba[(16 * 32 + 16) * 4]);
 }
 
@@ -116,7 +191,9 @@ fn iso_surfaces_are_hit_where_the_field_crosses_and_mip_finds_the_peak() {
 fn shading_lights_surfaces_facing_the_light() {
     let (volume, camera) = phantom_view(48);
     let tf = TransferFunction::preset("ct_bone").unwrap();
-    let shaded = |shading| raycast::raycast(&volume, &camera, &tf, &RaycastParams { shading, step: 1.0, ..Default::default() }).unwrap();
+    let shaded = |shading| {
+        raycast::raycast(&volume, &camera, &tf, &RaycastParams { shading, step: 1.0, ..Default::default() }).unwrap()
+    };
     let none = shaded(Shading::None);
     for shading in [Shading::Gradient, Shading::ForwardDifference] {
         let lit = shaded(shading);
@@ -131,18 +208,57 @@ fn bad_cameras_and_transfer_functions_are_refused_or_rendered_validly() {
     let (volume, camera) = phantom_view(16);
     let tf = TransferFunction::preset("ct_soft_tissue").unwrap();
     let empty = TransferFunction { points: vec![], relative: false };
-    assert!(matches!(raycast::raycast(&volume, &camera, &empty, &RaycastParams::default()), Err(RenderError::TransferFunction(_))));
+    assert!(matches!(
+        raycast::raycast(&volume, &camera, &empty, &RaycastParams::default()),
+        Err(RenderError::TransferFunction(_))
+    ));
     assert!(matches!(TransferFunction::preset("pet"), Err(RenderError::UnknownPreset(_))));
-    assert!(Camera::from_pose([f64::NAN, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0], Projection::Perspective { fov_y_deg: 40.0 }, 8, 8).unwrap_err().to_string().contains("NaN"));
-    assert!(Camera::from_pose([0.0; 3], [0.0, 0.0, 0.0, 2.0], Projection::Perspective { fov_y_deg: 40.0 }, 8, 8).unwrap_err().to_string().contains("length"));
-    assert!(Camera::look_at(Point3::origin(), Point3::origin(), Vector3::z(), Projection::Perspective { fov_y_deg: 40.0 }, 8, 8).is_err());
+    assert!(Camera::from_pose(
+        [f64::NAN, 0.0, 0.0],
+        [0.0, 0.0, 0.0, 1.0],
+        Projection::Perspective { fov_y_deg: 40.0 },
+        8,
+        8
+    )
+    .unwrap_err()
+    .to_string()
+    .contains("NaN"));
+    assert!(Camera::from_pose([0.0; 3], [0.0, 0.0, 0.0, 2.0], Projection::Perspective { fov_y_deg: 40.0 }, 8, 8)
+        .unwrap_err()
+        .to_string()
+        .contains("length"));
+    assert!(Camera::look_at(
+        Point3::origin(),
+        Point3::origin(),
+        Vector3::z(),
+        Projection::Perspective { fov_y_deg: 40.0 },
+        8,
+        8
+    )
+    .is_err());
     // Inside the volume: a valid image of what lies ahead. Behind it, looking away: background.
     let (lo, hi) = volume.bounds();
     let centre = Point3::from((lo + hi) / 2.0);
-    let inside = Camera::look_at(centre, centre + Vector3::x(), Vector3::z(), Projection::Perspective { fov_y_deg: 60.0 }, 16, 16).unwrap();
+    let inside = Camera::look_at(
+        centre,
+        centre + Vector3::x(),
+        Vector3::z(),
+        Projection::Perspective { fov_y_deg: 60.0 },
+        16,
+        16,
+    )
+    .unwrap();
     let image = raycast::raycast(&volume, &inside, &tf, &RaycastParams::default()).unwrap();
     assert!(image.rgba.chunks_exact(4).any(|p| p[0] > 0), "nothing seen from inside");
-    let away = Camera::look_at(centre - Vector3::x() * 1000.0, centre - Vector3::x() * 2000.0, Vector3::z(), Projection::Perspective { fov_y_deg: 60.0 }, 16, 16).unwrap();
+    let away = Camera::look_at(
+        centre - Vector3::x() * 1000.0,
+        centre - Vector3::x() * 2000.0,
+        Vector3::z(),
+        Projection::Perspective { fov_y_deg: 60.0 },
+        16,
+        16,
+    )
+    .unwrap();
     let image = raycast::raycast(&volume, &away, &tf, &RaycastParams::default()).unwrap();
     assert!(image.rgba.chunks_exact(4).all(|p| p == [0, 0, 0, 255]) && image.depth.iter().all(|d| d.is_infinite()));
     let zero_step = RaycastParams { step: 0.0, ..Default::default() };
@@ -157,8 +273,19 @@ fn a_tool_is_drawn_at_its_depth_behind_or_in_front_of_tissue() {
     let tf = flat([0.2, 0.6, 1.0], 0.05);
     let alpha = 1.0 - 0.95f64.powf(19.0);
     let centre = [9.5, 4.5, 4.5];
-    let sphere = |x: f64| ToolPicture { tip: [x, centre[1], centre[2]], tail: [x, centre[1], centre[2]], radius: 3.0, color: [1.0, 0.5, 0.0] };
-    let params = |tools| RaycastParams { shading: Shading::None, early_termination: 1.0, step: 0.5, tools, ..Default::default() };
+    let sphere = |x: f64| ToolPicture {
+        tip: [x, centre[1], centre[2]],
+        tail: [x, centre[1], centre[2]],
+        radius: 3.0,
+        color: [1.0, 0.5, 0.0],
+    };
+    let params = |tools| RaycastParams {
+        shading: Shading::None,
+        early_termination: 1.0,
+        step: 0.5,
+        tools,
+        ..Default::default()
+    };
     // Behind the slab: seen through it. The centre pixel's ray meets the sphere head-on,
     // so the headlight gives full diffuse light.
     let behind = raycast::raycast(&volume, &camera, &tf, &params(vec![sphere(40.0)])).unwrap();
@@ -191,7 +318,9 @@ mod tet_mesh {
 
     /// A lattice mesh on the voxel centres of an n³ grid at 1 mm, and the volume of `f`.
     fn grid_and_mesh(n: usize, f: impl Fn(&Vector3<f64>) -> f64) -> (Volume, TetMesh, Vec<f32>) {
-        let data = (0..n * n * n).map(|i| f(&Vector3::new((i % n) as f64, ((i / n) % n) as f64, (i / (n * n)) as f64)) as f32).collect();
+        let data = (0..n * n * n)
+            .map(|i| f(&Vector3::new((i % n) as f64, ((i / n) % n) as f64, (i / (n * n)) as f64)) as f32)
+            .collect();
         let volume = Volume::new([n; 3], [1.0; 3], [0.0; 3], Matrix3::identity(), data, "grid").unwrap();
         let top = (n - 1) as f64;
         let mesh = generate::lattice(Vector3::zeros(), Vector3::repeat(top), [n - 1; 3], CellSplit::Five).unwrap();
@@ -201,12 +330,24 @@ mod tet_mesh {
 
     fn oblique(n: usize, size: usize) -> Camera {
         let c = Point3::from(Vector3::repeat((n - 1) as f64 / 2.0));
-        Camera::look_at(c + Vector3::new(-2.0, -3.0, 1.5) * n as f64, c, Vector3::z(), Projection::Perspective { fov_y_deg: 30.0 }, size, size).unwrap()
+        Camera::look_at(
+            c + Vector3::new(-2.0, -3.0, 1.5) * n as f64,
+            c,
+            Vector3::z(),
+            Projection::Perspective { fov_y_deg: 30.0 },
+            size,
+            size,
+        )
+        .unwrap()
     }
 
     fn ramp() -> TransferFunction {
         TransferFunction {
-            points: vec![TfPoint { value: 0.0, color: [0.1, 0.2, 0.9], opacity: 0.0 }, TfPoint { value: 100.0, color: [1.0, 0.6, 0.2], opacity: 0.08 }, TfPoint { value: 300.0, color: [1.0, 1.0, 1.0], opacity: 0.02 }],
+            points: vec![
+                TfPoint { value: 0.0, color: [0.1, 0.2, 0.9], opacity: 0.0 },
+                TfPoint { value: 100.0, color: [1.0, 0.6, 0.2], opacity: 0.08 },
+                TfPoint { value: 300.0, color: [1.0, 1.0, 1.0], opacity: 0.02 },
+            ],
             relative: false,
         }
     }
@@ -214,10 +355,32 @@ mod tet_mesh {
     fn agreement(n: usize, f: impl Fn(&Vector3<f64>) -> f64) -> f64 {
         let (volume, mesh, scalars) = grid_and_mesh(n, f);
         let camera = oblique(n, 64);
-        let tets = TetRaycaster::new(&mesh, &scalars, &ramp(), &TetRaycastParams { step: 0.1, early_termination: 1.0, ..Default::default() }).unwrap().render(&camera).unwrap();
-        let voxels = raycast::raycast(&volume, &camera, &ramp(), &RaycastParams { step: 0.1, preintegrated: false, shading: Shading::None, early_termination: 1.0, ..Default::default() }).unwrap();
+        let tets = TetRaycaster::new(
+            &mesh,
+            &scalars,
+            &ramp(),
+            &TetRaycastParams { step: 0.1, early_termination: 1.0, ..Default::default() },
+        )
+        .unwrap()
+        .render(&camera)
+        .unwrap();
+        let voxels = raycast::raycast(
+            &volume,
+            &camera,
+            &ramp(),
+            &RaycastParams {
+                step: 0.1,
+                preintegrated: false,
+                shading: Shading::None,
+                early_termination: 1.0,
+                ..Default::default()
+            },
+        )
+        .unwrap();
         assert!(voxels.rgba.chunks_exact(4).filter(|p| p[0] > 20).count() > 64 * 64 / 5, "the view is nearly empty");
-        tets.psnr(&voxels.rgba.chunks_exact(4).map(|p| [0, 1, 2, 3].map(|c| f64::from(p[c]) / 255.0)).collect::<Vec<_>>())
+        tets.psnr(
+            &voxels.rgba.chunks_exact(4).map(|p| [0, 1, 2, 3].map(|c| f64::from(p[c]) / 255.0)).collect::<Vec<_>>(),
+        )
     }
 
     #[test]
@@ -234,21 +397,36 @@ mod tet_mesh {
     fn rays_leave_a_non_convex_mesh_and_re_enter_it() {
         // Two 4 mm boxes 6 mm apart along x, uniform scalar: the ray crosses 8 mm of tissue.
         let a = generate::lattice(Vector3::zeros(), Vector3::new(4.0, 4.0, 4.0), [2; 3], CellSplit::Five).unwrap();
-        let b = generate::lattice(Vector3::new(10.0, 0.0, 0.0), Vector3::new(14.0, 4.0, 4.0), [2; 3], CellSplit::Five).unwrap();
+        let b = generate::lattice(Vector3::new(10.0, 0.0, 0.0), Vector3::new(14.0, 4.0, 4.0), [2; 3], CellSplit::Five)
+            .unwrap();
         let offset = a.nodes().len() as u32;
         let nodes: Vec<Vector3<f64>> = a.nodes().iter().chain(b.nodes()).copied().collect();
-        let tets: Vec<[u32; 4]> = a.tets().iter().copied().chain(b.tets().iter().map(|t| t.map(|i| i + offset))).collect();
+        let tets: Vec<[u32; 4]> =
+            a.tets().iter().copied().chain(b.tets().iter().map(|t| t.map(|i| i + offset))).collect();
         let mesh = TetMesh::new(nodes, tets, None, "two boxes").unwrap();
         let scalars = vec![100.0f32; mesh.nodes().len()];
         let tf = flat([0.2, 0.6, 1.0], 0.05);
-        let camera = Camera::look_at(Point3::new(-50.0, 2.1, 2.1), Point3::new(0.0, 2.1, 2.1), Vector3::z(), Projection::Orthographic { height: 0.5 }, 4, 4).unwrap();
-        let image = TetRaycaster::new(&mesh, &scalars, &tf, &TetRaycastParams { early_termination: 1.0, ..Default::default() }).unwrap().render(&camera).unwrap();
+        let camera = Camera::look_at(
+            Point3::new(-50.0, 2.1, 2.1),
+            Point3::new(0.0, 2.1, 2.1),
+            Vector3::z(),
+            Projection::Orthographic { height: 0.5 },
+            4,
+            4,
+        )
+        .unwrap();
+        let image =
+            TetRaycaster::new(&mesh, &scalars, &tf, &TetRaycastParams { early_termination: 1.0, ..Default::default() })
+                .unwrap()
+                .render(&camera)
+                .unwrap();
         let alpha = 1.0 - 0.95f64.powf(8.0);
         let px = &image.rgba[(2 * 4 + 2) * 4..(2 * 4 + 2) * 4 + 4];
         assert!((f64::from(px[1]) - (0.6 * alpha * 255.0).round()).abs() <= 1.0, "green {} for 8 mm", px[1]);
         // After a deformation step (the mesh moved 5 mm away), the depth follows (denser
         // tissue, so that opacity passes 0.5 inside the first box).
-        let mut raycaster = TetRaycaster::new(&mesh, &scalars, &flat([1.0; 3], 0.2), &TetRaycastParams::default()).unwrap();
+        let mut raycaster =
+            TetRaycaster::new(&mesh, &scalars, &flat([1.0; 3], 0.2), &TetRaycastParams::default()).unwrap();
         let depth0 = raycaster.render(&camera).unwrap().depth[2 * 4 + 2];
         let half = 0.5f64.ln() / 0.8f64.ln();
         assert!((f64::from(depth0) - (50.0 + half)).abs() < 1.0, "depth {depth0}");
@@ -273,32 +451,81 @@ mod tet_mesh {
         // Perspective from the middle (10 mm to the wall along the central ray), and
         // orthographic from 5 mm in (15 mm to the wall): Beer-Lambert either way.
         let views = [
-            (Camera::look_at(centre, centre + Vector3::x(), Vector3::z(), Projection::Perspective { fov_y_deg: 60.0 }, 5, 5).unwrap(), 10.0),
-            (Camera::look_at(centre - Vector3::x() * 5.0, centre, Vector3::z(), Projection::Orthographic { height: 2.0 }, 5, 5).unwrap(), 15.0),
+            (
+                Camera::look_at(
+                    centre,
+                    centre + Vector3::x(),
+                    Vector3::z(),
+                    Projection::Perspective { fov_y_deg: 60.0 },
+                    5,
+                    5,
+                )
+                .unwrap(),
+                10.0,
+            ),
+            (
+                Camera::look_at(
+                    centre - Vector3::x() * 5.0,
+                    centre,
+                    Vector3::z(),
+                    Projection::Orthographic { height: 2.0 },
+                    5,
+                    5,
+                )
+                .unwrap(),
+                15.0,
+            ),
         ];
         for (camera, inside) in views {
             for preintegrated in [true, false] {
-                let params = TetRaycastParams { preintegrated, step: 2.0, early_termination: 1.0, ..Default::default() };
+                let params =
+                    TetRaycastParams { preintegrated, step: 2.0, early_termination: 1.0, ..Default::default() };
                 let image = TetRaycaster::new(&mesh, &scalars, &tf, &params).unwrap().render(&camera).unwrap();
                 let alpha = 1.0 - 0.95f64.powf(inside);
                 let px = &image.rgba[(2 * 5 + 2) * 4..(2 * 5 + 2) * 4 + 4];
                 for (c, want) in [0.2, 0.6, 1.0].iter().enumerate() {
                     let want = (want * alpha * 255.0).round();
-                    assert!((f64::from(px[c]) - want).abs() <= 1.0, "{:?}, pre-integrated {preintegrated}: channel {c} = {}, Beer-Lambert {want}", camera.projection, px[c]);
+                    assert!(
+                        (f64::from(px[c]) - want).abs() <= 1.0,
+                        "{:?}, pre-integrated {preintegrated}: channel {c} = {}, Beer-Lambert {want}",
+                        camera.projection,
+                        px[c]
+                    );
                 }
                 // Every ray starts in tissue: no pixel is left at the background.
-                assert!(image.rgba.chunks_exact(4).all(|p| p[2] > 20), "{:?}: a ray missed the tissue around the eye", camera.projection);
+                assert!(
+                    image.rgba.chunks_exact(4).all(|p| p[2] > 20),
+                    "{:?}: a ray missed the tissue around the eye",
+                    camera.projection
+                );
             }
-            let reference = tet_raycast::reference(&mesh, mesh.nodes(), &scalars, &camera, &tf, &TetRaycastParams { step: 0.01, ..Default::default() }).unwrap();
-            assert!((reference[2 * 5 + 2][1] - 0.6 * (1.0 - 0.95f64.powf(inside))).abs() < 1e-6, "f64 reference green {}", reference[2 * 5 + 2][1]);
+            let reference = tet_raycast::reference(
+                &mesh,
+                mesh.nodes(),
+                &scalars,
+                &camera,
+                &tf,
+                &TetRaycastParams { step: 0.01, ..Default::default() },
+            )
+            .unwrap();
+            assert!(
+                (reference[2 * 5 + 2][1] - 0.6 * (1.0 - 0.95f64.powf(inside))).abs() < 1e-6,
+                "f64 reference green {}",
+                reference[2 * 5 + 2][1]
+            );
         }
     }
 
     /// A deformed lattice with a smooth field and a transfer function with a narrow peak:
     /// what coarse point sampling misses.
     fn bent_scene() -> (TetMesh, Vec<Vector3<f64>>, Vec<f32>, TransferFunction, Camera) {
-        let mesh = generate::lattice(Vector3::zeros(), Vector3::new(40.0, 30.0, 30.0), [8, 6, 6], CellSplit::Five).unwrap();
-        let scalars: Vec<f32> = mesh.nodes().iter().map(|p| (100.0 + 80.0 * (p.x * 0.15).sin() * (p.y * 0.12).cos() + 2.0 * p.z) as f32).collect();
+        let mesh =
+            generate::lattice(Vector3::zeros(), Vector3::new(40.0, 30.0, 30.0), [8, 6, 6], CellSplit::Five).unwrap();
+        let scalars: Vec<f32> = mesh
+            .nodes()
+            .iter()
+            .map(|p| (100.0 + 80.0 * (p.x * 0.15).sin() * (p.y * 0.12).cos() + 2.0 * p.z) as f32)
+            .collect();
         let bent = mesh.nodes().iter().map(|p| p + Vector3::new(0.0, 0.0, 4.0 * (p.x / 12.0).sin())).collect();
         let tf = TransferFunction {
             points: vec![
@@ -310,17 +537,39 @@ mod tet_mesh {
             ],
             relative: false,
         };
-        let camera = Camera::look_at(Point3::new(-40.0, -60.0, 50.0), Point3::new(20.0, 15.0, 15.0), Vector3::z(), Projection::Perspective { fov_y_deg: 40.0 }, 64, 64).unwrap();
+        let camera = Camera::look_at(
+            Point3::new(-40.0, -60.0, 50.0),
+            Point3::new(20.0, 15.0, 15.0),
+            Vector3::z(),
+            Projection::Perspective { fov_y_deg: 40.0 },
+            64,
+            64,
+        )
+        .unwrap();
         (mesh, bent, scalars, tf, camera)
     }
 
     #[test]
     fn the_tet_raycaster_matches_the_f64_reference_and_pre_integration_beats_point_sampling() {
         let (mesh, bent, scalars, tf, camera) = bent_scene();
-        let reference = tet_raycast::reference(&mesh, &bent, &scalars, &camera, &tf, &TetRaycastParams { step: 0.02, ..Default::default() }).unwrap();
+        let reference = tet_raycast::reference(
+            &mesh,
+            &bent,
+            &scalars,
+            &camera,
+            &tf,
+            &TetRaycastParams { step: 0.02, ..Default::default() },
+        )
+        .unwrap();
         assert!(reference.iter().filter(|p| p[0] > 0.1).count() > 64 * 64 / 5, "the view is nearly empty");
         let render = |preintegrated: bool, step: f64| {
-            let mut raycaster = TetRaycaster::new(&mesh, &scalars, &tf, &TetRaycastParams { preintegrated, step, early_termination: 1.0, ..Default::default() }).unwrap();
+            let mut raycaster = TetRaycaster::new(
+                &mesh,
+                &scalars,
+                &tf,
+                &TetRaycastParams { preintegrated, step, early_termination: 1.0, ..Default::default() },
+            )
+            .unwrap();
             raycaster.update(&bent).unwrap();
             raycaster.render(&camera).unwrap()
         };
@@ -332,9 +581,15 @@ mod tet_mesh {
         let (fine_mean, fine_max) = fine.errors(&reference);
         eprintln!("against the f64 reference (levels, mean/max): pre-integrated 4 mm {pre_mean:.3}/{pre_max:.1}, point 4 mm {point_mean:.3}, point 0.05 mm {fine_mean:.3}/{fine_max:.1}");
         // Pre-integration at 4 mm (one lookup per tet) against point sampling at 4 mm.
-        assert!(pre_mean < 0.5 * point_mean, "mean error: pre-integrated {pre_mean:.2} levels, point-sampled {point_mean:.2}");
+        assert!(
+            pre_mean < 0.5 * point_mean,
+            "mean error: pre-integrated {pre_mean:.2} levels, point-sampled {point_mean:.2}"
+        );
         assert!(pre_mean < 0.3 && pre_max < 4.0, "pre-integrated: mean {pre_mean:.2}, max {pre_max:.1} levels");
-        assert!(fine_mean < 0.5 && fine_max < 6.0, "point-sampled at 0.05 mm: mean {fine_mean:.2}, max {fine_max:.1} levels");
+        assert!(
+            fine_mean < 0.5 && fine_max < 6.0,
+            "point-sampled at 0.05 mm: mean {fine_mean:.2}, max {fine_max:.1} levels"
+        );
     }
 
     #[test]
@@ -343,11 +598,28 @@ mod tet_mesh {
         let scalars = vec![100.0f32; mesh.nodes().len()];
         let tf = flat([0.2, 0.6, 1.0], 0.05);
         // A probe whose tip sits 6 mm into the cube, on the central ray.
-        let probe = ToolPicture { tip: [6.0, 10.0, 10.0], tail: [-30.0, 10.0, 10.0], radius: 1.0, color: [1.0, 0.0, 0.0] };
-        let camera = Camera::look_at(Point3::new(10.0, 10.0, -50.0), Point3::new(10.0, 10.0, 10.0), Vector3::y(), Projection::Orthographic { height: 24.0 }, 24, 24).unwrap();
+        let probe =
+            ToolPicture { tip: [6.0, 10.0, 10.0], tail: [-30.0, 10.0, 10.0], radius: 1.0, color: [1.0, 0.0, 0.0] };
+        let camera = Camera::look_at(
+            Point3::new(10.0, 10.0, -50.0),
+            Point3::new(10.0, 10.0, 10.0),
+            Vector3::y(),
+            Projection::Orthographic { height: 24.0 },
+            24,
+            24,
+        )
+        .unwrap();
         let params = TetRaycastParams { tools: vec![probe], early_termination: 1.0, ..Default::default() };
         let image = TetRaycaster::new(&mesh, &scalars, &tf, &params).unwrap().render(&camera).unwrap();
-        let reference = tet_raycast::reference(&mesh, mesh.nodes(), &scalars, &camera, &tf, &TetRaycastParams { step: 0.01, ..params.clone() }).unwrap();
+        let reference = tet_raycast::reference(
+            &mesh,
+            mesh.nodes(),
+            &scalars,
+            &camera,
+            &tf,
+            &TetRaycastParams { step: 0.01, ..params.clone() },
+        )
+        .unwrap();
         let (mean, max) = image.errors(&reference);
         assert!(mean < 0.5 && max < 4.0, "against the f64 reference: mean {mean:.2}, max {max:.1} levels");
         // A pixel on the probe's axis, 3 mm along it inside the cube: 9 mm of tissue (from
@@ -355,7 +627,11 @@ mod tet_mesh {
         let (u, v) = camera_pixel(&camera, Point3::new(3.0, 10.0, 10.0));
         let px = &image.rgba[(v * 24 + u) * 4..(v * 24 + u) * 4 + 4];
         assert!(px[0] > 60 && px[2] > 60, "probe pixel {px:?}: red behind blue tissue");
-        assert!((f64::from(image.depth[v * 24 + u]) - 59.0).abs() < 0.6, "depth {} (the probe's top at 59 mm from the eye)", image.depth[v * 24 + u]);
+        assert!(
+            (f64::from(image.depth[v * 24 + u]) - 59.0).abs() < 0.6,
+            "depth {} (the probe's top at 59 mm from the eye)",
+            image.depth[v * 24 + u]
+        );
     }
 
     fn camera_pixel(camera: &Camera, p: Point3<f64>) -> (usize, usize) {
@@ -372,20 +648,45 @@ mod tet_mesh {
         let scalars = vec![100.0f32; mesh.nodes().len()];
         let tf = flat([0.2, 0.6, 1.0], 0.05);
         let empty = TransferFunction { points: Vec::new(), relative: false };
-        assert!(matches!(TetRaycaster::new(&mesh, &scalars, &empty, &TetRaycastParams::default()), Err(RenderError::TransferFunction(_))));
+        assert!(matches!(
+            TetRaycaster::new(&mesh, &scalars, &empty, &TetRaycastParams::default()),
+            Err(RenderError::TransferFunction(_))
+        ));
         let mut nan = scalars.clone();
         nan[3] = f32::NAN;
-        assert!(matches!(TetRaycaster::new(&mesh, &nan, &tf, &TetRaycastParams::default()), Err(RenderError::Parameter(_))));
-        assert!(matches!(TetRaycaster::new(&mesh, &scalars, &tf, &TetRaycastParams { step: 0.0, ..Default::default() }), Err(RenderError::Parameter(_))));
+        assert!(matches!(
+            TetRaycaster::new(&mesh, &nan, &tf, &TetRaycastParams::default()),
+            Err(RenderError::Parameter(_))
+        ));
+        assert!(matches!(
+            TetRaycaster::new(&mesh, &scalars, &tf, &TetRaycastParams { step: 0.0, ..Default::default() }),
+            Err(RenderError::Parameter(_))
+        ));
         let mut raycaster = TetRaycaster::new(&mesh, &scalars, &tf, &TetRaycastParams::default()).unwrap();
-        let camera = Camera::look_at(Point3::new(10.0, 10.0, -50.0), Point3::new(10.0, 10.0, 10.0), Vector3::y(), Projection::Perspective { fov_y_deg: 40.0 }, 16, 16).unwrap();
+        let camera = Camera::look_at(
+            Point3::new(10.0, 10.0, -50.0),
+            Point3::new(10.0, 10.0, 10.0),
+            Vector3::y(),
+            Projection::Perspective { fov_y_deg: 40.0 },
+            16,
+            16,
+        )
+        .unwrap();
         let before = raycaster.render(&camera).unwrap();
         let mut moved = mesh.nodes().to_vec();
         moved[0].x = f64::NAN;
         assert!(matches!(raycaster.update(&moved), Err(RenderError::Parameter(_))));
         assert_eq!(raycaster.render(&camera).unwrap(), before, "a refused update changed the picture");
         // Looking away from the mesh: the background, not a crash.
-        let away = Camera::look_at(Point3::new(10.0, 10.0, -50.0), Point3::new(10.0, 10.0, -100.0), Vector3::y(), Projection::Perspective { fov_y_deg: 40.0 }, 16, 16).unwrap();
+        let away = Camera::look_at(
+            Point3::new(10.0, 10.0, -50.0),
+            Point3::new(10.0, 10.0, -100.0),
+            Vector3::y(),
+            Projection::Perspective { fov_y_deg: 40.0 },
+            16,
+            16,
+        )
+        .unwrap();
         let image = raycaster.render(&away).unwrap();
         assert!(image.rgba.chunks_exact(4).all(|p| p == [0, 0, 0, 255]) && image.depth.iter().all(|d| d.is_infinite()));
     }

@@ -26,9 +26,9 @@ fi
 
 # Independent peers and readers for the interop tests, in a virtual environment beside the
 # build: Foxglove's ROS 2 MCAP reader, rerun's CLI, Eclipse Cyclone DDS, iceoryx2's Python
-# binding. Versions are pinned to what the Rust side speaks.
+# binding, SimpleITK. Versions are pinned to what the Rust side speaks.
 venv="${CARGO_TARGET_DIR:-target}/interop-venv"
-requirements="mcap==1.6.0 mcap-ros2-support==0.6.0 rerun-sdk==0.36.3 cyclonedds==11.0.1 iceoryx2==0.10.0"
+requirements="mcap==1.6.0 mcap-ros2-support==0.6.0 rerun-sdk==0.36.3 cyclonedds==11.0.1 iceoryx2==0.10.0 SimpleITK==2.5.3"
 if [ "$(cat "$venv/.requirements" 2>/dev/null)" != "$requirements" ]; then
     if ! python3 -m venv --help >/dev/null 2>&1 || ! python3 -c 'import ensurepip' >/dev/null 2>&1; then
         as_root apt-get update -qq
@@ -47,4 +47,9 @@ export DEFVOL_REQUIRE_INTEROP=1
 export XDG_RUNTIME_DIR="${XDG_RUNTIME_DIR:-$(mktemp -d)}"
 # GPU tests must run, not skip, once the adapter is installed.
 export DEFVOL_REQUIRE_GPU=1
+
+# The code's shape and lints first: a change out of rustfmt shape or with a clippy warning
+# fails the suite.
+cargo fmt --check
+cargo clippy --locked --all-targets -- -D warnings
 cargo test --locked "$@"

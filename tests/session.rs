@@ -44,7 +44,11 @@ fn demo(dir: &Path, rerun: bool) -> PathBuf {
 }
 
 fn decoded<T: msgs::Message>(path: &Path, topic: &str) -> Vec<(u64, T, Vec<u8>)> {
-    bag::read_messages(path, &[topic]).unwrap().into_iter().map(|m| (m.log_time_ns, msgs::decode::<T>(&m.data, topic).unwrap(), m.data)).collect()
+    bag::read_messages(path, &[topic])
+        .unwrap()
+        .into_iter()
+        .map(|m| (m.log_time_ns, msgs::decode::<T>(&m.data, topic).unwrap(), m.data))
+        .collect()
 }
 
 #[test]
@@ -58,7 +62,8 @@ fn a_cpu_replay_repeats_the_demo_bit_for_bit() {
             out
         })
         .collect();
-    let meshes: Vec<_> = [&demo_bag, &replays[0], &replays[1]].iter().map(|p| decoded::<DeformedMesh>(p, "/deformed_mesh")).collect();
+    let meshes: Vec<_> =
+        [&demo_bag, &replays[0], &replays[1]].iter().map(|p| decoded::<DeformedMesh>(p, "/deformed_mesh")).collect();
     assert_eq!(meshes[0].len(), 60, "one mesh per solver step");
     assert!(meshes[0].last().unwrap().1.scalars.iter().any(|d| *d > 1e-3), "the probe deformed the mesh");
     for other in &meshes[1..] {
@@ -67,8 +72,12 @@ fn a_cpu_replay_repeats_the_demo_bit_for_bit() {
             assert_eq!((a.0, &a.2), (b.0, &b.2), "step {}: the same stamp and the same bytes", a.1.step);
         }
     }
-    let feedback: Vec<_> = [&demo_bag, &replays[0]].iter().map(|p| decoded::<WrenchStamped>(p, "/tool_feedback")).collect();
-    assert_eq!(feedback[0].iter().map(|f| &f.2).collect::<Vec<_>>(), feedback[1].iter().map(|f| &f.2).collect::<Vec<_>>());
+    let feedback: Vec<_> =
+        [&demo_bag, &replays[0]].iter().map(|p| decoded::<WrenchStamped>(p, "/tool_feedback")).collect();
+    assert_eq!(
+        feedback[0].iter().map(|f| &f.2).collect::<Vec<_>>(),
+        feedback[1].iter().map(|f| &f.2).collect::<Vec<_>>()
+    );
     assert!(feedback[0].last().unwrap().1.wrench.force.z > 1.0, "the organ pushes back on the probe");
     // The replay's bag holds its inputs too: it replays in turn.
     assert_eq!(bag::read_messages(&replays[0], &["/tool_pose"]).unwrap().len(), 60);
@@ -78,7 +87,14 @@ fn a_cpu_replay_repeats_the_demo_bit_for_bit() {
 fn replay_names_a_bag_without_tool_inputs() {
     let dir = tempfile::tempdir().unwrap();
     let demo_bag = demo(dir.path(), false);
-    let out = defvol().arg("replay").arg(&demo_bag).arg("--scene").arg(scene()).args(["--namespace", "/robot"]).output().unwrap();
+    let out = defvol()
+        .arg("replay")
+        .arg(&demo_bag)
+        .arg("--scene")
+        .arg(scene())
+        .args(["--namespace", "/robot"])
+        .output()
+        .unwrap();
     let text = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success() && text.contains("/robot/tool_pose") && text.contains("\"/tool_pose\""), "{text}");
     let broken = dir.path().join("broken.mcap");
@@ -99,7 +115,17 @@ fn the_bag_reads_back_with_a_rosbag2_reader() {
     let text = run(Command::new("python3").arg(script).arg(&bag_path));
     let read: serde_json::Value = serde_json::from_str(text.lines().last().unwrap()).unwrap();
     assert_eq!(read["profile"], "ros2");
-    for topic in ["/tool_pose", "/tool_feedback", "/deformed_mesh", "/surface_marker", "/raycast/image", "/dpcm/height", "/dpcm/image", "/warped_volume/info", "/diagnostics"] {
+    for topic in [
+        "/tool_pose",
+        "/tool_feedback",
+        "/deformed_mesh",
+        "/surface_marker",
+        "/raycast/image",
+        "/dpcm/height",
+        "/dpcm/image",
+        "/warped_volume/info",
+        "/diagnostics",
+    ] {
         assert!(read["topics"][topic].as_u64().unwrap_or(0) > 0, "{topic} missing from {}", read["topics"]);
         assert_eq!(read["qos"][topic], true, "{topic} has offered_qos_profiles");
     }
@@ -134,4 +160,51 @@ fn the_rerun_log_passes_rerun_verify() {
     assert!(std::fs::metadata(&rrd).unwrap().len() > 10_000);
     let text = run(Command::new("rerun").args(["rrd", "verify"]).arg(&rrd));
     assert!(text.contains("1 file verified without error"), "{text}");
+}
+
+/// `defvol demo` on the GPU backend (the suite's software adapter allowed) runs every stage
+/// on the GPU, and its bag's diagnostics say so, stage by stage; without the software
+/// adapter allowed, `--backend gpu` on a machine with no hardware GPU is an error saying why.
+#[cfg(feature = "gpu")]
+#[test]
+fn a_gpu_demo_reports_every_stage_on_the_gpu() {
+    use defvol::msgs::{DiagnosticArray, WarpedVolumeInfo};
+    let dir = tempfile::tempdir().unwrap();
+    let out = defvol()
+        .args(["demo", "--seconds", "0.3", "--backend", "gpu", "--allow-software-gpu", "--no-rerun", "--scene"])
+        .arg(scene())
+        .arg("--out")
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    let text = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    if !out.status.success() && text.contains("no GPU adapter") && std::env::var_os("DEFVOL_REQUIRE_GPU").is_none() {
+        eprintln!("skipped: no GPU adapter ({text})");
+        return;
+    }
+    assert!(out.status.success(), "{text}");
+    let bag_path = dir.path().join("demo.mcap");
+    let diagnostics = decoded::<DiagnosticArray>(&bag_path, "/diagnostics");
+    assert!(!diagnostics.is_empty());
+    for (_, array, _) in &diagnostics {
+        let status = array.status.iter().find(|s| s.name == "defvol: backend").expect("a backend status");
+        let stages: Vec<(&str, &str)> = status.values.iter().map(|kv| (kv.key.as_str(), kv.value.as_str())).collect();
+        assert_eq!(
+            stages,
+            [("backend.solver", "gpu"), ("backend.warp", "gpu"), ("backend.dpcm", "gpu"), ("backend.raycast", "gpu")]
+        );
+    }
+    // The warped volume's geometry is whole: the phantom's identity direction, row major.
+    let info = decoded::<WarpedVolumeInfo>(&bag_path, "/warped_volume/info");
+    assert_eq!(info.last().unwrap().1.direction, [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]);
+    // No hardware GPU and the software one not allowed: an error naming why.
+    let hardware = defvol()
+        .args(["demo", "--seconds", "0.01", "--backend", "gpu", "--no-rerun", "--out"])
+        .arg(dir.path().join("hw"))
+        .output()
+        .unwrap();
+    if !hardware.status.success() {
+        let text = String::from_utf8_lossy(&hardware.stderr);
+        assert!(text.contains("backend gpu") && text.contains("software adapters, not allowed"), "{text}");
+    }
 }

@@ -7,7 +7,11 @@ use defvol::solver::{FixedNodes, Integrator, MassSpringModel, Material, Simulati
 use nalgebra::Vector3;
 use nalgebra_sparse::{factorization::CscCholesky, CooMatrix, CscMatrix};
 
-fn run<T: defvol::solver::Real>(model: &MassSpringModel, params: SolverParams, steps: usize) -> Result<Simulation<T>, SolverError> {
+fn run<T: defvol::math::Real>(
+    model: &MassSpringModel,
+    params: SolverParams,
+    steps: usize,
+) -> Result<Simulation<T>, SolverError> {
     let mut sim = Simulation::<T>::new(model, params, Vec::new())?;
     for _ in 0..steps {
         sim.step()?;
@@ -18,7 +22,12 @@ fn run<T: defvol::solver::Real>(model: &MassSpringModel, params: SolverParams, s
 #[test]
 fn f32_path_matches_the_f64_reference_after_100_steps() {
     let model = cantilever(1500).unwrap();
-    for (integrator, dt) in [(Integrator::ImplicitEuler, 0.01), (Integrator::VelocityVerlet, 2e-4), (Integrator::Verlet, 2e-4), (Integrator::ExplicitEuler, 5e-5)] {
+    for (integrator, dt) in [
+        (Integrator::ImplicitEuler, 0.01),
+        (Integrator::VelocityVerlet, 2e-4),
+        (Integrator::Verlet, 2e-4),
+        (Integrator::ExplicitEuler, 5e-5),
+    ] {
         let params = SolverParams { integrator, dt, cg_tolerance: 1e-6, ..Default::default() };
         let fast = run::<f32>(&model, params.clone(), 100).unwrap();
         let reference = run::<f64>(&model, SolverParams { cg_tolerance: 1e-12, ..params }, 100).unwrap();
@@ -60,7 +69,8 @@ fn cg_always_sees_a_symmetric_positive_definite_matrix() {
         seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
         ((seed >> 33) as f64 / (1u64 << 31) as f64 - 0.5) * 0.06
     };
-    let x: Vec<Vector3<f64>> = model.rest.iter().map(|p| p * 0.7 + Vector3::new(jitter(), jitter(), jitter())).collect();
+    let x: Vec<Vector3<f64>> =
+        model.rest.iter().map(|p| p * 0.7 + Vector3::new(jitter(), jitter(), jitter())).collect();
     let v: Vec<Vector3<f64>> = model.rest.iter().map(|_| Vector3::new(jitter(), jitter(), jitter())).collect();
     sim.set_state(&x, &v);
     let (triplets, rhs) = sim.assembled_system().unwrap();
@@ -83,7 +93,8 @@ fn implicit_euler_is_first_order() {
         run::<f64>(&model, params, (end / dt).round() as usize).unwrap().positions_f64()
     };
     let reference = at(end / 6400.0);
-    let errors: Vec<f64> = [0.01, 0.005, 0.0025].iter().map(|&dt| relative_error(&model, &at(dt), &reference)).collect();
+    let errors: Vec<f64> =
+        [0.01, 0.005, 0.0025].iter().map(|&dt| relative_error(&model, &at(dt), &reference)).collect();
     for w in errors.windows(2) {
         let ratio = w[0] / w[1];
         assert!((1.6..2.4).contains(&ratio), "halving h should halve the error: {errors:?}");
@@ -115,7 +126,10 @@ fn explicit_schemes_fail_past_the_seed_limit_and_it_is_detected() {
         }
     }
     // Forward Euler is unstable for undamped oscillation at any step; it fails first.
-    assert!(matches!(bounded(&seed_bar(3000.0), Integrator::ExplicitEuler, 0.002, 1.0), Err(SolverError::Diverged { .. })));
+    assert!(matches!(
+        bounded(&seed_bar(3000.0), Integrator::ExplicitEuler, 0.002, 1.0),
+        Err(SolverError::Diverged { .. })
+    ));
 }
 
 #[test]
@@ -133,13 +147,27 @@ fn implicit_euler_stays_bounded_up_to_h_005_and_k_1e6() {
 
 fn energy_after(integrator: Integrator, dt: f64, seconds: f64) -> (f64, f64) {
     let mesh = generate::bar(0.25).unwrap();
-    let model = MassSpringModel::new(&mesh, &Material::Uniform { stiffness: 3000.0, damping: 0.0 }, 1000.0, &vec![false; mesh.nodes().len()], None).unwrap();
+    let model = MassSpringModel::new(
+        &mesh,
+        &Material::Uniform { stiffness: 3000.0, damping: 0.0 },
+        1000.0,
+        &vec![false; mesh.nodes().len()],
+        None,
+    )
+    .unwrap();
     let params = SolverParams { integrator, dt, gravity: [0.0; 3], cg_tolerance: 1e-12, ..Default::default() };
     let mut sim = Simulation::<f64>::new(&model, params, Vec::new()).unwrap();
     // Start stretched along x by 2 % at rest: pure elastic energy, no momentum.
     let x: Vec<Vector3<f64>> = model.rest.iter().map(|p| Vector3::new(p.x * 1.02, p.y, p.z)).collect();
     sim.set_state(&x, &vec![Vector3::zeros(); x.len()]);
-    let e0: f64 = model.springs.iter().enumerate().map(|(e, [a, b])| 0.5 * model.stiffness[e] * ((x[*b as usize] - x[*a as usize]).norm() - model.rest_length[e]).powi(2)).sum();
+    let e0: f64 = model
+        .springs
+        .iter()
+        .enumerate()
+        .map(|(e, [a, b])| {
+            0.5 * model.stiffness[e] * ((x[*b as usize] - x[*a as usize]).norm() - model.rest_length[e]).powi(2)
+        })
+        .sum();
     let mut report = None;
     for _ in 0..(seconds / dt).round() as usize {
         report = Some(sim.step().unwrap());
@@ -177,7 +205,8 @@ fn amg_preconditioned_cg_matches_the_direct_solve_in_far_fewer_iterations() {
     let mut solutions = Vec::new();
     let mut iterations = Vec::new();
     for preconditioner in [Preconditioner::BlockJacobi, Preconditioner::Amg] {
-        let params = SolverParams { preconditioner, cg_tolerance: 1e-10, cg_max_iterations: 20_000, ..Default::default() };
+        let params =
+            SolverParams { preconditioner, cg_tolerance: 1e-10, cg_max_iterations: 20_000, ..Default::default() };
         let mut sim = run::<f64>(&model, params, 3).unwrap();
         sim.assembled_system().unwrap();
         sim.prepare_preconditioner();
@@ -198,5 +227,9 @@ fn cpu_runs_repeat_bit_for_bit() {
     let params = SolverParams { cg_tolerance: 1e-3, ..Default::default() };
     let a = run::<f32>(&model, params.clone(), 30).unwrap();
     let b = run::<f32>(&model, params, 30).unwrap();
-    assert!(a.displacements().iter().zip(b.displacements()).all(|(x, y)| x.iter().zip(y.iter()).all(|(u, v)| u.to_bits() == v.to_bits())));
+    assert!(a
+        .displacements()
+        .iter()
+        .zip(b.displacements())
+        .all(|(x, y)| x.iter().zip(y.iter()).all(|(u, v)| u.to_bits() == v.to_bits())));
 }

@@ -37,7 +37,8 @@ fn identity_reproduces_the_source_inside_the_mesh() {
 }
 
 fn affine() -> (Matrix3<f64>, Vector3<f64>) {
-    let r = Rotation3::from_axis_angle(&Vector3::x_axis(), std::f64::consts::FRAC_PI_4) * Rotation3::from_axis_angle(&Vector3::y_axis(), std::f64::consts::FRAC_PI_4);
+    let r = Rotation3::from_axis_angle(&Vector3::x_axis(), std::f64::consts::FRAC_PI_4)
+        * Rotation3::from_axis_angle(&Vector3::y_axis(), std::f64::consts::FRAC_PI_4);
     (r.into_inner() * Matrix3::from_diagonal(&Vector3::new(1.1, 0.9, 1.0)), Vector3::new(7.0, -3.0, 2.5))
 }
 
@@ -63,12 +64,18 @@ fn affine_deformation_matches_analytic_resampling_for_every_scheme() {
                     }
                     let x1 = grid.world_from_index(Vector3::new(i as f64, j as f64, k as f64));
                     let expected = v.sample_world(a_inv * (x1 - t)).unwrap();
-                    assert!((value - expected).abs() <= 1e-5 * (hi - lo), "{scheme:?} voxel ({i},{j},{k}): {value} vs {expected}");
+                    assert!(
+                        (value - expected).abs() <= 1e-5 * (hi - lo),
+                        "{scheme:?} voxel ({i},{j},{k}): {value} vs {expected}"
+                    );
                     checked += 1;
                 }
             }
         }
-        assert!(checked as u64 == stats.inside.min(checked as u64) && checked > 10_000, "{scheme:?}: {checked} {stats:?}");
+        assert!(
+            checked as u64 == stats.inside.min(checked as u64) && checked > 10_000,
+            "{scheme:?}: {checked} {stats:?}"
+        );
         results.push((out, stats));
     }
     // Same decisions and values whatever the scheme; culling tests fewer voxels than the box.
@@ -77,7 +84,10 @@ fn affine_deformation_matches_analytic_resampling_for_every_scheme() {
     let (spans, culling, bbox) = (results[0].1, results[1].1, results[2].1);
     assert_eq!(spans.inside, culling.inside);
     assert_eq!(spans.inside, bbox.inside);
-    assert!(spans.candidates < culling.candidates && culling.candidates <= bbox.candidates, "{spans:?} {culling:?} {bbox:?}");
+    assert!(
+        spans.candidates < culling.candidates && culling.candidates <= bbox.candidates,
+        "{spans:?} {culling:?} {bbox:?}"
+    );
 }
 
 #[test]
@@ -89,13 +99,17 @@ fn culling_skips_cells_of_large_tets() {
     let (_, culling) = warp::warp(&v, &mesh, mesh.nodes(), &grid, &options(Scheme::Culling)).unwrap();
     let (_, bbox) = warp::warp(&v, &mesh, mesh.nodes(), &grid, &options(Scheme::Bbox)).unwrap();
     assert_eq!(culling.inside, bbox.inside);
-    let (useful_culling, useful_bbox) = (culling.inside as f64 / culling.candidates as f64, bbox.inside as f64 / bbox.candidates as f64);
+    let (useful_culling, useful_bbox) =
+        (culling.inside as f64 / culling.candidates as f64, bbox.inside as f64 / bbox.candidates as f64);
     assert!(useful_culling > 1.2 * useful_bbox, "useful fraction: culling {useful_culling:.3}, box {useful_bbox:.3}");
 }
 
 /// Barycentric coordinates of `p` in the tet by solving its 4x4 system from the vertices.
 fn barycentric(v: [Vector3<f64>; 4], p: Vector3<f64>) -> [f64; 4] {
-    let m = nalgebra::Matrix4::new(v[0].x, v[1].x, v[2].x, v[3].x, v[0].y, v[1].y, v[2].y, v[3].y, v[0].z, v[1].z, v[2].z, v[3].z, 1.0, 1.0, 1.0, 1.0);
+    let m = nalgebra::Matrix4::new(
+        v[0].x, v[1].x, v[2].x, v[3].x, v[0].y, v[1].y, v[2].y, v[3].y, v[0].z, v[1].z, v[2].z, v[3].z, 1.0, 1.0, 1.0,
+        1.0,
+    );
     let b = m.lu().solve(&nalgebra::Vector4::new(p.x, p.y, p.z, 1.0)).unwrap();
     [b[0], b[1], b[2], b[3]]
 }
@@ -105,7 +119,8 @@ fn f32_path_is_within_bound_of_f64_and_inside_decisions_match_point_in_tet() {
     let v = source();
     let mesh = box_mesh(&v, 300);
     // A smooth bend: nodes displaced along z by a parabola in x.
-    let deformed: Vec<Vector3<f64>> = mesh.nodes().iter().map(|p| p + Vector3::new(0.0, 0.1 * p.z, 0.002 * p.x * p.x)).collect();
+    let deformed: Vec<Vector3<f64>> =
+        mesh.nodes().iter().map(|p| p + Vector3::new(0.0, 0.1 * p.z, 0.002 * p.x * p.x)).collect();
     let grid = warp::default_grid(&v, &deformed);
     let opts = options(Scheme::Spans);
     let (fast, _) = warp::warp_samples::<f32>(&v, &mesh, &deformed, &grid, &opts).unwrap();
@@ -143,18 +158,37 @@ fn incremental_update_equals_a_full_warp() {
     let mesh = box_mesh(&v, 700);
     let grid = warp::default_grid(&v, mesh.nodes());
     let opts = WarpOptions { keep_uncovered: true, ..options(Scheme::Spans) };
-    let (mut inc, _) = IncrementalWarp::new(std::sync::Arc::new(v.clone()), std::sync::Arc::new(mesh.clone()), mesh.nodes(), grid.clone(), opts.clone()).unwrap();
+    let mut inc = IncrementalWarp::new(
+        std::sync::Arc::new(v.clone()),
+        std::sync::Arc::new(mesh.clone()),
+        mesh.nodes(),
+        grid.clone(),
+        opts.clone(),
+    )
+    .unwrap();
+    let mut out = vec![0f32; grid.len()];
+    assert_eq!(inc.write_into(&mut out, None).unwrap().voxels, grid.len() as u64, "a fresh buffer is warped whole");
     // A tool presses locally: nodes near one point move.
     let tip = Vector3::new(20.0, 10.0, 60.0);
-    let pressed: Vec<Vector3<f64>> = mesh.nodes().iter().map(|p| {
-        let d = (p - tip).norm();
-        if d < 30.0 { p - Vector3::z() * (6.0 * (1.0 - d / 30.0)) } else { *p }
-    }).collect();
-    let stats = inc.update(&pressed, 1e-9).unwrap();
+    let pressed: Vec<Vector3<f64>> = mesh
+        .nodes()
+        .iter()
+        .map(|p| {
+            let d = (p - tip).norm();
+            if d < 30.0 {
+                p - Vector3::z() * (6.0 * (1.0 - d / 30.0))
+            } else {
+                *p
+            }
+        })
+        .collect();
+    let sequence = inc.advance(&pressed, 1e-9).unwrap();
+    let stats = inc.write_into(&mut out, Some(sequence - 1)).unwrap();
     assert!(stats.voxels > 0 && stats.voxels < grid.len() as u64 / 4, "local region: {stats:?}");
     let (full, _) = warp::warp(&v, &mesh, &pressed, &grid, &opts).unwrap();
-    assert_eq!(inc.data(), full.data());
-    assert_eq!(inc.update(&pressed, 1e-9).unwrap().voxels, 0, "nothing moved, nothing done");
+    assert_eq!(out, full.data());
+    let again = inc.advance(&pressed, 1e-9).unwrap();
+    assert_eq!(inc.write_into(&mut out, Some(again - 1)).unwrap().voxels, 0, "nothing moved, nothing done");
 }
 
 #[test]
@@ -180,12 +214,21 @@ fn bad_input_is_refused_with_a_reason() {
     assert!(matches!(e, WarpError::NodeCount { .. }), "{e}");
     let mut nan = mesh.nodes().to_vec();
     nan[3].x = f64::NAN;
-    assert!(matches!(warp::warp(&v, &mesh, &nan, &grid, &WarpOptions::default()).unwrap_err(), WarpError::NonFiniteNode { node: 3 }));
+    assert!(matches!(
+        warp::warp(&v, &mesh, &nan, &grid, &WarpOptions::default()).unwrap_err(),
+        WarpError::NonFiniteNode { node: 3 }
+    ));
     let huge = Grid { dims: [4000, 4000, 4000], ..grid.clone() };
     let e = warp::warp(&v, &mesh, mesh.nodes(), &huge, &WarpOptions::default()).unwrap_err();
     assert!(e.to_string().contains("MiB"), "{e}");
-    let folding = WarpOptions { displacements: vec![DisplacementVolume { centre: [0.0; 3], displacement: [0.0, 0.0, 30.0], extent: 20.0 }], ..Default::default() };
-    assert!(matches!(warp::warp(&v, &mesh, mesh.nodes(), &grid, &folding).unwrap_err(), WarpError::BadDisplacement { index: 0, .. }));
+    let folding = WarpOptions {
+        displacements: vec![DisplacementVolume { centre: [0.0; 3], displacement: [0.0, 0.0, 30.0], extent: 20.0 }],
+        ..Default::default()
+    };
+    assert!(matches!(
+        warp::warp(&v, &mesh, mesh.nodes(), &grid, &folding).unwrap_err(),
+        WarpError::BadDisplacement { index: 0, .. }
+    ));
 }
 
 #[test]
@@ -193,7 +236,9 @@ fn tricubic_beats_trilinear_on_a_smooth_field() {
     // A smooth analytic field sampled coarsely, then resampled at the offsets of a shift.
     let dims = [24, 24, 24];
     let f = |p: Vector3<f64>| (p.x * 0.35).sin() * (p.y * 0.3).cos() + (p.z * 0.25).sin();
-    let data: Vec<f32> = (0..dims[0] * dims[1] * dims[2]).map(|n| f(Vector3::new((n % 24) as f64, ((n / 24) % 24) as f64, (n / 576) as f64)) as f32).collect();
+    let data: Vec<f32> = (0..dims[0] * dims[1] * dims[2])
+        .map(|n| f(Vector3::new((n % 24) as f64, ((n / 24) % 24) as f64, (n / 576) as f64)) as f32)
+        .collect();
     let v = Volume::new(dims, [1.0; 3], [0.0; 3], Matrix3::identity(), data, "field").unwrap();
     let mesh = generate::lattice(Vector3::repeat(2.0), Vector3::repeat(21.0), [3, 3, 3], CellSplit::Five).unwrap();
     let shift = Vector3::new(0.37, -0.21, 0.43);
@@ -208,7 +253,11 @@ fn tricubic_beats_trilinear_on_a_smooth_field() {
             if *value == OUTSIDE {
                 continue;
             }
-            let ijk = Vector3::new((n % grid.dims[0]) as f64, ((n / grid.dims[0]) % grid.dims[1]) as f64, (n / (grid.dims[0] * grid.dims[1])) as f64);
+            let ijk = Vector3::new(
+                (n % grid.dims[0]) as f64,
+                ((n / grid.dims[0]) % grid.dims[1]) as f64,
+                (n / (grid.dims[0] * grid.dims[1])) as f64,
+            );
             worst = worst.max((*value as f64 - f(grid.world_from_index(ijk) - shift)).abs());
         }
         errors.push(worst);

@@ -8,12 +8,11 @@ use serde_json::json;
 use super::{cpu_description, time_stats, BenchRow, ErrorMeasure};
 use crate::dpcm::markers::{Pattern, Script};
 use crate::dpcm::{DpcmConfig, DpcmError, Interaction, Surface, Topology};
-use crate::gpu_policy::GpuChoice;
 
 /// The seed's Table 1: (markers, Hz) on a GeForce 8800 GTX, 1100 x 1100 phyxels.
 pub const SEED_TABLE_1: [(usize, f64); 5] = [(1, 690.0), (20, 220.0), (50, 104.0), (100, 55.0), (300, 23.0)];
 
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Physics {
     /// Damped springs to the ground and between phyxels (the water preset).
     Elastic,
@@ -29,11 +28,16 @@ pub struct DpcmBenchOptions {
     pub steps: usize,
     /// Time steps of the accuracy sweep (each against dt/16).
     pub dts: Vec<f64>,
-    pub gpu: Option<GpuChoice>,
+    pub gpu: Option<crate::backend::Backend>,
 }
 
 /// The benchmark grid: the water preset's physics, markers wandering over the grid.
-pub fn bench_config(size: [usize; 2], topology: Topology, physics: Physics, markers: usize) -> Result<DpcmConfig, DpcmError> {
+pub fn bench_config(
+    size: [usize; 2],
+    topology: Topology,
+    physics: Physics,
+    markers: usize,
+) -> Result<DpcmConfig, DpcmError> {
     let mut c = DpcmConfig::preset("water")?;
     (c.width, c.height) = (size[0], size[1]);
     c.links.topology = topology;
@@ -58,22 +62,32 @@ impl Stepper for Surface {
 }
 
 #[cfg(feature = "gpu")]
-impl Stepper for crate::gpu::dpcm::GpuSurface {
+impl Stepper for crate::dpcm::gpu::GpuSurface {
     fn step(&mut self, config: &DpcmConfig, t: f64) -> Result<(), DpcmError> {
         let markers = config.script.markers_at(config, t);
-        crate::gpu::dpcm::GpuSurface::step(self, &markers);
+        crate::dpcm::gpu::GpuSurface::step(self, &markers);
         Ok(())
     }
 }
 
 /// Settles for 20 steps, then times `steps` steps one by one (the GPU waits for each).
-fn time_steps(stepper: &mut (dyn Stepper + Send), config: &DpcmConfig, steps: usize, sync: &mut (dyn FnMut() + Send)) -> Result<Vec<f64>, DpcmError> {
+fn time_steps(
+    stepper: &mut (dyn Stepper + Send),
+    config: &DpcmConfig,
+    steps: usize,
+    sync: &mut (dyn FnMut() + Send),
+) -> Result<Vec<f64>, DpcmError> {
     // On a pool worker, as a run loop should be: the stepping thread is one of the two
     // that compute, instead of a third one waking them for every step.
     rayon::scope(|_| time_steps_on_worker(stepper, config, steps, sync))
 }
 
-fn time_steps_on_worker(stepper: &mut (dyn Stepper + Send), config: &DpcmConfig, steps: usize, sync: &mut (dyn FnMut() + Send)) -> Result<Vec<f64>, DpcmError> {
+fn time_steps_on_worker(
+    stepper: &mut (dyn Stepper + Send),
+    config: &DpcmConfig,
+    steps: usize,
+    sync: &mut (dyn FnMut() + Send),
+) -> Result<Vec<f64>, DpcmError> {
     for s in 0..20 {
         stepper.step(config, s as f64 * config.dt)?;
     }
@@ -91,9 +105,9 @@ fn time_steps_on_worker(stepper: &mut (dyn Stepper + Send), config: &DpcmConfig,
 pub fn run(opts: &DpcmBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result<(), DpcmError> {
     let cpu = cpu_description();
     #[cfg(feature = "gpu")]
-    let gpu = opts.gpu.and_then(GpuChoice::context).map(std::sync::Arc::new);
+    let gpu = opts.gpu.as_ref().and_then(crate::backend::Backend::context).cloned();
     #[cfg(not(feature = "gpu"))]
-    let _ = opts.gpu;
+    let _ = &opts.gpu;
     for &physics in &opts.physics {
         for &topology in &opts.topologies {
             for &markers in &opts.markers {
@@ -106,18 +120,43 @@ pub fn run(opts: &DpcmBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result<(
                 let samples = time_steps(&mut surface, &config, opts.steps, &mut || {})?;
                 #[cfg(feature = "gpu")]
                 let cpu_heights = surface.heights();
-                emit(&BenchRow { stage: "dpcm", case: case.clone(), backend: "cpu".into(), device: cpu.clone(), params: params.clone(), runs: samples.len(), time_ms: time_stats(samples), error: None, work: work.clone() });
+                emit(&BenchRow {
+                    stage: "dpcm",
+                    case: case.clone(),
+                    backend: "cpu".into(),
+                    device: cpu.clone(),
+                    params: params.clone(),
+                    runs: samples.len(),
+                    time_ms: time_stats(samples),
+                    error: None,
+                    work: work.clone(),
+                });
                 #[cfg(feature = "gpu")]
                 if let Some(ctx) = &gpu {
-                    let mut surface = crate::gpu::dpcm::GpuSurface::new(ctx.clone(), &config).map_err(|e| DpcmError::Gpu(e.to_string()))?;
+                    let mut surface = crate::dpcm::gpu::GpuSurface::new(ctx.clone(), &config)
+                        .map_err(|e| DpcmError::Gpu(e.to_string()))?;
                     let device = ctx.describe();
                     let mut sync = || ctx.wait();
                     let samples = time_steps(&mut surface, &config, opts.steps, &mut sync)?;
                     let heights = surface.read_heights().map_err(|e| DpcmError::Gpu(e.to_string()))?;
                     let peak = cpu_heights.iter().fold(0.0f32, |m, z| m.max(z.abs())).max(f32::MIN_POSITIVE);
                     let worst = heights.iter().zip(&cpu_heights).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
-                    let error = Some(ErrorMeasure { metric: "max_abs_over_peak", value: f64::from(worst / peak), reference: "cpu" });
-                    emit(&BenchRow { stage: "dpcm", case: case.clone(), backend: "gpu".into(), device, params: params.clone(), runs: samples.len(), time_ms: time_stats(samples), error, work: work.clone() });
+                    let error = Some(ErrorMeasure {
+                        metric: "max_abs_over_peak",
+                        value: f64::from(worst / peak),
+                        reference: "cpu",
+                    });
+                    emit(&BenchRow {
+                        stage: "dpcm",
+                        case: case.clone(),
+                        backend: "gpu".into(),
+                        device,
+                        params: params.clone(),
+                        runs: samples.len(),
+                        time_ms: time_stats(samples),
+                        error,
+                        work: work.clone(),
+                    });
                 }
             }
         }
@@ -167,19 +206,34 @@ fn accuracy_sweep(opts: &DpcmBenchOptions, cpu: &str, emit: &mut impl FnMut(&Ben
             params: json!({"topology": "eight", "physics": "elastic", "dt": dt, "simulated_s": duration, "total_ms": total_ms}),
             runs: samples.len(),
             time_ms: time_stats(samples),
-            error: Some(ErrorMeasure { metric: "max_abs_over_peak", value: f64::from(worst / peak), reference: "dt/16" }),
+            error: Some(ErrorMeasure {
+                metric: "max_abs_over_peak",
+                value: f64::from(worst / peak),
+                reference: "dt/16",
+            }),
             work: json!({"phyxels": 256 * 256, "markers": 1}),
         });
     }
     Ok(())
 }
 
-pub const TABLE_HEADER: &str = "case                     backend  params                         median ms   steps/s   seed GPU Hz      error";
+pub const TABLE_HEADER: &str =
+    "case                     backend  params                         median ms   steps/s   seed GPU Hz      error";
 
 pub fn table_row(row: &BenchRow) -> String {
     let p = &row.params;
-    let params = format!("{} {} dt={}", p["topology"].as_str().unwrap_or("?"), p["physics"].as_str().unwrap_or("?"), p["dt"]);
+    let params =
+        format!("{} {} dt={}", p["topology"].as_str().unwrap_or("?"), p["physics"].as_str().unwrap_or("?"), p["dt"]);
     let seed = p["seed_gpu_hz"].as_f64().map_or("-".to_owned(), |hz| format!("{hz:.0}"));
     let error = row.error.as_ref().map_or("-".to_owned(), |e| format!("{:.2e}", e.value));
-    format!("{:<24} {:<8} {:<30} {:>9.3} {:>9.0} {:>13} {:>10}", row.case, row.backend, params, row.time_ms.median, 1e3 / row.time_ms.median, seed, error)
+    format!(
+        "{:<24} {:<8} {:<30} {:>9.3} {:>9.0} {:>13} {:>10}",
+        row.case,
+        row.backend,
+        params,
+        row.time_ms.median,
+        1e3 / row.time_ms.median,
+        seed,
+        error
+    )
 }

@@ -1,13 +1,14 @@
 //! `defvol bench node`: what a user of the node feels. The pose-in to feedback-out
-//! latency of the pipeline at 1 kHz input, the cost of recording, and the delivery time of
-//! a warped volume through iceoryx2 beside DDS for the same bytes.
+//! latency of the pipeline at 1 kHz input, the cost of recording, the pose-in to
+//! warped-volume-received latency through iceoryx2, each on every backend asked for, and
+//! the delivery time of a volume through iceoryx2 beside DDS for the same bytes.
 
 use std::time::Instant;
 
 use serde_json::json;
 
 use super::{cpu_description, time_stats, BenchRow};
-use crate::engine::BackendChoice;
+use crate::backend::{Backend, BackendChoice};
 use crate::msgs::{Header, Pose, PoseStamped, Time};
 use crate::pipeline::inputs::InputLimits;
 use crate::pipeline::{Demand, FrameMode, Pipeline, PipelineError};
@@ -21,6 +22,8 @@ pub enum NodeBenchError {
     Pipeline(#[from] PipelineError),
     #[error(transparent)]
     Session(#[from] crate::session::SessionError),
+    #[error(transparent)]
+    Backend(#[from] crate::backend::BackendError),
     #[error("{0}")]
     Setup(String),
 }
@@ -33,18 +36,39 @@ pub struct NodeBenchOptions {
     pub settle: usize,
     /// Volume bytes sent through shared memory (and DDS).
     pub volume_mib: Vec<usize>,
-    pub backend: BackendChoice,
+    /// Each timed in the same run (`gpu` with no usable adapter is an error).
+    pub backends: Vec<BackendChoice>,
+    pub allow_software_gpu: bool,
+    /// Warped volumes timed from pose to subscriber, per backend.
+    pub volume_frames: usize,
 }
 
 pub const TABLE_HEADER: &str = "case                          backend   p50 ms   p99 ms    max ms   rate Hz  notes";
 
 pub fn table_row(row: &BenchRow) -> String {
     if row.runs == 0 {
-        return format!("{:<29} {:<8} {:>7} {:>8} {:>9} {:>9}  {}", row.case, row.backend, "-", "-", "-", "-", row.params["note"].as_str().unwrap_or_default());
+        return format!(
+            "{:<29} {:<8} {:>7} {:>8} {:>9} {:>9}  {}",
+            row.case,
+            row.backend,
+            "-",
+            "-",
+            "-",
+            "-",
+            row.params["note"].as_str().unwrap_or_default()
+        );
     }
     let p99 = row.params["p99_ms"].as_f64().map_or("-".into(), |v| format!("{v:.3}"));
     let notes = row.params["note"].as_str().unwrap_or_default();
-    format!("{:<29} {:<8} {:>7.3} {:>8} {:>9.3} {:>9.0}  {notes}", row.case, row.backend, row.time_ms.median, p99, row.time_ms.max, 1e3 / row.time_ms.median.max(1e-9))
+    format!(
+        "{:<29} {:<8} {:>7.3} {:>8} {:>9.3} {:>9.0}  {notes}",
+        row.case,
+        row.backend,
+        row.time_ms.median,
+        p99,
+        row.time_ms.max,
+        1e3 / row.time_ms.median.max(1e-9)
+    )
 }
 
 fn percentile(samples: &[f64], p: f64) -> f64 {
@@ -65,8 +89,14 @@ fn haptic_scene(tets: usize) -> Result<Scene, NodeBenchError> {
 }
 
 /// Pose in, one solver step, feedback and mesh messages out: `steps` times, recording or not.
-fn pose_to_feedback(scene: Scene, opts: &NodeBenchOptions, record: Option<&std::path::Path>) -> Result<(Vec<f64>, String, usize), NodeBenchError> {
-    let mut pipeline = Pipeline::new(scene, opts.backend, false, InputLimits { max_age: None, ..Default::default() }, FrameMode::Lockstep)?;
+fn pose_to_feedback(
+    scene: Scene,
+    backend: &Backend,
+    opts: &NodeBenchOptions,
+    record: Option<&std::path::Path>,
+) -> Result<(Vec<f64>, String, usize), NodeBenchError> {
+    let mut pipeline =
+        Pipeline::new(scene, backend, InputLimits { max_age: None, ..Default::default() }, FrameMode::Lockstep)?;
     let tets = pipeline.mesh().tets().len();
     let records = RecordOptions { mcap: record.map(Into::into), ..Default::default() };
     let mut session = Session::open("/", &records, &pipeline)?;
@@ -89,42 +119,26 @@ fn pose_to_feedback(scene: Scene, opts: &NodeBenchOptions, record: Option<&std::
         }
     }
     session.finish()?;
-    Ok((samples, pipeline.backend_name(), tets))
+    Ok((samples, backend.name().to_owned(), tets))
 }
 
 pub fn run(opts: &NodeBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result<(), NodeBenchError> {
     let cpu = cpu_description();
     let dir = tempfile_dir()?;
-    for &tets in &opts.tets {
-        let (plain, backend, n) = pose_to_feedback(haptic_scene(tets)?, opts, None)?;
-        let bag = dir.join(format!("bench_{tets}.mcap"));
-        let (recorded, _, _) = pose_to_feedback(haptic_scene(tets)?, opts, Some(&bag))?;
-        let (p50, p99) = (percentile(&plain, 0.5), percentile(&plain, 0.99));
-        let overhead = percentile(&recorded, 0.5) / p50 - 1.0;
-        let mean = plain.iter().sum::<f64>() / plain.len().max(1) as f64;
-        emit(&BenchRow {
-            stage: "node",
-            case: format!("pose_to_feedback_{n}tets"),
-            backend: backend.clone(),
-            device: cpu.clone(),
-            params: json!({"input_hz": 1000, "dt": 1e-3, "p99_ms": p99, "sustained_hz": 1e3 / mean, "note": format!("goal p99 < 2 ms; sustains {:.0} Hz", 1e3 / mean)}),
-            runs: plain.len(),
-            time_ms: time_stats(plain),
-            error: None,
-            work: json!({"tets": n, "outputs": ["tool_feedback", "deformed_mesh"]}),
-        });
-        emit(&BenchRow {
-            stage: "node",
-            case: format!("recording_{n}tets"),
-            backend,
-            device: cpu.clone(),
-            params: json!({"p99_ms": percentile(&recorded, 0.99), "overhead": overhead, "note": format!("MCAP recording adds {:.1} % to the median step (goal < 5 %)", overhead * 100.0)}),
-            runs: recorded.len(),
-            time_ms: time_stats(recorded),
-            error: None,
-            work: json!({"tets": n, "bag_bytes": std::fs::metadata(&bag).map(|m| m.len()).unwrap_or(0)}),
-        });
-        let _ = std::fs::remove_file(&bag);
+    let backends =
+        opts.backends.iter().map(|b| Backend::choose(*b, opts.allow_software_gpu)).collect::<Result<Vec<_>, _>>()?;
+    for backend in &backends {
+        let device = match backend.name() {
+            "gpu" => backend.describe(),
+            _ => cpu.clone(),
+        };
+        for &tets in &opts.tets {
+            feedback_rows(backend, &device, tets, opts, &dir, &mut emit)?;
+        }
+        #[cfg(feature = "shm")]
+        if opts.volume_frames > 0 {
+            emit(&pose_to_volume(backend, &device, opts.volume_frames)?);
+        }
     }
     #[cfg(feature = "shm")]
     for &mib in &opts.volume_mib {
@@ -136,6 +150,145 @@ pub fn run(opts: &NodeBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result<(
     }
     let _ = std::fs::remove_dir_all(&dir);
     Ok(())
+}
+
+/// Pose to feedback on a lattice of about `tets`, plain and recording.
+fn feedback_rows(
+    backend: &Backend,
+    device: &str,
+    tets: usize,
+    opts: &NodeBenchOptions,
+    dir: &std::path::Path,
+    emit: &mut impl FnMut(&BenchRow),
+) -> Result<(), NodeBenchError> {
+    let (plain, name, n) = pose_to_feedback(haptic_scene(tets)?, backend, opts, None)?;
+    let bag = dir.join(format!("bench_{tets}.mcap"));
+    let (recorded, _, _) = pose_to_feedback(haptic_scene(tets)?, backend, opts, Some(&bag))?;
+    let (p50, p99) = (percentile(&plain, 0.5), percentile(&plain, 0.99));
+    let overhead = percentile(&recorded, 0.5) / p50 - 1.0;
+    let mean = plain.iter().sum::<f64>() / plain.len().max(1) as f64;
+    emit(&BenchRow {
+        stage: "node",
+        case: format!("pose_to_feedback_{n}tets"),
+        backend: name.clone(),
+        device: device.to_owned(),
+        params: json!({"input_hz": 1000, "dt": 1e-3, "p99_ms": p99, "sustained_hz": 1e3 / mean, "note": format!("goal p99 < 2 ms; sustains {:.0} Hz", 1e3 / mean)}),
+        runs: plain.len(),
+        time_ms: time_stats(plain),
+        error: None,
+        work: json!({"tets": n, "outputs": ["tool_feedback", "deformed_mesh"]}),
+    });
+    emit(&BenchRow {
+        stage: "node",
+        case: format!("recording_{n}tets"),
+        backend: name,
+        device: device.to_owned(),
+        params: json!({"p99_ms": percentile(&recorded, 0.99), "overhead": overhead, "note": format!("MCAP recording adds {:.1} % to the median step (goal < 5 %)", overhead * 100.0)}),
+        runs: recorded.len(),
+        time_ms: time_stats(recorded),
+        error: None,
+        work: json!({"tets": n, "bag_bytes": std::fs::metadata(&bag).map(|m| m.len()).unwrap_or(0)}),
+    });
+    let _ = std::fs::remove_file(&bag);
+    Ok(())
+}
+
+/// Pose in to warped volume received: a probe pressing the default scene (solver and warp
+/// on `backend`, every tick a warp), the volume published through a real iceoryx2 service
+/// into the samples it lends, a subscriber on another thread taking each. The time runs
+/// from the pose to the subscriber holding the volume.
+#[cfg(feature = "shm")]
+fn pose_to_volume(backend: &Backend, device: &str, frames: usize) -> Result<BenchRow, NodeBenchError> {
+    use crate::shm::{WarpedVolumeHeader, WarpedVolumePublisher};
+    use iceoryx2::prelude::*;
+    use std::sync::Arc;
+    use std::time::Duration;
+
+    let mut scene = Scene::default_scene().map_err(|e| NodeBenchError::Setup(e.to_string()))?;
+    scene.stages = crate::scene::Stages { solver: true, warp: true, dpcm: false, raycast: false };
+    scene.warp.rate_hz = 1e6;
+    scene.tools[0].path = None;
+    let mut pipeline =
+        Pipeline::new(scene, backend, InputLimits { max_age: None, ..Default::default() }, FrameMode::Lockstep)?;
+    let grid = pipeline.warped_grid().cloned().ok_or_else(|| NodeBenchError::Setup("no warp stage".into()))?;
+    let service = format!("defvol/bench_volume_{}_{}", std::process::id(), backend.name());
+    let publisher =
+        Arc::new(WarpedVolumePublisher::new(&service, &grid).map_err(|e| NodeBenchError::Setup(e.to_string()))?);
+    pipeline.set_volume_sink(Some(publisher.clone()));
+    let (tx, rx) = std::sync::mpsc::channel::<(u64, Instant)>();
+    let (ready_tx, ready_rx) = std::sync::mpsc::channel::<()>();
+    let reader_service = service.clone();
+    let reader = std::thread::spawn(move || -> Result<(), String> {
+        let node = NodeBuilder::new().create::<ipc::Service>().map_err(|e| format!("{e:?}"))?;
+        let name: ServiceName = reader_service.as_str().try_into().map_err(|e| format!("{e:?}"))?;
+        let factory = node
+            .service_builder(&name)
+            .publish_subscribe::<[f32]>()
+            .user_header::<WarpedVolumeHeader>()
+            .open()
+            .map_err(|e| format!("{e:?}"))?;
+        let subscriber = factory.subscriber_builder().create().map_err(|e| format!("{e:?}"))?;
+        let _ = ready_tx.send(());
+        let deadline = Instant::now() + Duration::from_secs(600);
+        while Instant::now() < deadline {
+            match subscriber.receive() {
+                Ok(Some(sample)) => {
+                    let sequence = sample.user_header().sequence;
+                    std::hint::black_box(sample.payload()[sample.payload().len() / 2]);
+                    if tx.send((sequence, Instant::now())).is_err() {
+                        return Ok(());
+                    }
+                }
+                Ok(None) => std::thread::sleep(Duration::from_micros(50)),
+                Err(e) => return Err(format!("{e:?}")),
+            }
+        }
+        Ok(())
+    });
+    ready_rx
+        .recv_timeout(Duration::from_secs(10))
+        .map_err(|_| NodeBenchError::Setup(format!("iceoryx2: the subscriber did not open `{service}`")))?;
+    let demand = Demand { warped_volume: true, ..Demand::NONE };
+    let mut samples = Vec::with_capacity(frames);
+    for k in 0..frames + 2 {
+        let t = (k + 1) as f64 * 0.01;
+        let stamp = Time::from_secs(t);
+        // The probe presses in 0.5 mm a frame: every frame moves the mesh.
+        let mut pose = PoseStamped { header: Header { stamp, frame_id: "world".into() }, pose: Pose::default() };
+        pose.pose.position.z = 0.066 - 0.0005 * k as f64;
+        let start = Instant::now();
+        let _ = pipeline.apply_pose("tool_pose", &pose, stamp);
+        let out = pipeline.tick(stamp, &demand)?;
+        let Some(sequence) = out.warped_volume.then(|| pipeline.warped_volume().map(|w| w.sequence)).flatten() else {
+            continue;
+        };
+        let received = loop {
+            let (got, at) = rx
+                .recv_timeout(Duration::from_secs(60))
+                .map_err(|_| NodeBenchError::Setup("the warped volume never arrived".into()))?;
+            if got == sequence {
+                break at;
+            }
+        };
+        if k >= 2 {
+            samples.push((received - start).as_secs_f64() * 1e3);
+        }
+    }
+    drop(rx);
+    if let Ok(Err(e)) = reader.join() {
+        return Err(NodeBenchError::Setup(format!("iceoryx2 subscriber: {e}")));
+    }
+    Ok(BenchRow {
+        stage: "node",
+        case: format!("pose_to_warped_volume_{}tets", pipeline.mesh().tets().len()),
+        backend: backend.name().into(),
+        device: device.into(),
+        params: json!({"p99_ms": percentile(&samples, 0.99), "note": format!("pose to subscriber, {:?} voxels through iceoryx2", grid.dims)}),
+        runs: samples.len(),
+        time_ms: time_stats(samples),
+        error: None,
+        work: json!({"voxels": grid.len(), "bytes": grid.len() * 4}),
+    })
 }
 
 fn tempfile_dir() -> Result<std::path::PathBuf, NodeBenchError> {
@@ -169,7 +322,12 @@ fn shm_delivery(mib: usize, cpu: &str) -> Result<BenchRow, NodeBenchError> {
         .max_subscribers(1)
         .open_or_create()
         .map_err(|e| NodeBenchError::Setup(format!("iceoryx2 ({} MiB of /dev/shm needed): {e:?}", needed >> 20)))?;
-    let publisher = service.publisher_builder().initial_max_slice_len(elements).max_loaned_samples(2).create().map_err(|e| err(&e))?;
+    let publisher = service
+        .publisher_builder()
+        .initial_max_slice_len(elements)
+        .max_loaned_samples(2)
+        .create()
+        .map_err(|e| err(&e))?;
     let base = Instant::now();
     let sent_at = Arc::new(AtomicU64::new(0));
     let done = Arc::new(AtomicBool::new(false));
@@ -179,7 +337,12 @@ fn shm_delivery(mib: usize, cpu: &str) -> Result<BenchRow, NodeBenchError> {
     let reader = std::thread::spawn(move || -> Result<(), String> {
         let node = NodeBuilder::new().create::<ipc::Service>().map_err(|e| format!("{e:?}"))?;
         let name: ServiceName = reader_name.as_str().try_into().map_err(|e| format!("{e:?}"))?;
-        let service = node.service_builder(&name).publish_subscribe::<[f32]>().user_header::<WarpedVolumeHeader>().open().map_err(|e| format!("{e:?}"))?;
+        let service = node
+            .service_builder(&name)
+            .publish_subscribe::<[f32]>()
+            .user_header::<WarpedVolumeHeader>()
+            .open()
+            .map_err(|e| format!("{e:?}"))?;
         let subscriber = service.subscriber_builder().create().map_err(|e| format!("{e:?}"))?;
         let _ = tx.send(-1.0);
         while !done_reader.load(Ordering::Acquire) {
@@ -252,9 +415,16 @@ fn dds_delivery(mib: usize, cpu: &str) -> Result<BenchRow, NodeBenchError> {
         return Ok(row(Vec::new(), "skipped: run inside a private network namespace (tests/netns-run)".into()));
     }
     let setup = |e: &dyn std::fmt::Debug| NodeBenchError::Setup(format!("DDS: {e:?}"));
-    let (a, b) = (context(23, Discovery::Localhost).map_err(|e| setup(&e))?, context(23, Discovery::Localhost).map_err(|e| setup(&e))?);
-    let mut sender = a.new_node(NodeName::new("/", "bench_sender").map_err(|e| setup(&e))?, NodeOptions::new()).map_err(|e| setup(&e))?;
-    let mut receiver = b.new_node(NodeName::new("/", "bench_receiver").map_err(|e| setup(&e))?, NodeOptions::new()).map_err(|e| setup(&e))?;
+    let (a, b) = (
+        context(23, Discovery::Localhost).map_err(|e| setup(&e))?,
+        context(23, Discovery::Localhost).map_err(|e| setup(&e))?,
+    );
+    let mut sender = a
+        .new_node(NodeName::new("/", "bench_sender").map_err(|e| setup(&e))?, NodeOptions::new())
+        .map_err(|e| setup(&e))?;
+    let mut receiver = b
+        .new_node(NodeName::new("/", "bench_receiver").map_err(|e| setup(&e))?, NodeOptions::new())
+        .map_err(|e| setup(&e))?;
     let q = qos(Qos::Reliable);
     let name = Name::parse("/bench_volume").map_err(|e| setup(&e))?;
     let ty = || MessageTypeName::new("sensor_msgs", "Image");
@@ -263,7 +433,14 @@ fn dds_delivery(mib: usize, cpu: &str) -> Result<BenchRow, NodeBenchError> {
     let publisher = sender.create_publisher::<Image>(&topic_a, Some(q.clone())).map_err(|e| setup(&e))?;
     let subscription = receiver.create_subscription::<Image>(&topic_b, Some(q)).map_err(|e| setup(&e))?;
     std::thread::sleep(Duration::from_secs(2));
-    let image = Image { height: 1, width: (mib << 20) as u32, encoding: "mono8".into(), step: (mib << 20) as u32, data: vec![3u8; mib << 20], ..Default::default() };
+    let image = Image {
+        height: 1,
+        width: (mib << 20) as u32,
+        encoding: "mono8".into(),
+        step: (mib << 20) as u32,
+        data: vec![3u8; mib << 20],
+        ..Default::default()
+    };
     let mut samples = Vec::new();
     let mut lost = 0;
     for run in 0..7 {
@@ -287,6 +464,10 @@ fn dds_delivery(mib: usize, cpu: &str) -> Result<BenchRow, NodeBenchError> {
             (false, _) => lost += 1,
         }
     }
-    let note = if lost > 0 { format!("{lost} of 7 not delivered within 10 s") } else { "publish() to take(), reliable".into() };
+    let note = if lost > 0 {
+        format!("{lost} of 7 not delivered within 10 s")
+    } else {
+        "publish() to take(), reliable".into()
+    };
     Ok(row(samples, note))
 }

@@ -11,8 +11,8 @@ use super::{cpu_description, time_stats, BenchRow, ErrorMeasure, WarpCase};
 use crate::mesh::generate::{self, CellSplit};
 use crate::render::camera::{Camera, Projection};
 use crate::render::raycast::{self, RaycastParams, Shading, VolumeRaycaster};
-use crate::render::transfer::TransferFunction;
 use crate::render::tet_raycast::{self, TetRaycastParams, TetRaycaster};
+use crate::render::transfer::TransferFunction;
 use crate::render::RenderError;
 use crate::volume::{phantom, Volume};
 
@@ -26,7 +26,7 @@ pub struct RenderBenchOptions {
     /// Lattice meshes over the phantom for the tetrahedral-mesh raycaster (tets).
     pub meshes: Vec<usize>,
     /// Also time the GPU raycasters.
-    pub gpu: Option<crate::gpu_policy::GpuChoice>,
+    pub gpu: Option<crate::backend::Backend>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -51,11 +51,14 @@ pub fn phantom_camera(volume: &Volume, size: usize) -> Result<Camera, RenderErro
 
 fn warped_phantom(source: &Volume) -> Result<Volume, RenderBenchError> {
     let (lo, hi) = source.bounds();
-    let rest = generate::lattice_for_box(lo, hi, 700, CellSplit::Five).map_err(|e| RenderBenchError::Setup(e.to_string()))?;
+    let rest =
+        generate::lattice_for_box(lo, hi, 700, CellSplit::Five).map_err(|e| RenderBenchError::Setup(e.to_string()))?;
     let bent = WarpCase::Bend.deform(rest.nodes(), (lo + hi) / 2.0, (hi - lo) / 2.0);
     let grid = crate::warp::default_grid(source, &bent);
     let options = crate::warp::WarpOptions { background: source.range().0, ..Default::default() };
-    crate::warp::warp(source, &rest, &bent, &grid, &options).map(|(v, _)| v).map_err(|e| RenderBenchError::Setup(e.to_string()))
+    crate::warp::warp(source, &rest, &bent, &grid, &options)
+        .map(|(v, _)| v)
+        .map_err(|e| RenderBenchError::Setup(e.to_string()))
 }
 
 pub fn run(opts: &RenderBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result<(), RenderBenchError> {
@@ -67,14 +70,16 @@ pub fn run(opts: &RenderBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result
     }
     let tf = TransferFunction::preset("ct_soft_tissue")?;
     #[cfg(feature = "gpu")]
-    let gpu = opts.gpu.and_then(|choice| choice.context()).map(std::sync::Arc::new);
+    let gpu = opts.gpu.as_ref().and_then(crate::backend::Backend::context).cloned();
     for (name, volume) in &volumes {
         for &size in &opts.sizes {
             let camera = phantom_camera(volume, size)?;
             let background = [0.0, 0.0, 0.0, 1.0];
             let reference = raycast::reference(volume, &camera, &tf, opts.reference_step, background)?;
             for &step in &opts.steps {
-                for (preintegrated, shading) in [(true, Shading::None), (false, Shading::None), (true, Shading::Gradient)] {
+                for (preintegrated, shading) in
+                    [(true, Shading::None), (false, Shading::None), (true, Shading::Gradient)]
+                {
                     let params = RaycastParams { step, preintegrated, shading, background, ..Default::default() };
                     // Preparing (tables, macro cells) happens once per transfer function and
                     // step, not per frame: timed apart.
@@ -90,7 +95,11 @@ pub fn run(opts: &RenderBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result
                         samples.push(start.elapsed().as_secs_f64() * 1e3);
                     }
                     // The reference is unshaded: shaded rows are timed only.
-                    let error = (shading == Shading::None).then(|| ErrorMeasure { metric: "psnr_db", value: image.psnr(&reference), reference: "f64 point sampling" });
+                    let error = (shading == Shading::None).then(|| ErrorMeasure {
+                        metric: "psnr_db",
+                        value: image.psnr(&reference),
+                        reference: "f64 point sampling",
+                    });
                     emit(&BenchRow {
                         stage: "render",
                         case: format!("{name}_{size}"),
@@ -104,7 +113,15 @@ pub fn run(opts: &RenderBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result
                     });
                     #[cfg(feature = "gpu")]
                     if let (Some(ctx), Shading::None) = (&gpu, shading) {
-                        volume_gpu_row(ctx, &raycaster, &camera, &reference, &format!("{name}_{size}"), opts, &mut emit)?;
+                        volume_gpu_row(
+                            ctx,
+                            &raycaster,
+                            &camera,
+                            &reference,
+                            &format!("{name}_{size}"),
+                            opts,
+                            &mut emit,
+                        )?;
                     }
                 }
             }
@@ -112,7 +129,8 @@ pub fn run(opts: &RenderBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result
     }
     for &target in &opts.meshes {
         let (lo, hi) = source.bounds();
-        let mesh = generate::lattice_for_box(lo, hi, target, CellSplit::Five).map_err(|e| RenderBenchError::Setup(e.to_string()))?;
+        let mesh = generate::lattice_for_box(lo, hi, target, CellSplit::Five)
+            .map_err(|e| RenderBenchError::Setup(e.to_string()))?;
         let outside = source.range().0;
         let scalars: Vec<f32> = mesh.nodes().iter().map(|p| source.sample_world(*p).unwrap_or(outside)).collect();
         for &size in &opts.sizes {
@@ -121,7 +139,14 @@ pub fn run(opts: &RenderBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result
             // The f64 walk with the exact transfer function; no finer than 0.25 mm, which
             // is already below a level of error at these tet sizes.
             let reference_step = opts.reference_step.max(0.25);
-            let reference = tet_raycast::reference(&mesh, mesh.nodes(), &scalars, &camera, &tf, &TetRaycastParams { step: reference_step, background, ..Default::default() })?;
+            let reference = tet_raycast::reference(
+                &mesh,
+                mesh.nodes(),
+                &scalars,
+                &camera,
+                &tf,
+                &TetRaycastParams { step: reference_step, background, ..Default::default() },
+            )?;
             let case = format!("mesh{}k_{size}", mesh.tets().len() / 1000);
             for &step in &opts.steps {
                 for preintegrated in [true, false] {
@@ -147,7 +172,11 @@ pub fn run(opts: &RenderBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result
                         params: json!({"mode": "tet_mesh", "prepare_ms": prepare_ms, "update_ms": time_stats(updates).median, "step_mm": step, "preintegrated": preintegrated, "shading": "none", "reference_step_mm": reference_step, "tf": "ct_soft_tissue"}),
                         runs: samples.len(),
                         time_ms: time_stats(samples),
-                        error: Some(ErrorMeasure { metric: "psnr_db", value: image.psnr(&reference), reference: "f64 tet walk" }),
+                        error: Some(ErrorMeasure {
+                            metric: "psnr_db",
+                            value: image.psnr(&reference),
+                            reference: "f64 tet walk",
+                        }),
                         work: json!({"rays": size * size, "tets": mesh.tets().len()}),
                     });
                     #[cfg(feature = "gpu")]
@@ -163,7 +192,10 @@ pub fn run(opts: &RenderBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result
 
 /// Frames timed on the GPU, read-back included, after one to settle.
 #[cfg(feature = "gpu")]
-fn gpu_frames(runs: usize, mut frame: impl FnMut() -> Result<crate::render::Rendered, crate::gpu::raycast::GpuRenderError>) -> Result<(crate::render::Rendered, Vec<f64>), crate::gpu::raycast::GpuRenderError> {
+fn gpu_frames(
+    runs: usize,
+    mut frame: impl FnMut() -> Result<crate::render::Rendered, crate::render::raycast_gpu::GpuRenderError>,
+) -> Result<(crate::render::Rendered, Vec<f64>), crate::render::raycast_gpu::GpuRenderError> {
     let mut image = frame()?;
     let mut samples = Vec::with_capacity(runs);
     for _ in 0..runs {
@@ -176,8 +208,16 @@ fn gpu_frames(runs: usize, mut frame: impl FnMut() -> Result<crate::render::Rend
 
 /// The GPU twin of a CPU volume row: the same prepared tables and macro cells.
 #[cfg(feature = "gpu")]
-fn volume_gpu_row(ctx: &std::sync::Arc<crate::gpu::GpuContext>, prepared: &VolumeRaycaster, camera: &Camera, reference: &[[f64; 4]], case: &str, opts: &RenderBenchOptions, emit: &mut impl FnMut(&BenchRow)) -> Result<(), RenderBenchError> {
-    use crate::gpu::raycast::GpuVolumeRaycaster;
+fn volume_gpu_row(
+    ctx: &std::sync::Arc<crate::gpu::GpuContext>,
+    prepared: &VolumeRaycaster,
+    camera: &Camera,
+    reference: &[[f64; 4]],
+    case: &str,
+    opts: &RenderBenchOptions,
+    emit: &mut impl FnMut(&BenchRow),
+) -> Result<(), RenderBenchError> {
+    use crate::render::raycast_gpu::GpuVolumeRaycaster;
     let raycaster = match GpuVolumeRaycaster::new(ctx.clone(), prepared) {
         Ok(r) => r,
         Err(e) => {
@@ -185,7 +225,8 @@ fn volume_gpu_row(ctx: &std::sync::Arc<crate::gpu::GpuContext>, prepared: &Volum
             return Ok(());
         }
     };
-    let (image, samples) = gpu_frames(opts.runs, || raycaster.render(camera)).map_err(|e| RenderBenchError::Gpu(e.to_string()))?;
+    let (image, samples) =
+        gpu_frames(opts.runs, || raycaster.render(camera)).map_err(|e| RenderBenchError::Gpu(e.to_string()))?;
     let params = &prepared.params;
     emit(&BenchRow {
         stage: "render",
@@ -203,10 +244,18 @@ fn volume_gpu_row(ctx: &std::sync::Arc<crate::gpu::GpuContext>, prepared: &Volum
 
 /// The GPU twin of a CPU mesh row: positions uploaded and geometry refreshed every frame.
 #[cfg(feature = "gpu")]
-fn mesh_gpu_row(ctx: &std::sync::Arc<crate::gpu::GpuContext>, prepared: &TetRaycaster, nodes: &[nalgebra::Vector3<f64>], camera: &Camera, reference: &[[f64; 4]], case: &str, emit: &mut impl FnMut(&BenchRow)) -> Result<(), RenderBenchError> {
-    use crate::gpu::tet_raycast::GpuTetRaycaster;
-    let gpu_err = |e: crate::gpu::raycast::GpuRenderError| RenderBenchError::Gpu(e.to_string());
-    let mut raycaster = match GpuTetRaycaster::new(ctx.clone(), prepared) {
+fn mesh_gpu_row(
+    ctx: &std::sync::Arc<crate::gpu::GpuContext>,
+    prepared: &TetRaycaster,
+    nodes: &[nalgebra::Vector3<f64>],
+    camera: &Camera,
+    reference: &[[f64; 4]],
+    case: &str,
+    emit: &mut impl FnMut(&BenchRow),
+) -> Result<(), RenderBenchError> {
+    use crate::render::tet_raycast_gpu::GpuTetRaycaster;
+    let gpu_err = |e: crate::render::raycast_gpu::GpuRenderError| RenderBenchError::Gpu(e.to_string());
+    let mut raycaster = match GpuTetRaycaster::new(ctx.clone(), prepared, 1.0) {
         Ok(r) => r,
         Err(e) => {
             tracing::warn!("GPU tet raycaster unavailable: {e}");

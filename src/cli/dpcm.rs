@@ -11,9 +11,10 @@ use nalgebra::Isometry3;
 
 use defvol::dpcm::engine::DpcmEngine;
 use defvol::dpcm::markers::{Calibration, MotionFile, UdpSource};
-use defvol::dpcm::render::{self, ColorMap};
+use defvol::dpcm::render;
 use defvol::dpcm::{DpcmConfig, Marker, StepStats};
-use defvol::engine::BackendChoice;
+
+use super::choices::{CliBackend, CliColorMap};
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum Output {
@@ -68,14 +69,14 @@ pub struct DpcmArgs {
     render: Vec<Output>,
     /// Colour map (the configuration's when absent).
     #[arg(long, value_enum)]
-    colormap: Option<ColorMap>,
+    colormap: Option<CliColorMap>,
     /// Every S-th phyxel a vertex of the displacement mesh.
     #[arg(long, default_value_t = 2)]
     mesh_stride: usize,
     #[arg(long, default_value = "out/dpcm")]
     out: PathBuf,
     #[arg(long, value_enum, default_value = "auto")]
-    backend: BackendChoice,
+    backend: CliBackend,
     /// Let a software adapter (llvmpipe) run the GPU path.
     #[arg(long)]
     allow_software_gpu: bool,
@@ -102,16 +103,19 @@ pub fn run(args: DpcmArgs) -> Result<()> {
         None => DpcmConfig::preset(&args.preset)?,
     };
     if let Some(size) = &args.size {
-        let parsed: Option<(usize, usize)> = size.split_once('x').and_then(|(w, h)| Some((w.trim().parse().ok()?, h.trim().parse().ok()?)));
+        let parsed: Option<(usize, usize)> =
+            size.split_once('x').and_then(|(w, h)| Some((w.trim().parse().ok()?, h.trim().parse().ok()?)));
         let Some((w, h)) = parsed else { bail!("--size `{size}`: expected WxH, e.g. 1100x1100") };
         (config.width, config.height) = (w, h);
     }
     if let Some(map) = args.colormap {
-        config.render.colormap = map;
+        config.render.colormap = map.into();
     }
     let mut source = if let Some(path) = &args.markers {
         let calibration = match &args.origin {
-            Some(o) => Calibration { world_from_grid: Isometry3::translation(o[0], o[1], o[2]), spacing: config.spacing },
+            Some(o) => {
+                Calibration { world_from_grid: Isometry3::translation(o[0], o[1], o[2]), spacing: config.spacing }
+            }
             None => Calibration::centred(&config),
         };
         let is_mcap = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("mcap"));
@@ -122,15 +126,21 @@ pub fn run(args: DpcmArgs) -> Result<()> {
             tracing::warn!("listening for UDP markers on {addr}: reachable from other hosts");
         }
         let udp = UdpSource::bind(addr)?;
-        tracing::info!("listening for UDP marker frames on {}", udp.local_addr().map_or(addr.to_string(), |a| a.to_string()));
+        tracing::info!(
+            "listening for UDP marker frames on {}",
+            udp.local_addr().map_or(addr.to_string(), |a| a.to_string())
+        );
         Source::Udp(udp, args.udp_height.unwrap_or_else(|| config.script.pressing_height(&config)))
     } else {
         Source::Script
     };
-    let mut engine = DpcmEngine::new(&config, args.backend, args.allow_software_gpu)?;
+    let mut engine = DpcmEngine::new(&config, &super::backend_of(args.backend, args.allow_software_gpu)?)?;
     tracing::info!("DPCM {}x{} on {}", config.width, config.height, engine.name());
     std::fs::create_dir_all(&args.out).with_context(|| format!("cannot create {}", args.out.display()))?;
-    let progress = ProgressBar::new(args.steps).with_style(ProgressStyle::with_template("{bar:40} {pos}/{len} steps {per_sec} {msg}").unwrap_or_else(|_| ProgressStyle::default_bar()));
+    let progress = ProgressBar::new(args.steps).with_style(
+        ProgressStyle::with_template("{bar:40} {pos}/{len} steps {per_sec} {msg}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
     let mut totals = StepStats::default();
     let started = Instant::now();
     for step in 0..args.steps {
@@ -168,15 +178,27 @@ pub fn run(args: DpcmArgs) -> Result<()> {
     );
     if let Source::Udp(udp, _) = &source {
         let c = udp.parser.counts;
-        tracing::info!("UDP frames: {} received, {} lost, {} malformed, {} out of order", c.received, c.lost, c.malformed, c.out_of_order);
+        tracing::info!(
+            "UDP frames: {} received, {} lost, {} malformed, {} out of order",
+            c.received,
+            c.lost,
+            c.malformed,
+            c.out_of_order
+        );
     }
     write_outputs(&args, &config, &engine, None)
 }
 
 #[cfg(feature = "mcap")]
 fn load_mcap(path: &std::path::Path, topics: &[String]) -> Result<MotionFile> {
-    let (motion, counts) = MotionFile::from_mcap(path, topics)?;
-    tracing::info!("{}: {} tool poses on {} as markers 0.., {} dropped", path.display(), counts.messages, counts.topics.join(", "), counts.dropped);
+    let (motion, counts) = defvol::record::bag::motion_from_bag(path, topics)?;
+    tracing::info!(
+        "{}: {} tool poses on {} as markers 0.., {} dropped",
+        path.display(),
+        counts.messages,
+        counts.topics.join(", "),
+        counts.dropped
+    );
     Ok(motion)
 }
 

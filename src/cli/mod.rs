@@ -1,5 +1,81 @@
-pub mod dpcm;
-pub mod render;
+//! The `defvol` subcommands: their arguments, the mapping onto the library's types
+//! (`choices.rs`), and their bodies, one file each.
+
+mod bench;
+mod choices;
+mod demo;
+mod dpcm;
+mod render;
 #[cfg(feature = "mcap")]
-pub mod replay;
-pub mod session;
+mod replay;
+mod simulate;
+mod warp;
+
+use anyhow::Result;
+use clap::{Parser, Subcommand};
+
+#[derive(Parser)]
+#[command(
+    name = "defvol",
+    version,
+    about = "Deformable volumes: implicit mass-spring meshes, grid warps, DPCM surfaces and raycast images on the GPU and the CPU"
+)]
+pub struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Run a mesh for N steps with a scripted tool; write the final mesh and a per-step CSV.
+    Simulate(simulate::SimulateArgs),
+    /// Warp a volume through a deformed mesh and/or displacement volumes; with no files,
+    /// the phantom through a generated bend and press.
+    Warp(warp::WarpArgs),
+    /// Run a DPCM surface (phyxels engraved by markers) and write its renderings.
+    Dpcm(dpcm::DpcmArgs),
+    /// A raycast image of a volume (the phantom when no file is given).
+    Render(render::RenderArgs),
+    /// The node's pipeline on a scene with its scripted tool path, no DDS: writes
+    /// DIR/demo.mcap (a rosbag2 MCAP) and DIR/demo.rrd (a rerun log).
+    Demo(demo::DemoArgs),
+    /// Run the pipeline from the tool poses and wrenches of a recorded bag.
+    #[cfg(feature = "mcap")]
+    Replay(replay::ReplayArgs),
+    /// The ROS 2 node (as `defvol_node`): `defvol node [--record F.mcap] --ros-args -p …`.
+    #[cfg(feature = "ros")]
+    Node {
+        /// The node's options and its ROS arguments, as `defvol_node` takes them.
+        #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
+        args: Vec<String>,
+    },
+    /// Measure a stage: run time against error.
+    Bench {
+        #[command(subcommand)]
+        stage: bench::BenchStage,
+    },
+}
+
+pub fn run(cli: Cli) -> Result<()> {
+    match cli.command {
+        Command::Simulate(args) => simulate::run(args),
+        Command::Warp(args) => warp::run(args),
+        Command::Dpcm(args) => dpcm::run(args),
+        Command::Render(args) => render::run(args),
+        Command::Demo(args) => demo::run(args),
+        #[cfg(feature = "mcap")]
+        Command::Replay(args) => replay::run(args),
+        #[cfg(feature = "ros")]
+        Command::Node { args } => {
+            let settings = defvol::ros::node::settings_from_args(&args)?;
+            defvol::ros::node::run(settings)?;
+            Ok(())
+        }
+        Command::Bench { stage } => bench::run(stage),
+    }
+}
+
+/// The backend of a command without a scene: `--backend` and `--allow-software-gpu`.
+fn backend_of(choice: choices::CliBackend, allow_software_gpu: bool) -> Result<defvol::backend::Backend> {
+    Ok(defvol::backend::Backend::choose(choice.into(), allow_software_gpu)?)
+}

@@ -6,10 +6,13 @@ use anyhow::{bail, Context, Result};
 use nalgebra::{Point3, Vector3};
 
 use defvol::render::camera::{Camera, Projection};
-use defvol::render::raycast::{self, Mode, RaycastParams, Shading};
+use defvol::render::engine::{MeshRenderer, Shown, VolumeRenderer};
+use defvol::render::raycast::{self, RaycastParams, VolumeRaycaster};
 use defvol::render::tet_raycast::{TetRaycastParams, TetRaycaster};
 use defvol::render::transfer::TransferFunction;
 use defvol::volume::{phantom, Volume};
+
+use super::choices::{CliBackend, CliMode, CliShading};
 
 #[derive(clap::Args)]
 pub struct RenderArgs {
@@ -52,12 +55,12 @@ pub struct RenderArgs {
     #[arg(long)]
     ortho: Option<f64>,
     #[arg(long, value_enum, default_value = "composite")]
-    mode: Mode,
+    mode: CliMode,
     /// Iso value for --mode iso.
     #[arg(long, default_value_t = 300.0)]
     iso: f64,
     #[arg(long, value_enum, default_value = "gradient")]
-    shading: Shading,
+    shading: CliShading,
     /// Sample spacing along rays (world units; default 1). With --mesh and pre-integration:
     /// the longest piece of a tet's segment one table lookup covers (default 4).
     #[arg(long)]
@@ -72,7 +75,7 @@ pub struct RenderArgs {
     #[arg(long, default_value = "render.png")]
     out: PathBuf,
     #[arg(long, value_enum, default_value = "auto")]
-    backend: defvol::engine::BackendChoice,
+    backend: CliBackend,
     /// Let a software adapter (llvmpipe) run the GPU path.
     #[arg(long)]
     allow_software_gpu: bool,
@@ -82,47 +85,24 @@ pub struct RenderArgs {
     depth_out: Option<PathBuf>,
 }
 
-/// A raycaster prepared on the CPU (tables, topology), to run on the backend asked for.
-enum Prepared<'a> {
-    Volume(raycast::VolumeRaycaster<'a>),
-    Mesh(TetRaycaster),
-}
-
-/// The GPU path when asked for and possible, else the CPU path (with a log line saying why).
-fn render_on_backend(args: &RenderArgs, prepared: &Prepared, camera: &Camera) -> Result<(defvol::render::Rendered, String)> {
-    #[cfg(feature = "gpu")]
-    if matches!(args.backend, defvol::engine::BackendChoice::Auto | defvol::engine::BackendChoice::Gpu) {
-        let choice = defvol::gpu_policy::GpuChoice { allow_software: args.allow_software_gpu, required: args.backend == defvol::engine::BackendChoice::Gpu };
-        if let Some(ctx) = choice.context() {
-            let (name, ctx) = (ctx.describe(), std::sync::Arc::new(ctx));
-            let image = match prepared {
-                Prepared::Volume(p) => defvol::gpu::raycast::GpuVolumeRaycaster::new(ctx, p).and_then(|g| g.render(camera)),
-                Prepared::Mesh(p) => defvol::gpu::tet_raycast::GpuTetRaycaster::new(ctx, p).and_then(|g| g.render(camera)),
-            };
-            match image {
-                Ok(image) => return Ok((image, name)),
-                Err(e) => tracing::warn!("GPU raycaster not used: {e}; the CPU path runs"),
-            }
-        }
-    }
-    #[cfg(not(feature = "gpu"))]
-    let _ = (args.backend, args.allow_software_gpu);
-    let image = match prepared {
-        Prepared::Volume(p) => p.render(camera)?,
-        Prepared::Mesh(p) => p.render(camera)?,
-    };
-    Ok((image, format!("cpu ({} threads)", rayon::current_num_threads())))
-}
-
 fn tool(text: &str) -> Result<raycast::ToolPicture> {
     let parts: Vec<&str> = text.split(':').collect();
     let [tip, tail, radius] = parts[..] else { bail!("--tool `{text}`: expected TIP:TAIL:RADIUS as x,y,z:x,y,z:r") };
     let radius: f64 = radius.trim().parse().with_context(|| format!("--tool `{text}`: bad radius"))?;
-    Ok(raycast::ToolPicture { tip: point(tip)?.coords.into(), tail: point(tail)?.coords.into(), radius, color: [0.75, 0.78, 0.82] })
+    Ok(raycast::ToolPicture {
+        tip: point(tip)?.coords.into(),
+        tail: point(tail)?.coords.into(),
+        radius,
+        color: [0.75, 0.78, 0.82],
+    })
 }
 
 fn point(text: &str) -> Result<Point3<f64>> {
-    let v: Vec<f64> = text.split(',').map(|c| c.trim().parse::<f64>()).collect::<Result<_, _>>().with_context(|| format!("`{text}` is not x,y,z"))?;
+    let v: Vec<f64> = text
+        .split(',')
+        .map(|c| c.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .with_context(|| format!("`{text}` is not x,y,z"))?;
     let [x, y, z] = v[..] else { bail!("`{text}` is not x,y,z") };
     Ok(Point3::new(x, y, z))
 }
@@ -135,11 +115,16 @@ pub fn run(args: RenderArgs) -> Result<()> {
     let tf = match &args.tf_file {
         Some(path) => {
             let text = std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
-            serde_yaml_ng::from_str::<TransferFunction>(&text).with_context(|| format!("{}: not a transfer function", path.display()))?
+            serde_yaml_ng::from_str::<TransferFunction>(&text)
+                .with_context(|| format!("{}: not a transfer function", path.display()))?
         }
         None => TransferFunction::preset(&args.tf)?,
     };
-    let Some((w, h)) = args.size.split_once('x').and_then(|(w, h)| Some((w.trim().parse::<usize>().ok()?, h.trim().parse::<usize>().ok()?))) else {
+    let Some((w, h)) = args
+        .size
+        .split_once('x')
+        .and_then(|(w, h)| Some((w.trim().parse::<usize>().ok()?, h.trim().parse::<usize>().ok()?)))
+    else {
         bail!("--size `{}`: expected WxH, e.g. 512x512", args.size)
     };
     let projection = match args.ortho {
@@ -148,7 +133,9 @@ pub fn run(args: RenderArgs) -> Result<()> {
     };
     let camera = match &args.camera {
         Some(text) => {
-            let Some((eye, target)) = text.split_once(':') else { bail!("--camera `{text}`: expected EYE:TARGET as x,y,z:x,y,z") };
+            let Some((eye, target)) = text.split_once(':') else {
+                bail!("--camera `{text}`: expected EYE:TARGET as x,y,z:x,y,z")
+            };
             let up = Vector3::new(args.up[0], args.up[1], args.up[2]);
             Camera::look_at(point(eye)?, point(target)?, up, projection, w, h)?
         }
@@ -160,7 +147,16 @@ pub fn run(args: RenderArgs) -> Result<()> {
         }
     };
     let tools = args.tool.iter().map(|t| tool(t)).collect::<Result<Vec<_>>>()?;
-    let params = RaycastParams { mode: args.mode, step: args.step.unwrap_or(1.0), preintegrated: !args.no_preintegration, shading: args.shading, iso_value: args.iso, tools, ..Default::default() };
+    let params = RaycastParams {
+        mode: args.mode.into(),
+        step: args.step.unwrap_or(1.0),
+        preintegrated: !args.no_preintegration,
+        shading: args.shading.into(),
+        iso_value: args.iso,
+        tools: tools.clone(),
+        ..Default::default()
+    };
+    let backend = super::backend_of(args.backend, args.allow_software_gpu)?;
     let started = std::time::Instant::now();
     let (image, on) = match &args.mesh {
         Some(path) => {
@@ -180,14 +176,24 @@ pub fn run(args: RenderArgs) -> Result<()> {
             };
             let preintegrated = !args.no_preintegration;
             let step = args.step.unwrap_or(if preintegrated { 4.0 } else { 1.0 });
-            let tet_params = TetRaycastParams { step, preintegrated, background: params.background, tools: params.tools.clone(), ambient: params.ambient, ..Default::default() };
+            let tet_params = TetRaycastParams {
+                step,
+                preintegrated,
+                background: params.background,
+                tools: params.tools.clone(),
+                ambient: params.ambient,
+                ..Default::default()
+            };
             let raycaster = TetRaycaster::new(&mesh, &scalars, &tf, &tet_params)?;
-            let (image, on) = render_on_backend(&args, &Prepared::Mesh(raycaster), &camera)?;
-            (image, format!("{on}, {} tets", mesh.tets().len()))
+            let mut renderer = MeshRenderer::new(&backend, raycaster, 1.0)?;
+            let image = renderer.render(&tools, &camera)?;
+            (image, format!("{} ({}), {} tets", renderer.backend(), backend.describe(), mesh.tets().len()))
         }
         None => {
-            let prepared = raycast::VolumeRaycaster::new(&volume, &tf, &params)?;
-            render_on_backend(&args, &Prepared::Volume(prepared), &camera)?
+            let tables = std::sync::Arc::new(VolumeRaycaster::tables_for(volume.range(), &tf, &params)?);
+            let mut renderer = VolumeRenderer::new(&backend, &volume, tables, &params)?;
+            let image = renderer.render(Shown::Host(&volume), &tools, &camera)?;
+            (image, format!("{} ({})", renderer.backend(), backend.describe()))
         }
     };
     tracing::info!("rendered {w}x{h} on {on} in {:.1} ms", started.elapsed().as_secs_f64() * 1e3);
@@ -195,7 +201,14 @@ pub fn run(args: RenderArgs) -> Result<()> {
     tracing::info!("wrote {}", args.out.display());
     if let Some(path) = &args.depth_out {
         let depth: Vec<f32> = image.depth.iter().map(|d| if d.is_finite() { *d } else { 0.0 }).collect();
-        let out = Volume::new([w, h, 1], [1.0; 3], [0.0; 3], nalgebra::Matrix3::identity(), depth, &path.display().to_string())?;
+        let out = Volume::new(
+            [w, h, 1],
+            [1.0; 3],
+            [0.0; 3],
+            nalgebra::Matrix3::identity(),
+            depth,
+            &path.display().to_string(),
+        )?;
         defvol::io::write_volume(path, &out)?;
         tracing::info!("wrote {}", path.display());
     }

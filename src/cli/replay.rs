@@ -6,13 +6,13 @@ use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context, Result};
 
-use defvol::engine::BackendChoice;
 use defvol::msgs::{self, PoseStamped, Time, WrenchStamped};
 use defvol::pipeline::{Demand, FrameMode, Pipeline};
 use defvol::record::bag;
 use defvol::session::{qualified, RecordOptions, Session};
 
-use super::session::{load_scene, progress, replay_limits};
+use super::choices::CliBackend;
+use super::demo::{load_scene, progress, replay_limits};
 
 #[derive(clap::Args)]
 pub struct ReplayArgs {
@@ -35,7 +35,7 @@ pub struct ReplayArgs {
     realtime: bool,
     /// Solver backend; the CPU path is deterministic (the same bag, the same outputs).
     #[arg(long, value_enum, default_value = "cpu")]
-    backend: BackendChoice,
+    backend: CliBackend,
     #[arg(long)]
     allow_software_gpu: bool,
 }
@@ -46,12 +46,19 @@ enum Input {
     Wrench(String, WrenchStamped),
 }
 
-pub fn replay(args: ReplayArgs) -> Result<()> {
+pub fn run(args: ReplayArgs) -> Result<()> {
     let scene = load_scene(&args.scene)?;
-    let mut pipeline = Pipeline::new(scene, args.backend, args.allow_software_gpu, replay_limits(), FrameMode::Lockstep).context("starting the pipeline")?;
+    let backend = scene.backend(Some(args.backend.into()), args.allow_software_gpu)?;
+    let mut pipeline =
+        Pipeline::new(scene, &backend, replay_limits(), FrameMode::Lockstep).context("starting the pipeline")?;
     let topics = pipeline.tool_topics();
-    let wanted: Vec<(String, usize, bool)> =
-        topics.iter().enumerate().flat_map(|(i, (pose, wrench))| [(qualified(&args.namespace, pose), i, true), (qualified(&args.namespace, wrench), i, false)]).collect();
+    let wanted: Vec<(String, usize, bool)> = topics
+        .iter()
+        .enumerate()
+        .flat_map(|(i, (pose, wrench))| {
+            [(qualified(&args.namespace, pose), i, true), (qualified(&args.namespace, wrench), i, false)]
+        })
+        .collect();
     let names: Vec<&str> = wanted.iter().map(|(t, _, _)| t.as_str()).collect();
     let recorded = bag::read_messages(&args.bag, &names)?;
     if recorded.is_empty() {
@@ -65,7 +72,11 @@ pub fn replay(args: ReplayArgs) -> Result<()> {
     for m in &recorded {
         let Some((_, index, is_pose)) = wanted.iter().find(|(t, _, _)| *t == m.topic) else { continue };
         let (pose_topic, wrench_topic) = &topics[*index];
-        let decoded = if *is_pose { msgs::decode::<PoseStamped>(&m.data, &m.topic).map(|p| Input::Pose(pose_topic.clone(), p)) } else { msgs::decode::<WrenchStamped>(&m.data, &m.topic).map(|w| Input::Wrench(wrench_topic.clone(), w)) };
+        let decoded = if *is_pose {
+            msgs::decode::<PoseStamped>(&m.data, &m.topic).map(|p| Input::Pose(pose_topic.clone(), p))
+        } else {
+            msgs::decode::<WrenchStamped>(&m.data, &m.topic).map(|w| Input::Wrench(wrench_topic.clone(), w))
+        };
         match decoded {
             Ok(input) => inputs.push((m.log_time_ns, input)),
             Err(e) => {
@@ -124,6 +135,11 @@ pub fn replay(args: ReplayArgs) -> Result<()> {
     session.finish()?;
     outcome.context("the pipeline stopped")?;
     let counters = pipeline.counters();
-    tracing::info!("replayed {} inputs ({} refused, {undecodable} undecodable) over {steps} steps in {:.2} s", counters.accepted, counters.total_rejected(), wall_start.elapsed().as_secs_f64());
+    tracing::info!(
+        "replayed {} inputs ({} refused, {undecodable} undecodable) over {steps} steps in {:.2} s",
+        counters.accepted,
+        counters.total_rejected(),
+        wall_start.elapsed().as_secs_f64()
+    );
     Ok(())
 }

@@ -1,16 +1,14 @@
-//! The DPCM on whichever backend is available: the GPU twin when asked for and possible,
-//! else the CPU surface.
+//! The DPCM surface on the run's backend: the GPU twin when the backend is a GPU (and the
+//! grid fits the adapter), else the CPU surface; one interface for both.
 
 use super::{DpcmConfig, DpcmError, Marker, StepStats, Surface};
-use crate::engine::BackendChoice;
-#[cfg(feature = "gpu")]
-use crate::gpu_policy::GpuChoice;
+use crate::backend::Backend;
 
 pub enum DpcmEngine {
     Cpu(Surface),
     #[cfg(feature = "gpu")]
     Gpu {
-        surface: crate::gpu::dpcm::GpuSurface,
+        surface: super::gpu::GpuSurface,
         name: String,
         /// The initial rest heights, for the displacement.
         initial: Vec<f32>,
@@ -18,31 +16,39 @@ pub enum DpcmEngine {
 }
 
 impl DpcmEngine {
-    /// `Auto` takes a hardware GPU when there is one; `Gpu` falls back to the CPU with a
-    /// warning; `Cpu`/`CpuF64` run the CPU surface (it is f32 by design, as the seed).
-    pub fn new(config: &DpcmConfig, backend: BackendChoice, allow_software_gpu: bool) -> Result<Self, DpcmError> {
+    /// The surface of `config` on `backend` (f32 on both, as in the seed).
+    pub fn new(config: &DpcmConfig, backend: &Backend) -> Result<Self, DpcmError> {
         let surface = Surface::new(config)?;
         #[cfg(feature = "gpu")]
-        if matches!(backend, BackendChoice::Auto | BackendChoice::Gpu) {
-            let choice = GpuChoice { allow_software: allow_software_gpu, required: backend == BackendChoice::Gpu };
-            if let Some(ctx) = choice.context() {
-                let name = ctx.describe();
-                match crate::gpu::dpcm::GpuSurface::from_surface(std::sync::Arc::new(ctx), &surface) {
-                    Ok(gpu) => return Ok(Self::Gpu { surface: gpu, name, initial: surface.heights().to_vec() }),
-                    Err(e) => tracing::warn!("GPU DPCM not used: {e}; the CPU path runs"),
-                }
+        {
+            let gpu = backend
+                .try_gpu("dpcm", |ctx| {
+                    super::gpu::GpuSurface::from_surface(ctx.clone(), &surface).map(|gpu| (gpu, ctx.describe()))
+                })
+                .map_err(|e| DpcmError::Gpu(e.to_string()))?;
+            if let Some((gpu, name)) = gpu {
+                return Ok(Self::Gpu { surface: gpu, name, initial: surface.heights() });
             }
         }
         #[cfg(not(feature = "gpu"))]
-        let _ = (backend, allow_software_gpu);
+        let _ = backend;
         Ok(Self::Cpu(surface))
+    }
+
+    /// "cpu" or "gpu".
+    pub fn backend(&self) -> &'static str {
+        match self {
+            Self::Cpu(_) => "cpu",
+            #[cfg(feature = "gpu")]
+            Self::Gpu { .. } => "gpu",
+        }
     }
 
     pub fn name(&self) -> String {
         match self {
             Self::Cpu(_) => format!("cpu ({} threads)", rayon::current_num_threads()),
             #[cfg(feature = "gpu")]
-            Self::Gpu { name, .. } => format!("gpu {name}"),
+            Self::Gpu { name, .. } => format!("gpu: {name}"),
         }
     }
 
@@ -57,7 +63,7 @@ impl DpcmEngine {
     /// Z(n) (read back from the GPU).
     pub fn heights(&self) -> Result<Vec<f32>, DpcmError> {
         match self {
-            Self::Cpu(s) => Ok(s.heights().to_vec()),
+            Self::Cpu(s) => Ok(s.heights()),
             #[cfg(feature = "gpu")]
             Self::Gpu { surface, .. } => surface.read_heights().map_err(|e| DpcmError::Gpu(e.to_string())),
         }
@@ -66,7 +72,7 @@ impl DpcmEngine {
     /// Z(n) and Z(n) minus the initial rest height.
     pub fn heights_and_displacement(&self) -> Result<(Vec<f32>, Vec<f32>), DpcmError> {
         match self {
-            Self::Cpu(s) => Ok((s.heights().to_vec(), s.displacement())),
+            Self::Cpu(s) => Ok((s.heights(), s.displacement())),
             #[cfg(feature = "gpu")]
             Self::Gpu { initial, .. } => {
                 let z = self.heights()?;

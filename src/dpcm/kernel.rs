@@ -126,7 +126,16 @@ pub fn link_exists(c: &Coeffs, width: usize, height: usize, x: usize, y: usize, 
 /// `order` (absent links add 0, which changes no sum).
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
-fn family_sums(c: &Coeffs, order: &[(isize, isize); 4], u: &[f32], up: &[f32], width: usize, height: usize, x: usize, y: usize) -> (f32, f32, f32) {
+fn family_sums(
+    c: &Coeffs,
+    order: &[(isize, isize); 4],
+    u: &[f32],
+    up: &[f32],
+    width: usize,
+    height: usize,
+    x: usize,
+    y: usize,
+) -> (f32, f32, f32) {
     let mut su = [0.0f32; 4];
     let mut sp = [0.0f32; 4];
     let mut n = 0.0f32;
@@ -161,7 +170,8 @@ pub fn plastic_rest(c: &Coeffs, rest: f32, z: f32) -> f32 {
 fn combine(c: &Coeffs, sums: [f32; 4], self_a: f32, self_b: f32, ga: f32, gb: f32, rest: f32, u: f32, up: f32) -> f32 {
     let [su_ax, sp_ax, su_dg, sp_dg] = sums;
     let v = u - up;
-    let links = ((c.axial_ab * su_ax - c.axial_b * sp_ax) + (c.diag_ab * su_dg - c.diag_b * sp_dg)) - (self_a * u + self_b * v);
+    let links =
+        ((c.axial_ab * su_ax - c.axial_b * sp_ax) + (c.diag_ab * su_dg - c.diag_b * sp_dg)) - (self_a * u + self_b * v);
     let ground = ga * (u - rest) + gb * v;
     flush_tiny(2.0 * u - up + (links - ground))
 }
@@ -170,7 +180,18 @@ fn combine(c: &Coeffs, sums: [f32; 4], self_a: f32, self_b: f32, ga: f32, gb: f3
 /// (borders lose their outward links). `ground_a`/`ground_b` are the phyxel's own.
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
-pub fn phyxel_update(c: &Coeffs, ground_a: f32, ground_b: f32, rest: f32, u: &[f32], up: &[f32], width: usize, height: usize, x: usize, y: usize) -> f32 {
+pub fn phyxel_update(
+    c: &Coeffs,
+    ground_a: f32,
+    ground_b: f32,
+    rest: f32,
+    u: &[f32],
+    up: &[f32],
+    width: usize,
+    height: usize,
+    x: usize,
+    y: usize,
+) -> f32 {
     let i = y * width + x;
     let (mut ax, mut dg) = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0));
     if c.has_axial != 0 {
@@ -279,7 +300,13 @@ pub fn link_masks(c: &Coeffs, width: usize, height: usize) -> Vec<u8> {
     (0..width * height)
         .map(|i| {
             let (x, y) = (i % width, i / width);
-            AXIAL.iter().chain(&DIAGONAL).enumerate().fold(0u8, |mask, (bit, &(dx, dy))| if link_exists(c, width, height, x, y, dx, dy).is_some() { mask | 1 << bit } else { mask })
+            AXIAL.iter().chain(&DIAGONAL).enumerate().fold(0u8, |mask, (bit, &(dx, dy))| {
+                if link_exists(c, width, height, x, y, dx, dy).is_some() {
+                    mask | 1 << bit
+                } else {
+                    mask
+                }
+            })
         })
         .collect()
 }
@@ -298,7 +325,15 @@ pub struct Rows<'a> {
 /// compiler vectorises it. Same expression tree as [`phyxel_update`]: the two agree bit for
 /// bit (tested), the general form being the reference and the border path.
 #[inline(always)]
-pub fn interior_row<const AX: bool, const DG: bool, M: LinkMask, GA: Field, GB: Field, R: RestRow>(c: &Coeffs, links: M, ga: GA, gb: GB, mut rest: R, r: &Rows, out: &mut [f32]) {
+pub fn interior_row<const AX: bool, const DG: bool, M: LinkMask, GA: Field, GB: Field, R: RestRow>(
+    c: &Coeffs,
+    links: M,
+    ga: GA,
+    gb: GB,
+    mut rest: R,
+    r: &Rows,
+    out: &mut [f32],
+) {
     let w = out.len();
     let (up, mid, down) = (&r.up[..w], &r.mid[..w], &r.down[..w]);
     let (up_p, mid_p, down_p) = (&r.up_p[..w], &r.mid_p[..w], &r.down_p[..w]);

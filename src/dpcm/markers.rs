@@ -16,8 +16,8 @@ use super::{DpcmConfig, Marker};
 pub enum MarkerError {
     #[error("{path}: {message}")]
     MotionFile { path: PathBuf, message: String },
-    #[error("{path}: {message}")]
-    Mcap { path: PathBuf, message: String },
+    #[error("no marker samples")]
+    NoSamples,
     #[error("cannot listen for UDP markers on {addr}: {source}")]
     Bind { addr: SocketAddr, source: std::io::Error },
     #[error("receiving UDP markers failed: {0}")]
@@ -36,7 +36,8 @@ pub struct Calibration {
 impl Calibration {
     /// A grid lying in the world's xy plane, centred on the origin.
     pub fn centred(config: &DpcmConfig) -> Self {
-        let half = nalgebra::Vector3::new((config.width - 1) as f64, (config.height - 1) as f64, 0.0) * (0.5 * config.spacing);
+        let half =
+            nalgebra::Vector3::new((config.width - 1) as f64, (config.height - 1) as f64, 0.0) * (0.5 * config.spacing);
         Self { world_from_grid: Isometry3::translation(-half.x, -half.y, 0.0), spacing: config.spacing }
     }
 
@@ -67,7 +68,7 @@ impl Default for Script {
     }
 }
 
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Pattern {
     /// Markers on evenly spaced rows crossing the grid from left to right (tracks, boats).
@@ -109,7 +110,10 @@ impl Script {
                     Pattern::Wander => {
                         let phase = 2.399_963 * i as f64; // golden angle: spread without pattern
                         let s = travelled / (w + h);
-                        (0.5 * w + 0.45 * w * (s * 1.3 + phase).sin(), 0.5 * h + 0.45 * h * (s * 1.7 + 1.3 * phase).cos())
+                        (
+                            0.5 * w + 0.45 * w * (s * 1.3 + phase).sin(),
+                            0.5 * h + 0.45 * h * (s * 1.7 + 1.3 * phase).cos(),
+                        )
                     }
                 };
                 Marker { id: i as u32, col, row, height, params: None }
@@ -138,7 +142,11 @@ pub struct MotionFile {
 impl MotionFile {
     pub fn load(path: &Path) -> Result<Self, MarkerError> {
         let bad = |message: String| MarkerError::MotionFile { path: path.to_owned(), message };
-        let mut reader = csv::ReaderBuilder::new().trim(csv::Trim::All).comment(Some(b'#')).from_path(path).map_err(|e| bad(e.to_string()))?;
+        let mut reader = csv::ReaderBuilder::new()
+            .trim(csv::Trim::All)
+            .comment(Some(b'#'))
+            .from_path(path)
+            .map_err(|e| bad(e.to_string()))?;
         let mut tracks: BTreeMap<u32, Vec<(f64, Point3<f64>)>> = BTreeMap::new();
         for (line, row) in reader.deserialize::<MotionRow>().enumerate() {
             let row = row.map_err(|e| bad(format!("row {}: {e} (columns: time,marker,x,y,z)", line + 1)))?;
@@ -147,7 +155,12 @@ impl MotionFile {
             }
             let track = tracks.entry(row.marker).or_default();
             if track.last().is_some_and(|(t, _)| *t >= row.time) {
-                return Err(bad(format!("row {}: marker {} goes back in time to {} s", line + 1, row.marker, row.time)));
+                return Err(bad(format!(
+                    "row {}: marker {} goes back in time to {} s",
+                    line + 1,
+                    row.marker,
+                    row.time
+                )));
             }
             track.push((row.time, Point3::new(row.x, row.y, row.z)));
         }
@@ -157,59 +170,24 @@ impl MotionFile {
         Ok(Self { tracks })
     }
 
-    /// Tool poses recorded in an MCAP file (a rosbag2 bag): every `geometry_msgs/msg/PoseStamped`
-    /// channel, or those of `topics`, one marker per topic (ids in topic order), timed by log
-    /// time from the first message. Positions are world metres; frame ids are not resolved.
-    /// Samples with non-finite positions or going back in time are dropped and counted.
-    #[cfg(feature = "mcap")]
-    pub fn from_mcap(path: &Path, topics: &[String]) -> Result<(Self, McapCounts), MarkerError> {
-        use crate::msgs::{self, Message, PoseStamped};
-        let bad = |message: String| MarkerError::Mcap { path: path.to_owned(), message };
-        let bytes = std::fs::read(path).map_err(|e| bad(e.to_string()))?;
-        let stream = mcap::MessageStream::new(&bytes).map_err(|e| bad(format!("not a readable MCAP file: {e}")))?;
-        let mut samples: BTreeMap<String, Vec<(u64, Point3<f64>)>> = BTreeMap::new();
-        let mut counts = McapCounts::default();
-        for message in stream {
-            let message = message.map_err(|e| bad(format!("damaged MCAP record: {e}")))?;
-            let channel = &message.channel;
-            let is_pose = channel.schema.as_ref().is_some_and(|s| s.name == PoseStamped::NAME) && channel.message_encoding == "cdr";
-            let wanted = if topics.is_empty() { is_pose } else { topics.iter().any(|t| *t == channel.topic) };
-            if !wanted {
-                continue;
-            }
-            if !is_pose {
-                return Err(bad(format!("topic {} is not geometry_msgs/msg/PoseStamped in CDR", channel.topic)));
-            }
-            let pose: PoseStamped = match msgs::decode(&message.data, &channel.topic) {
-                Ok(p) => p,
-                Err(e) => {
-                    tracing::warn!("{}: {e}; message dropped", path.display());
-                    counts.dropped += 1;
-                    continue;
-                }
-            };
-            let p = pose.pose.position;
-            if ![p.x, p.y, p.z].iter().all(|v| v.is_finite()) {
-                counts.dropped += 1;
-                continue;
-            }
-            samples.entry(channel.topic.clone()).or_default().push((message.log_time, Point3::new(p.x, p.y, p.z)));
-        }
-        for topic in topics {
-            if !samples.contains_key(topic) {
-                return Err(bad(format!("no PoseStamped messages on topic {topic}")));
-            }
-        }
+    /// Timed samples per named track (nanoseconds, world metres), one marker per track
+    /// (ids in name order), timed from the earliest sample; samples sharing a time are
+    /// dropped and counted (the recorded poses of a bag, say: `record::bag::motion_from_bag`).
+    pub fn from_tracks(
+        samples: BTreeMap<String, Vec<(u64, Point3<f64>)>>,
+        dropped: usize,
+    ) -> Result<(Self, TrackCounts), MarkerError> {
         let Some(start) = samples.values().flatten().map(|(t, _)| *t).min() else {
-            return Err(bad("no geometry_msgs/msg/PoseStamped messages".into()));
+            return Err(MarkerError::NoSamples);
         };
+        let mut counts = TrackCounts { dropped, ..Default::default() };
         let mut tracks = BTreeMap::new();
-        for (id, (topic, mut track)) in samples.into_iter().enumerate() {
+        for (id, (name, mut track)) in samples.into_iter().enumerate() {
             track.sort_by_key(|(t, _)| *t);
             let before = track.len();
             track.dedup_by_key(|(t, _)| *t);
             counts.dropped += before - track.len();
-            counts.topics.push(topic);
+            counts.topics.push(name);
             tracks.insert(id as u32, track.into_iter().map(|(t, p)| ((t - start) as f64 * 1e-9, p)).collect());
         }
         counts.messages = tracks.values().map(Vec::len).sum();
@@ -238,9 +216,9 @@ impl MotionFile {
     }
 }
 
-/// What [`MotionFile::from_mcap`] took and left.
+/// What [`MotionFile::from_tracks`] took and left.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
-pub struct McapCounts {
+pub struct TrackCounts {
     /// Marker ids are indices into this.
     pub topics: Vec<String>,
     pub messages: usize,
@@ -402,7 +380,10 @@ impl UdpSource {
 impl UdpFrame {
     /// The frame's markers at `height` (the format carries x and y only).
     pub fn markers(&self, height: f64) -> Vec<Marker> {
-        self.markers.iter().map(|&(id, x, y)| Marker { id, col: f64::from(x), row: f64::from(y), height, params: None }).collect()
+        self.markers
+            .iter()
+            .map(|&(id, x, y)| Marker { id, col: f64::from(x), row: f64::from(y), height, params: None })
+            .collect()
     }
 
     /// The frame as the seed's words, little-endian (for senders and tests).

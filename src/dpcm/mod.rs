@@ -4,10 +4,12 @@
 //!
 //! Heights Z are the distance from a phyxel's fixed point to its mass (metres), Z = rest
 //! height at rest; the state is kept as u = Z - rest height, exactly 0 at rest. [`Surface`] runs the CPU path (rayon over bands of rows); the GPU twin is
-//! `gpu::dpcm`. Markers are binned into [`kernel::TILE`]² tiles, so a step costs the grid
+//! `dpcm/gpu.rs` with `dpcm/dpcm.wgsl`, and [`engine`] runs either. Markers are binned into [`kernel::TILE`]² tiles, so a step costs the grid
 //! plus each marker's footprint, never grid × markers.
 
 pub mod engine;
+#[cfg(feature = "gpu")]
+pub mod gpu;
 pub mod kernel;
 pub mod markers;
 pub mod render;
@@ -53,19 +55,32 @@ pub enum DpcmError {
 #[serde(rename_all = "snake_case", tag = "kind", deny_unknown_fields)]
 pub enum Interaction {
     /// Spring, N/m.
-    Elastic { stiffness: f64 },
+    Elastic {
+        stiffness: f64,
+    },
     /// Dashpot, N·s/m.
-    Viscous { damping: f64 },
-    DampedSpring { stiffness: f64, damping: f64 },
+    Viscous {
+        damping: f64,
+    },
+    DampedSpring {
+        stiffness: f64,
+        damping: f64,
+    },
     /// Hysteretic spring ([CLH96]): its rest point follows the mass once the stretch exceeds
     /// `threshold` (metres), leaving a permanent mark. Ground links only.
-    Plastic { stiffness: f64, damping: f64, threshold: f64 },
+    Plastic {
+        stiffness: f64,
+        damping: f64,
+        threshold: f64,
+    },
 }
 
 impl Interaction {
     fn stiffness(&self) -> f64 {
         match *self {
-            Self::Elastic { stiffness } | Self::DampedSpring { stiffness, .. } | Self::Plastic { stiffness, .. } => stiffness,
+            Self::Elastic { stiffness } | Self::DampedSpring { stiffness, .. } | Self::Plastic { stiffness, .. } => {
+                stiffness
+            }
             Self::Viscous { .. } => 0.0,
         }
     }
@@ -80,14 +95,22 @@ impl Interaction {
             if v.is_finite() && v >= 0.0 {
                 Ok(())
             } else {
-                Err(DpcmError::BadParameter { name: format!("{name}.{field}"), value: v, why: "must be finite and >= 0".into() })
+                Err(DpcmError::BadParameter {
+                    name: format!("{name}.{field}"),
+                    value: v,
+                    why: "must be finite and >= 0".into(),
+                })
             }
         };
         check("stiffness", self.stiffness())?;
         check("damping", self.damping())?;
         if let Self::Plastic { threshold, .. } = *self {
             if !(threshold.is_finite() && threshold > 0.0) {
-                return Err(DpcmError::BadParameter { name: format!("{name}.threshold"), value: threshold, why: "must be finite and > 0".into() });
+                return Err(DpcmError::BadParameter {
+                    name: format!("{name}.threshold"),
+                    value: threshold,
+                    why: "must be finite and > 0".into(),
+                });
             }
         }
         Ok(())
@@ -95,7 +118,7 @@ impl Interaction {
 }
 
 /// Which neighbours a phyxel is linked to (seed 004, figure 12 and 13).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Topology {
     /// No inter-phyxel links (pure engraving, as the seed's loose soil).
@@ -145,7 +168,11 @@ pub struct MarkerParams {
 
 impl MarkerParams {
     fn validate(&self, name: &str) -> Result<(), DpcmError> {
-        let bad = |field: &str, v: f64, why: &str| DpcmError::BadParameter { name: format!("{name}.{field}"), value: v, why: why.into() };
+        let bad = |field: &str, v: f64, why: &str| DpcmError::BadParameter {
+            name: format!("{name}.{field}"),
+            value: v,
+            why: why.into(),
+        };
         if !(self.stiffness.is_finite() && self.stiffness >= 0.0) {
             return Err(bad("stiffness", self.stiffness, "must be finite and >= 0"));
         }
@@ -227,7 +254,8 @@ impl DpcmConfig {
     }
 
     pub fn from_yaml(text: &str, source_name: &str) -> Result<Self, DpcmError> {
-        serde_yaml_ng::from_str(text).map_err(|e| DpcmError::Parse { source_name: source_name.to_owned(), message: e.to_string() })
+        serde_yaml_ng::from_str(text)
+            .map_err(|e| DpcmError::Parse { source_name: source_name.to_owned(), message: e.to_string() })
     }
 
     pub fn load(path: &Path) -> Result<Self, DpcmError> {
@@ -249,17 +277,33 @@ impl DpcmConfig {
         positive("spacing", self.spacing)?;
         for (name, n) in [("width", self.width), ("height", self.height)] {
             if n < 3 {
-                return Err(DpcmError::BadParameter { name: name.into(), value: n as f64, why: "the grid needs at least 3 phyxels a side".into() });
+                return Err(DpcmError::BadParameter {
+                    name: name.into(),
+                    value: n as f64,
+                    why: "the grid needs at least 3 phyxels a side".into(),
+                });
             }
         }
         if self.width.checked_mul(self.height).is_none_or(|n| n > u32::MAX as usize / 4) {
-            return Err(DpcmError::BadParameter { name: "width x height".into(), value: (self.width as f64) * (self.height as f64), why: "more phyxels than a u32 index allows".into() });
+            return Err(DpcmError::BadParameter {
+                name: "width x height".into(),
+                value: (self.width as f64) * (self.height as f64),
+                why: "more phyxels than a u32 index allows".into(),
+            });
         }
         if !self.rest_height.is_finite() {
-            return Err(DpcmError::BadParameter { name: "rest_height".into(), value: self.rest_height, why: "must be finite".into() });
+            return Err(DpcmError::BadParameter {
+                name: "rest_height".into(),
+                value: self.rest_height,
+                why: "must be finite".into(),
+            });
         }
         if !(0.0..=1.0).contains(&self.links.probability) {
-            return Err(DpcmError::BadParameter { name: "links.probability".into(), value: self.links.probability, why: "must be in [0, 1]".into() });
+            return Err(DpcmError::BadParameter {
+                name: "links.probability".into(),
+                value: self.links.probability,
+                why: "must be in [0, 1]".into(),
+            });
         }
         self.ground.validate("ground")?;
         self.marker.validate("marker")?;
@@ -276,7 +320,11 @@ impl DpcmConfig {
             }
         }
         if self.links.topology != Topology::None && self.links.axial.is_none() {
-            return Err(DpcmError::BadParameter { name: "links.axial".into(), value: f64::NAN, why: format!("topology {:?} needs an interaction", self.links.topology) });
+            return Err(DpcmError::BadParameter {
+                name: "links.axial".into(),
+                value: f64::NAN,
+                why: format!("topology {:?} needs an interaction", self.links.topology),
+            });
         }
         let (has_axial, has_diagonal) = match self.links.topology {
             Topology::None => (false, false),
@@ -332,7 +380,11 @@ impl DpcmConfig {
 
     /// The largest multiplier a texture puts on `parameter` (1 without one).
     fn texture_max(&self, parameter: TexturedParameter) -> f64 {
-        self.textures.iter().filter(|t| t.parameter == parameter).map(|t| t.range[0].max(t.range[1]).max(0.0)).fold(1.0, f64::max)
+        self.textures
+            .iter()
+            .filter(|t| t.parameter == parameter)
+            .map(|t| t.range[0].max(t.range[1]).max(0.0))
+            .fold(1.0, f64::max)
     }
 }
 
@@ -474,7 +526,10 @@ impl Surface {
             match texture.parameter {
                 TexturedParameter::RestHeight => rest = values.iter().map(|r| r - rest_height).collect(),
                 TexturedParameter::GroundStiffness | TexturedParameter::GroundDamping => {
-                    let g = ground.get_or_insert_with(|| GroundTexture { a: vec![coeffs.ground_a; n], b: vec![coeffs.ground_b; n] });
+                    let g = ground.get_or_insert_with(|| GroundTexture {
+                        a: vec![coeffs.ground_a; n],
+                        b: vec![coeffs.ground_b; n],
+                    });
                     let (target, base) = if texture.parameter == TexturedParameter::GroundStiffness {
                         (&mut g.a, config.ground.stiffness() * config.dt * config.dt / config.mass)
                     } else {
@@ -500,7 +555,11 @@ impl Surface {
             initial_rest: rest.clone(),
             rest,
             ground,
-            links: if coeffs.link_keep < 1 << 24 { kernel::link_masks(&coeffs, config.width, config.height) } else { Vec::new() },
+            links: if coeffs.link_keep < 1 << 24 {
+                kernel::link_masks(&coeffs, config.width, config.height)
+            } else {
+                Vec::new()
+            },
             marker_heights: HashMap::new(),
             bins: MarkerBins::default(),
             steps: 0,
@@ -573,7 +632,11 @@ impl Surface {
     /// Sets Z(n) = Z(n-1) = `heights` (a disturbance released at rest).
     pub fn set_heights(&mut self, heights: &[f32]) -> Result<(), DpcmError> {
         if heights.len() != self.u.len() || heights.iter().any(|h| !h.is_finite()) {
-            return Err(DpcmError::BadParameter { name: "heights".into(), value: heights.len() as f64, why: format!("need {} finite values", self.u.len()) });
+            return Err(DpcmError::BadParameter {
+                name: "heights".into(),
+                value: heights.len() as f64,
+                why: format!("need {} finite values", self.u.len()),
+            });
         }
         for ((u, up), h) in self.u.iter_mut().zip(&mut self.up).zip(heights) {
             *u = h - self.rest_height;
@@ -616,11 +679,29 @@ impl Surface {
         let (w, h) = (self.config.width, self.config.height);
         let band = BAND_ROWS * w;
         let bands = h.div_ceil(BAND_ROWS);
-        let rest_bands: Vec<&mut [f32]> = if self.rest.is_empty() { std::iter::repeat_with(|| &mut [][..]).take(bands).collect() } else { self.rest.chunks_mut(band).collect() };
+        let rest_bands: Vec<&mut [f32]> = if self.rest.is_empty() {
+            std::iter::repeat_with(|| &mut [][..]).take(bands).collect()
+        } else {
+            self.rest.chunks_mut(band).collect()
+        };
         let plastic = self.coeffs.plastic_threshold >= 0.0;
         let links = (!self.links.is_empty()).then_some(&self.links[..]);
-        let ctx = StepContext { c: &self.coeffs, u: &self.u, up: &self.up, width: w, height: h, ground: self.ground.as_ref(), plastic, links, bins: &self.bins };
-        self.next.par_chunks_mut(band).zip(rest_bands).enumerate().for_each(|(b, (out, rest))| step_band(&ctx, b * BAND_ROWS, out, rest));
+        let ctx = StepContext {
+            c: &self.coeffs,
+            u: &self.u,
+            up: &self.up,
+            width: w,
+            height: h,
+            ground: self.ground.as_ref(),
+            plastic,
+            links,
+            bins: &self.bins,
+        };
+        self.next
+            .par_chunks_mut(band)
+            .zip(rest_bands)
+            .enumerate()
+            .for_each(|(b, (out, rest))| step_band(&ctx, b * BAND_ROWS, out, rest));
         std::mem::swap(&mut self.up, &mut self.u);
         std::mem::swap(&mut self.u, &mut self.next);
         self.steps += 1;
@@ -628,7 +709,11 @@ impl Surface {
 }
 
 /// Converts and validates markers; tracks each marker's last height for its velocity.
-pub fn to_kernel_markers(config: &DpcmConfig, last_heights: &mut HashMap<u32, f32>, markers: &[Marker]) -> (Vec<KernelMarker>, StepStats) {
+pub fn to_kernel_markers(
+    config: &DpcmConfig,
+    last_heights: &mut HashMap<u32, f32>,
+    markers: &[Marker],
+) -> (Vec<KernelMarker>, StepStats) {
     let mut stats = StepStats::default();
     let mut out = Vec::with_capacity(markers.len());
     let (h, m, s) = (config.dt, config.mass, config.spacing);
@@ -636,7 +721,11 @@ pub fn to_kernel_markers(config: &DpcmConfig, last_heights: &mut HashMap<u32, f3
     for marker in markers {
         let params = marker.params.unwrap_or(config.marker);
         let finite = marker.col.is_finite() && marker.row.is_finite() && marker.height.is_finite();
-        if !finite || params.validate("marker").is_err() || params.stiffness > config.marker.stiffness || params.damping > config.marker.damping {
+        if !finite
+            || params.validate("marker").is_err()
+            || params.stiffness > config.marker.stiffness
+            || params.damping > config.marker.damping
+        {
             // Stiffer markers than the configured one could break the checked stability bound.
             stats.markers_dropped += 1;
             continue;
@@ -726,7 +815,14 @@ impl StepContext<'_> {
     fn interior<'a>(&'a self, y: usize, out: &mut [f32], rest: &mut [f32]) {
         let w = self.width;
         let row = |v: &'a [f32], y: usize| -> &'a [f32] { &v[y * w..(y + 1) * w] };
-        let rows = Rows { up: row(self.u, y - 1), mid: row(self.u, y), down: row(self.u, y + 1), up_p: row(self.up, y - 1), mid_p: row(self.up, y), down_p: row(self.up, y + 1) };
+        let rows = Rows {
+            up: row(self.u, y - 1),
+            mid: row(self.u, y),
+            down: row(self.u, y + 1),
+            up_p: row(self.up, y - 1),
+            mid_p: row(self.up, y),
+            down_p: row(self.up, y + 1),
+        };
         let links = self.links.map(|l| &l[y * w..(y + 1) * w]);
         match (self.c.has_axial != 0, self.c.has_diagonal != 0, links) {
             (false, false, _) => self.interior_kinds::<false, false, _>(kernel::AllLinks, y, &rows, out, rest),
@@ -741,16 +837,65 @@ impl StepContext<'_> {
 
     /// One instantiation per ground texture and rest kind: no branch inside the row.
     #[inline(always)]
-    fn interior_kinds<const AX: bool, const DG: bool, M: kernel::LinkMask>(&self, links: M, y: usize, rows: &Rows, out: &mut [f32], rest: &mut [f32]) {
+    fn interior_kinds<const AX: bool, const DG: bool, M: kernel::LinkMask>(
+        &self,
+        links: M,
+        y: usize,
+        rows: &Rows,
+        out: &mut [f32],
+        rest: &mut [f32],
+    ) {
         let c = self.c;
         let w = self.width;
         match (self.ground, rest.is_empty(), self.plastic) {
-            (None, true, _) => kernel::interior_row::<AX, DG, _, _, _, _>(c, links, c.ground_a, c.ground_b, UniformRest(0.0), rows, out),
-            (None, false, false) => kernel::interior_row::<AX, DG, _, _, _, _>(c, links, c.ground_a, c.ground_b, FixedRest(rest), rows, out),
-            (None, false, true) => kernel::interior_row::<AX, DG, _, _, _, _>(c, links, c.ground_a, c.ground_b, PlasticRest(rest), rows, out),
-            (Some(g), true, _) => kernel::interior_row::<AX, DG, _, _, _, _>(c, links, &g.a[y * w..(y + 1) * w], &g.b[y * w..(y + 1) * w], UniformRest(0.0), rows, out),
-            (Some(g), false, false) => kernel::interior_row::<AX, DG, _, _, _, _>(c, links, &g.a[y * w..(y + 1) * w], &g.b[y * w..(y + 1) * w], FixedRest(rest), rows, out),
-            (Some(g), false, true) => kernel::interior_row::<AX, DG, _, _, _, _>(c, links, &g.a[y * w..(y + 1) * w], &g.b[y * w..(y + 1) * w], PlasticRest(rest), rows, out),
+            (None, true, _) => kernel::interior_row::<AX, DG, _, _, _, _>(
+                c,
+                links,
+                c.ground_a,
+                c.ground_b,
+                UniformRest(0.0),
+                rows,
+                out,
+            ),
+            (None, false, false) => {
+                kernel::interior_row::<AX, DG, _, _, _, _>(c, links, c.ground_a, c.ground_b, FixedRest(rest), rows, out)
+            }
+            (None, false, true) => kernel::interior_row::<AX, DG, _, _, _, _>(
+                c,
+                links,
+                c.ground_a,
+                c.ground_b,
+                PlasticRest(rest),
+                rows,
+                out,
+            ),
+            (Some(g), true, _) => kernel::interior_row::<AX, DG, _, _, _, _>(
+                c,
+                links,
+                &g.a[y * w..(y + 1) * w],
+                &g.b[y * w..(y + 1) * w],
+                UniformRest(0.0),
+                rows,
+                out,
+            ),
+            (Some(g), false, false) => kernel::interior_row::<AX, DG, _, _, _, _>(
+                c,
+                links,
+                &g.a[y * w..(y + 1) * w],
+                &g.b[y * w..(y + 1) * w],
+                FixedRest(rest),
+                rows,
+                out,
+            ),
+            (Some(g), false, true) => kernel::interior_row::<AX, DG, _, _, _, _>(
+                c,
+                links,
+                &g.a[y * w..(y + 1) * w],
+                &g.b[y * w..(y + 1) * w],
+                PlasticRest(rest),
+                rows,
+                out,
+            ),
         }
     }
 
@@ -773,7 +918,10 @@ impl StepContext<'_> {
                 // Marker by marker over its own box: each phyxel still sums its markers in
                 // list order (as the GPU does); phyxels out of a marker's reach would add 0.
                 let span = |m: &KernelMarker, centre: f32, lo: usize, hi: usize| {
-                    ((centre - m.threshold).floor().max(lo as f32) as usize, ((centre + m.threshold).ceil() + 1.0).clamp(lo as f32, hi as f32) as usize)
+                    (
+                        (centre - m.threshold).floor().max(lo as f32) as usize,
+                        ((centre + m.threshold).ceil() + 1.0).clamp(lo as f32, hi as f32) as usize,
+                    )
                 };
                 let (mut bx, mut by) = ((col1, col0), (row1, row0));
                 for &m in list {

@@ -12,7 +12,7 @@ use super::{DpcmError, ParamTexture};
 use crate::io;
 use crate::volume::Volume;
 
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum ColorMap {
     Viridis,
@@ -80,7 +80,10 @@ impl Image {
         let mut encoder = png::Encoder::new(BufWriter::new(file), self.width as u32, self.height as u32);
         encoder.set_color(png::ColorType::Rgb);
         encoder.set_depth(png::BitDepth::Eight);
-        let png_err = |e: png::EncodingError| DpcmError::Texture { path: path.to_owned(), message: format!("cannot write PNG: {e}") };
+        let png_err = |e: png::EncodingError| DpcmError::Texture {
+            path: path.to_owned(),
+            message: format!("cannot write PNG: {e}"),
+        };
         let mut writer = encoder.write_header().map_err(png_err)?;
         writer.write_image_data(&self.rgb).map_err(png_err)?;
         writer.finish().map_err(png_err)
@@ -141,7 +144,14 @@ pub struct HeightMesh {
     pub scalars: Vec<f32>,
 }
 
-pub fn displacement_mesh(heights: &[f32], displacement: &[f32], width: usize, height: usize, spacing: f64, stride: usize) -> HeightMesh {
+pub fn displacement_mesh(
+    heights: &[f32],
+    displacement: &[f32],
+    width: usize,
+    height: usize,
+    spacing: f64,
+    stride: usize,
+) -> HeightMesh {
     let stride = stride.max(1);
     let xs: Vec<usize> = (0..width).step_by(stride).collect();
     let ys: Vec<usize> = (0..height).step_by(stride).collect();
@@ -170,8 +180,15 @@ pub fn displacement_mesh(heights: &[f32], displacement: &[f32], width: usize, he
 /// The height as a float image (one-slice volume; `.mha`, `.nrrd`, `.nii`), in metres with
 /// the phyxel spacing.
 pub fn write_height(path: &Path, values: &[f32], width: usize, height: usize, spacing: f64) -> Result<(), DpcmError> {
-    let volume = Volume::new([width, height, 1], [spacing; 3], [0.0; 3], Matrix3::identity(), values.to_vec(), &path.display().to_string())
-        .map_err(|e| DpcmError::Texture { path: path.to_owned(), message: e.to_string() })?;
+    let volume = Volume::new(
+        [width, height, 1],
+        [spacing; 3],
+        [0.0; 3],
+        Matrix3::identity(),
+        values.to_vec(),
+        &path.display().to_string(),
+    )
+    .map_err(|e| DpcmError::Texture { path: path.to_owned(), message: e.to_string() })?;
     io::write_volume(path, &volume).map_err(|e| DpcmError::Texture { path: path.to_owned(), message: e.to_string() })
 }
 

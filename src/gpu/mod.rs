@@ -1,14 +1,16 @@
-//! wgpu plumbing shared by every GPU stage: adapter choice, buffers, read-back.
+//! wgpu plumbing shared by every GPU stage: adapter choice, kernels, buffers, read-back,
+//! node positions on the device. It knows no stage: each stage's host code and shader live
+//! in the stage's own folder and build on this.
 //!
 //! Adapter policy: a hardware GPU runs the GPU path; a CPU adapter (llvmpipe/lavapipe) only
-//! when the caller allows it (tests do); with neither, callers fall back to the CPU path.
-//! Only Vulkan, Metal and DX12 are asked for: the GL backend lacks what compute needs here.
+//! when the caller allows it (tests do). Only Vulkan, Metal and DX12 are asked for: the GL
+//! backend lacks what compute needs here. The device is opened with the adapter's own
+//! limits; each stage checks the limits it needs ([`GpuContext::require_storage_buffers`],
+//! [`GpuContext::require_binding_size`]).
 
-pub mod dpcm;
-pub mod raycast;
-pub mod solver;
-pub mod tet_raycast;
-pub mod warp;
+pub mod nodes;
+
+pub use nodes::DeviceNodes;
 
 use wgpu::util::DeviceExt;
 
@@ -19,10 +21,24 @@ pub enum GpuError {
     NoAdapter(String),
     #[error("cannot open the GPU device {adapter}: {message}")]
     Device { adapter: String, message: String },
-    #[error("the GPU adapter {adapter} allows {got} storage buffers per shader stage; {needed} are needed")]
-    Limits { adapter: String, got: u32, needed: u32 },
+    #[error("the GPU adapter {adapter} allows {got} storage buffers per shader stage; {what} needs {needed}")]
+    StorageBuffers { adapter: String, what: &'static str, got: u32, needed: u32 },
+    #[error("{what} needs {needed_mib} MiB in one GPU buffer; the adapter {adapter} allows {limit_mib} MiB")]
+    BufferTooLarge { adapter: String, what: &'static str, needed_mib: u64, limit_mib: u64 },
     #[error("reading results back from the GPU failed: {0}")]
     Readback(String),
+}
+
+/// The most workgroups one dimension of a dispatch may have.
+pub const MAX_GROUPS: u32 = 65_535;
+
+/// A dispatch of `count` invocations in workgroups of `workgroup` threads, as (x, y)
+/// groups with x at most [`MAX_GROUPS`]; a kernel's linear index is
+/// `gid.x + gid.y * x * workgroup`.
+pub fn groups_2d(count: u32, workgroup: u32) -> (u32, u32) {
+    let groups = count.div_ceil(workgroup).max(1);
+    let x = groups.min(MAX_GROUPS);
+    (x, groups.div_ceil(x))
 }
 
 /// How a kernel binds one buffer.
@@ -74,20 +90,22 @@ impl GpuContext {
             wgpu::DeviceType::VirtualGpu | wgpu::DeviceType::Other => 2,
             wgpu::DeviceType::Cpu => 3,
         };
-        let seen: Vec<String> = adapters.iter().map(|a| format!("{} ({:?})", a.get_info().name, a.get_info().device_type)).collect();
+        let seen: Vec<String> =
+            adapters.iter().map(|a| format!("{} ({:?})", a.get_info().name, a.get_info().device_type)).collect();
         let Some(adapter) = adapters
             .into_iter()
             .filter(|a| policy == AdapterPolicy::AllowSoftware || a.get_info().device_type != wgpu::DeviceType::Cpu)
             .min_by_key(rank)
         else {
-            let detail = if seen.is_empty() { String::new() } else { format!("; only software adapters, not allowed: {}", seen.join(", ")) };
+            let detail = if seen.is_empty() {
+                String::new()
+            } else {
+                format!("; only software adapters, not allowed: {}", seen.join(", "))
+            };
             return Err(GpuError::NoAdapter(detail));
         };
         let info = adapter.get_info();
         let limits = adapter.limits();
-        if limits.max_storage_buffers_per_shader_stage < solver::STORAGE_BUFFERS {
-            return Err(GpuError::Limits { adapter: info.name, got: limits.max_storage_buffers_per_shader_stage, needed: solver::STORAGE_BUFFERS });
-        }
         let (device, queue) = adapter
             .request_device(&wgpu::DeviceDescriptor {
                 label: Some("defvol"),
@@ -102,15 +120,54 @@ impl GpuContext {
         Ok(Self { device, queue, adapter_info: info })
     }
 
+    /// Whether the adapter is a software one (lavapipe, llvmpipe): its timings say nothing
+    /// of a GPU.
+    pub fn is_software(&self) -> bool {
+        self.adapter_info.device_type == wgpu::DeviceType::Cpu
+    }
+
+    /// An error unless a shader stage may bind `needed` storage buffers.
+    pub fn require_storage_buffers(&self, what: &'static str, needed: u32) -> Result<(), GpuError> {
+        let got = self.device.limits().max_storage_buffers_per_shader_stage;
+        if got < needed {
+            return Err(GpuError::StorageBuffers { adapter: self.adapter_info.name.clone(), what, got, needed });
+        }
+        Ok(())
+    }
+
+    /// An error unless one storage binding may hold `bytes`.
+    pub fn require_binding_size(&self, what: &'static str, bytes: u64) -> Result<(), GpuError> {
+        let limits = self.device.limits();
+        let limit = limits.max_storage_buffer_binding_size.min(limits.max_buffer_size);
+        if bytes > limit {
+            return Err(GpuError::BufferTooLarge {
+                adapter: self.adapter_info.name.clone(),
+                what,
+                needed_mib: bytes.div_ceil(1 << 20),
+                limit_mib: limit >> 20,
+            });
+        }
+        Ok(())
+    }
+
     /// "name (type, backend)", for logs and benchmark rows.
     pub fn describe(&self) -> String {
         format!("{} ({:?}, {:?})", self.adapter_info.name, self.adapter_info.device_type, self.adapter_info.backend)
     }
 
     /// Compiles `wgsl` and builds its layout from `bindings` and a pipeline per entry point.
-    pub fn kernels<const N: usize>(&self, label: &str, wgsl: &str, bindings: &[Binding], entry_points: [&str; N]) -> Kernels<N> {
+    pub fn kernels<const N: usize>(
+        &self,
+        label: &str,
+        wgsl: &str,
+        bindings: &[Binding],
+        entry_points: [&str; N],
+    ) -> Kernels<N> {
         let device = &self.device;
-        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor { label: Some(label), source: wgpu::ShaderSource::Wgsl(wgsl.into()) });
+        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some(label),
+            source: wgpu::ShaderSource::Wgsl(wgsl.into()),
+        });
         let entries: Vec<wgpu::BindGroupLayoutEntry> = bindings
             .iter()
             .enumerate()
@@ -129,8 +186,13 @@ impl GpuContext {
                 count: None,
             })
             .collect();
-        let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor { label: Some(label), entries: &entries });
-        let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor { label: Some(label), bind_group_layouts: &[Some(&layout)], immediate_size: 0 });
+        let layout =
+            device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor { label: Some(label), entries: &entries });
+        let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some(label),
+            bind_group_layouts: &[Some(&layout)],
+            immediate_size: 0,
+        });
         let pipelines = entry_points.map(|entry| {
             device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
                 label: Some(entry),
@@ -145,8 +207,17 @@ impl GpuContext {
     }
 
     /// A bind group of `buffers` at bindings 0.. of `layout`.
-    pub fn bind_group(&self, label: &str, layout: &wgpu::BindGroupLayout, buffers: &[&wgpu::Buffer]) -> wgpu::BindGroup {
-        let entries: Vec<wgpu::BindGroupEntry> = buffers.iter().enumerate().map(|(i, b)| wgpu::BindGroupEntry { binding: i as u32, resource: b.as_entire_binding() }).collect();
+    pub fn bind_group(
+        &self,
+        label: &str,
+        layout: &wgpu::BindGroupLayout,
+        buffers: &[&wgpu::Buffer],
+    ) -> wgpu::BindGroup {
+        let entries: Vec<wgpu::BindGroupEntry> = buffers
+            .iter()
+            .enumerate()
+            .map(|(i, b)| wgpu::BindGroupEntry { binding: i as u32, resource: b.as_entire_binding() })
+            .collect();
         self.device.create_bind_group(&wgpu::BindGroupDescriptor { label: Some(label), layout, entries: &entries })
     }
 
@@ -165,15 +236,38 @@ impl GpuContext {
         }
     }
 
+    /// A zeroed storage buffer of `size` bytes (at least 4: wgpu refuses empty bindings).
+    pub fn zeroed_buffer(&self, label: &str, size: u64) -> wgpu::Buffer {
+        self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some(label),
+            size: size.max(4).next_multiple_of(4),
+            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        })
+    }
+
     /// Copies `size` bytes of `buffer` back to the host (blocking).
     pub fn read_back(&self, buffer: &wgpu::Buffer, size: u64) -> Result<Vec<u8>, GpuError> {
+        let mut bytes = vec![0u8; size as usize];
+        self.read_back_into(buffer, &mut bytes)?;
+        Ok(bytes)
+    }
+
+    /// Copies the first `out.len()` bytes of `buffer` into `out` (blocking): through one
+    /// staging buffer straight into the destination, e.g. a shared-memory sample.
+    pub fn read_back_into(&self, buffer: &wgpu::Buffer, out: &mut [u8]) -> Result<(), GpuError> {
+        let size = out.len() as u64;
+        if size == 0 {
+            return Ok(());
+        }
         let staging = self.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("read-back"),
             size,
             usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
         });
-        let mut encoder = self.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("read-back") });
+        let mut encoder =
+            self.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("read-back") });
         encoder.copy_buffer_to_buffer(buffer, 0, &staging, 0, size);
         self.queue.submit([encoder.finish()]);
         let (tx, rx) = std::sync::mpsc::channel();
@@ -186,9 +280,15 @@ impl GpuContext {
             Ok(Err(e)) => return Err(GpuError::Readback(e.to_string())),
             Err(e) => return Err(GpuError::Readback(e.to_string())),
         }
-        let bytes = staging.get_mapped_range(..).map_err(|e| GpuError::Readback(e.to_string()))?.to_vec();
+        out.copy_from_slice(&staging.get_mapped_range(..).map_err(|e| GpuError::Readback(e.to_string()))?);
         staging.unmap();
-        Ok(bytes)
+        Ok(())
+    }
+}
+
+impl std::fmt::Debug for GpuContext {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.describe())
     }
 }
 
@@ -198,7 +298,9 @@ impl GpuContext {
 pub(crate) fn test_context() -> Option<std::sync::Arc<GpuContext>> {
     match GpuContext::open(AdapterPolicy::AllowSoftware) {
         Ok(ctx) => Some(std::sync::Arc::new(ctx)),
-        Err(e) if std::env::var_os("DEFVOL_REQUIRE_GPU").is_some() => panic!("DEFVOL_REQUIRE_GPU is set but no adapter opened: {e}"),
+        Err(e) if std::env::var_os("DEFVOL_REQUIRE_GPU").is_some() => {
+            panic!("DEFVOL_REQUIRE_GPU is set but no adapter opened: {e}")
+        }
         Err(e) => {
             eprintln!("skipping: no GPU adapter ({e})");
             None

@@ -19,7 +19,9 @@ pub(super) fn read(path: &Path) -> Result<MeshParts, IoError> {
     if version.starts_with("2.") {
         return read_v2(path, &bytes);
     }
-    let msh = mshio::parse_msh_bytes(&bytes).map_err(|e| malformed(path, format!("not a readable Gmsh 4.1 file: {e:?}").chars().take(300).collect::<String>()))?;
+    let msh = mshio::parse_msh_bytes(&bytes).map_err(|e| {
+        malformed(path, format!("not a readable Gmsh 4.1 file: {e:?}").chars().take(300).collect::<String>())
+    })?;
     let Some(node_data) = msh.data.nodes else { return Err(malformed(path, "no $Nodes section")) };
     let mut index_of_tag: HashMap<u64, u32> = HashMap::new();
     let mut nodes = Vec::new();
@@ -48,14 +50,22 @@ pub(super) fn read(path: &Path) -> Result<MeshParts, IoError> {
     for block in &elements.element_blocks {
         if block.element_type as i64 != TET4 {
             if block.entity_dim == 3 {
-                return Err(malformed(path, format!("volume elements of type {:?}; only linear tetrahedra (Tet4) are supported", block.element_type)));
+                return Err(malformed(
+                    path,
+                    format!(
+                        "volume elements of type {:?}; only linear tetrahedra (Tet4) are supported",
+                        block.element_type
+                    ),
+                ));
             }
             continue;
         }
         for el in &block.elements {
             let mut t = [0u32; 4];
             for (slot, tag) in t.iter_mut().zip(&el.nodes) {
-                *slot = *index_of_tag.get(tag).ok_or_else(|| malformed(path, format!("element {} references unknown node {tag}", el.element_tag)))?;
+                *slot = *index_of_tag.get(tag).ok_or_else(|| {
+                    malformed(path, format!("element {} references unknown node {tag}", el.element_tag))
+                })?;
             }
             tets.push(t);
         }
@@ -64,7 +74,8 @@ pub(super) fn read(path: &Path) -> Result<MeshParts, IoError> {
 }
 
 fn read_v2(path: &Path, bytes: &[u8]) -> Result<MeshParts, IoError> {
-    let text = std::str::from_utf8(bytes).map_err(|_| malformed(path, "Gmsh 2.2 binary files are not supported; save as ASCII"))?;
+    let text = std::str::from_utf8(bytes)
+        .map_err(|_| malformed(path, "Gmsh 2.2 binary files are not supported; save as ASCII"))?;
     let mut lines = text.lines().enumerate().map(|(n, l)| (n + 1, l.trim()));
     let mut index_of_tag: HashMap<u64, u32> = HashMap::new();
     let mut nodes = Vec::new();
@@ -84,7 +95,11 @@ fn read_v2(path: &Path, bytes: &[u8]) -> Result<MeshParts, IoError> {
                 let count: usize = count.parse().map_err(|_| bad(n, "expected the node count"))?;
                 for _ in 0..count {
                     let (n, l) = lines.next().ok_or_else(|| bad(n, "file ends inside $Nodes"))?;
-                    let w: Vec<f64> = l.split_whitespace().map(str::parse).collect::<Result<_, _>>().map_err(|_| bad(n, "expected: tag x y z"))?;
+                    let w: Vec<f64> = l
+                        .split_whitespace()
+                        .map(str::parse)
+                        .collect::<Result<_, _>>()
+                        .map_err(|_| bad(n, "expected: tag x y z"))?;
                     let [tag, x, y, z] = w[..] else { return Err(bad(n, "expected: tag x y z")) };
                     index_of_tag.insert(tag as u64, nodes.len() as u32);
                     nodes.push(Vector3::new(x, y, z));
@@ -95,13 +110,21 @@ fn read_v2(path: &Path, bytes: &[u8]) -> Result<MeshParts, IoError> {
                 let count: usize = count.parse().map_err(|_| bad(n, "expected the element count"))?;
                 for _ in 0..count {
                     let (n, l) = lines.next().ok_or_else(|| bad(n, "file ends inside $Elements"))?;
-                    let w: Vec<u64> = l.split_whitespace().map(str::parse).collect::<Result<_, _>>().map_err(|_| bad(n, "expected integers"))?;
-                    let (Some(&ty), Some(&ntags)) = (w.get(1), w.get(2)) else { return Err(bad(n, "expected: tag type ntags ...")) };
+                    let w: Vec<u64> = l
+                        .split_whitespace()
+                        .map(str::parse)
+                        .collect::<Result<_, _>>()
+                        .map_err(|_| bad(n, "expected integers"))?;
+                    let (Some(&ty), Some(&ntags)) = (w.get(1), w.get(2)) else {
+                        return Err(bad(n, "expected: tag type ntags ..."));
+                    };
                     if ty as i64 != TET4 {
                         continue;
                     }
                     let start = 3 + ntags as usize;
-                    let Some(ids) = w.get(start..start + 4) else { return Err(bad(n, "tetrahedron with fewer than 4 nodes")) };
+                    let Some(ids) = w.get(start..start + 4) else {
+                        return Err(bad(n, "tetrahedron with fewer than 4 nodes"));
+                    };
                     let mut t = [0u32; 4];
                     for (slot, tag) in t.iter_mut().zip(ids) {
                         *slot = *index_of_tag.get(tag).ok_or_else(|| bad(n, &format!("unknown node {tag}")))?;

@@ -12,7 +12,11 @@ use crate::volume::Volume;
 
 fn numbers(path: &Path, fields: &HashMap<String, String>, key: &str, n: usize) -> Result<Option<Vec<f64>>, IoError> {
     let Some(text) = fields.get(&key.to_lowercase()) else { return Ok(None) };
-    let v: Vec<f64> = text.split_whitespace().map(str::parse).collect::<Result<_, _>>().map_err(|_| malformed(path, format!("`{key}`: expected numbers, got `{text}`")))?;
+    let v: Vec<f64> = text
+        .split_whitespace()
+        .map(str::parse)
+        .collect::<Result<_, _>>()
+        .map_err(|_| malformed(path, format!("`{key}`: expected numbers, got `{text}`")))?;
     if v.len() != n {
         return Err(malformed(path, format!("`{key}`: expected {n} values, got {}", v.len())));
     }
@@ -31,7 +35,10 @@ pub(super) fn read(path: &Path) -> Result<Volume, IoError> {
             if text.is_empty() {
                 continue;
             }
-            return Err(malformed(path, format!("header line `{}` is not `Key = Value`", text.chars().take(60).collect::<String>())));
+            return Err(malformed(
+                path,
+                format!("header line `{}` is not `Key = Value`", text.chars().take(60).collect::<String>()),
+            ));
         };
         let key = k.trim().to_lowercase();
         fields.insert(key.clone(), v.trim().to_owned());
@@ -42,9 +49,14 @@ pub(super) fn read(path: &Path) -> Result<Volume, IoError> {
     }
     let get = |k: &str| fields.get(k).map(String::as_str);
     if get("ndims") != Some("3") {
-        return Err(malformed(path, format!("NDims = {}: only 3D volumes are supported", get("ndims").unwrap_or("missing"))));
+        return Err(malformed(
+            path,
+            format!("NDims = {}: only 3D volumes are supported", get("ndims").unwrap_or("missing")),
+        ));
     }
-    let Some(dims) = numbers(path, &fields, "DimSize", 3)? else { return Err(malformed(path, "header has no DimSize")) };
+    let Some(dims) = numbers(path, &fields, "DimSize", 3)? else {
+        return Err(malformed(path, "header has no DimSize"));
+    };
     let dims = [dims[0] as usize, dims[1] as usize, dims[2] as usize];
     let spacing = numbers(path, &fields, "ElementSpacing", 3)?.map_or([1.0; 3], |v| [v[0], v[1], v[2]]);
     let origin = match numbers(path, &fields, "Offset", 3)? {
@@ -69,7 +81,8 @@ pub(super) fn read(path: &Path) -> Result<Volume, IoError> {
         Some("MET_DOUBLE") => SampleType::F64,
         other => return Err(malformed(path, format!("ElementType {}: not supported", other.unwrap_or("missing")))),
     };
-    let big_endian = get("binarydatabyteordermsb").or(get("elementbyteordermsb")).is_some_and(|v| v.eq_ignore_ascii_case("true"));
+    let big_endian =
+        get("binarydatabyteordermsb").or(get("elementbyteordermsb")).is_some_and(|v| v.eq_ignore_ascii_case("true"));
     let compressed = get("compresseddata").is_some_and(|v| v.eq_ignore_ascii_case("true"));
     let Some(data_file) = get("elementdatafile") else { return Err(malformed(path, "header has no ElementDataFile")) };
     let payload = if data_file == "LOCAL" {
@@ -79,7 +92,12 @@ pub(super) fn read(path: &Path) -> Result<Volume, IoError> {
         std::fs::read(&data_path).map_err(io_error(&data_path))?
     };
     let count = dims[0] * dims[1] * dims[2];
-    let raw = decompress(path, &payload, if compressed { Compression::Zlib } else { Compression::None }, count * sample.size())?;
+    let raw = decompress(
+        path,
+        &payload,
+        if compressed { Compression::Zlib } else { Compression::None },
+        count * sample.size(),
+    )?;
     Ok(Volume::new(dims, spacing, origin, direction, sample.decode(&raw, big_endian), &path.display().to_string())?)
 }
 
@@ -90,7 +108,11 @@ pub(super) fn write(path: &Path, volume: &Volume) -> Result<(), IoError> {
     let m: Vec<String> = volume.direction().as_slice().iter().map(|v| v.to_string()).collect();
     let inline = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("mha"));
     let data_name = path.with_extension("zraw");
-    let data_file = if inline { "LOCAL".to_owned() } else { data_name.file_name().map_or_else(String::new, |n| n.to_string_lossy().into_owned()) };
+    let data_file = if inline {
+        "LOCAL".to_owned()
+    } else {
+        data_name.file_name().map_or_else(String::new, |n| n.to_string_lossy().into_owned())
+    };
     let header = format!(
         "ObjectType = Image\nNDims = 3\nBinaryData = True\nBinaryDataByteOrderMSB = False\nCompressedData = True\n\
          TransformMatrix = {}\nOffset = {} {} {}\nElementSpacing = {} {} {}\nDimSize = {nx} {ny} {nz}\n\

@@ -51,7 +51,10 @@ const VOLUME_TYPES: &str = ".nii, .nii.gz, .nrrd, .nhdr, .mha, .mhd";
 pub fn read_mesh_point_array(path: &Path, name: &str) -> Result<Vec<f32>, IoError> {
     let file = file_name(path);
     if !(file.ends_with(".vtu") || file.ends_with(".vtk")) {
-        return Err(IoError::UnsupportedExtension { path: path.to_owned(), expected: ".vtu, .vtk (named point arrays)" });
+        return Err(IoError::UnsupportedExtension {
+            path: path.to_owned(),
+            expected: ".vtu, .vtk (named point arrays)",
+        });
     }
     vtk::read_point_array(path, name)
 }
@@ -90,7 +93,12 @@ pub fn write_mesh(path: &Path, mesh: &TetMesh, positions: Option<&[Vector3<f64>]
 }
 
 /// Writes a triangle surface with per-vertex scalars (`.vtu` or legacy `.vtk`).
-pub fn write_triangles(path: &Path, nodes: &[[f32; 3]], triangles: &[[u32; 3]], scalars: Option<&[f32]>) -> Result<(), IoError> {
+pub fn write_triangles(
+    path: &Path,
+    nodes: &[[f32; 3]],
+    triangles: &[[u32; 3]],
+    scalars: Option<&[f32]>,
+) -> Result<(), IoError> {
     let name = file_name(path);
     if name.ends_with(".vtu") || name.ends_with(".vtk") {
         vtk::write_triangles(path, nodes, triangles, scalars)
@@ -177,7 +185,12 @@ impl SampleType {
 }
 
 /// Reads `expected` bytes of samples from a possibly gzip/zlib-compressed payload.
-pub(crate) fn decompress(path: &Path, payload: &[u8], compression: Compression, expected: usize) -> Result<Vec<u8>, IoError> {
+pub(crate) fn decompress(
+    path: &Path,
+    payload: &[u8],
+    compression: Compression,
+    expected: usize,
+) -> Result<Vec<u8>, IoError> {
     use std::io::Read;
     let mut out = Vec::with_capacity(expected);
     let result = match compression {
@@ -236,7 +249,9 @@ mod tests {
     #[test]
     fn mesh_round_trips_keep_topology_and_positions() {
         let dir = tempfile::tempdir().unwrap();
-        let mut mesh = generate::lattice(Vector3::zeros(), Vector3::new(0.3, 0.2, 0.1), [3, 2, 2], generate::CellSplit::Five).unwrap();
+        let mut mesh =
+            generate::lattice(Vector3::zeros(), Vector3::new(0.3, 0.2, 0.1), [3, 2, 2], generate::CellSplit::Five)
+                .unwrap();
         mesh.set_scalars((0..mesh.nodes().len()).map(|i| i as f32 * 0.5).collect()).unwrap();
         for name in ["m.vtu", "m.vtk", "m.msh", "m.node"] {
             let path = dir.path().join(name);
@@ -288,7 +303,11 @@ mod tests {
     fn malformed_files_name_the_file_and_the_problem() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("bad.mha");
-        std::fs::write(&path, "ObjectType = Image\nNDims = 3\nDimSize = 4 4\nElementType = MET_FLOAT\nElementDataFile = LOCAL\n").unwrap();
+        std::fs::write(
+            &path,
+            "ObjectType = Image\nNDims = 3\nDimSize = 4 4\nElementType = MET_FLOAT\nElementDataFile = LOCAL\n",
+        )
+        .unwrap();
         let e = read_volume(&path).unwrap_err().to_string();
         assert!(e.contains("bad.mha") && e.contains("DimSize"), "{e}");
         let path = dir.path().join("bad.node");

@@ -18,9 +18,15 @@ fn qform_affine(h: &NiftiHeader) -> Matrix4<f64> {
     let (b, c, d) = (h.quatern_b as f64, h.quatern_c as f64, h.quatern_d as f64);
     let a = (1.0 - b * b - c * c - d * d).max(0.0).sqrt();
     let r = Matrix3::new(
-        a * a + b * b - c * c - d * d, 2.0 * (b * c - a * d), 2.0 * (b * d + a * c),
-        2.0 * (b * c + a * d), a * a + c * c - b * b - d * d, 2.0 * (c * d - a * b),
-        2.0 * (b * d - a * c), 2.0 * (c * d + a * b), a * a + d * d - b * b - c * c,
+        a * a + b * b - c * c - d * d,
+        2.0 * (b * c - a * d),
+        2.0 * (b * d + a * c),
+        2.0 * (b * c + a * d),
+        a * a + c * c - b * b - d * d,
+        2.0 * (c * d - a * b),
+        2.0 * (b * d - a * c),
+        2.0 * (c * d + a * b),
+        a * a + d * d - b * b - c * c,
     );
     let qfac = if h.pixdim[0] < 0.0 { -1.0 } else { 1.0 };
     let s = Matrix3::from_diagonal(&Vector3::new(h.pixdim[1] as f64, h.pixdim[2] as f64, h.pixdim[3] as f64 * qfac));
@@ -44,16 +50,22 @@ fn affine(h: &NiftiHeader) -> Matrix4<f64> {
 
 pub(super) fn read(path: &Path) -> Result<Volume, IoError> {
     if !path.exists() {
-        return Err(IoError::Io { path: path.to_owned(), source: std::io::Error::new(std::io::ErrorKind::NotFound, "file not found") });
+        return Err(IoError::Io {
+            path: path.to_owned(),
+            source: std::io::Error::new(std::io::ErrorKind::NotFound, "file not found"),
+        });
     }
-    let obj = ReaderOptions::new().read_file(path).map_err(|e| malformed(path, format!("not a readable NIfTI-1 file: {e}")))?;
+    let obj = ReaderOptions::new()
+        .read_file(path)
+        .map_err(|e| malformed(path, format!("not a readable NIfTI-1 file: {e}")))?;
     let header = obj.header().clone();
     let rank = header.dim[0] as usize;
     if !(1..=7).contains(&rank) || header.dim[4..=rank.max(3)].iter().any(|d| *d > 1) {
         return Err(malformed(path, format!("dim {:?}: only single 3D volumes are supported", header.dim)));
     }
     let dims = [header.dim[1], header.dim[2].max(1), header.dim[3].max(1)].map(|d| d as usize);
-    let array = obj.into_volume().into_ndarray::<f32>().map_err(|e| malformed(path, format!("cannot decode samples: {e}")))?;
+    let array =
+        obj.into_volume().into_ndarray::<f32>().map_err(|e| malformed(path, format!("cannot decode samples: {e}")))?;
     let array = array.into_dimensionality::<Ix3>().map_err(|e| malformed(path, format!("sample layout: {e}")))?;
     let data: Vec<f32> = array.permuted_axes([2, 1, 0]).iter().copied().collect();
     let m = affine(&header);
@@ -78,7 +90,12 @@ pub(super) fn write(path: &Path, volume: &Volume) -> Result<(), IoError> {
     let o = volume.origin();
     let row = |r: usize| -> [f32; 4] {
         let f = LPS_FROM_RAS[r];
-        [(f * d[(r, 0)] * sp[0]) as f32, (f * d[(r, 1)] * sp[1]) as f32, (f * d[(r, 2)] * sp[2]) as f32, (f * o[r]) as f32]
+        [
+            (f * d[(r, 0)] * sp[0]) as f32,
+            (f * d[(r, 1)] * sp[1]) as f32,
+            (f * d[(r, 2)] * sp[2]) as f32,
+            (f * o[r]) as f32,
+        ]
     };
     let header = NiftiHeader {
         dim: [3, nx as u16, ny as u16, nz as u16, 1, 1, 1, 1],
@@ -91,6 +108,10 @@ pub(super) fn write(path: &Path, volume: &Volume) -> Result<(), IoError> {
         srow_z: row(2),
         ..NiftiHeader::default()
     };
-    let array = Array3::from_shape_vec((nx, ny, nz).f(), volume.data().to_vec()).map_err(|e| malformed(path, format!("sample layout: {e}")))?;
-    WriterOptions::new(path).reference_header(&header).write_nifti(&array).map_err(|e| malformed(path, format!("cannot write NIfTI: {e}")))
+    let array = Array3::from_shape_vec((nx, ny, nz).f(), volume.data().to_vec())
+        .map_err(|e| malformed(path, format!("sample layout: {e}")))?;
+    WriterOptions::new(path)
+        .reference_header(&header)
+        .write_nifti(&array)
+        .map_err(|e| malformed(path, format!("cannot write NIfTI: {e}")))
 }

@@ -52,7 +52,11 @@ pub(super) fn read(path: &Path) -> Result<Volume, IoError> {
     if need("dimension")? != "3" {
         return Err(malformed(path, format!("dimension {}: only 3D scalar volumes are supported", need("dimension")?)));
     }
-    let sizes: Vec<usize> = need("sizes")?.split_whitespace().map(str::parse).collect::<Result<_, _>>().map_err(|_| malformed(path, "`sizes`: expected 3 integers"))?;
+    let sizes: Vec<usize> = need("sizes")?
+        .split_whitespace()
+        .map(str::parse)
+        .collect::<Result<_, _>>()
+        .map_err(|_| malformed(path, "`sizes`: expected 3 integers"))?;
     let [nx, ny, nz] = sizes[..] else { return Err(malformed(path, "`sizes`: expected 3 integers")) };
     let sample = match need("type")? {
         "uchar" | "unsigned char" | "uint8" | "uint8_t" => SampleType::U8,
@@ -111,7 +115,9 @@ pub(super) fn read(path: &Path) -> Result<Volume, IoError> {
             let data_path = path.parent().unwrap_or(Path::new(".")).join(file);
             std::fs::read(&data_path).map_err(io_error(&data_path))?
         }
-        None => bytes[header_end.ok_or_else(|| malformed(path, "header never ends (no blank line)"))?.min(bytes.len())..].to_vec(),
+        None => bytes
+            [header_end.ok_or_else(|| malformed(path, "header never ends (no blank line)"))?.min(bytes.len())..]
+            .to_vec(),
     };
     let count = nx * ny * nz;
     let raw = decompress(path, &payload, compression, count * sample.size())?;

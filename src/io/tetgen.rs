@@ -49,14 +49,19 @@ pub(super) fn read(path: &Path) -> Result<MeshParts, IoError> {
     let count: usize = parse(&ele_path, line, header.first(), "the tet count")?;
     let per: usize = parse(&ele_path, line, header.get(1), "nodes per tet")?;
     if per != 4 {
-        return Err(malformed(&ele_path, format!("line {line}: {per} nodes per tet, only linear (4) tets are supported")));
+        return Err(malformed(
+            &ele_path,
+            format!("line {line}: {per} nodes per tet, only linear (4) tets are supported"),
+        ));
     }
     let mut tets = Vec::with_capacity(count);
     for (line, w) in lines.take(count) {
         let mut t = [0u32; 4];
         for (a, slot) in t.iter_mut().enumerate() {
             let raw: i64 = parse(&ele_path, line, w.get(a + 1), "4 node indices")?;
-            *slot = u32::try_from(raw - first_index).map_err(|_| malformed(&ele_path, format!("line {line}: node index {raw} below the first node {first_index}")))?;
+            *slot = u32::try_from(raw - first_index).map_err(|_| {
+                malformed(&ele_path, format!("line {line}: node index {raw} below the first node {first_index}"))
+            })?;
         }
         tets.push(t);
     }

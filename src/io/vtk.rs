@@ -4,7 +4,8 @@ use std::path::Path;
 
 use nalgebra::Vector3;
 use vtkio::model::{
-    Attribute, Attributes, ByteOrder, CellType, Cells, DataArray, DataSet, ElementType, UnstructuredGridPiece, Version, VertexNumbers,
+    Attribute, Attributes, ByteOrder, CellType, Cells, DataArray, DataSet, ElementType, UnstructuredGridPiece, Version,
+    VertexNumbers,
 };
 use vtkio::Vtk;
 
@@ -35,9 +36,15 @@ struct PointArray {
     tagged_scalars: bool,
 }
 
-fn read_with_point_data(path: &Path) -> Result<(Vec<Vector3<f64>>, Vec<[u32; 4]>, Vec<PointArray>), IoError> {
+/// Nodes, tets and the point arrays of a file.
+type MeshWithArrays = (Vec<Vector3<f64>>, Vec<[u32; 4]>, Vec<PointArray>);
+
+fn read_with_point_data(path: &Path) -> Result<MeshWithArrays, IoError> {
     if !path.exists() {
-        return Err(IoError::Io { path: path.to_owned(), source: std::io::Error::new(std::io::ErrorKind::NotFound, "file not found") });
+        return Err(IoError::Io {
+            path: path.to_owned(),
+            source: std::io::Error::new(std::io::ErrorKind::NotFound, "file not found"),
+        });
     }
     let vtk = Vtk::import(path).map_err(|e| malformed(path, format!("not a readable VTK file: {e}")))?;
     let DataSet::UnstructuredGrid { pieces, .. } = vtk.data else {
@@ -46,7 +53,8 @@ fn read_with_point_data(path: &Path) -> Result<(Vec<Vector3<f64>>, Vec<[u32; 4]>
     let Some(piece) = pieces.into_iter().next() else {
         return Err(malformed(path, "unstructured grid has no pieces"));
     };
-    let piece = piece.into_loaded_piece_data(None).map_err(|e| malformed(path, format!("cannot load the grid: {e}")))?;
+    let piece =
+        piece.into_loaded_piece_data(None).map_err(|e| malformed(path, format!("cannot load the grid: {e}")))?;
     let Some(coords) = piece.points.cast_into::<f64>() else {
         return Err(malformed(path, "points are not numeric"));
     };
@@ -69,8 +77,21 @@ fn read_with_point_data(path: &Path) -> Result<(Vec<Vector3<f64>>, Vec<[u32; 4]>
                 let idx = t.map(|v| u32::try_from(v).unwrap_or(u32::MAX));
                 tets.push(idx);
             }
-            CellType::Vertex | CellType::PolyVertex | CellType::Line | CellType::PolyLine | CellType::Triangle | CellType::TriangleStrip | CellType::Polygon | CellType::Pixel | CellType::Quad => {}
-            other => return Err(malformed(path, format!("cell {cell} has type {other:?}; only linear tetrahedra are supported"))),
+            CellType::Vertex
+            | CellType::PolyVertex
+            | CellType::Line
+            | CellType::PolyLine
+            | CellType::Triangle
+            | CellType::TriangleStrip
+            | CellType::Polygon
+            | CellType::Pixel
+            | CellType::Quad => {}
+            other => {
+                return Err(malformed(
+                    path,
+                    format!("cell {cell} has type {other:?}; only linear tetrahedra are supported"),
+                ))
+            }
         }
     }
     let point_data = piece
@@ -78,26 +99,49 @@ fn read_with_point_data(path: &Path) -> Result<(Vec<Vector3<f64>>, Vec<[u32; 4]>
         .point
         .into_iter()
         .map(|a| match a {
-            Attribute::DataArray(DataArray { name, elem: ElementType::Scalars { num_comp: 1, .. }, data }) => PointArray { name, values: data.cast_into::<f32>(), tagged_scalars: true },
-            Attribute::DataArray(DataArray { name, elem: ElementType::Generic(1), data }) => PointArray { name, values: data.cast_into::<f32>(), tagged_scalars: false },
-            Attribute::DataArray(DataArray { name, .. }) | Attribute::Field { name, .. } => PointArray { name, values: None, tagged_scalars: false },
+            Attribute::DataArray(DataArray { name, elem: ElementType::Scalars { num_comp: 1, .. }, data }) => {
+                PointArray { name, values: data.cast_into::<f32>(), tagged_scalars: true }
+            }
+            Attribute::DataArray(DataArray { name, elem: ElementType::Generic(1), data }) => {
+                PointArray { name, values: data.cast_into::<f32>(), tagged_scalars: false }
+            }
+            Attribute::DataArray(DataArray { name, .. }) | Attribute::Field { name, .. } => {
+                PointArray { name, values: None, tagged_scalars: false }
+            }
         })
         .collect();
     Ok((nodes, tets, point_data))
 }
 
-pub(super) fn write(path: &Path, nodes: &[Vector3<f64>], tets: &[[u32; 4]], scalars: Option<&[f32]>) -> Result<(), IoError> {
+pub(super) fn write(
+    path: &Path,
+    nodes: &[Vector3<f64>],
+    tets: &[[u32; 4]],
+    scalars: Option<&[f32]>,
+) -> Result<(), IoError> {
     let points: Vec<f64> = nodes.iter().flat_map(|p| [p.x, p.y, p.z]).collect();
     write_cells(path, points, tets, CellType::Tetra, scalars, "defvol tetrahedral mesh")
 }
 
 /// A triangle surface (a height field, a boundary) as an unstructured grid of triangles.
-pub(super) fn write_triangles(path: &Path, nodes: &[[f32; 3]], triangles: &[[u32; 3]], scalars: Option<&[f32]>) -> Result<(), IoError> {
+pub(super) fn write_triangles(
+    path: &Path,
+    nodes: &[[f32; 3]],
+    triangles: &[[u32; 3]],
+    scalars: Option<&[f32]>,
+) -> Result<(), IoError> {
     let points: Vec<f64> = nodes.iter().flat_map(|p| p.map(f64::from)).collect();
     write_cells(path, points, triangles, CellType::Triangle, scalars, "defvol surface")
 }
 
-fn write_cells<const N: usize>(path: &Path, points: Vec<f64>, cells: &[[u32; N]], cell_type: CellType, scalars: Option<&[f32]>, title: &str) -> Result<(), IoError> {
+fn write_cells<const N: usize>(
+    path: &Path,
+    points: Vec<f64>,
+    cells: &[[u32; N]],
+    cell_type: CellType,
+    scalars: Option<&[f32]>,
+    title: &str,
+) -> Result<(), IoError> {
     let xml = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("vtu"));
     let cell_verts = if xml {
         VertexNumbers::XML {
@@ -105,13 +149,20 @@ fn write_cells<const N: usize>(path: &Path, points: Vec<f64>, cells: &[[u32; N]]
             offsets: (1..=cells.len() as u64).map(|c| N as u64 * c).collect(),
         }
     } else {
-        VertexNumbers::Legacy { num_cells: cells.len() as u32, vertices: cells.iter().flat_map(|c| std::iter::once(N as u32).chain(c.iter().copied())).collect() }
+        VertexNumbers::Legacy {
+            num_cells: cells.len() as u32,
+            vertices: cells.iter().flat_map(|c| std::iter::once(N as u32).chain(c.iter().copied())).collect(),
+        }
     };
     let mut data = Attributes::new();
     if let Some(s) = scalars {
         data.point.push(Attribute::DataArray(DataArray::scalars("scalar", 1).with_data(s.to_vec())));
     }
-    let piece = UnstructuredGridPiece { points: points.into(), cells: Cells { cell_verts, types: vec![cell_type; cells.len()] }, data };
+    let piece = UnstructuredGridPiece {
+        points: points.into(),
+        cells: Cells { cell_verts, types: vec![cell_type; cells.len()] },
+        data,
+    };
     let vtk = Vtk {
         version: if xml { Version::new((1, 0)) } else { Version::new((4, 2)) },
         title: title.into(),

@@ -7,7 +7,7 @@ use serde::{Deserialize, Serialize};
 use super::{MeshError, TetMesh};
 
 /// How a hexahedral cell is split into tets.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum CellSplit {
     /// 5 tets per cell, alternating by cell parity so that face diagonals match.
@@ -46,14 +46,9 @@ pub fn lattice(lo: Vector3<f64>, hi: Vector3<f64>, cells: [usize; 3], split: Cel
                 // corner c = (bit0: x, bit1: y, bit2: z)
                 let c = |b: usize| id(i + (b & 1), j + ((b >> 1) & 1), k + ((b >> 2) & 1));
                 let cell_tets: &[[usize; 4]] = match split {
-                    CellSplit::Six => &[
-                        [0, 1, 3, 7],
-                        [0, 1, 5, 7],
-                        [0, 2, 3, 7],
-                        [0, 2, 6, 7],
-                        [0, 4, 5, 7],
-                        [0, 4, 6, 7],
-                    ],
+                    CellSplit::Six => {
+                        &[[0, 1, 3, 7], [0, 1, 5, 7], [0, 2, 3, 7], [0, 2, 6, 7], [0, 4, 5, 7], [0, 4, 6, 7]]
+                    }
                     // Even cells: central tet on the even corners {0,3,5,6}; odd cells mirror it.
                     CellSplit::Five if (i + j + k) % 2 == 0 => {
                         &[[0, 3, 5, 6], [1, 0, 3, 5], [2, 0, 3, 6], [4, 0, 5, 6], [7, 3, 5, 6]]
@@ -81,7 +76,12 @@ pub fn cells_for_target(extent: Vector3<f64>, target_tets: usize, split: CellSpl
 }
 
 /// A lattice of about `target_tets` tets embedding the box `[lo, hi]`.
-pub fn lattice_for_box(lo: Vector3<f64>, hi: Vector3<f64>, target_tets: usize, split: CellSplit) -> Result<TetMesh, MeshError> {
+pub fn lattice_for_box(
+    lo: Vector3<f64>,
+    hi: Vector3<f64>,
+    target_tets: usize,
+    split: CellSplit,
+) -> Result<TetMesh, MeshError> {
     lattice(lo, hi, cells_for_target(hi - lo, target_tets, split), split)
 }
 

@@ -209,16 +209,17 @@ fn tet_quality(nodes: &[Vector3<f64>], t: &[u32; 4]) -> f64 {
 fn unique_edges(tets: &[[u32; 4]]) -> Vec<[u32; 2]> {
     let mut edges: Vec<[u32; 2]> = tets
         .iter()
-        .flat_map(|t| {
-            [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)].map(|(a, b)| [t[a].min(t[b]), t[a].max(t[b])])
-        })
+        .flat_map(|t| [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)].map(|(a, b)| [t[a].min(t[b]), t[a].max(t[b])]))
         .collect();
     edges.sort_unstable();
     edges.dedup();
     edges
 }
 
-fn face_topology(tets: &[[u32; 4]], source: &str) -> Result<(Vec<[i32; 4]>, Vec<[u32; 3]>), MeshError> {
+/// Per tet, the neighbour across each face (or -1); and the boundary faces.
+type FaceTopology = (Vec<[i32; 4]>, Vec<[u32; 3]>);
+
+fn face_topology(tets: &[[u32; 4]], source: &str) -> Result<FaceTopology, MeshError> {
     let mut owners: HashMap<[u32; 3], (usize, usize, u32)> = HashMap::with_capacity(tets.len() * 2);
     let mut neighbours = vec![[-1i32; 4]; tets.len()];
     for (t, tet) in tets.iter().enumerate() {
@@ -235,7 +236,12 @@ fn face_topology(tets: &[[u32; 4]], source: &str) -> Result<(Vec<[i32; 4]>, Vec<
                     neighbours[other][other_k] = t as i32;
                 }
                 count => {
-                    return Err(MeshError::NonManifoldFace { file: source.to_owned(), face: key, count: count as usize, tet: t })
+                    return Err(MeshError::NonManifoldFace {
+                        file: source.to_owned(),
+                        face: key,
+                        count: count as usize,
+                        tet: t,
+                    })
                 }
             }
         }
@@ -272,10 +278,7 @@ mod tests {
     use super::*;
 
     fn unit_tet() -> (Vec<Vector3<f64>>, Vec<[u32; 4]>) {
-        (
-            vec![Vector3::zeros(), Vector3::x(), Vector3::y(), Vector3::z()],
-            vec![[0, 1, 2, 3]],
-        )
+        (vec![Vector3::zeros(), Vector3::x(), Vector3::y(), Vector3::z()], vec![[0, 1, 2, 3]])
     }
 
     #[test]

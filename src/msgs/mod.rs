@@ -61,7 +61,8 @@ pub trait Message: Serialize + DeserializeOwned {
 
 /// Little-endian CDR with its 4-byte encapsulation header (as DDS and rosbag2 write it).
 pub fn encode<T: Message>(value: &T) -> Result<Vec<u8>, MsgError> {
-    let body = cdr_encoding::to_vec::<T, byteorder::LittleEndian>(value).map_err(|e| MsgError::Cdr { what: T::NAME.into(), message: e.to_string() })?;
+    let body = cdr_encoding::to_vec::<T, byteorder::LittleEndian>(value)
+        .map_err(|e| MsgError::Cdr { what: T::NAME.into(), message: e.to_string() })?;
     let mut out = Vec::with_capacity(body.len() + 4);
     out.extend([0x00, 0x01, 0x00, 0x00]);
     out.extend(body);
@@ -80,7 +81,9 @@ pub fn decode<T: Message>(bytes: &[u8], what: &str) -> Result<T, MsgError> {
         0x0000 => cdr_encoding::from_bytes::<T, byteorder::BigEndian>(body),
         _ => return Err(MsgError::Encapsulation { what: what.into(), kind }),
     };
-    decoded.map(|(value, _)| value).map_err(|e| MsgError::Cdr { what: format!("{what} ({})", T::NAME), message: e.to_string() })
+    decoded
+        .map(|(value, _)| value)
+        .map_err(|e| MsgError::Cdr { what: format!("{what} ({})", T::NAME), message: e.to_string() })
 }
 
 /// The field types of a `.msg` text that are other messages, as full names.
@@ -90,7 +93,10 @@ fn dependencies(package: &str, text: &str) -> Vec<String> {
             let line = line.split('#').next()?.trim();
             let ty = line.split_whitespace().next()?;
             let base = ty.split('[').next()?;
-            const PRIMITIVES: [&str; 17] = ["bool", "byte", "char", "float32", "float64", "int8", "uint8", "int16", "uint16", "int32", "uint32", "int64", "uint64", "string", "wstring", "time", "duration"];
+            const PRIMITIVES: [&str; 17] = [
+                "bool", "byte", "char", "float32", "float64", "int8", "uint8", "int16", "uint16", "int32", "uint32",
+                "int64", "uint64", "string", "wstring", "time", "duration",
+            ];
             if PRIMITIVES.contains(&base) || base.starts_with("string<") {
                 return None;
             }
@@ -105,7 +111,9 @@ fn dependencies(package: &str, text: &str) -> Vec<String> {
 /// The `ros2msg` schema rosbag2 writes for `name`: its text, then each dependency once as
 /// `====…` (80), `MSG: pkg/Type` and its text.
 pub fn ros2msg_schema(name: &str) -> Result<String, MsgError> {
-    let text_of = |n: &str| DEFINITIONS.iter().find(|(d, _)| *d == n).map(|(_, t)| *t).ok_or_else(|| MsgError::UnknownType(n.to_owned()));
+    let text_of = |n: &str| {
+        DEFINITIONS.iter().find(|(d, _)| *d == n).map(|(_, t)| *t).ok_or_else(|| MsgError::UnknownType(n.to_owned()))
+    };
     let mut schema = text_of(name)?.trim_end().to_owned();
     let mut seen = vec![name.to_owned()];
     let mut queue = vec![name.to_owned()];
@@ -154,7 +162,14 @@ mod tests {
             return matches!(format, Format::TupleArray { content, size: n } if size.parse() == Ok(*n) && same_type(content, element));
         }
         match (format, ty) {
-            (Format::Bool, "bool") | (Format::U8, "uint8" | "byte") | (Format::I32, "int32") | (Format::U32, "uint32") | (Format::U64, "uint64") | (Format::F32, "float32") | (Format::F64, "float64") | (Format::Str, "string") => true,
+            (Format::Bool, "bool")
+            | (Format::U8, "uint8" | "byte")
+            | (Format::I32, "int32")
+            | (Format::U32, "uint32")
+            | (Format::U64, "uint64")
+            | (Format::F32, "float32")
+            | (Format::F64, "float64")
+            | (Format::Str, "string") => true,
             (Format::TypeName(rust), msg) => msg.rsplit('/').next() == Some(rust.as_str()),
             _ => false,
         }
@@ -162,13 +177,20 @@ mod tests {
 
     /// The fields of `rust_name` as serde sees them, against a `.msg` text.
     fn check_fields(registry: &serde_reflection::Registry, rust_name: &str, what: &str, text: &str) {
-        let Some(ContainerFormat::Struct(fields)) = registry.get(rust_name) else { panic!("{what}: {rust_name} is not a struct") };
+        let Some(ContainerFormat::Struct(fields)) = registry.get(rust_name) else {
+            panic!("{what}: {rust_name} is not a struct")
+        };
         let expected = msg_fields(text);
         let got: Vec<&str> = fields.iter().map(|f| f.name.as_str()).collect();
         let want: Vec<&str> = expected.iter().map(|(_, n)| n.as_str()).collect();
         assert_eq!(got, want, "{what}: serde fields against the .msg text");
         for (field, (ty, _)) in fields.iter().zip(&expected) {
-            assert!(same_type(&field.value, ty), "{what}: field {} is {:?}, the .msg says {ty}", field.name, field.value);
+            assert!(
+                same_type(&field.value, ty),
+                "{what}: field {} is {:?}, the .msg says {ty}",
+                field.name,
+                field.value
+            );
         }
     }
 
@@ -264,7 +286,13 @@ mod tests {
     fn schemas_carry_their_dependencies_in_rosbag2_form() {
         let schema = ros2msg_schema("geometry_msgs/msg/PoseStamped").unwrap();
         let sep = "=".repeat(80);
-        for dep in ["MSG: std_msgs/Header", "MSG: geometry_msgs/Pose", "MSG: builtin_interfaces/Time", "MSG: geometry_msgs/Point", "MSG: geometry_msgs/Quaternion"] {
+        for dep in [
+            "MSG: std_msgs/Header",
+            "MSG: geometry_msgs/Pose",
+            "MSG: builtin_interfaces/Time",
+            "MSG: geometry_msgs/Point",
+            "MSG: geometry_msgs/Quaternion",
+        ] {
             assert_eq!(schema.matches(&format!("{sep}\n{dep}\n")).count(), 1, "{dep} once in\n{schema}");
         }
         assert!(schema.starts_with("# A Pose with reference coordinate frame and timestamp"));

@@ -247,6 +247,8 @@ pub struct WarpedVolumeInfo {
     pub dims: [u32; 3],
     pub spacing: [f64; 3],
     pub origin: [f64; 3],
+    /// Row major.
+    pub direction: [f64; 9],
 }
 
 /// The request half of std_srvs/srv/Trigger: an empty message, which CDR carries as one

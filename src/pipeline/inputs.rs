@@ -99,7 +99,11 @@ pub struct Checker<'a> {
 impl Checker<'_> {
     fn frame_and_stamp(&self, topic: &str, frame: &str, stamp: Time, last: Option<Time>) -> Result<(), Rejection> {
         if !(frame.is_empty() || frame == self.world_frame) {
-            return Err(Rejection::UnknownFrame { topic: topic.into(), frame: frame.into(), world: self.world_frame.into() });
+            return Err(Rejection::UnknownFrame {
+                topic: topic.into(),
+                frame: frame.into(),
+                world: self.world_frame.into(),
+            });
         }
         if let Some(last) = last.filter(|last| stamp < *last) {
             return Err(Rejection::OutOfOrder { topic: topic.into(), stamp: stamp.as_secs(), last: last.as_secs() });
@@ -125,11 +129,19 @@ impl Checker<'_> {
         let quaternion = Quaternion::new(q.w, q.x, q.y, q.z);
         let norm = quaternion.norm();
         if (norm - 1.0).abs() > self.limits.quaternion_tolerance {
-            return Err(Rejection::Quaternion { topic: topic.into(), norm, tolerance: self.limits.quaternion_tolerance });
+            return Err(Rejection::Quaternion {
+                topic: topic.into(),
+                norm,
+                tolerance: self.limits.quaternion_tolerance,
+            });
         }
         let position = Vector3::new(p.x, p.y, p.z);
         if position.norm() > self.limits.max_position {
-            return Err(Rejection::FarAway { topic: topic.into(), distance: position.norm(), limit: self.limits.max_position });
+            return Err(Rejection::FarAway {
+                topic: topic.into(),
+                distance: position.norm(),
+                limit: self.limits.max_position,
+            });
         }
         self.frame_and_stamp(topic, &msg.header.frame_id, msg.header.stamp, last)?;
         Ok(Isometry3::from_parts(Translation3::from(position), UnitQuaternion::from_quaternion(quaternion)))
@@ -145,10 +157,20 @@ impl Checker<'_> {
             return Err(Rejection::NotFinite { topic: topic.into(), field: "wrench.torque" });
         }
         if force.norm() > self.limits.max_force {
-            return Err(Rejection::Absurd { topic: topic.into(), what: "force (N)", magnitude: force.norm(), limit: self.limits.max_force });
+            return Err(Rejection::Absurd {
+                topic: topic.into(),
+                what: "force (N)",
+                magnitude: force.norm(),
+                limit: self.limits.max_force,
+            });
         }
         if torque.norm() > self.limits.max_torque {
-            return Err(Rejection::Absurd { topic: topic.into(), what: "torque (N·m)", magnitude: torque.norm(), limit: self.limits.max_torque });
+            return Err(Rejection::Absurd {
+                topic: topic.into(),
+                what: "torque (N·m)",
+                magnitude: torque.norm(),
+                limit: self.limits.max_torque,
+            });
         }
         self.frame_and_stamp(topic, &msg.header.frame_id, msg.header.stamp, last)?;
         Ok(force)
@@ -161,9 +183,11 @@ mod tests {
     use crate::msgs::{Header, Pose};
 
     fn pose(x: f64, q: [f64; 4], frame: &str, t: f64) -> PoseStamped {
-        let mut msg = PoseStamped { header: Header { stamp: Time::from_secs(t), frame_id: frame.into() }, pose: Pose::default() };
+        let mut msg =
+            PoseStamped { header: Header { stamp: Time::from_secs(t), frame_id: frame.into() }, pose: Pose::default() };
         msg.pose.position.x = x;
-        (msg.pose.orientation.x, msg.pose.orientation.y, msg.pose.orientation.z, msg.pose.orientation.w) = (q[0], q[1], q[2], q[3]);
+        (msg.pose.orientation.x, msg.pose.orientation.y, msg.pose.orientation.z, msg.pose.orientation.w) =
+            (q[0], q[1], q[2], q[3]);
         msg
     }
 
@@ -175,7 +199,9 @@ mod tests {
         let iso = check.pose("tool_pose", &pose(0.5, [0.0, 0.0, 0.0, 1.004], "world", 10.0), None).unwrap();
         assert!((iso.rotation.quaternion().norm() - 1.0).abs() < 1e-12, "near-unit quaternions are normalised");
         assert_eq!(iso.translation.vector.x, 0.5);
-        let kind = |msg: PoseStamped, last: Option<f64>| check.pose("tool_pose", &msg, last.map(Time::from_secs)).unwrap_err().kind();
+        let kind = |msg: PoseStamped, last: Option<f64>| {
+            check.pose("tool_pose", &msg, last.map(Time::from_secs)).unwrap_err().kind()
+        };
         assert_eq!(kind(pose(f64::NAN, unit, "world", 10.0), None), "not_finite");
         assert_eq!(kind(pose(0.0, [0.0, 0.0, f64::INFINITY, 1.0], "world", 10.0), None), "not_finite");
         assert_eq!(kind(pose(0.0, [0.0, 0.0, 0.0, 2.0], "world", 10.0), None), "quaternion");
@@ -185,7 +211,8 @@ mod tests {
         assert_eq!(kind(pose(0.0, unit, "world", 8.0), None), "stale");
         // An empty frame means the world; a stamp equal to the last is in order.
         assert!(check.pose("tool_pose", &pose(0.0, unit, "", 9.8), Some(Time::from_secs(9.8))).is_ok());
-        let message = check.pose("a/tool_pose", &pose(0.0, [0.0, 0.0, 0.0, 2.0], "world", 10.0), None).unwrap_err().to_string();
+        let message =
+            check.pose("a/tool_pose", &pose(0.0, [0.0, 0.0, 0.0, 2.0], "world", 10.0), None).unwrap_err().to_string();
         assert!(message.contains("a/tool_pose") && message.contains("2.0000"), "{message}");
     }
 

@@ -6,28 +6,30 @@ mod frames;
 pub mod inputs;
 mod outputs;
 
-pub use frames::{FrameMode, WarpedVolume};
+pub use frames::{FrameMode, VolumeSink, WarpedVolume, WriteVolume};
 
 use std::sync::Arc;
 use std::time::Instant;
 
 use nalgebra::{Point3, Vector3};
 
+use crate::backend::{Backend, BackendError};
 use crate::dpcm::engine::DpcmEngine;
 use crate::dpcm::markers::Calibration;
 use crate::dpcm::{DpcmConfig, DpcmError};
-use crate::engine::{BackendChoice, Engine, EngineError};
 use crate::mesh::TetMesh;
 use crate::msgs::{DeformedMesh, DiagnosticArray, Image, Marker, PoseStamped, Time, WrenchStamped};
 use crate::render::camera::{Camera, Projection};
+use crate::render::engine::{MeshRenderer, RenderEngineError, VolumeRenderer};
 use crate::render::raycast::{RaycastParams, ToolPicture, VolumeRaycaster};
 use crate::render::tet_raycast::{TetRaycastParams, TetRaycaster};
 use crate::render::transfer::TransferFunction;
 use crate::render::RenderError;
 use crate::scene::{CameraShows, LoadedScene, Scene, SceneError};
-use crate::solver::{SolverError, StepReport};
+use crate::solver::{SolverEngine, SolverEngineError, SolverError, StepReport};
 use crate::volume::{Grid, Volume, VolumeError};
-use crate::warp::{IncrementalWarp, WarpError, WarpOptions};
+use crate::warp::engine::{WarpEngine, WarpEngineError};
+use crate::warp::{WarpError, WarpOptions};
 use inputs::{Checker, InputCounters, InputLimits, Rejection};
 
 #[derive(Debug, thiserror::Error)]
@@ -36,7 +38,13 @@ pub enum PipelineError {
     #[error(transparent)]
     Scene(#[from] SceneError),
     #[error("solver: {0}")]
-    Engine(#[from] EngineError),
+    Engine(#[from] SolverEngineError),
+    #[error(transparent)]
+    Backend(#[from] BackendError),
+    #[error("warp: {0}")]
+    WarpEngine(#[from] WarpEngineError),
+    #[error("raycast: {0}")]
+    RenderEngine(#[from] RenderEngineError),
     #[error("solver: {0}")]
     Solver(#[from] SolverError),
     #[error("warp: {0}")]
@@ -65,8 +73,26 @@ pub struct Demand {
 }
 
 impl Demand {
-    pub const ALL: Demand = Demand { deformed_mesh: true, surface_marker: true, tool_feedback: true, warped_volume: true, dpcm_height: true, dpcm_image: true, raycast: true, diagnostics: true };
-    pub const NONE: Demand = Demand { deformed_mesh: false, surface_marker: false, tool_feedback: false, warped_volume: false, dpcm_height: false, dpcm_image: false, raycast: false, diagnostics: false };
+    pub const ALL: Demand = Demand {
+        deformed_mesh: true,
+        surface_marker: true,
+        tool_feedback: true,
+        warped_volume: true,
+        dpcm_height: true,
+        dpcm_image: true,
+        raycast: true,
+        diagnostics: true,
+    };
+    pub const NONE: Demand = Demand {
+        deformed_mesh: false,
+        surface_marker: false,
+        tool_feedback: false,
+        warped_volume: false,
+        dpcm_height: false,
+        dpcm_image: false,
+        raycast: false,
+        diagnostics: false,
+    };
 }
 
 /// What one tick produced; `None` where the output was not wanted or nothing changed.
@@ -74,7 +100,8 @@ impl Demand {
 pub struct Outputs {
     /// Whether the solver stepped (it sleeps while the mesh rests untouched).
     pub stepped: bool,
-    pub tool_feedback: Option<WrenchStamped>,
+    /// The reaction on each tool, in the scene's order (topics: [`Pipeline::feedback_topics`]).
+    pub tool_feedback: Vec<WrenchStamped>,
     pub deformed_mesh: Option<DeformedMesh>,
     pub surface_marker: Option<Marker>,
     /// A new warped volume is in [`Pipeline::warped_volume`].
@@ -97,6 +124,7 @@ pub struct StageTimes {
 struct ToolState {
     pose_topic: String,
     wrench_topic: String,
+    feedback_topic: String,
     last_pose: Option<Time>,
     last_wrench: Option<Time>,
     /// The tool as the stages see it (the solver holds a copy).
@@ -128,10 +156,13 @@ pub struct Pipeline {
     volume: Arc<Volume>,
     mesh: TetMesh,
     /// `None` when the scene disables the solver.
-    engine: Option<Engine>,
-    backend: BackendChoice,
-    allow_software_gpu: bool,
+    engine: Option<SolverEngine>,
+    /// The run's backend, chosen once: every stage is built on it, and a reloaded scene
+    /// keeps it.
+    backend: Backend,
     tools: Vec<ToolState>,
+    /// Where warped volumes are published (the node's shared memory), when set.
+    sink: Option<Arc<dyn VolumeSink>>,
     limits: InputLimits,
     counters: InputCounters,
     /// Warp and raycast, when the scene has either.
@@ -153,9 +184,11 @@ pub struct Pipeline {
 
 impl Pipeline {
     /// Loads the scene and initialises the stages it enables (and only those).
-    pub fn new(scene: Scene, backend: BackendChoice, allow_software_gpu: bool, limits: InputLimits, mode: FrameMode) -> Result<Self, PipelineError> {
+    pub fn new(scene: Scene, backend: &Backend, limits: InputLimits, mode: FrameMode) -> Result<Self, PipelineError> {
         if !scene.stages.solver && scene.stages.warp {
-            return Err(PipelineError::Invalid("the warp stage follows the solver's mesh: enable stages.solver too".into()));
+            return Err(PipelineError::Invalid(
+                "the warp stage follows the solver's mesh: enable stages.solver too".into(),
+            ));
         }
         let LoadedScene { scene, volume, mesh, model } = scene.load()?;
         let tools: Vec<ToolState> = scene
@@ -168,27 +201,39 @@ impl Pipeline {
                 if let Some(p) = config.path.as_ref().map(|path| path.position(0.0)) {
                     tool.world_from_tool = nalgebra::Isometry3::translation(p.x, p.y, p.z);
                 }
-                ToolState { pose_topic: config.pose_topic(i), wrench_topic: config.wrench_topic(i), last_pose: None, last_wrench: None, tool }
+                ToolState {
+                    pose_topic: config.pose_topic(i),
+                    wrench_topic: config.wrench_topic(i),
+                    feedback_topic: config.feedback_topic(i),
+                    last_pose: None,
+                    last_wrench: None,
+                    tool,
+                }
             })
             .collect();
         let engine = match scene.stages.solver {
             true => {
-                let engine = Engine::new(backend, allow_software_gpu, &model, scene.solver.clone(), tools.iter().map(|t| t.tool.clone()).collect())?;
+                let engine = SolverEngine::new(
+                    backend,
+                    &model,
+                    scene.solver.clone(),
+                    tools.iter().map(|t| t.tool.clone()).collect(),
+                )?;
                 tracing::info!("solver: {} ({} nodes, {} tets)", engine.name(), mesh.nodes().len(), mesh.tets().len());
                 Some(engine)
             }
             false => None,
         };
-        let positions = engine.as_ref().map_or_else(|| mesh.nodes().to_vec(), Engine::positions);
+        let positions = engine.as_ref().map_or_else(|| mesh.nodes().to_vec(), SolverEngine::positions);
         let volume = Arc::new(volume);
         let mut pipeline = Self {
             scene,
             volume,
             mesh,
             engine,
-            backend,
-            allow_software_gpu,
+            backend: backend.clone(),
             tools,
+            sink: None,
             limits,
             counters: InputCounters::default(),
             frames: None,
@@ -213,23 +258,40 @@ impl Pipeline {
         self.frames = None;
         self.warp_grid = None;
         self.dpcm = None;
+        let to_file = 1.0 / self.scene.file_to_world;
+        let mut rest = self.mesh.clone();
+        rest.map_nodes(|p| p * to_file);
+        let rest = Arc::new(rest);
         let warp = match stages.warp {
             false => None,
             true => {
                 let config = &self.scene.warp;
-                if !(config.rate_hz.is_finite() && config.rate_hz > 0.0 && config.tolerance.is_finite() && config.tolerance >= 0.0) {
-                    return Err(PipelineError::Invalid(format!("warp: rate_hz {} must be > 0 and tolerance {} >= 0", config.rate_hz, config.tolerance)));
+                if !(config.rate_hz.is_finite()
+                    && config.rate_hz > 0.0
+                    && config.tolerance.is_finite()
+                    && config.tolerance >= 0.0)
+                {
+                    return Err(PipelineError::Invalid(format!(
+                        "warp: rate_hz {} must be > 0 and tolerance {} >= 0",
+                        config.rate_hz, config.tolerance
+                    )));
                 }
-                let to_file = 1.0 / self.scene.file_to_world;
-                let mut rest = self.mesh.clone();
-                rest.map_nodes(|p| p * to_file);
-                let deformed: Vec<_> = self.positions.iter().map(|p| p * to_file).collect();
-                let options = WarpOptions { background: self.volume.range().0, keep_uncovered: true, ..Default::default() };
+                let options =
+                    WarpOptions { background: self.volume.range().0, keep_uncovered: true, ..Default::default() };
                 let start = Instant::now();
-                let (warp, _) = IncrementalWarp::new(self.volume.clone(), Arc::new(rest), &deformed, self.volume.grid(), options)?;
+                let engine = WarpEngine::new(
+                    &self.backend,
+                    self.volume.clone(),
+                    rest.clone(),
+                    self.volume.grid(),
+                    options,
+                    to_file,
+                    config.tolerance * to_file,
+                )?;
                 self.times.warp = start.elapsed().as_secs_f64() * 1e3;
-                self.warp_grid = Some(warp.grid().clone());
-                Some((warp, config.tolerance * to_file))
+                self.warp_grid = Some(engine.grid().clone());
+                tracing::info!("warp: {} ({:?} voxels)", engine.backend(), engine.grid().dims);
+                Some(frames::WarpSetup { engine, host: None })
             }
         };
         let raycast = match stages.raycast {
@@ -239,49 +301,125 @@ impl Pipeline {
                 if !(c.rate_hz.is_finite() && c.rate_hz > 0.0) {
                     return Err(PipelineError::Invalid(format!("camera: rate_hz {} must be > 0", c.rate_hz)));
                 }
-                let to_file = 1.0 / self.scene.file_to_world;
                 let point = |p: [f64; 3]| Point3::from(Vector3::from(p) * to_file);
-                let camera = Camera::look_at(point(c.eye), point(c.target), Vector3::from(c.up), Projection::Perspective { fov_y_deg: c.fov_y_deg }, c.width, c.height)?;
+                let camera = Camera::look_at(
+                    point(c.eye),
+                    point(c.target),
+                    Vector3::from(c.up),
+                    Projection::Perspective { fov_y_deg: c.fov_y_deg },
+                    c.width,
+                    c.height,
+                )?;
                 let tf = TransferFunction::preset(&c.transfer_function)?;
                 // Prepared once here, so that a bad parameter fails at start, not mid-run.
                 let picture = match c.shows {
-                    CameraShows::Volume => {
-                        let params = RaycastParams { step: c.step, ..Default::default() };
-                        let tables = Arc::new(VolumeRaycaster::tables_for(self.volume.range(), &tf, &params)?);
-                        VolumeRaycaster::with_tables(&self.volume, tables.clone(), &params)?;
-                        frames::Picture::Volume { tables, params }
-                    }
+                    CameraShows::Volume => frames::Picture::Volume(self.volume_picture(warp.as_ref(), &tf)?),
                     CameraShows::Mesh => {
-                        let mut rest = self.mesh.clone();
-                        rest.map_nodes(|p| p * to_file);
                         let outside = self.volume.range().0;
-                        let scalars: Vec<f32> = rest.nodes().iter().map(|p| self.volume.sample_world(*p).unwrap_or(outside)).collect();
-                        frames::Picture::Mesh(Box::new(TetRaycaster::new(&rest, &scalars, &tf, &TetRaycastParams { step: c.step, ..Default::default() })?))
+                        let scalars: Vec<f32> =
+                            rest.nodes().iter().map(|p| self.volume.sample_world(*p).unwrap_or(outside)).collect();
+                        let prepared = TetRaycaster::new(
+                            &rest,
+                            &scalars,
+                            &tf,
+                            &TetRaycastParams { step: c.step, ..Default::default() },
+                        )?;
+                        frames::Picture::Mesh(MeshRenderer::new(&self.backend, prepared, to_file)?)
                     }
                 };
                 Some(frames::RaycastSetup { camera, picture })
             }
         };
         if warp.is_some() || raycast.is_some() {
-            let worker = frames::FrameWorker { warp, raycast, volume: self.volume.clone(), sequence: 0 };
-            self.frames = Some(frames::Frames::new(worker, self.mode, self.scene.warp.rate_hz, self.scene.camera.rate_hz)?);
+            let worker = frames::FrameWorker {
+                warp,
+                raycast,
+                source: self.volume.clone(),
+                rest,
+                to_file,
+                warped_since_picture: false,
+            };
+            let frames = frames::Frames::new(worker, self.mode, self.scene.warp.rate_hz, self.scene.camera.rate_hz)?;
+            if let Some(backend) = frames.raycast_backend {
+                tracing::info!("raycast: {backend}");
+            }
+            self.frames = Some(frames);
         }
         if stages.dpcm {
             let c = &self.scene.dpcm;
-            let mut config = if c.preset.ends_with(".yaml") || c.preset.ends_with(".yml") { DpcmConfig::load(std::path::Path::new(&c.preset))? } else { DpcmConfig::preset(&c.preset)? };
+            let mut config = if c.preset.ends_with(".yaml") || c.preset.ends_with(".yml") {
+                DpcmConfig::load(std::path::Path::new(&c.preset))?
+            } else {
+                DpcmConfig::preset(&c.preset)?
+            };
             if let Some([w, h]) = c.size {
                 (config.width, config.height) = (w, h);
             }
             if let Some(spacing) = c.spacing {
                 config.spacing = spacing;
             }
-            let engine = DpcmEngine::new(&config, self.backend, self.allow_software_gpu)?;
+            let engine = DpcmEngine::new(&config, &self.backend)?;
             let steps_per_tick = (self.scene.solver.dt / config.dt).round().max(1.0) as usize;
-            let calibration = Calibration { world_from_grid: nalgebra::Isometry3::translation(c.origin[0], c.origin[1], c.origin[2]), spacing: config.spacing };
-            tracing::info!("DPCM: {} {}x{}, {} steps per solver step", engine.name(), config.width, config.height, steps_per_tick);
-            self.dpcm = Some(DpcmStage { engine, config, calibration, steps_per_tick, last_image_time: f64::NEG_INFINITY, asleep: false, last_heights: Vec::new(), last_displacement: Vec::new() });
+            let calibration = Calibration {
+                world_from_grid: nalgebra::Isometry3::translation(c.origin[0], c.origin[1], c.origin[2]),
+                spacing: config.spacing,
+            };
+            tracing::info!(
+                "DPCM: {} {}x{}, {} steps per solver step",
+                engine.name(),
+                config.width,
+                config.height,
+                steps_per_tick
+            );
+            self.dpcm = Some(DpcmStage {
+                engine,
+                config,
+                calibration,
+                steps_per_tick,
+                last_image_time: f64::NEG_INFINITY,
+                asleep: false,
+                last_heights: Vec::new(),
+                last_displacement: Vec::new(),
+            });
         }
         Ok(())
+    }
+
+    /// The camera's volume picture: on the GPU it reads the GPU warp's output where it is;
+    /// a warp on the CPU (or none) is raycast on the CPU, or its source uploaded once.
+    fn volume_picture(
+        &self,
+        warp: Option<&frames::WarpSetup>,
+        tf: &TransferFunction,
+    ) -> Result<VolumeRenderer, PipelineError> {
+        let c = &self.scene.camera;
+        // The shading scale of the source, so that every frame of the warp shades alike.
+        let (lo, hi) = self.volume.range();
+        let min_spacing = self.volume.spacing().iter().copied().fold(f64::INFINITY, f64::min);
+        let params = RaycastParams {
+            step: c.step,
+            gradient_scale: Some((f64::from(hi - lo) / (4.0 * min_spacing)).max(1e-12)),
+            ..Default::default()
+        };
+        let tables = Arc::new(VolumeRaycaster::tables_for(self.volume.range(), tf, &params)?);
+        match warp.map(|w| w.engine.backend()) {
+            #[cfg(feature = "gpu")]
+            Some("gpu") => {
+                let on_device = warp.and_then(|w| w.engine.device_output()).zip(self.backend.context());
+                if let Some((samples, ctx)) = on_device {
+                    return Ok(VolumeRenderer::on_device(
+                        ctx.clone(),
+                        samples.clone(),
+                        &self.volume,
+                        &tables,
+                        &params,
+                    )?);
+                }
+                Ok(VolumeRenderer::new(&Backend::cpu(), &self.volume, tables, &params)?)
+            }
+            Some(_) => Ok(VolumeRenderer::new(&Backend::cpu(), &self.volume, tables, &params)?),
+            None => Ok(VolumeRenderer::new(&self.backend, &self.volume, tables, &params)?),
+        }
     }
 
     pub fn scene(&self) -> &Scene {
@@ -302,8 +440,30 @@ impl Pipeline {
     pub fn counters(&self) -> &InputCounters {
         &self.counters
     }
+    /// The solver's path and device, for logs.
     pub fn backend_name(&self) -> String {
-        self.engine.as_ref().map_or_else(|| "off".into(), Engine::name)
+        self.engine.as_ref().map_or_else(|| "off".into(), SolverEngine::name)
+    }
+    /// The run's backend.
+    pub fn backend(&self) -> &Backend {
+        &self.backend
+    }
+    /// Where each enabled stage runs ("cpu" or "gpu"), as `diagnostics` reports it.
+    pub fn stage_backends(&self) -> Vec<(&'static str, &'static str)> {
+        let mut stages = Vec::new();
+        if let Some(e) = &self.engine {
+            stages.push(("solver", e.backend()));
+        }
+        if let Some(backend) = self.frames.as_ref().and_then(|f| f.warp_backend) {
+            stages.push(("warp", backend));
+        }
+        if let Some(d) = &self.dpcm {
+            stages.push(("dpcm", d.engine.backend()));
+        }
+        if let Some(backend) = self.frames.as_ref().and_then(|f| f.raycast_backend) {
+            stages.push(("raycast", backend));
+        }
+        stages
     }
     pub fn last_report(&self) -> Option<&StepReport> {
         self.last_report.as_ref()
@@ -322,9 +482,27 @@ impl Pipeline {
         self.tools.iter().map(|t| (t.pose_topic.clone(), t.wrench_topic.clone())).collect()
     }
 
-    /// The latest warped volume (grid in file units, samples, sequence), once one is made.
+    /// The feedback topic of each tool, in the order of [`Outputs::tool_feedback`].
+    pub fn feedback_topics(&self) -> Vec<String> {
+        self.tools.iter().map(|t| t.feedback_topic.clone()).collect()
+    }
+
+    /// The latest warped volume (grid in file units, sequence, work), once one is made.
     pub fn warped_volume(&self) -> Option<&WarpedVolume> {
         self.frames.as_ref().and_then(|f| f.latest.as_ref())
+    }
+
+    /// The latest warped volume's samples, when they are kept on the host: in lockstep runs
+    /// without a volume sink (the demo, replays, tests). With a sink they are written only
+    /// into the memory it lends.
+    pub fn warped_samples(&self) -> Option<&[f32]> {
+        self.frames.as_ref().and_then(|f| f.host_warped())
+    }
+
+    /// Publishes every warped volume someone takes through `sink` (written straight into
+    /// the memory it lends); `None` keeps them on the host.
+    pub fn set_volume_sink(&mut self, sink: Option<Arc<dyn VolumeSink>>) {
+        self.sink = sink;
     }
 
     /// The grid warped volumes come on, when the scene warps.
@@ -342,16 +520,18 @@ impl Pipeline {
     /// Back to the rest state: the mesh, the DPCM surface and the tools' input history.
     pub fn reset(&mut self) -> Result<(), PipelineError> {
         let model_scene = self.scene.clone();
-        let replacement = Self::new(model_scene, self.backend, self.allow_software_gpu, self.limits.clone(), self.mode)?;
-        let paused = self.paused;
+        let mut replacement = Self::new(model_scene, &self.backend, self.limits.clone(), self.mode)?;
+        replacement.paused = self.paused;
+        replacement.sink = self.sink.take();
         *self = replacement;
-        self.paused = paused;
         Ok(())
     }
 
     /// Replaces the scene; on error the running one is kept.
     pub fn load_scene(&mut self, scene: Scene) -> Result<(), PipelineError> {
-        *self = Self::new(scene, self.backend, self.allow_software_gpu, self.limits.clone(), self.mode)?;
+        let mut replacement = Self::new(scene, &self.backend, self.limits.clone(), self.mode)?;
+        replacement.sink = self.sink.take();
+        *self = replacement;
         Ok(())
     }
 
@@ -363,7 +543,9 @@ impl Pipeline {
     }
 
     fn pose_outcome(&mut self, topic: &str, msg: &PoseStamped, now: Time) -> Result<(), Rejection> {
-        let Some(index) = self.tools.iter().position(|t| t.pose_topic == topic) else { return Err(Rejection::UnknownTopic { topic: topic.into() }) };
+        let Some(index) = self.tools.iter().position(|t| t.pose_topic == topic) else {
+            return Err(Rejection::UnknownTopic { topic: topic.into() });
+        };
         let checker = Checker { limits: &self.limits, world_frame: &self.scene.frame_id, now };
         let world_from_tool = checker.pose(topic, msg, self.tools[index].last_pose)?;
         let state = &mut self.tools[index];
@@ -383,7 +565,9 @@ impl Pipeline {
     }
 
     fn wrench_outcome(&mut self, topic: &str, msg: &WrenchStamped, now: Time) -> Result<(), Rejection> {
-        let Some(index) = self.tools.iter().position(|t| t.wrench_topic == topic) else { return Err(Rejection::UnknownTopic { topic: topic.into() }) };
+        let Some(index) = self.tools.iter().position(|t| t.wrench_topic == topic) else {
+            return Err(Rejection::UnknownTopic { topic: topic.into() });
+        };
         let checker = Checker { limits: &self.limits, world_frame: &self.scene.frame_id, now };
         let force = checker.wrench(topic, msg, self.tools[index].last_wrench)?;
         let state = &mut self.tools[index];
@@ -431,7 +615,8 @@ impl Pipeline {
             let report = engine.step()?;
             self.times.solver = start.elapsed().as_secs_f64() * 1e3;
             self.positions = engine.positions();
-            let touching = report.reaction_force.iter().any(|f| *f != 0.0) || self.tools.iter().any(|t| t.tool.applied_force != Vector3::zeros());
+            let touching = report.reactions.iter().any(|r| r.force.iter().any(|f| *f != 0.0))
+                || self.tools.iter().any(|t| t.tool.applied_force != Vector3::zeros());
             self.quiet_steps = if report.kinetic_energy < SLEEP_ENERGY && !touching { self.quiet_steps + 1 } else { 0 };
             self.asleep = self.quiet_steps >= SLEEP_AFTER;
             self.last_report = Some(report);
@@ -444,25 +629,41 @@ impl Pipeline {
         // goes on while the solver sleeps.
         let clock = stamp.as_secs();
         if let (Some(report), true) = (&self.last_report, demand.tool_feedback && out.stepped) {
-            out.tool_feedback = Some(outputs::feedback(report, stamp, &self.scene.frame_id));
+            out.tool_feedback = (0..self.tools.len())
+                .map(|index| outputs::feedback(report, index, stamp, &self.scene.frame_id))
+                .collect();
         }
         if out.stepped && demand.deformed_mesh {
-            out.deformed_mesh = Some(outputs::deformed_mesh(&self.mesh, &self.positions, self.last_report.as_ref().map_or(0, |r| r.step), stamp, &self.scene.frame_id));
+            out.deformed_mesh = Some(outputs::deformed_mesh(
+                &self.mesh,
+                &self.positions,
+                self.last_report.as_ref().map_or(0, |r| r.step),
+                stamp,
+                &self.scene.frame_id,
+            ));
         }
         // The marker repeats every triangle corner (hundreds of kB): 10 Hz is what a viewer needs.
         if out.stepped && demand.surface_marker && clock - self.last_marker >= MARKER_PERIOD - 1e-9 {
             self.last_marker = clock;
-            out.surface_marker = Some(outputs::surface_marker(&self.mesh, &self.positions, stamp, &self.scene.frame_id));
+            out.surface_marker =
+                Some(outputs::surface_marker(&self.mesh, &self.positions, stamp, &self.scene.frame_id));
         }
         let to_file = 1.0 / self.scene.file_to_world;
         if let Some(frames) = &mut self.frames {
-            let (positions, tools, scene) = (&self.positions, &self.tools, &self.scene);
+            let (positions, rest, tools, scene) = (&self.positions, self.mesh.nodes(), &self.tools, &self.scene);
+            let host = || -> Vec<Vector3<f64>> { positions.iter().zip(rest).map(|(p, r)| p - r).collect() };
+            let deformation = frames::Deformation {
+                host: &host,
+                #[cfg(feature = "gpu")]
+                device: self.engine.as_ref().and_then(SolverEngine::device_displacements),
+            };
             let done = frames.tick(
                 clock,
                 stamp,
                 demand.warped_volume,
                 demand.raycast,
-                || positions.iter().map(|p| p * to_file).collect(),
+                &deformation,
+                self.sink.as_ref(),
                 || {
                     tools
                         .iter()
@@ -470,7 +671,12 @@ impl Pipeline {
                         .take(crate::render::raycast::MAX_TOOLS)
                         .map(|(t, c)| {
                             let (a, b) = t.tool.segment();
-                            ToolPicture { tip: (a * to_file).into(), tail: (b * to_file).into(), radius: c.shape.radius() * to_file, color: [0.75, 0.78, 0.82] }
+                            ToolPicture {
+                                tip: (a * to_file).into(),
+                                tail: (b * to_file).into(),
+                                radius: c.shape.radius() * to_file,
+                                color: [0.75, 0.78, 0.82],
+                            }
                         })
                         .collect()
                 },
@@ -491,7 +697,12 @@ impl Pipeline {
         Ok(out)
     }
 
-    fn run_dpcm(&mut self, clock: f64, stamp: Time, demand: &Demand) -> Result<(Option<Image>, Option<Image>), PipelineError> {
+    fn run_dpcm(
+        &mut self,
+        clock: f64,
+        stamp: Time,
+        demand: &Demand,
+    ) -> Result<(Option<Image>, Option<Image>), PipelineError> {
         let Some(d) = &mut self.dpcm else { return Ok((None, None)) };
         if self.paused {
             return Ok((None, None));
@@ -500,7 +711,13 @@ impl Pipeline {
         let reach = d.config.marker.threshold / d.config.spacing;
         let markers: Vec<_> = (self.tools.iter().enumerate())
             .map(|(i, t)| d.calibration.marker(i as u32, Point3::from(t.tool.tip())))
-            .filter(|m| m.col >= -reach && m.row >= -reach && m.col <= d.config.width as f64 + reach && m.row <= d.config.height as f64 + reach && m.height.abs() <= d.config.marker.threshold)
+            .filter(|m| {
+                m.col >= -reach
+                    && m.row >= -reach
+                    && m.col <= d.config.width as f64 + reach
+                    && m.row <= d.config.height as f64 + reach
+                    && m.height.abs() <= d.config.marker.threshold
+            })
             .collect();
         if !markers.is_empty() {
             d.asleep = false;
@@ -517,9 +734,14 @@ impl Pipeline {
             return Ok((None, None));
         }
         d.last_image_time = clock;
-        let (heights, displacement) = if d.asleep { (d.last_heights.clone(), d.last_displacement.clone()) } else { d.engine.heights_and_displacement()? };
+        let (heights, displacement) = if d.asleep {
+            (d.last_heights.clone(), d.last_displacement.clone())
+        } else {
+            d.engine.heights_and_displacement()?
+        };
         // At rest when nothing touches it and no phyxel moved a nanometre since the last image.
-        let settled = d.last_heights.len() == heights.len() && heights.iter().zip(&d.last_heights).all(|(a, b)| (a - b).abs() < 1e-9);
+        let settled = d.last_heights.len() == heights.len()
+            && heights.iter().zip(&d.last_heights).all(|(a, b)| (a - b).abs() < 1e-9);
         d.asleep = markers.is_empty() && settled;
         d.last_heights.clone_from(&heights);
         d.last_displacement.clone_from(&displacement);
@@ -551,11 +773,15 @@ mod tests {
     }
 
     fn pipeline(scene: Scene) -> Pipeline {
-        Pipeline::new(scene, BackendChoice::Cpu, false, InputLimits { max_age: None, ..Default::default() }, FrameMode::Lockstep).unwrap()
+        Pipeline::new(scene, &Backend::cpu(), InputLimits { max_age: None, ..Default::default() }, FrameMode::Lockstep)
+            .unwrap()
     }
 
     fn pose(t: f64, z: f64) -> PoseStamped {
-        let mut msg = PoseStamped { header: Header { stamp: Time::from_secs(t), frame_id: "world".into() }, pose: Pose::default() };
+        let mut msg = PoseStamped {
+            header: Header { stamp: Time::from_secs(t), frame_id: "world".into() },
+            pose: Pose::default(),
+        };
         msg.pose.position.z = z;
         msg
     }
@@ -566,14 +792,22 @@ mod tests {
         assert!(p.frames.is_none() && p.dpcm.is_none() && p.warped_grid().is_none());
         let out = p.tick(Time::from_secs(0.01), &Demand::NONE).unwrap();
         assert!(out.stepped, "the solver runs whoever listens: feedback is its product");
-        assert!(out.tool_feedback.is_none() && out.deformed_mesh.is_none() && out.surface_marker.is_none() && out.diagnostics.is_none());
+        assert!(
+            out.tool_feedback.is_empty()
+                && out.deformed_mesh.is_none()
+                && out.surface_marker.is_none()
+                && out.diagnostics.is_none()
+        );
         let out = p.tick(Time::from_secs(0.02), &Demand::ALL).unwrap();
-        let (mesh, feedback) = (out.deformed_mesh.unwrap(), out.tool_feedback.unwrap());
+        let (mesh, feedback) = (out.deformed_mesh.unwrap(), &out.tool_feedback[0]);
         assert_eq!(mesh.positions.len(), 3 * p.mesh().nodes().len());
         assert_eq!(mesh.triangles.len(), 3 * p.mesh().boundary().len());
         let report = p.last_report().unwrap();
-        assert_eq!((mesh.step, feedback.wrench.force.z), (report.step, report.reaction_force[2]));
-        assert!(out.raycast.is_none() && out.dpcm_height.is_none() && !out.warped_volume, "disabled stages give nothing");
+        assert_eq!((mesh.step, feedback.wrench.force.z), (report.step, report.reaction(0).force[2]));
+        assert!(
+            out.raycast.is_none() && out.dpcm_height.is_none() && !out.warped_volume,
+            "disabled stages give nothing"
+        );
     }
 
     #[test]
@@ -584,12 +818,24 @@ mod tests {
         let mut p = pipeline(s);
         // The probe starts far above: nothing touches, nothing moves.
         p.apply_pose("tool_pose", &pose(0.0, 0.5), Time::from_secs(0.0)).unwrap();
-        let stepped: Vec<bool> = (1..=40).map(|k| p.tick(Time::from_secs(k as f64 * 0.01), &Demand::ALL).unwrap().stepped).collect();
-        assert_eq!(stepped.iter().filter(|s| **s).count(), SLEEP_AFTER as usize, "asleep after {SLEEP_AFTER} quiet steps");
+        let stepped: Vec<bool> =
+            (1..=40).map(|k| p.tick(Time::from_secs(k as f64 * 0.01), &Demand::ALL).unwrap().stepped).collect();
+        assert_eq!(
+            stepped.iter().filter(|s| **s).count(),
+            SLEEP_AFTER as usize,
+            "asleep after {SLEEP_AFTER} quiet steps"
+        );
         assert!(p.asleep());
         // Pressing 5 mm into the top node nearest the centre wakes it, and it stays awake
         // while the tool touches (contact acts on nodes: aim at one on this coarse mesh).
-        let top = p.mesh().nodes().iter().filter(|n| n.z > 0.06).min_by(|a, b| (a.x.hypot(a.y)).total_cmp(&b.x.hypot(b.y))).copied().unwrap();
+        let top = p
+            .mesh()
+            .nodes()
+            .iter()
+            .filter(|n| n.z > 0.06)
+            .min_by(|a, b| (a.x.hypot(a.y)).total_cmp(&b.x.hypot(b.y)))
+            .copied()
+            .unwrap();
         let mut press = pose(0.5, top.z + 0.02);
         (press.pose.position.x, press.pose.position.y) = (top.x, top.y);
         p.apply_pose("tool_pose", &press, Time::from_secs(0.5)).unwrap();
@@ -597,7 +843,7 @@ mod tests {
             let stepped = p.tick(Time::from_secs(0.5 + k as f64 * 0.01), &Demand::ALL).unwrap().stepped;
             assert!(stepped, "step {k} after the press: {:?}", p.last_report());
         }
-        assert!(p.last_report().unwrap().reaction_force[2] > 0.5);
+        assert!(p.last_report().unwrap().reaction(0).force[2] > 0.5);
         // A refused pose leaves the tool where it was and is counted.
         assert!(p.apply_pose("tool_pose", &pose(1.0, f64::NAN), Time::from_secs(1.0)).is_err());
         assert!(p.apply_pose("elsewhere", &pose(1.0, 0.0), Time::from_secs(1.0)).is_err());
@@ -612,7 +858,7 @@ mod tests {
         let first = p.tick(Time::from_secs(0.01), &Demand::ALL).unwrap();
         assert!(first.warped_volume && first.raycast.is_some());
         let warped = p.warped_volume().unwrap();
-        assert_eq!((warped.data.len(), warped.sequence), (256 * 160 * 122, 1));
+        assert_eq!((p.warped_samples().unwrap().len(), warped.sequence), (256 * 160 * 122, 1));
         // Within the rate limit nothing is redone.
         let next = p.tick(Time::from_secs(0.02), &Demand::ALL).unwrap();
         assert!(!next.warped_volume && next.raycast.is_none());
@@ -653,7 +899,8 @@ mod tests {
         let image = image.unwrap();
         // Paused, the next frame shows the positions the f64 reference is given.
         p.pause();
-        let frame = (21..40).find_map(|k| p.tick(Time::from_secs(k as f64 * 0.01), &Demand::ALL).unwrap().raycast).unwrap();
+        let frame =
+            (21..40).find_map(|k| p.tick(Time::from_secs(k as f64 * 0.01), &Demand::ALL).unwrap().raycast).unwrap();
         assert_eq!(frame.data.len(), image.data.len());
         let to_file = 1.0 / s.file_to_world;
         let mut rest = p.mesh().clone();
@@ -663,25 +910,62 @@ mod tests {
         let scalars: Vec<f32> = rest.nodes().iter().map(|q| p.volume.sample_world(*q).unwrap_or(outside)).collect();
         let c = &s.camera;
         let point = |q: [f64; 3]| Point3::from(Vector3::from(q) * to_file);
-        let camera = Camera::look_at(point(c.eye), point(c.target), Vector3::from(c.up), Projection::Perspective { fov_y_deg: c.fov_y_deg }, c.width, c.height).unwrap();
+        let camera = Camera::look_at(
+            point(c.eye),
+            point(c.target),
+            Vector3::from(c.up),
+            Projection::Perspective { fov_y_deg: c.fov_y_deg },
+            c.width,
+            c.height,
+        )
+        .unwrap();
         let tf = TransferFunction::preset(&c.transfer_function).unwrap();
-        let reference = crate::render::tet_raycast::reference(&rest, &deformed, &scalars, &camera, &tf, &TetRaycastParams { step: 0.25, ..Default::default() }).unwrap();
-        let rendered = crate::render::Rendered { width: c.width, height: c.height, rgba: frame.data.clone(), depth: Vec::new() };
+        let reference = crate::render::tet_raycast::reference(
+            &rest,
+            &deformed,
+            &scalars,
+            &camera,
+            &tf,
+            &TetRaycastParams { step: 0.25, ..Default::default() },
+        )
+        .unwrap();
+        let rendered =
+            crate::render::Rendered { width: c.width, height: c.height, rgba: frame.data.clone(), depth: Vec::new() };
         assert!(reference.iter().filter(|q| q[0] > 0.05).count() > c.width * c.height / 10, "the organ is out of view");
         let (mean, max) = rendered.errors(&reference);
         assert!(mean < 0.5 && max < 8.0, "against the f64 reference: mean {mean:.2}, max {max:.1} levels");
         // The organ has sagged visibly: the same reference at rest is further off.
-        let at_rest = crate::render::tet_raycast::reference(&rest, rest.nodes(), &scalars, &camera, &tf, &TetRaycastParams { step: 0.25, ..Default::default() }).unwrap();
+        let at_rest = crate::render::tet_raycast::reference(
+            &rest,
+            rest.nodes(),
+            &scalars,
+            &camera,
+            &tf,
+            &TetRaycastParams { step: 0.25, ..Default::default() },
+        )
+        .unwrap();
         let (rest_mean, _) = rendered.errors(&at_rest);
-        assert!(rest_mean > 2.0 * mean, "mean error {rest_mean:.2} levels against the rest pose, {mean:.2} against the deformed one");
+        assert!(
+            rest_mean > 2.0 * mean,
+            "mean error {rest_mean:.2} levels against the rest pose, {mean:.2} against the deformed one"
+        );
     }
 
     #[test]
     fn background_frames_never_hold_the_solver_up() {
         let stages = crate::scene::Stages { solver: true, warp: true, dpcm: false, raycast: true };
-        let mut p = Pipeline::new(scene(stages), BackendChoice::Cpu, false, InputLimits { max_age: None, ..Default::default() }, FrameMode::Background).unwrap();
+        let mut p = Pipeline::new(
+            scene(stages),
+            &Backend::cpu(),
+            InputLimits { max_age: None, ..Default::default() },
+            FrameMode::Background,
+        )
+        .unwrap();
         let first = p.tick(Time::from_secs(0.01), &Demand::ALL).unwrap();
-        assert!(first.stepped && first.raycast.is_none() && !first.warped_volume, "the frame is in flight, not waited for");
+        assert!(
+            first.stepped && first.raycast.is_none() && !first.warped_volume,
+            "the frame is in flight, not waited for"
+        );
         let start = std::time::Instant::now();
         let mut steps_meanwhile = 0;
         let image = loop {
@@ -696,5 +980,206 @@ mod tests {
         assert!(steps_meanwhile >= 1, "the solver stepped while the frame was made");
         assert_eq!((image.width, image.height), (32, 24));
         assert_eq!(p.warped_volume().unwrap().sequence, 1);
+    }
+
+    /// A sink lending three buffers in turn, as shared memory does: each keeps what it was
+    /// last written, and the sink says which volume that was.
+    #[derive(Default)]
+    struct Lender {
+        buffers: std::sync::Mutex<Vec<(Vec<f32>, Option<u64>)>>,
+        published: std::sync::Mutex<Vec<(u64, usize)>>,
+    }
+
+    impl VolumeSink for Lender {
+        fn has_subscribers(&self) -> bool {
+            true
+        }
+        fn publish(&self, volume: &WarpedVolume, write: &mut WriteVolume<'_>) -> Result<(), String> {
+            let mut buffers = self.buffers.lock().unwrap();
+            if buffers.is_empty() {
+                // Fresh memory holds anything: NaN shows any sample left unwritten.
+                *buffers = (0..3).map(|_| (vec![f32::NAN; volume.grid.len()], None)).collect();
+            }
+            let mut published = self.published.lock().unwrap();
+            let slot = published.len() % 3;
+            let (buffer, holds) = &mut buffers[slot];
+            write(buffer, *holds)?;
+            *holds = Some(volume.sequence);
+            published.push((volume.sequence, slot));
+            Ok(())
+        }
+    }
+
+    /// With a sink, the warp writes each published volume into the memory the sink lends
+    /// and nowhere else (no host copy is kept), and what lands there is the full warp of the
+    /// mesh at that moment, in buffers that held older volumes too.
+    #[test]
+    fn published_volumes_are_written_only_into_the_lent_memory() {
+        let stages = crate::scene::Stages { solver: true, warp: true, dpcm: false, raycast: false };
+        let mut s = scene(stages);
+        s.tools[0].path = None;
+        let mut p = pipeline(s.clone());
+        let lender = Arc::new(Lender::default());
+        p.set_volume_sink(Some(lender.clone()));
+        let top = p
+            .mesh()
+            .nodes()
+            .iter()
+            .filter(|n| n.z > 0.06)
+            .min_by(|a, b| (a.x.hypot(a.y)).total_cmp(&b.x.hypot(b.y)))
+            .copied()
+            .unwrap();
+        let to_file = 1.0 / s.file_to_world;
+        let mut rest = p.mesh().clone();
+        rest.map_nodes(|q| q * to_file);
+        let options = WarpOptions { background: p.volume.range().0, keep_uncovered: true, ..Default::default() };
+        let mut checked = 0;
+        for k in 1..=60 {
+            // The probe presses deeper, a node under it: the mesh moves every step.
+            let mut press = pose(k as f64 * 0.01, top.z + 0.025 - 0.0004 * k as f64);
+            (press.pose.position.x, press.pose.position.y) = (top.x, top.y);
+            p.apply_pose("tool_pose", &press, Time::from_secs(k as f64 * 0.01)).unwrap();
+            let demand = Demand { warped_volume: true, ..Demand::NONE };
+            let out = p.tick(Time::from_secs(k as f64 * 0.01), &demand).unwrap();
+            assert!(p.warped_samples().is_none(), "no host copy is kept beside the lent memory");
+            if !out.warped_volume {
+                continue;
+            }
+            let published = lender.published.lock().unwrap();
+            let (sequence, slot) = *published.last().unwrap();
+            assert_eq!(sequence, p.warped_volume().unwrap().sequence);
+            let deformed: Vec<Vector3<f64>> = p.positions().iter().map(|q| q * to_file).collect();
+            let (full, _) = crate::warp::warp(&p.volume, &rest, &deformed, p.warped_grid().unwrap(), &options).unwrap();
+            let buffers = lender.buffers.lock().unwrap();
+            assert!(
+                buffers[slot].0.iter().zip(full.data()).all(|(a, b)| a.to_bits() == b.to_bits()),
+                "volume {sequence} differs from the full warp"
+            );
+            checked += 1;
+        }
+        assert!(checked >= 5, "{checked} volumes published");
+        assert!(
+            lender.published.lock().unwrap().iter().skip(3).count() >= 2,
+            "buffers came back holding older volumes"
+        );
+    }
+
+    /// Two tools, each on its own feedback topic with its own reaction.
+    #[test]
+    fn every_tool_feels_its_own_reaction() {
+        let mut s = scene(crate::scene::Stages::default());
+        s.solver.gravity = [0.0; 3];
+        s.tools[0].path = None;
+        let mut needle = s.tools[0].clone();
+        needle.name = "needle".into();
+        s.tools.push(needle);
+        let mut p = pipeline(s);
+        assert_eq!(p.feedback_topics(), ["tool_feedback", "needle/tool_feedback"]);
+        let top = p
+            .mesh()
+            .nodes()
+            .iter()
+            .filter(|n| n.z > 0.06)
+            .min_by(|a, b| (a.x.hypot(a.y)).total_cmp(&b.x.hypot(b.y)))
+            .copied()
+            .unwrap();
+        let mut away = pose(0.0, 1.0);
+        away.pose.position.x = 0.5;
+        p.apply_pose("tool_pose", &away, Time::from_secs(0.0)).unwrap();
+        let mut press = pose(0.0, top.z + 0.02);
+        (press.pose.position.x, press.pose.position.y) = (top.x, top.y);
+        p.apply_pose("needle/tool_pose", &press, Time::from_secs(0.0)).unwrap();
+        let mut out = Outputs::default();
+        for k in 1..=40 {
+            out = p.tick(Time::from_secs(k as f64 * 0.01), &Demand::ALL).unwrap();
+        }
+        assert_eq!(out.tool_feedback.len(), 2);
+        let report = p.last_report().unwrap();
+        for (index, msg) in out.tool_feedback.iter().enumerate() {
+            let f = report.reaction(index).force;
+            assert_eq!([msg.wrench.force.x, msg.wrench.force.y, msg.wrench.force.z], f);
+        }
+        assert!(out.tool_feedback[1].wrench.force.z > 0.5, "the needle presses: {:?}", out.tool_feedback[1]);
+        assert_eq!(out.tool_feedback[0].wrench.force.z, 0.0, "the probe is far away");
+    }
+
+    /// The node's pipeline on the GPU (every stage) against the same pipeline on the CPU
+    /// after a scripted press: the deformed mesh, the warped volume, the raycast image (of
+    /// the volume, and of the mesh) and the DPCM height agree.
+    #[cfg(feature = "gpu")]
+    #[test]
+    fn the_gpu_pipeline_matches_the_cpu_pipeline() {
+        let Some(ctx) = crate::gpu::test_context() else { return };
+        for shows in [CameraShows::Volume, CameraShows::Mesh] {
+            let stages =
+                crate::scene::Stages { solver: true, warp: shows == CameraShows::Volume, dpcm: true, raycast: true };
+            let mut s = scene(stages);
+            s.tools[0].path = None;
+            s.camera.shows = shows;
+            // Both solvers block Jacobi, converged tightly: the same steps within round-off.
+            s.solver.preconditioner = crate::solver::Preconditioner::BlockJacobi;
+            s.solver.cg_tolerance = 1e-6;
+            // The 32x32 surface just above the organ, under the probe as it comes down.
+            s.dpcm.origin = [-0.016, -0.016, 0.073];
+            let limits = InputLimits { max_age: None, ..Default::default() };
+            let mut cpu = Pipeline::new(s.clone(), &Backend::cpu(), limits.clone(), FrameMode::Lockstep).unwrap();
+            let mut gpu = Pipeline::new(s, &Backend::gpu(ctx.clone()), limits, FrameMode::Lockstep).unwrap();
+            assert!(gpu.stage_backends().iter().all(|(_, b)| *b == "gpu"), "{:?}", gpu.stage_backends());
+            let top = cpu
+                .mesh()
+                .nodes()
+                .iter()
+                .filter(|n| n.z > 0.06)
+                .min_by(|a, b| (a.x.hypot(a.y)).total_cmp(&b.x.hypot(b.y)))
+                .copied()
+                .unwrap();
+            let (mut image, mut gpu_image) = (None, None);
+            let (mut height, mut gpu_height) = (None, None);
+            for k in 1..=30 {
+                let stamp = Time::from_secs(k as f64 * 0.01);
+                let mut press = pose(k as f64 * 0.01, top.z + 0.025 - 0.0005 * k as f64);
+                (press.pose.position.x, press.pose.position.y) = (top.x, top.y);
+                for p in [&mut cpu, &mut gpu] {
+                    p.apply_pose("tool_pose", &press, stamp).unwrap();
+                }
+                let a = cpu.tick(stamp, &Demand::ALL).unwrap();
+                let b = gpu.tick(stamp, &Demand::ALL).unwrap();
+                assert_eq!(
+                    (a.raycast.is_some(), a.warped_volume),
+                    (b.raycast.is_some(), b.warped_volume),
+                    "tick {k}: the same outputs come out"
+                );
+                image = a.raycast.or(image);
+                gpu_image = b.raycast.or(gpu_image);
+                height = a.dpcm_height.or(height);
+                gpu_height = b.dpcm_height.or(gpu_height);
+            }
+            let scale = cpu.last_report().unwrap().max_displacement;
+            assert!(scale > 1e-3, "the press moved the mesh {scale} m");
+            let worst = cpu.positions().iter().zip(gpu.positions()).map(|(a, b)| (a - b).norm()).fold(0.0, f64::max);
+            assert!(worst <= 1e-3 * scale, "{shows:?}: the deformed meshes differ by {worst:e} m of {scale:e} m");
+            if shows == CameraShows::Volume {
+                let (a, b) = (cpu.warped_samples().unwrap(), gpu.warped_samples().unwrap());
+                let (lo, hi) = cpu.volume.range();
+                let off = a.iter().zip(b).filter(|(x, y)| (*x - *y).abs() > 1e-3 * (hi - lo)).count();
+                assert!(off <= a.len() / 1000, "{off} of {} warped voxels differ", a.len());
+            }
+            let (a, b) = (image.unwrap(), gpu_image.unwrap());
+            let mean = a.data.iter().zip(&b.data).map(|(x, y)| (f64::from(*x) - f64::from(*y)).abs()).sum::<f64>()
+                / a.data.len() as f64;
+            assert!(
+                a.data.iter().filter(|v| **v > 10).count() > a.data.len() / 20,
+                "{shows:?}: the picture shows the organ"
+            );
+            assert!(mean < 1.0, "{shows:?}: the raycast images differ by {mean:.2} levels on average");
+            let decode = |m: &Image| {
+                m.data.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect::<Vec<f32>>()
+            };
+            let (a, b) = (decode(&height.unwrap()), decode(&gpu_height.unwrap()));
+            let peak = a.iter().fold(0.0f32, |m, z| m.max((z - a[0]).abs()));
+            let worst = a.iter().zip(&b).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
+            assert!(peak > 1e-5, "the probe engraved the surface ({peak})");
+            assert!(worst <= 1e-3 * peak.max(1e-6), "DPCM heights differ by {worst:e} of a peak {peak:e}");
+        }
     }
 }

@@ -4,24 +4,37 @@ use nalgebra::Vector3;
 
 use super::Pipeline;
 use crate::mesh::TetMesh;
-use crate::msgs::{self, ColorRGBA, DeformedMesh, DiagnosticArray, DiagnosticStatus, Header, Image, KeyValue, Marker, Point, Time, Wrench, WrenchStamped};
+use crate::msgs::{
+    self, ColorRGBA, DeformedMesh, DiagnosticArray, DiagnosticStatus, Header, Image, KeyValue, Marker, Point, Time,
+    Wrench, WrenchStamped,
+};
 use crate::solver::StepReport;
 
 fn header(stamp: Time, frame: &str) -> Header {
     Header { stamp, frame_id: frame.to_owned() }
 }
 
-/// The reaction on the tool (what a haptic device renders), world frame.
-pub(super) fn feedback(report: &StepReport, stamp: Time, frame: &str) -> WrenchStamped {
+/// The reaction on tool `index` (what its haptic device renders), world frame.
+pub(super) fn feedback(report: &StepReport, index: usize, stamp: Time, frame: &str) -> WrenchStamped {
     let v = |a: [f64; 3]| msgs::Vector3 { x: a[0], y: a[1], z: a[2] };
-    WrenchStamped { header: header(stamp, frame), wrench: Wrench { force: v(report.reaction_force), torque: v(report.reaction_torque) } }
+    let reaction = report.reaction(index);
+    WrenchStamped {
+        header: header(stamp, frame),
+        wrench: Wrench { force: v(reaction.force), torque: v(reaction.torque) },
+    }
 }
 
 fn displacement(mesh: &TetMesh, positions: &[Vector3<f64>]) -> Vec<f32> {
     mesh.nodes().iter().zip(positions).map(|(rest, p)| (p - rest).norm() as f32).collect()
 }
 
-pub(super) fn deformed_mesh(mesh: &TetMesh, positions: &[Vector3<f64>], step: u64, stamp: Time, frame: &str) -> DeformedMesh {
+pub(super) fn deformed_mesh(
+    mesh: &TetMesh,
+    positions: &[Vector3<f64>],
+    step: u64,
+    stamp: Time,
+    frame: &str,
+) -> DeformedMesh {
     DeformedMesh {
         header: header(stamp, frame),
         positions: positions.iter().flat_map(|p| [p.x as f32, p.y as f32, p.z as f32]).collect(),
@@ -43,7 +56,12 @@ pub(super) fn surface_marker(mesh: &TetMesh, positions: &[Vector3<f64>], stamp: 
         let p = positions[node];
         points.push(Point { x: p.x, y: p.y, z: p.z });
         let c = colorous::VIRIDIS.eval_continuous(f64::from(moved[node] / peak));
-        colors.push(ColorRGBA { r: f32::from(c.r) / 255.0, g: f32::from(c.g) / 255.0, b: f32::from(c.b) / 255.0, a: 1.0 });
+        colors.push(ColorRGBA {
+            r: f32::from(c.r) / 255.0,
+            g: f32::from(c.g) / 255.0,
+            b: f32::from(c.b) / 255.0,
+            a: 1.0,
+        });
     }
     Marker {
         header: header(stamp, frame),
@@ -60,8 +78,24 @@ pub(super) fn surface_marker(mesh: &TetMesh, positions: &[Vector3<f64>], stamp: 
     }
 }
 
-fn image(encoding: &str, bytes_per_pixel: usize, data: Vec<u8>, width: usize, height: usize, stamp: Time, frame: &str) -> Image {
-    Image { header: header(stamp, frame), height: height as u32, width: width as u32, encoding: encoding.into(), is_bigendian: 0, step: (width * bytes_per_pixel) as u32, data }
+fn image(
+    encoding: &str,
+    bytes_per_pixel: usize,
+    data: Vec<u8>,
+    width: usize,
+    height: usize,
+    stamp: Time,
+    frame: &str,
+) -> Image {
+    Image {
+        header: header(stamp, frame),
+        height: height as u32,
+        width: width as u32,
+        encoding: encoding.into(),
+        is_bigendian: 0,
+        step: (width * bytes_per_pixel) as u32,
+        data,
+    }
 }
 
 pub(super) fn rgba_image(data: Vec<u8>, width: usize, height: usize, stamp: Time, frame: &str) -> Image {
@@ -84,11 +118,27 @@ fn kv(key: &str, value: impl ToString) -> KeyValue {
 /// One status per stage plus the inputs': times, CG figures, stability, refusals.
 pub(super) fn diagnostics(p: &Pipeline, stamp: Time) -> DiagnosticArray {
     let times = p.times();
-    let mut status = Vec::new();
+    let stage_backends = p.stage_backends();
+    let backend_of =
+        |stage: &str| stage_backends.iter().find(|(s, _)| *s == stage).map_or("off", |(_, b)| *b).to_owned();
+    // Where each stage runs, under keys `backend.<stage>`.
+    let mut status = vec![DiagnosticStatus {
+        level: DiagnosticStatus::OK,
+        name: "defvol: backend".into(),
+        message: p.backend().describe(),
+        hardware_id: p.backend().describe(),
+        values: stage_backends.iter().map(|(stage, backend)| kv(&format!("backend.{stage}"), backend)).collect(),
+    }];
     let solver = match (p.engine.as_ref(), p.last_report()) {
-        (None, _) => DiagnosticStatus { level: DiagnosticStatus::OK, name: "defvol: solver".into(), message: "disabled by the scene".into(), ..Default::default() },
+        (None, _) => DiagnosticStatus {
+            level: DiagnosticStatus::OK,
+            name: "defvol: solver".into(),
+            message: "disabled by the scene".into(),
+            ..Default::default()
+        },
         (Some(_), report) => {
-            let converged = report.is_none_or(|r| r.residual <= p.scene().solver.cg_tolerance * 10.0 || r.cg_iterations == 0);
+            let converged =
+                report.is_none_or(|r| r.residual <= p.scene().solver.cg_tolerance * 10.0 || r.cg_iterations == 0);
             let (level, message) = match (p.paused(), p.asleep(), converged) {
                 (true, _, _) => (DiagnosticStatus::OK, "paused"),
                 (_, _, false) => (DiagnosticStatus::WARN, "CG did not reach its tolerance"),
@@ -106,24 +156,62 @@ pub(super) fn diagnostics(p: &Pipeline, stamp: Time) -> DiagnosticArray {
                     kv("max_displacement_m", format!("{:.4e}", r.max_displacement)),
                 ]);
             }
-            DiagnosticStatus { level, name: "defvol: solver".into(), message: message.into(), hardware_id: p.backend_name(), values }
+            DiagnosticStatus {
+                level,
+                name: "defvol: solver".into(),
+                message: message.into(),
+                hardware_id: p.backend_name(),
+                values,
+            }
         }
     };
     status.push(solver);
     if p.warped_grid().is_some() {
         let (stats, sequence) = p.warped_volume().map_or((Default::default(), 0), |w| (w.stats, w.sequence));
         let level = if stats.skipped_tets > 0 { DiagnosticStatus::WARN } else { DiagnosticStatus::OK };
-        let message = if stats.skipped_tets > 0 { format!("{} inverted or degenerate tets skipped", stats.skipped_tets) } else { "ok".into() };
-        let values = vec![kv("warp_ms", format!("{:.3}", times.warp)), kv("sequence", sequence), kv("voxels", stats.voxels), kv("inside", stats.inside), kv("inverted_tets", stats.skipped_tets)];
-        status.push(DiagnosticStatus { level, name: "defvol: warp".into(), message, hardware_id: "cpu".into(), values });
+        let message = if stats.skipped_tets > 0 {
+            format!("{} inverted or degenerate tets skipped", stats.skipped_tets)
+        } else {
+            "ok".into()
+        };
+        let values = vec![
+            kv("warp_ms", format!("{:.3}", times.warp)),
+            kv("sequence", sequence),
+            kv("voxels", stats.voxels),
+            kv("inside", stats.inside),
+            kv("inverted_tets", stats.skipped_tets),
+        ];
+        status.push(DiagnosticStatus {
+            level,
+            name: "defvol: warp".into(),
+            message,
+            hardware_id: backend_of("warp"),
+            values,
+        });
     }
     if let Some(d) = &p.dpcm {
-        let values = vec![kv("step_ms", format!("{:.3}", times.dpcm)), kv("steps_per_tick", d.steps_per_tick), kv("asleep", d.asleep)];
-        status.push(DiagnosticStatus { level: DiagnosticStatus::OK, name: "defvol: dpcm".into(), message: "ok".into(), hardware_id: d.engine.name(), values });
+        let values = vec![
+            kv("step_ms", format!("{:.3}", times.dpcm)),
+            kv("steps_per_tick", d.steps_per_tick),
+            kv("asleep", d.asleep),
+        ];
+        status.push(DiagnosticStatus {
+            level: DiagnosticStatus::OK,
+            name: "defvol: dpcm".into(),
+            message: "ok".into(),
+            hardware_id: d.engine.name(),
+            values,
+        });
     }
     if p.scene().stages.raycast {
         let values = vec![kv("frame_ms", format!("{:.3}", times.raycast))];
-        status.push(DiagnosticStatus { level: DiagnosticStatus::OK, name: "defvol: raycast".into(), message: "ok".into(), hardware_id: "cpu".into(), values });
+        status.push(DiagnosticStatus {
+            level: DiagnosticStatus::OK,
+            name: "defvol: raycast".into(),
+            message: "ok".into(),
+            hardware_id: backend_of("raycast"),
+            values,
+        });
     }
     let counters = p.counters();
     let mut values = vec![kv("accepted", counters.accepted)];

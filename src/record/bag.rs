@@ -14,7 +14,9 @@ use std::thread::JoinHandle;
 use mcap::records::MessageHeader;
 
 use super::Qos;
-use crate::msgs::{self, Message, MsgError};
+use crate::dpcm::markers::{MotionFile, TrackCounts};
+use crate::msgs::{self, Message, MsgError, PoseStamped};
+use nalgebra::Point3;
 
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
@@ -56,9 +58,13 @@ pub struct RecordSummary {
 impl Recorder {
     pub fn create(path: &Path) -> Result<Self, RecordError> {
         if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-            std::fs::create_dir_all(dir).map_err(|e| RecordError::File { path: path.to_owned(), message: format!("cannot create its folder: {e}") })?;
+            std::fs::create_dir_all(dir).map_err(|e| RecordError::File {
+                path: path.to_owned(),
+                message: format!("cannot create its folder: {e}"),
+            })?;
         }
-        let file = File::create(path).map_err(|e| RecordError::File { path: path.to_owned(), message: e.to_string() })?;
+        let file =
+            File::create(path).map_err(|e| RecordError::File { path: path.to_owned(), message: e.to_string() })?;
         Self::new(path, BufWriter::new(file))
     }
 }
@@ -72,7 +78,16 @@ impl<W: Write + Seek> Recorder<W> {
             .chunk_size(Some(CHUNK_BYTES))
             .create(sink)
             .map_err(|e| RecordError::File { path: path.to_owned(), message: e.to_string() })?;
-        Ok(Self { path: path.to_owned(), writer: Some(writer), schemas: HashMap::new(), channels: HashMap::new(), sequence: 0, messages: 0, failure: None, failed_sink: None })
+        Ok(Self {
+            path: path.to_owned(),
+            writer: Some(writer),
+            schemas: HashMap::new(),
+            channels: HashMap::new(),
+            sequence: 0,
+            messages: 0,
+            failure: None,
+            failed_sink: None,
+        })
     }
 
     pub fn path(&self) -> &Path {
@@ -109,7 +124,14 @@ impl<W: Write + Seek> Recorder<W> {
     }
 
     /// Records an already CDR-encoded message of type `type_name`.
-    pub fn write_encoded(&mut self, topic: &str, type_name: &'static str, qos: Qos, data: &[u8], log_time_ns: u64) -> Result<(), RecordError> {
+    pub fn write_encoded(
+        &mut self,
+        topic: &str,
+        type_name: &'static str,
+        qos: Qos,
+        data: &[u8],
+        log_time_ns: u64,
+    ) -> Result<(), RecordError> {
         if let Some(first) = &self.failure {
             return Err(RecordError::Stopped { path: self.path.clone(), first: first.clone() });
         }
@@ -117,13 +139,17 @@ impl<W: Write + Seek> Recorder<W> {
             Some(id) => *id,
             None => {
                 let schema_text = msgs::ros2msg_schema(type_name)?;
-                let Some(writer) = self.writer.as_mut() else { return Err(RecordError::Stopped { path: self.path.clone(), first: String::new() }) };
+                let Some(writer) = self.writer.as_mut() else {
+                    return Err(RecordError::Stopped { path: self.path.clone(), first: String::new() });
+                };
                 let schema = match self.schemas.get(type_name) {
                     Some(id) => Ok(*id),
                     None => writer.add_schema(type_name, "ros2msg", schema_text.as_bytes()),
                 };
                 let metadata = BTreeMap::from([("offered_qos_profiles".to_owned(), qos.offered_profiles_yaml())]);
-                let added = schema.and_then(|schema| writer.add_channel(schema, topic, "cdr", &metadata).map(|channel| (schema, channel)));
+                let added = schema.and_then(|schema| {
+                    writer.add_channel(schema, topic, "cdr", &metadata).map(|channel| (schema, channel))
+                });
                 let (schema, channel) = added.map_err(|e| self.fail_with(&e))?;
                 self.schemas.insert(type_name, schema);
                 self.channels.insert(topic.to_owned(), channel);
@@ -131,8 +157,15 @@ impl<W: Write + Seek> Recorder<W> {
             }
         };
         self.sequence = self.sequence.wrapping_add(1);
-        let header = MessageHeader { channel_id: channel, sequence: self.sequence, log_time: log_time_ns, publish_time: log_time_ns };
-        let Some(writer) = self.writer.as_mut() else { return Err(RecordError::Stopped { path: self.path.clone(), first: String::new() }) };
+        let header = MessageHeader {
+            channel_id: channel,
+            sequence: self.sequence,
+            log_time: log_time_ns,
+            publish_time: log_time_ns,
+        };
+        let Some(writer) = self.writer.as_mut() else {
+            return Err(RecordError::Stopped { path: self.path.clone(), first: String::new() });
+        };
         writer.write_to_known_channel(&header, data).map_err(|e| self.fail_with(&e))?;
         self.messages += 1;
         Ok(())
@@ -146,7 +179,10 @@ impl<W: Write + Seek> Recorder<W> {
         }
         let Some(mut writer) = self.writer.take() else { return Ok(summary) };
         writer.finish().map_err(|e| RecordError::File { path: self.path.clone(), message: e.to_string() })?;
-        writer.into_inner().flush().map_err(|e| RecordError::File { path: self.path.clone(), message: e.to_string() })?;
+        writer
+            .into_inner()
+            .flush()
+            .map_err(|e| RecordError::File { path: self.path.clone(), message: e.to_string() })?;
         Ok(summary)
     }
 }
@@ -195,7 +231,9 @@ impl BagThread {
                     if recorder.failure().is_some() {
                         continue;
                     }
-                    if let (Err(error), Ok(mut slot)) = (recorder.write_encoded(&e.topic, e.type_name, e.qos, &e.data, e.log_time_ns), failed.lock()) {
+                    if let (Err(error), Ok(mut slot)) =
+                        (recorder.write_encoded(&e.topic, e.type_name, e.qos, &e.data, e.log_time_ns), failed.lock())
+                    {
                         *slot = Some(error.to_string());
                     }
                 }
@@ -229,8 +267,13 @@ impl BagThread {
     /// Waits for the writer to drain the queue, then closes the file.
     pub fn finish(mut self) -> Result<RecordSummary, RecordError> {
         drop(self.queue.take());
-        let Some(thread) = self.thread.take() else { return Err(RecordError::Stopped { path: self.path.clone(), first: "finished twice".into() }) };
-        thread.join().map_err(|_| RecordError::File { path: self.path.clone(), message: "the recording thread panicked".into() })?
+        let Some(thread) = self.thread.take() else {
+            return Err(RecordError::Stopped { path: self.path.clone(), first: "finished twice".into() });
+        };
+        thread.join().map_err(|_| RecordError::File {
+            path: self.path.clone(),
+            message: "the recording thread panicked".into(),
+        })?
     }
 }
 
@@ -258,12 +301,18 @@ pub struct BagMessage {
 pub fn read_messages(path: &Path, topics: &[&str]) -> Result<Vec<BagMessage>, RecordError> {
     let bytes = std::fs::read(path).map_err(|e| RecordError::Read { path: path.to_owned(), message: e.to_string() })?;
     let mut out = Vec::new();
-    for message in mcap::MessageStream::new(&bytes).map_err(|e| RecordError::Read { path: path.to_owned(), message: e.to_string() })? {
+    for message in mcap::MessageStream::new(&bytes)
+        .map_err(|e| RecordError::Read { path: path.to_owned(), message: e.to_string() })?
+    {
         let message = match message {
             Ok(m) => m,
             // A truncated tail is where the recording stopped; what came before counts.
             Err(mcap::McapError::UnexpectedEof | mcap::McapError::UnexpectedEoc) if !out.is_empty() => {
-                tracing::warn!("{}: the bag ends mid-record (recording cut short); read {} messages", path.display(), out.len());
+                tracing::warn!(
+                    "{}: the bag ends mid-record (recording cut short); read {} messages",
+                    path.display(),
+                    out.len()
+                );
                 break;
             }
             Err(e) => return Err(RecordError::Read { path: path.to_owned(), message: e.to_string() }),
@@ -272,10 +321,63 @@ pub fn read_messages(path: &Path, topics: &[&str]) -> Result<Vec<BagMessage>, Re
             continue;
         }
         let type_name = message.channel.schema.as_ref().map(|s| s.name.clone()).unwrap_or_default();
-        out.push(BagMessage { topic: message.channel.topic.clone(), type_name, log_time_ns: message.log_time, data: message.data.into_owned() });
+        out.push(BagMessage {
+            topic: message.channel.topic.clone(),
+            type_name,
+            log_time_ns: message.log_time,
+            data: message.data.into_owned(),
+        });
     }
     out.sort_by_key(|m| m.log_time_ns);
     Ok(out)
+}
+
+/// Tool poses recorded in a bag as DPCM marker tracks: every `geometry_msgs/msg/PoseStamped`
+/// channel, or those of `topics`, one marker per topic (ids in topic order), timed by log
+/// time from the first message. Positions are world metres; frame ids are not resolved.
+/// Samples with non-finite positions or going back in time are dropped and counted.
+pub fn motion_from_bag(path: &Path, topics: &[String]) -> Result<(MotionFile, TrackCounts), RecordError> {
+    let bad = |message: String| RecordError::Read { path: path.to_owned(), message };
+    let bytes = std::fs::read(path).map_err(|e| bad(e.to_string()))?;
+    let stream = mcap::MessageStream::new(&bytes).map_err(|e| bad(format!("not a readable MCAP file: {e}")))?;
+    let mut samples: BTreeMap<String, Vec<(u64, Point3<f64>)>> = BTreeMap::new();
+    let mut dropped = 0;
+    for message in stream {
+        let message = message.map_err(|e| bad(format!("damaged MCAP record: {e}")))?;
+        let channel = &message.channel;
+        let is_pose =
+            channel.schema.as_ref().is_some_and(|s| s.name == PoseStamped::NAME) && channel.message_encoding == "cdr";
+        let wanted = if topics.is_empty() { is_pose } else { topics.iter().any(|t| *t == channel.topic) };
+        if !wanted {
+            continue;
+        }
+        if !is_pose {
+            return Err(bad(format!("topic {} is not geometry_msgs/msg/PoseStamped in CDR", channel.topic)));
+        }
+        let pose: PoseStamped = match msgs::decode(&message.data, &channel.topic) {
+            Ok(p) => p,
+            Err(e) => {
+                tracing::warn!("{}: {e}; message dropped", path.display());
+                dropped += 1;
+                continue;
+            }
+        };
+        let p = pose.pose.position;
+        if ![p.x, p.y, p.z].iter().all(|v| v.is_finite()) {
+            dropped += 1;
+            continue;
+        }
+        samples.entry(channel.topic.clone()).or_default().push((message.log_time, Point3::new(p.x, p.y, p.z)));
+    }
+    for topic in topics {
+        if !samples.contains_key(topic) {
+            return Err(bad(format!("no PoseStamped messages on topic {topic}")));
+        }
+    }
+    if samples.is_empty() {
+        return Err(bad("no geometry_msgs/msg/PoseStamped messages".into()));
+    }
+    MotionFile::from_tracks(samples, dropped).map_err(|e| bad(e.to_string()))
 }
 
 #[cfg(test)]
@@ -285,7 +387,10 @@ mod tests {
     use std::io::Cursor;
 
     fn pose(t: f64, x: f64) -> PoseStamped {
-        let mut msg = PoseStamped { header: Header { stamp: Time::from_secs(t), frame_id: "world".into() }, ..Default::default() };
+        let mut msg = PoseStamped {
+            header: Header { stamp: Time::from_secs(t), frame_id: "world".into() },
+            ..Default::default()
+        };
         msg.pose.position.x = x;
         msg
     }

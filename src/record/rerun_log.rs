@@ -4,7 +4,7 @@
 
 use std::path::Path;
 
-use crate::msgs::{DeformedMesh, DiagnosticArray, Image, WrenchStamped};
+use crate::msgs::{DeformedMesh, DiagnosticArray, Image, WarpedVolumeInfo, WrenchStamped};
 use crate::scene::ToolConfig;
 use crate::solver::ToolShape;
 
@@ -24,13 +24,17 @@ pub struct RerunLog {
 impl RerunLog {
     /// A log written to an `.rrd` file.
     pub fn save(path: &Path) -> Result<Self, RerunError> {
-        let stream = rerun::RecordingStreamBuilder::new("defvol").save(path).map_err(|e| RerunError::Stream(format!("{}: {e}", path.display())))?;
+        let stream = rerun::RecordingStreamBuilder::new("defvol")
+            .save(path)
+            .map_err(|e| RerunError::Stream(format!("{}: {e}", path.display())))?;
         Ok(Self { stream })
     }
 
     /// A log streamed to a running viewer (`rerun+http://127.0.0.1:9876/proxy`).
     pub fn connect(url: &str) -> Result<Self, RerunError> {
-        let stream = rerun::RecordingStreamBuilder::new("defvol").connect_grpc_opts(url.to_owned()).map_err(|e| RerunError::Stream(format!("{url}: {e}")))?;
+        let stream = rerun::RecordingStreamBuilder::new("defvol")
+            .connect_grpc_opts(url.to_owned())
+            .map_err(|e| RerunError::Stream(format!("{url}: {e}")))?;
         Ok(Self { stream })
     }
 
@@ -43,10 +47,16 @@ impl RerunLog {
         for tool in tools {
             let path = format!("world/tools/{}", tool.name);
             let logged = match tool.shape {
-                ToolShape::Sphere { radius } => self.stream.log_static(path.as_str(), &rerun::Ellipsoids3D::from_radii([radius as f32]).with_colors([rerun::Color::from_rgb(190, 200, 210)])),
-                ToolShape::Capsule { radius, length } => {
-                    self.stream.log_static(path.as_str(), &rerun::Capsules3D::from_lengths_and_radii([length as f32], [radius as f32]).with_colors([rerun::Color::from_rgb(190, 200, 210)]))
-                }
+                ToolShape::Sphere { radius } => self.stream.log_static(
+                    path.as_str(),
+                    &rerun::Ellipsoids3D::from_radii([radius as f32])
+                        .with_colors([rerun::Color::from_rgb(190, 200, 210)]),
+                ),
+                ToolShape::Capsule { radius, length } => self.stream.log_static(
+                    path.as_str(),
+                    &rerun::Capsules3D::from_lengths_and_radii([length as f32], [radius as f32])
+                        .with_colors([rerun::Color::from_rgb(190, 200, 210)]),
+                ),
             };
             logged.map_err(|e| RerunError::Log(format!("{path}: {e}")))?;
         }
@@ -58,8 +68,15 @@ impl RerunLog {
     }
 
     pub fn log_tool_pose(&self, name: &str, world_from_tool: &nalgebra::Isometry3<f64>) -> Result<(), RerunError> {
-        let (t, q) = (world_from_tool.translation.vector.cast::<f32>(), world_from_tool.rotation.quaternion().cast::<f32>());
-        self.log(&format!("world/tools/{name}"), &rerun::Transform3D::from_translation_rotation([t.x, t.y, t.z], rerun::Quaternion::from_xyzw([q.i, q.j, q.k, q.w])))
+        let (t, q) =
+            (world_from_tool.translation.vector.cast::<f32>(), world_from_tool.rotation.quaternion().cast::<f32>());
+        self.log(
+            &format!("world/tools/{name}"),
+            &rerun::Transform3D::from_translation_rotation(
+                [t.x, t.y, t.z],
+                rerun::Quaternion::from_xyzw([q.i, q.j, q.k, q.w]),
+            ),
+        )
     }
 
     /// The boundary surface coloured by displacement, and the peak displacement as a plot.
@@ -75,13 +92,34 @@ impl RerunLog {
                 rerun::Color::from_rgb(c.r, c.g, c.b)
             })
             .collect();
-        self.log("world/organ", &rerun::Mesh3D::new(positions).with_triangle_indices(triangles).with_vertex_colors(colors))?;
+        self.log(
+            "world/organ",
+            &rerun::Mesh3D::new(positions).with_triangle_indices(triangles).with_vertex_colors(colors),
+        )?;
         self.log("plots/max_displacement_m", &rerun::Scalars::single(f64::from(peak)))
     }
 
-    pub fn log_feedback(&self, feedback: &WrenchStamped) -> Result<(), RerunError> {
+    /// The reaction on the tool named `tool`.
+    pub fn log_feedback(&self, tool: &str, feedback: &WrenchStamped) -> Result<(), RerunError> {
         let f = feedback.wrench.force;
-        self.log("plots/tool_force_n", &rerun::Scalars::new([f.x, f.y, f.z]))
+        self.log(&format!("plots/tool_force_n/{tool}"), &rerun::Scalars::new([f.x, f.y, f.z]))
+    }
+
+    /// Where the warped volume lies: its voxel box (centres, in index units) under a
+    /// transform from index to world, origin + direction · diag(spacing), scaled from the
+    /// volume's units to the world's, so a viewer places it as ITK does.
+    pub fn log_warped_volume(&self, info: &WarpedVolumeInfo, file_to_world: f64) -> Result<(), RerunError> {
+        let d = info.direction;
+        let column = |c: usize| [0, 1, 2].map(|r| (d[3 * r + c] * info.spacing[c] * file_to_world) as f32);
+        let origin = info.origin.map(|o| (o * file_to_world) as f32);
+        let transform = rerun::Transform3D::from_translation_mat3x3(origin, [column(0), column(1), column(2)]);
+        self.log("world/warped_volume", &transform)?;
+        let half = info.dims.map(|n| n.saturating_sub(1) as f32 / 2.0);
+        self.log(
+            "world/warped_volume",
+            &rerun::Boxes3D::from_centers_and_half_sizes([half], [half])
+                .with_colors([rerun::Color::from_rgb(120, 160, 220)]),
+        )
     }
 
     /// An RGB8/RGBA8 image, or a 32FC1 one as a depth image (metres).
@@ -90,7 +128,11 @@ impl RerunLog {
         match image.encoding.as_str() {
             "rgba8" => self.log(path, &rerun::Image::from_rgba32(image.data.clone(), size)),
             "rgb8" => self.log(path, &rerun::Image::from_rgb24(image.data.clone(), size)),
-            "32FC1" => self.log(path, &rerun::DepthImage::from_data_type_and_bytes(image.data.clone(), size, rerun::ChannelDatatype::F32).with_meter(1.0)),
+            "32FC1" => self.log(
+                path,
+                &rerun::DepthImage::from_data_type_and_bytes(image.data.clone(), size, rerun::ChannelDatatype::F32)
+                    .with_meter(1.0),
+            ),
             other => Err(RerunError::Log(format!("{path}: no rerun form for encoding {other}"))),
         }
     }

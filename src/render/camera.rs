@@ -25,23 +25,45 @@ pub struct Camera {
 
 impl Camera {
     /// A camera at `eye` looking at `target`, `up` pointing up in the picture.
-    pub fn look_at(eye: Point3<f64>, target: Point3<f64>, up: Vector3<f64>, projection: Projection, width: usize, height: usize) -> Result<Self, RenderError> {
+    pub fn look_at(
+        eye: Point3<f64>,
+        target: Point3<f64>,
+        up: Vector3<f64>,
+        projection: Projection,
+        width: usize,
+        height: usize,
+    ) -> Result<Self, RenderError> {
         let bad = |why: &str| RenderError::Camera(why.to_owned());
         if !(eye.iter().chain(target.iter()).chain(up.iter()).all(|v| v.is_finite())) {
             return Err(bad("eye, target or up is not finite"));
         }
         let forward = (target - eye).try_normalize(1e-12).ok_or_else(|| bad("eye and target coincide"))?;
-        let right = forward.cross(&up).try_normalize(1e-9).ok_or_else(|| bad("up is parallel to the view direction"))?;
+        let right =
+            forward.cross(&up).try_normalize(1e-9).ok_or_else(|| bad("up is parallel to the view direction"))?;
         let down = forward.cross(&right);
         let rotation = Rotation3::from_basis_unchecked(&[right, down, forward]);
-        let camera = Self { world_from_camera: Isometry3::from_parts(eye.coords.into(), UnitQuaternion::from_rotation_matrix(&rotation)), projection, width, height };
+        let camera = Self {
+            world_from_camera: Isometry3::from_parts(
+                eye.coords.into(),
+                UnitQuaternion::from_rotation_matrix(&rotation),
+            ),
+            projection,
+            width,
+            height,
+        };
         camera.validate()?;
         Ok(camera)
     }
 
     /// A camera from a pose as a ROS message carries it (position, quaternion x, y, z, w);
     /// a quaternion further than 1e-3 from unit length is refused rather than normalised.
-    pub fn from_pose(position: [f64; 3], quaternion: [f64; 4], projection: Projection, width: usize, height: usize) -> Result<Self, RenderError> {
+    pub fn from_pose(
+        position: [f64; 3],
+        quaternion: [f64; 4],
+        projection: Projection,
+        width: usize,
+        height: usize,
+    ) -> Result<Self, RenderError> {
         if !position.iter().chain(&quaternion).all(|v| v.is_finite()) {
             return Err(RenderError::Camera("the camera pose has a NaN or infinite value".into()));
         }
@@ -50,7 +72,15 @@ impl Camera {
         if (q.norm() - 1.0).abs() > 1e-3 {
             return Err(RenderError::Camera(format!("the camera quaternion has length {:.4}, not 1", q.norm())));
         }
-        let camera = Self { world_from_camera: Isometry3::from_parts(Vector3::from(position).into(), UnitQuaternion::from_quaternion(q)), projection, width, height };
+        let camera = Self {
+            world_from_camera: Isometry3::from_parts(
+                Vector3::from(position).into(),
+                UnitQuaternion::from_quaternion(q),
+            ),
+            projection,
+            width,
+            height,
+        };
         camera.validate()?;
         Ok(camera)
     }
@@ -61,8 +91,12 @@ impl Camera {
             return bad(format!("image size {}x{} (1..16384 a side)", self.width, self.height));
         }
         match self.projection {
-            Projection::Perspective { fov_y_deg } if !(fov_y_deg > 0.0 && fov_y_deg < 179.0) => bad(format!("field of view {fov_y_deg}° (0..179)")),
-            Projection::Orthographic { height } if !(height.is_finite() && height > 0.0) => bad(format!("orthographic height {height}")),
+            Projection::Perspective { fov_y_deg } if !(fov_y_deg > 0.0 && fov_y_deg < 179.0) => {
+                bad(format!("field of view {fov_y_deg}° (0..179)"))
+            }
+            Projection::Orthographic { height } if !(height.is_finite() && height > 0.0) => {
+                bad(format!("orthographic height {height}"))
+            }
             _ => Ok(()),
         }
     }
@@ -77,7 +111,9 @@ impl Camera {
                 let t = (fov_y_deg.to_radians() / 2.0).tan();
                 (Point3::origin(), Vector3::new(u * t * aspect, v * t, 1.0).normalize())
             }
-            Projection::Orthographic { height } => (Point3::new(u * height / 2.0 * aspect, v * height / 2.0, 0.0), Vector3::z()),
+            Projection::Orthographic { height } => {
+                (Point3::new(u * height / 2.0 * aspect, v * height / 2.0, 0.0), Vector3::z())
+            }
         };
         (self.world_from_camera * origin, self.world_from_camera * direction)
     }

@@ -1,9 +1,16 @@
-//! Raycast images of volumes: cameras, transfer functions (with pre-integration) and the
-//! volume raycaster. Issue 5 adds the tetrahedral-mesh raycaster and the GPU twin here.
+//! Raycast images: cameras, transfer functions (with pre-integration), the volume
+//! raycaster (`raycast.rs`, its GPU twin `raycast_gpu.rs` + `raycast.wgsl`) and the
+//! tetrahedral-mesh raycaster (`tet_raycast.rs`, `tet_raycast_gpu.rs` + `tet_raycast.wgsl`);
+//! both shaders share `camera_tools.wgsl`. [`engine`] runs either on the run's backend.
 
 pub mod camera;
+pub mod engine;
 pub mod raycast;
+#[cfg(feature = "gpu")]
+pub mod raycast_gpu;
 pub mod tet_raycast;
+#[cfg(feature = "gpu")]
+pub mod tet_raycast_gpu;
 pub mod transfer;
 
 use std::io::BufWriter;
@@ -48,13 +55,23 @@ impl Rendered {
 
     /// PSNR (dB) of the RGB channels against a reference in 0..1.
     pub fn psnr(&self, reference: &[[f64; 4]]) -> f64 {
-        let mse = self.rgba.chunks_exact(4).zip(reference).map(|(p, r)| (0..3).map(|c| (f64::from(p[c]) - (r[c].clamp(0.0, 1.0) * 255.0)).powi(2)).sum::<f64>()).sum::<f64>() / (3.0 * reference.len() as f64);
+        let mse = self
+            .rgba
+            .chunks_exact(4)
+            .zip(reference)
+            .map(|(p, r)| (0..3).map(|c| (f64::from(p[c]) - (r[c].clamp(0.0, 1.0) * 255.0)).powi(2)).sum::<f64>())
+            .sum::<f64>()
+            / (3.0 * reference.len() as f64);
         10.0 * (255.0f64 * 255.0 / mse.max(1e-12)).log10()
     }
 
     /// Mean and max absolute RGB error (0..255 levels) against a reference in 0..1.
     pub fn errors(&self, reference: &[[f64; 4]]) -> (f64, f64) {
-        let diffs = self.rgba.chunks_exact(4).zip(reference).flat_map(|(p, r)| (0..3).map(move |c| (f64::from(p[c]) - r[c].clamp(0.0, 1.0) * 255.0).abs()));
+        let diffs = self
+            .rgba
+            .chunks_exact(4)
+            .zip(reference)
+            .flat_map(|(p, r)| (0..3).map(move |c| (f64::from(p[c]) - r[c].clamp(0.0, 1.0) * 255.0).abs()));
         let (sum, max, n) = diffs.fold((0.0, 0.0f64, 0usize), |(s, m, n), d| (s + d, m.max(d), n + 1));
         (sum / n.max(1) as f64, max)
     }

@@ -13,9 +13,9 @@ use serde::{Deserialize, Serialize};
 use super::camera::Camera;
 use super::transfer::{Tables, TransferFunction};
 use super::{RenderError, Rendered};
-use crate::volume::{trilinear, Volume};
+use crate::volume::{trilinear, Grid, Volume};
 
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Mode {
     /// Emission-absorption compositing through the transfer function.
@@ -26,7 +26,7 @@ pub enum Mode {
     Iso,
 }
 
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Shading {
     None,
@@ -109,14 +109,23 @@ impl ToolPicture {
 
 /// The nearest tool along a world ray: distance and its lit, opaque colour (what the ray
 /// sees behind the tissue in front of it).
-pub(crate) fn nearest_tool(tools: &[ToolPicture], ambient: f64, origin: &Point3<f64>, direction: &Vector3<f64>, light: &Vector3<f64>) -> Option<(f32, [f32; 4])> {
+pub(crate) fn nearest_tool(
+    tools: &[ToolPicture],
+    ambient: f64,
+    origin: &Point3<f64>,
+    direction: &Vector3<f64>,
+    light: &Vector3<f64>,
+) -> Option<(f32, [f32; 4])> {
     tools
         .iter()
         .filter_map(|tool| tool.hit(origin, direction).map(|(t, n)| (t, tool, n)))
         .min_by(|a, b| a.0.total_cmp(&b.0))
         .map(|(t, tool, n)| {
             let shade = ambient + (1.0 - ambient) * n.dot(light).max(0.0);
-            (t as f32, [(tool.color[0] * shade) as f32, (tool.color[1] * shade) as f32, (tool.color[2] * shade) as f32, 1.0])
+            (
+                t as f32,
+                [(tool.color[0] * shade) as f32, (tool.color[1] * shade) as f32, (tool.color[2] * shade) as f32, 1.0],
+            )
         })
 }
 
@@ -202,9 +211,10 @@ pub(crate) struct IndexSpace {
 }
 
 impl IndexSpace {
-    fn new(volume: &Volume) -> Self {
-        let index_from_world = Matrix3::from_diagonal(&Vector3::from(volume.spacing()).map(|s| 1.0 / s)) * volume.direction().transpose();
-        Self { index_from_world, origin: Vector3::from(volume.origin()) }
+    pub(crate) fn of(grid: &Grid) -> Self {
+        let index_from_world =
+            Matrix3::from_diagonal(&Vector3::from(grid.spacing).map(|s| 1.0 / s)) * grid.direction.transpose();
+        Self { index_from_world, origin: Vector3::from(grid.origin) }
     }
 
     /// Origin and direction (per world unit) of a world ray, in index space.
@@ -268,59 +278,99 @@ impl<'a> VolumeRaycaster<'a> {
     /// `volume` with tables from [`Self::tables_for`] for the same parameters: only the
     /// macro cells are built.
     pub fn with_tables(volume: &'a Volume, tables: Arc<Tables>, params: &RaycastParams) -> Result<Self, RenderError> {
-        if !(params.step.is_finite() && params.step > 0.0) {
-            return Err(RenderError::Parameter(format!("step {} must be finite and > 0", params.step)));
-        }
-        let wants_preintegrated = params.preintegrated && params.mode == Mode::Composite;
-        if (tables.step - params.step as f32).abs() > 1e-6 * tables.step.abs().max(1.0) || tables.preintegrated.is_empty() == wants_preintegrated {
-            return Err(RenderError::Parameter(format!("the tables were built for step {} (pre-integrated: {}), not for these parameters", tables.step, !tables.preintegrated.is_empty())));
-        }
-        if params.light.is_some_and(|l| !l.iter().all(|v| v.is_finite()) || Vector3::from(l).norm() == 0.0) {
-            return Err(RenderError::Parameter("the light direction must be finite and non-zero".into()));
-        }
-        if params.tools.len() > MAX_TOOLS {
-            return Err(RenderError::Parameter(format!("{} tools; a picture draws up to {MAX_TOOLS}", params.tools.len())));
-        }
-        for tool in &params.tools {
-            tool.validate()?;
-        }
-        let cells = (params.empty_space_skipping && params.mode == Mode::Composite).then(|| MacroCells::new(volume, &tables));
-        let (lo, hi) = volume.range();
-        let min_spacing = volume.spacing().iter().copied().fold(f64::INFINITY, f64::min);
-        let gradient_scale = params.gradient_scale.unwrap_or((f64::from(hi - lo) / (4.0 * min_spacing)).max(1e-12)) as f32;
-        Ok(Self { volume, tables, cells, space: IndexSpace::new(volume), params: params.clone(), gradient_scale })
+        check_params(&tables, params)?;
+        let cells =
+            (params.empty_space_skipping && params.mode == Mode::Composite).then(|| MacroCells::new(volume, &tables));
+        let gradient_scale = gradient_scale(params, &volume.grid(), volume.range());
+        Ok(Self {
+            volume,
+            tables,
+            cells,
+            space: IndexSpace::of(&volume.grid()),
+            params: params.clone(),
+            gradient_scale,
+        })
     }
 
     /// One frame seen by `camera`.
     pub fn render(&self, camera: &Camera) -> Result<Rendered, RenderError> {
         camera.validate()?;
-        let caster = Caster { volume: self.volume, tables: &self.tables, cells: self.cells.as_ref(), space: &self.space, params: &self.params, gradient_scale: self.gradient_scale };
+        let caster = Caster {
+            volume: self.volume,
+            tables: &self.tables,
+            cells: self.cells.as_ref(),
+            space: &self.space,
+            params: &self.params,
+            gradient_scale: self.gradient_scale,
+        };
         let (w, h) = (camera.width, camera.height);
         let mut rgba = vec![0u8; w * h * 4];
         let mut depth = vec![f32::INFINITY; w * h];
         // Bands of TILE rows walked tile by tile: neighbouring rays read the same voxels
         // while they are still in cache.
         const TILE: usize = 8;
-        rgba.par_chunks_mut(w * 4 * TILE).zip(depth.par_chunks_mut(w * TILE)).enumerate().for_each(|(band, (rows, depth_rows))| {
-            let band_h = depth_rows.len() / w;
-            for tx in (0..w).step_by(TILE) {
-                for dy in 0..band_h {
-                    for px in tx..(tx + TILE).min(w) {
-                        let (origin, direction) = camera.ray(px, band * TILE + dy);
-                        let (color, d) = caster.cast(&origin, &direction);
-                        let i = dy * w + px;
-                        rows[i * 4..i * 4 + 4].copy_from_slice(&color.map(|c| (c.clamp(0.0, 1.0) * 255.0).round() as u8));
-                        depth_rows[i] = d;
+        rgba.par_chunks_mut(w * 4 * TILE).zip(depth.par_chunks_mut(w * TILE)).enumerate().for_each(
+            |(band, (rows, depth_rows))| {
+                let band_h = depth_rows.len() / w;
+                for tx in (0..w).step_by(TILE) {
+                    for dy in 0..band_h {
+                        for px in tx..(tx + TILE).min(w) {
+                            let (origin, direction) = camera.ray(px, band * TILE + dy);
+                            let (color, d) = caster.cast(&origin, &direction);
+                            let i = dy * w + px;
+                            rows[i * 4..i * 4 + 4]
+                                .copy_from_slice(&color.map(|c| (c.clamp(0.0, 1.0) * 255.0).round() as u8));
+                            depth_rows[i] = d;
+                        }
                     }
                 }
-            }
-        });
+            },
+        );
         Ok(Rendered { width: w, height: h, rgba, depth })
     }
 }
 
+/// Refuses parameters the tables were not built for, and bad lights and tools.
+pub(crate) fn check_params(tables: &Tables, params: &RaycastParams) -> Result<(), RenderError> {
+    if !(params.step.is_finite() && params.step > 0.0) {
+        return Err(RenderError::Parameter(format!("step {} must be finite and > 0", params.step)));
+    }
+    let wants_preintegrated = params.preintegrated && params.mode == Mode::Composite;
+    if (tables.step - params.step as f32).abs() > 1e-6 * tables.step.abs().max(1.0)
+        || tables.preintegrated.is_empty() == wants_preintegrated
+    {
+        return Err(RenderError::Parameter(format!(
+            "the tables were built for step {} (pre-integrated: {}), not for these parameters",
+            tables.step,
+            !tables.preintegrated.is_empty()
+        )));
+    }
+    if params.light.is_some_and(|l| !l.iter().all(|v| v.is_finite()) || Vector3::from(l).norm() == 0.0) {
+        return Err(RenderError::Parameter("the light direction must be finite and non-zero".into()));
+    }
+    if params.tools.len() > MAX_TOOLS {
+        return Err(RenderError::Parameter(format!("{} tools; a picture draws up to {MAX_TOOLS}", params.tools.len())));
+    }
+    for tool in &params.tools {
+        tool.validate()?;
+    }
+    Ok(())
+}
+
+/// The gradient magnitude the forward difference maps to full light: the parameter's, or a
+/// quarter of the scalar range per voxel of the finest spacing.
+pub(crate) fn gradient_scale(params: &RaycastParams, grid: &Grid, (lo, hi): (f32, f32)) -> f32 {
+    let min_spacing = grid.spacing.iter().copied().fold(f64::INFINITY, f64::min);
+    params.gradient_scale.unwrap_or((f64::from(hi - lo) / (4.0 * min_spacing)).max(1e-12)) as f32
+}
+
 /// Renders `volume` seen by `camera` (prepares and renders one frame).
-pub fn raycast(volume: &Volume, camera: &Camera, tf: &TransferFunction, params: &RaycastParams) -> Result<Rendered, RenderError> {
+pub fn raycast(
+    volume: &Volume,
+    camera: &Camera,
+    tf: &TransferFunction,
+    params: &RaycastParams,
+) -> Result<Rendered, RenderError> {
     camera.validate()?;
     VolumeRaycaster::new(volume, tf, params)?.render(camera)
 }
@@ -345,7 +395,15 @@ impl Caster<'_> {
         let axis = |v: f32, n: usize| {
             // Plain comparisons rather than `clamp` (points are finite here): the hot loop.
             let top = (n - 1) as f32;
-            let v = if v > 0.0 { if v < top { v } else { top } } else { 0.0 };
+            let v = if v > 0.0 {
+                if v < top {
+                    v
+                } else {
+                    top
+                }
+            } else {
+                0.0
+            };
             let i = (v as usize).min(n.saturating_sub(2));
             (i, v - i as f32)
         };
@@ -354,7 +412,6 @@ impl Caster<'_> {
         let base = i + nx * (j + ny * k);
         crate::volume::lerp_cube(|o| data[base + o], [sx, sy, sz], [fx, fy, fz])
     }
-
 
     /// Lambert factor at p for the light (index-space direction `light_index`, world `light`).
     fn shade(&self, p: &Vector3<f32>, light: &Vector3<f64>, light_index: &Vector3<f32>) -> f32 {
@@ -430,7 +487,16 @@ impl Caster<'_> {
     /// Front-to-back over segments of `step` (the last one shorter), each point-sampled at
     /// its middle or pre-integrated between its ends.
     #[allow(clippy::too_many_arguments)]
-    fn composite(&self, o: &Vector3<f32>, d: &Vector3<f32>, t_near: f32, t_far: f32, light: &Vector3<f64>, light_index: &Vector3<f32>, bg: [f32; 4]) -> ([f32; 4], f32) {
+    fn composite(
+        &self,
+        o: &Vector3<f32>,
+        d: &Vector3<f32>,
+        t_near: f32,
+        t_far: f32,
+        light: &Vector3<f64>,
+        light_index: &Vector3<f32>,
+        bg: [f32; 4],
+    ) -> ([f32; 4], f32) {
         let step = self.params.step as f32;
         let full = ((t_far - t_near) / step).floor() as usize;
         let remainder = (t_far - t_near) - full as f32 * step;
@@ -505,11 +571,29 @@ impl Caster<'_> {
             k += 1;
         }
         let rest = 1.0 - acc[3];
-        ([acc[0] + rest * bg[0] * bg[3], acc[1] + rest * bg[1] * bg[3], acc[2] + rest * bg[2] * bg[3], acc[3] + rest * bg[3]], depth)
+        (
+            [
+                acc[0] + rest * bg[0] * bg[3],
+                acc[1] + rest * bg[1] * bg[3],
+                acc[2] + rest * bg[2] * bg[3],
+                acc[3] + rest * bg[3],
+            ],
+            depth,
+        )
     }
 
     #[allow(clippy::too_many_arguments)]
-    fn iso(&self, o: &Vector3<f32>, d: &Vector3<f32>, t_near: f32, steps: usize, step: f32, light: &Vector3<f64>, light_index: &Vector3<f32>, bg: [f32; 4]) -> ([f32; 4], f32) {
+    fn iso(
+        &self,
+        o: &Vector3<f32>,
+        d: &Vector3<f32>,
+        t_near: f32,
+        steps: usize,
+        step: f32,
+        light: &Vector3<f64>,
+        light_index: &Vector3<f32>,
+        bg: [f32; 4],
+    ) -> ([f32; 4], f32) {
         let iso = self.params.iso_value as f32;
         let mut prev = self.sample(&(o + d * t_near));
         for k in 1..=steps {
@@ -542,10 +626,16 @@ impl Caster<'_> {
 /// The ray integral in f64 by point sampling at `step` with the exact transfer function, no
 /// skipping or termination, unshaded: the reference the fast paths are measured against
 /// (a small step converges to the exact emission-absorption integral).
-pub fn reference(volume: &Volume, camera: &Camera, tf: &TransferFunction, step: f64, background: [f64; 4]) -> Result<Vec<[f64; 4]>, RenderError> {
+pub fn reference(
+    volume: &Volume,
+    camera: &Camera,
+    tf: &TransferFunction,
+    step: f64,
+    background: [f64; 4],
+) -> Result<Vec<[f64; 4]>, RenderError> {
     camera.validate()?;
     let tf = tf.resolve(volume.range())?;
-    let space = IndexSpace::new(volume);
+    let space = IndexSpace::of(&volume.grid());
     let (w, h) = (camera.width, camera.height);
     Ok((0..w * h)
         .into_par_iter()
@@ -570,8 +660,13 @@ pub fn reference(volume: &Volume, camera: &Camera, tf: &TransferFunction, step: 
                 }
             }
             let rest = 1.0 - acc[3];
-            [0, 1, 2, 3].map(|c| if c < 3 { acc[c] + rest * background[c] * background[3] } else { acc[3] + rest * background[3] })
+            [0, 1, 2, 3].map(|c| {
+                if c < 3 {
+                    acc[c] + rest * background[c] * background[3]
+                } else {
+                    acc[3] + rest * background[3]
+                }
+            })
         })
         .collect())
 }
-

@@ -41,7 +41,14 @@ pub struct TetRaycastParams {
 
 impl Default for TetRaycastParams {
     fn default() -> Self {
-        Self { step: 4.0, preintegrated: true, early_termination: 0.999, background: [0.0, 0.0, 0.0, 1.0], tools: Vec::new(), ambient: 0.35 }
+        Self {
+            step: 4.0,
+            preintegrated: true,
+            early_termination: 0.999,
+            background: [0.0, 0.0, 0.0, 1.0],
+            tools: Vec::new(),
+            ambient: 0.35,
+        }
     }
 }
 
@@ -83,7 +90,8 @@ fn tet_geometry(x: &[Vector3<f64>; 4], s: &[f64; 4]) -> ([[f64; 4]; 4], [f64; 4]
         planes[k] = [n.x, n.y, n.z, n.dot(&a)];
     }
     let m = Matrix3::from_rows(&[(x[1] - x[0]).transpose(), (x[2] - x[0]).transpose(), (x[3] - x[0]).transpose()]);
-    let grad = m.try_inverse().map_or_else(Vector3::zeros, |inv| inv * Vector3::new(s[1] - s[0], s[2] - s[0], s[3] - s[0]));
+    let grad =
+        m.try_inverse().map_or_else(Vector3::zeros, |inv| inv * Vector3::new(s[1] - s[0], s[2] - s[0], s[3] - s[0]));
     let offset = if grad == Vector3::zeros() { (s[0] + s[1] + s[2] + s[3]) / 4.0 } else { s[0] - grad.dot(&x[0]) };
     (planes, [grad.x, grad.y, grad.z, offset])
 }
@@ -106,7 +114,11 @@ fn tet_geometry_f32(x: &[V3; 4], s: &[f32; 4]) -> TetGeometry {
     // over det.
     let (r0, r1, r2) = (x[1] - x[0], x[2] - x[0], x[3] - x[0]);
     let det = r0.dot(&r1.cross(&r2));
-    let grad = if det != 0.0 { (r1.cross(&r2) * (s[1] - s[0]) + r2.cross(&r0) * (s[2] - s[0]) + r0.cross(&r1) * (s[3] - s[0])) / det } else { V3::zeros() };
+    let grad = if det != 0.0 {
+        (r1.cross(&r2) * (s[1] - s[0]) + r2.cross(&r0) * (s[2] - s[0]) + r0.cross(&r1) * (s[3] - s[0])) / det
+    } else {
+        V3::zeros()
+    };
     let offset = if grad != V3::zeros() { s[0] - grad.dot(&x[0]) } else { (s[0] + s[1] + s[2] + s[3]) / 4.0 };
     g.gradient = [grad.x, grad.y, grad.z, offset];
     g
@@ -114,7 +126,11 @@ fn tet_geometry_f32(x: &[V3; 4], s: &[f32; 4]) -> TetGeometry {
 
 /// The faces with no neighbour, as tet · 4 + face.
 fn boundary_faces(neighbours: &[[i32; 4]]) -> Vec<u32> {
-    neighbours.iter().enumerate().flat_map(|(t, n)| (0..4u32).filter(move |&k| n[k as usize] < 0).map(move |k| t as u32 * 4 + k)).collect()
+    neighbours
+        .iter()
+        .enumerate()
+        .flat_map(|(t, n)| (0..4u32).filter(move |&k| n[k as usize] < 0).map(move |k| t as u32 * 4 + k))
+        .collect()
 }
 
 /// Boundary faces (tet · 4 + face) binned into the image's tiles: tile t holds
@@ -143,7 +159,8 @@ pub(crate) fn bin_boundary(tets: &[[u32; 4]], boundary: &[u32], positions: &[Vec
     let aspect = w as f64 / h as f64;
     let tile_box = |face: u32| -> Option<[usize; 4]> {
         let nodes = tets[(face >> 2) as usize];
-        let corners = TET_FACES[(face & 3) as usize].map(|i| camera_from_world * Point3::from(positions[nodes[i] as usize]));
+        let corners =
+            TET_FACES[(face & 3) as usize].map(|i| camera_from_world * Point3::from(positions[nodes[i] as usize]));
         if corners.iter().all(|c| c.z <= 0.0) {
             return None;
         }
@@ -169,7 +186,12 @@ pub(crate) fn bin_boundary(tets: &[[u32; 4]], boundary: &[u32], positions: &[Vec
             return None;
         }
         let tile = |v: f64, n: usize| ((v.max(0.0) as usize) / TILE).min(n - 1);
-        Some([tile(lo[0] - 1.0, tiles[0]), tile(hi[0] + 1.0, tiles[0]), tile(lo[1] - 1.0, tiles[1]), tile(hi[1] + 1.0, tiles[1])])
+        Some([
+            tile(lo[0] - 1.0, tiles[0]),
+            tile(hi[0] + 1.0, tiles[0]),
+            tile(lo[1] - 1.0, tiles[1]),
+            tile(hi[1] + 1.0, tiles[1]),
+        ])
     };
     let boxes: Vec<(u32, [usize; 4])> = boundary.par_iter().filter_map(|&f| tile_box(f).map(|b| (f, b))).collect();
     let mut count = vec![0u32; tiles[0] * tiles[1] + 1];
@@ -240,18 +262,34 @@ pub struct TetRaycaster {
 
 impl TetRaycaster {
     /// `scalars`: one value per node (the values the transfer function maps).
-    pub fn new(mesh: &TetMesh, scalars: &[f32], tf: &TransferFunction, params: &TetRaycastParams) -> Result<Self, RenderError> {
+    pub fn new(
+        mesh: &TetMesh,
+        scalars: &[f32],
+        tf: &TransferFunction,
+        params: &TetRaycastParams,
+    ) -> Result<Self, RenderError> {
         if scalars.len() != mesh.nodes().len() || scalars.iter().any(|s| !s.is_finite()) {
-            return Err(RenderError::Parameter(format!("{} scalars for {} nodes (all must be finite)", scalars.len(), mesh.nodes().len())));
+            return Err(RenderError::Parameter(format!(
+                "{} scalars for {} nodes (all must be finite)",
+                scalars.len(),
+                mesh.nodes().len()
+            )));
         }
         if !(params.step.is_finite() && params.step > 0.0) {
             return Err(RenderError::Parameter(format!("step {} must be finite and > 0", params.step)));
         }
-        if !(params.early_termination.is_finite() && params.early_termination > 0.0 && params.early_termination <= 1.0) {
-            return Err(RenderError::Parameter(format!("early termination {} must be in (0, 1]", params.early_termination)));
+        if !(params.early_termination.is_finite() && params.early_termination > 0.0 && params.early_termination <= 1.0)
+        {
+            return Err(RenderError::Parameter(format!(
+                "early termination {} must be in (0, 1]",
+                params.early_termination
+            )));
         }
         if params.tools.len() > MAX_TOOLS {
-            return Err(RenderError::Parameter(format!("{} tools; a picture draws up to {MAX_TOOLS}", params.tools.len())));
+            return Err(RenderError::Parameter(format!(
+                "{} tools; a picture draws up to {MAX_TOOLS}",
+                params.tools.len()
+            )));
         }
         for tool in &params.tools {
             tool.validate()?;
@@ -270,9 +308,19 @@ impl TetRaycaster {
             })
             .collect();
         let boundary = boundary_faces(neighbours);
-        let (lo, hi) = mesh.nodes().iter().fold((Vector3::repeat(f64::INFINITY), Vector3::repeat(f64::NEG_INFINITY)), |(lo, hi), p| (lo.inf(p), hi.sup(p)));
-        let (anchor, diagonal) = if mesh.nodes().is_empty() { (Vector3::zeros(), 1.0) } else { ((lo + hi) / 2.0, (hi - lo).norm()) };
-        let table = if params.preintegrated { SegmentTable::new(&tf, range, params.step) } else { SegmentTable { lo: 0.0, hi: 1.0, max_len: 1.0, level_scale: 1.0, length_scale: 1.0, entries: Vec::new() } };
+        let (lo, hi) = mesh
+            .nodes()
+            .iter()
+            .fold((Vector3::repeat(f64::INFINITY), Vector3::repeat(f64::NEG_INFINITY)), |(lo, hi), p| {
+                (lo.inf(p), hi.sup(p))
+            });
+        let (anchor, diagonal) =
+            if mesh.nodes().is_empty() { (Vector3::zeros(), 1.0) } else { ((lo + hi) / 2.0, (hi - lo).norm()) };
+        let table = if params.preintegrated {
+            SegmentTable::new(&tf, range, params.step)
+        } else {
+            SegmentTable { lo: 0.0, hi: 1.0, max_len: 1.0, level_scale: 1.0, length_scale: 1.0, entries: Vec::new() }
+        };
         let far = |v: f64| v.clamp(-1e30, 1e30) as f32;
         let visible = tf.visible_span();
         let mut raycaster = Self {
@@ -323,7 +371,11 @@ impl TetRaycaster {
         self.positions = positions.to_vec();
         let anchored: Vec<V3> = positions.iter().map(|p| (p - self.anchor).cast::<f32>()).collect();
         let scalars = &self.scalars;
-        self.geometry = self.tets.par_iter().map(|tet| tet_geometry_f32(&tet.map(|i| anchored[i as usize]), &tet.map(|i| scalars[i as usize]))).collect();
+        self.geometry = self
+            .tets
+            .par_iter()
+            .map(|tet| tet_geometry_f32(&tet.map(|i| anchored[i as usize]), &tet.map(|i| scalars[i as usize])))
+            .collect();
         Ok(())
     }
 
@@ -343,7 +395,8 @@ impl TetRaycaster {
                 for py in ty..(ty + TILE).min(h) {
                     for px in tx..(tx + TILE).min(w) {
                         let (origin, direction) = camera.ray(px, py);
-                        let tool = nearest_tool(&self.params.tools, self.params.ambient, &origin, &direction, &-direction);
+                        let tool =
+                            nearest_tool(&self.params.tools, self.params.ambient, &origin, &direction, &-direction);
                         let o = (origin.coords - self.anchor).cast::<f32>();
                         pixels.push(self.cast(faces, &o, &direction.cast::<f32>(), tool));
                     }
@@ -401,7 +454,12 @@ impl TetRaycaster {
             }
         }
         let rest = 1.0 - acc[3];
-        let color = [acc[0] + rest * bg[0] * bg[3], acc[1] + rest * bg[1] * bg[3], acc[2] + rest * bg[2] * bg[3], acc[3] + rest * bg[3]];
+        let color = [
+            acc[0] + rest * bg[0] * bg[3],
+            acc[1] + rest * bg[1] * bg[3],
+            acc[2] + rest * bg[2] * bg[3],
+            acc[3] + rest * bg[3],
+        ];
         (color, if depth.is_finite() { depth } else { t_stop })
     }
 
@@ -470,7 +528,8 @@ impl TetRaycaster {
         let (mut tet, mut face_in, mut t_in) = start;
         let termination = self.params.early_termination as f32;
         let mut stalled = 0;
-        let scalar = |g: &[f32; 4], t: f32| g[0] * (o.x + d.x * t) + g[1] * (o.y + d.y * t) + g[2] * (o.z + d.z * t) + g[3];
+        let scalar =
+            |g: &[f32; 4], t: f32| g[0] * (o.x + d.x * t) + g[1] * (o.y + d.y * t) + g[2] * (o.z + d.z * t) + g[3];
         // The scalar is continuous across faces: a tet's entry value is the last exit value.
         let mut s_in = scalar(&self.geometry[tet as usize].gradient, t_in);
         for _ in 0..MAX_WALK {
@@ -545,7 +604,10 @@ impl TetRaycaster {
 
 fn check_positions(positions: &[Vector3<f64>], nodes: usize) -> Result<(), RenderError> {
     if positions.len() != nodes || positions.iter().any(|p| !p.iter().all(|v| v.is_finite())) {
-        return Err(RenderError::Parameter(format!("{} positions for {nodes} nodes (all must be finite)", positions.len())));
+        return Err(RenderError::Parameter(format!(
+            "{} positions for {nodes} nodes (all must be finite)",
+            positions.len()
+        )));
     }
     Ok(())
 }
@@ -554,22 +616,43 @@ fn check_positions(positions: &[Vector3<f64>], nodes: usize) -> Result<(), Rende
 /// the walk in f64, the exact transfer function at the middles of sub-steps no longer than
 /// `step`; a ray starting inside the mesh starts in the tet found by testing every tet.
 /// Linear RGBA per pixel, rows top to bottom.
-pub fn reference(mesh: &TetMesh, positions: &[Vector3<f64>], scalars: &[f32], camera: &Camera, tf: &TransferFunction, params: &TetRaycastParams) -> Result<Vec<[f64; 4]>, RenderError> {
+pub fn reference(
+    mesh: &TetMesh,
+    positions: &[Vector3<f64>],
+    scalars: &[f32],
+    camera: &Camera,
+    tf: &TransferFunction,
+    params: &TetRaycastParams,
+) -> Result<Vec<[f64; 4]>, RenderError> {
     camera.validate()?;
     check_positions(positions, mesh.nodes().len())?;
     if scalars.len() != mesh.nodes().len() || !(params.step.is_finite() && params.step > 0.0) {
-        return Err(RenderError::Parameter(format!("{} scalars for {} nodes, step {}", scalars.len(), mesh.nodes().len(), params.step)));
+        return Err(RenderError::Parameter(format!(
+            "{} scalars for {} nodes, step {}",
+            scalars.len(),
+            mesh.nodes().len(),
+            params.step
+        )));
     }
     let range = scalars.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), s| (lo.min(*s), hi.max(*s)));
     let tf = tf.resolve(range)?;
-    let geometry: Vec<_> = mesh.tets().iter().map(|tet| tet_geometry(&tet.map(|i| positions[i as usize]), &tet.map(|i| f64::from(scalars[i as usize])))).collect();
+    let geometry: Vec<_> = mesh
+        .tets()
+        .iter()
+        .map(|tet| tet_geometry(&tet.map(|i| positions[i as usize]), &tet.map(|i| f64::from(scalars[i as usize]))))
+        .collect();
     let neighbours = mesh.neighbours();
     let boundary = boundary_faces(neighbours);
     let bins = bin_boundary(mesh.tets(), &boundary, positions, camera);
     let containing = |p: &Vector3<f64>| {
-        geometry.iter().position(|(planes, _)| planes.iter().all(|q| q[0] * p.x + q[1] * p.y + q[2] * p.z - q[3] <= 1e-9 * (1.0 + q[3].abs())) && planes.iter().any(|q| q[0] != 0.0 || q[1] != 0.0 || q[2] != 0.0))
+        geometry.iter().position(|(planes, _)| {
+            planes.iter().all(|q| q[0] * p.x + q[1] * p.y + q[2] * p.z - q[3] <= 1e-9 * (1.0 + q[3].abs()))
+                && planes.iter().any(|q| q[0] != 0.0 || q[1] != 0.0 || q[2] != 0.0)
+        })
     };
-    let eye_tet = matches!(camera.projection, Projection::Perspective { .. }).then(|| containing(&camera.world_from_camera.translation.vector)).flatten();
+    let eye_tet = matches!(camera.projection, Projection::Perspective { .. })
+        .then(|| containing(&camera.world_from_camera.translation.vector))
+        .flatten();
     let (w, h) = (camera.width, camera.height);
     Ok((0..w * h)
         .into_par_iter()
@@ -589,13 +672,17 @@ pub fn reference(mesh: &TetMesh, positions: &[Vector3<f64>], scalars: &[f32], ca
                     let nodes = mesh.tets()[(f >> 2) as usize];
                     let corners = TET_FACES[(f & 3) as usize].map(|k| positions[nodes[k] as usize]);
                     let plane = geometry[(f >> 2) as usize].0[(f & 3) as usize];
-                    ray_triangle(&o, &d, &corners).map(|t| (t, f, Vector3::new(plane[0], plane[1], plane[2]).dot(&d) < 0.0))
+                    ray_triangle(&o, &d, &corners)
+                        .map(|t| (t, f, Vector3::new(plane[0], plane[1], plane[2]).dot(&d) < 0.0))
                 })
                 .collect();
             hits.sort_by(|a, b| a.0.total_cmp(&b.0));
-            let mut starts: Vec<(usize, Option<usize>, f64)> = hits.iter().filter(|h| h.2).map(|h| ((h.1 >> 2) as usize, Some((h.1 & 3) as usize), h.0)).collect();
+            let mut starts: Vec<(usize, Option<usize>, f64)> =
+                hits.iter().filter(|h| h.2).map(|h| ((h.1 >> 2) as usize, Some((h.1 & 3) as usize), h.0)).collect();
             if hits.first().is_some_and(|h| !h.2) {
-                if let Some(tet) = if matches!(camera.projection, Projection::Perspective { .. }) { eye_tet } else { containing(&o) } {
+                if let Some(tet) =
+                    if matches!(camera.projection, Projection::Perspective { .. }) { eye_tet } else { containing(&o) }
+                {
                     starts.insert(0, (tet, None, 0.0));
                 }
             }
@@ -646,7 +733,12 @@ pub fn reference(mesh: &TetMesh, positions: &[Vector3<f64>], scalars: &[f32], ca
                 }
             }
             let rest = 1.0 - acc[3];
-            [acc[0] + rest * bg[0] * bg[3], acc[1] + rest * bg[1] * bg[3], acc[2] + rest * bg[2] * bg[3], acc[3] + rest * bg[3]]
+            [
+                acc[0] + rest * bg[0] * bg[3],
+                acc[1] + rest * bg[1] * bg[3],
+                acc[2] + rest * bg[2] * bg[3],
+                acc[3] + rest * bg[3],
+            ]
         })
         .collect())
 }

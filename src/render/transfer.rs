@@ -48,8 +48,25 @@ impl TransferFunction {
                 p(700.0, [1.0, 1.0, 0.95], 0.8),
                 p(3000.0, [1.0, 1.0, 1.0], 0.9),
             ],
-            "ct_bone" => vec![p(-1000.0, [0.0; 3], 0.0), p(150.0, [0.0; 3], 0.0), p(300.0, [0.9, 0.8, 0.65], 0.4), p(1000.0, [1.0, 1.0, 0.95], 0.9), p(3000.0, [1.0; 3], 0.95)],
-            "mri" => return Ok(Self { points: vec![p(0.0, [0.0; 3], 0.0), p(0.1, [0.0; 3], 0.0), p(0.4, [0.7, 0.6, 0.55], 0.05), p(0.8, [1.0, 0.95, 0.9], 0.3), p(1.0, [1.0; 3], 0.5)], relative: true }),
+            "ct_bone" => vec![
+                p(-1000.0, [0.0; 3], 0.0),
+                p(150.0, [0.0; 3], 0.0),
+                p(300.0, [0.9, 0.8, 0.65], 0.4),
+                p(1000.0, [1.0, 1.0, 0.95], 0.9),
+                p(3000.0, [1.0; 3], 0.95),
+            ],
+            "mri" => {
+                return Ok(Self {
+                    points: vec![
+                        p(0.0, [0.0; 3], 0.0),
+                        p(0.1, [0.0; 3], 0.0),
+                        p(0.4, [0.7, 0.6, 0.55], 0.05),
+                        p(0.8, [1.0, 0.95, 0.9], 0.3),
+                        p(1.0, [1.0; 3], 0.5),
+                    ],
+                    relative: true,
+                })
+            }
             other => return Err(RenderError::UnknownPreset(other.to_owned())),
         };
         Ok(Self { points, relative: false })
@@ -62,7 +79,10 @@ impl TransferFunction {
             return bad("it has no points".into());
         }
         for (i, q) in self.points.iter().enumerate() {
-            if !(q.value.is_finite() && q.color.iter().all(|c| (0.0..=1.0).contains(c)) && (0.0..1.0).contains(&q.opacity)) {
+            if !(q.value.is_finite()
+                && q.color.iter().all(|c| (0.0..=1.0).contains(c))
+                && (0.0..1.0).contains(&q.opacity))
+            {
                 return bad(format!("point {i} ({q:?}): value must be finite, colour in 0..1, opacity in [0, 1)"));
             }
             if i > 0 && q.value < self.points[i - 1].value {
@@ -71,7 +91,10 @@ impl TransferFunction {
         }
         let (lo, hi) = (f64::from(data_range.0), f64::from(data_range.1));
         let map = |v: f64| if self.relative { lo + v * (hi - lo) } else { v };
-        Ok(Self { points: self.points.iter().map(|q| TfPoint { value: map(q.value), ..*q }).collect(), relative: false })
+        Ok(Self {
+            points: self.points.iter().map(|q| TfPoint { value: map(q.value), ..*q }).collect(),
+            relative: false,
+        })
     }
 
     /// (colour, extinction per unit length) at `s`, exactly (the f64 reference's form).
@@ -95,7 +118,9 @@ impl TransferFunction {
     /// when nothing is visible.
     pub fn visible_span(&self) -> (f64, f64) {
         let pts = &self.points;
-        let (Some(first), Some(last)) = (pts.iter().position(|q| q.opacity > 0.0), pts.iter().rposition(|q| q.opacity > 0.0)) else {
+        let (Some(first), Some(last)) =
+            (pts.iter().position(|q| q.opacity > 0.0), pts.iter().rposition(|q| q.opacity > 0.0))
+        else {
             return (f64::INFINITY, f64::NEG_INFINITY);
         };
         let lo = first.checked_sub(1).map_or(f64::NEG_INFINITY, |i| pts[i].value);
@@ -145,7 +170,8 @@ impl Tables {
     pub fn new(tf: &TransferFunction, data_range: (f32, f32), step: f64, preintegrate: bool) -> Self {
         let (lo, hi) = tf.span();
         let hi = if hi > lo { hi } else { lo + 1.0 };
-        let (pre_lo, pre_hi) = if data_range.1 > data_range.0 { (f64::from(data_range.0), f64::from(data_range.1)) } else { (lo, hi) };
+        let (pre_lo, pre_hi) =
+            if data_range.1 > data_range.0 { (f64::from(data_range.0), f64::from(data_range.1)) } else { (lo, hi) };
         let at = |i: usize, n: usize| lo + (hi - lo) * i as f64 / (n - 1) as f64;
         let lut = (0..LUT_SIZE)
             .map(|i| {
@@ -161,7 +187,16 @@ impl Tables {
             })
             .collect();
         let preintegrated = if preintegrate { preintegrate_table(tf, pre_lo, pre_hi, step) } else { Vec::new() };
-        Self { lo: lo as f32, hi: hi as f32, lut, stepped, preintegrated, pre_lo: pre_lo as f32, pre_hi: pre_hi as f32, step: step as f32 }
+        Self {
+            lo: lo as f32,
+            hi: hi as f32,
+            lut,
+            stepped,
+            preintegrated,
+            pre_lo: pre_lo as f32,
+            pre_hi: pre_hi as f32,
+            step: step as f32,
+        }
     }
 
     /// (r, g, b, τ) at `s`, linear between table entries.
@@ -267,7 +302,8 @@ impl SegmentTable {
         use rayon::prelude::*;
         const SUBSTEPS: usize = 128;
         let (n, lengths) = (SEGMENT_LEVELS, SEGMENT_LENGTHS);
-        let (lo, hi) = if data_range.1 > data_range.0 { (f64::from(data_range.0), f64::from(data_range.1)) } else { tf.span() };
+        let (lo, hi) =
+            if data_range.1 > data_range.0 { (f64::from(data_range.0), f64::from(data_range.1)) } else { tf.span() };
         let hi = if hi > lo { hi } else { lo + 1.0 };
         let level = |i: usize| lo + (hi - lo) * i as f64 / (n - 1) as f64;
         // Sub-step length at length level 1.
@@ -296,7 +332,14 @@ impl SegmentTable {
                 })
             })
             .collect();
-        Self { lo: lo as f32, hi: hi as f32, max_len: max_len as f32, level_scale: ((n - 1) as f64 / (hi - lo)) as f32, length_scale: ((lengths - 1) as f64 / max_len) as f32, entries }
+        Self {
+            lo: lo as f32,
+            hi: hi as f32,
+            max_len: max_len as f32,
+            level_scale: ((n - 1) as f64 / (hi - lo)) as f32,
+            length_scale: ((lengths - 1) as f64 / max_len) as f32,
+            entries,
+        }
     }
 
     /// A segment no longer than `max_len`: trilinear in (front, back, length).
@@ -305,7 +348,17 @@ impl SegmentTable {
         let (n, lengths) = (SEGMENT_LEVELS, SEGMENT_LENGTHS);
         // Plain comparisons rather than `clamp`: the callers' values are finite, and this
         // is the innermost lookup of the tet raycaster.
-        let limit = |v: f32, top: f32| if v > 0.0 { if v < top { v } else { top } } else { 0.0 };
+        let limit = |v: f32, top: f32| {
+            if v > 0.0 {
+                if v < top {
+                    v
+                } else {
+                    top
+                }
+            } else {
+                0.0
+            }
+        };
         let level = |s: f32| limit((s - self.lo) * self.level_scale, (n - 1) as f32);
         let (x, y) = (level(front), level(back));
         let z = limit(len * self.length_scale, (lengths - 1) as f32);

@@ -44,7 +44,13 @@ pub struct RosArgs {
 impl RosArgs {
     /// Parses `args` (without the program name) for a node called `default_name`.
     pub fn parse(args: &[String], default_name: &str) -> Result<Self, ArgsError> {
-        let mut parsed = RosArgs { node_name: default_name.into(), namespace: "/".into(), parameters: BTreeMap::new(), remaps: BTreeMap::new(), rest: Vec::new() };
+        let mut parsed = RosArgs {
+            node_name: default_name.into(),
+            namespace: "/".into(),
+            parameters: BTreeMap::new(),
+            remaps: BTreeMap::new(),
+            rest: Vec::new(),
+        };
         let mut files = Vec::new();
         let mut cli_params = Vec::new();
         let mut in_ros = false;
@@ -79,7 +85,8 @@ impl RosArgs {
                     let ignored = value()?;
                     tracing::warn!("--ros-args {arg} {ignored}: not used by defvol (set RUST_LOG for logging)");
                 }
-                "--disable-rosout-logs" | "--disable-stdout-logs" | "--enable-rosout-logs" | "--enable-stdout-logs" => {}
+                "--disable-rosout-logs" | "--disable-stdout-logs" | "--enable-rosout-logs" | "--enable-stdout-logs" => {
+                }
                 other => return Err(ArgsError::Unknown(other.into())),
             }
         }
@@ -91,7 +98,8 @@ impl RosArgs {
             parsed.parameters.extend(found);
         }
         for assignment in cli_params {
-            let (name, text) = assignment.split_once(":=").ok_or_else(|| ArgsError::NotAssignment(assignment.clone()))?;
+            let (name, text) =
+                assignment.split_once(":=").ok_or_else(|| ArgsError::NotAssignment(assignment.clone()))?;
             // ROS reads `-p` values as YAML: 1 is an integer, 1.0 a double, [1, 2] an array.
             let value = serde_yaml_ng::from_str(text).unwrap_or_else(|_| Value::String(text.into()));
             parsed.parameters.insert(name.into(), value);
@@ -106,15 +114,26 @@ pub fn params_file(path: &Path, node_name: &str, namespace: &str) -> Result<BTre
     let err = |message: String| ArgsError::ParamsFile { path: path.display().to_string(), message };
     let text = std::fs::read_to_string(path).map_err(|e| err(e.to_string()))?;
     let root: Value = serde_yaml_ng::from_str(&text).map_err(|e| err(e.to_string()))?;
-    let Value::Mapping(sections) = root else { return Err(err("expected `node_name: {ros__parameters: …}` at the top".into())) };
+    let Value::Mapping(sections) = root else {
+        return Err(err("expected `node_name: {ros__parameters: …}` at the top".into()));
+    };
     let full = format!("{}/{node_name}", namespace.trim_end_matches('/'));
-    let names = ["/**".to_owned(), "**".to_owned(), node_name.to_owned(), full.clone(), full.trim_start_matches('/').to_owned(), format!("/**/{node_name}")];
+    let names = [
+        "/**".to_owned(),
+        "**".to_owned(),
+        node_name.to_owned(),
+        full.clone(),
+        full.trim_start_matches('/').to_owned(),
+        format!("/**/{node_name}"),
+    ];
     let mut out = BTreeMap::new();
     let mut matched = false;
     for name in &names {
         let Some(section) = sections.get(Value::String(name.clone())) else { continue };
         matched = true;
-        let Some(params) = section.get("ros__parameters") else { return Err(err(format!("section `{name}` has no `ros__parameters`"))) };
+        let Some(params) = section.get("ros__parameters") else {
+            return Err(err(format!("section `{name}` has no `ros__parameters`")));
+        };
         flatten("", params, &mut out);
     }
     if !matched {
@@ -149,27 +168,36 @@ fn flatten(prefix: &str, value: &Value, out: &mut BTreeMap<String, Value>) {
 }
 
 /// Parameters that configure the node itself rather than the scene.
-pub const NODE_PARAMETERS: [&str; 6] = ["scene_file", "backend", "allow_software_gpu", "dds.open_discovery", "record", "rerun"];
+pub const NODE_PARAMETERS: [&str; 4] = ["scene_file", "dds.open_discovery", "record", "rerun"];
+
+/// Scene parameters chosen once per run: a running node refuses to change them.
+pub const RUN_PARAMETERS: [&str; 2] = ["backend", "allow_software_gpu"];
 
 /// The scene the parameters describe: `scene_file` (or the embedded default) with every
 /// other dotted parameter written into it, then checked as a whole.
 pub fn scene_from_parameters(parameters: &BTreeMap<String, Value>) -> Result<Scene, ArgsError> {
     let (text, origin) = match parameters.get("scene_file") {
         Some(Value::String(path)) if !path.is_empty() => {
-            let text = std::fs::read_to_string(path).map_err(|e| ArgsError::Parameter { name: "scene_file".into(), message: format!("{path}: {e}") })?;
+            let text = std::fs::read_to_string(path)
+                .map_err(|e| ArgsError::Parameter { name: "scene_file".into(), message: format!("{path}: {e}") })?;
             (text, path.clone())
         }
         Some(Value::String(_)) | None => (crate::scene::DEFAULT_SCENE.to_owned(), "embedded default scene".to_owned()),
-        Some(other) => return Err(ArgsError::Parameter { name: "scene_file".into(), message: format!("{other:?} is not a path") }),
+        Some(other) => {
+            return Err(ArgsError::Parameter { name: "scene_file".into(), message: format!("{other:?} is not a path") })
+        }
     };
-    let mut tree: Value = serde_yaml_ng::from_str(&text).map_err(|e| ArgsError::Parameter { name: "scene_file".into(), message: format!("{origin}: {e}") })?;
+    let mut tree: Value = serde_yaml_ng::from_str(&text)
+        .map_err(|e| ArgsError::Parameter { name: "scene_file".into(), message: format!("{origin}: {e}") })?;
     for (name, value) in parameters.iter().filter(|(n, _)| !NODE_PARAMETERS.contains(&n.as_str())) {
-        set_path(&mut tree, name, value.clone()).map_err(|message| ArgsError::Parameter { name: name.clone(), message })?;
+        set_path(&mut tree, name, value.clone())
+            .map_err(|message| ArgsError::Parameter { name: name.clone(), message })?;
     }
     serde_yaml_ng::from_value(tree).map_err(|e: serde_yaml_ng::Error| {
         let message = e.to_string();
         // Name the parameter behind an unknown field, when the message gives it.
-        let culprit = parameters.keys().find(|n| message.contains(&format!("`{}`", n.rsplit('.').next().unwrap_or(n)))).cloned();
+        let culprit =
+            parameters.keys().find(|n| message.contains(&format!("`{}`", n.rsplit('.').next().unwrap_or(n)))).cloned();
         ArgsError::Parameter { name: culprit.unwrap_or_else(|| "scene".into()), message }
     })
 }
@@ -238,7 +266,10 @@ mod tests {
         assert_eq!(parsed.parameters["stages.warp"], Value::Bool(false));
         assert_eq!(parsed.parameters["camera.width"], Value::from(640));
         let scene = scene_from_parameters(&parsed.parameters).unwrap();
-        assert_eq!((scene.solver.dt, scene.stages.warp, scene.camera.width, scene.frame_id.as_str()), (0.005, false, 640, "map"));
+        assert_eq!(
+            (scene.solver.dt, scene.stages.warp, scene.camera.width, scene.frame_id.as_str()),
+            (0.005, false, 640, "map")
+        );
         assert_eq!(RosArgs::parse(&args("--ros-args -p"), "n").unwrap_err(), ArgsError::MissingValue("-p".into()));
         assert_eq!(RosArgs::parse(&args("--ros-args --bogus"), "n").unwrap_err(), ArgsError::Unknown("--bogus".into()));
         assert!(matches!(RosArgs::parse(&args("--ros-args -r __ns:=robot"), "n"), Err(ArgsError::Namespace(_))));
@@ -253,7 +284,14 @@ mod tests {
             "/**:\n  ros__parameters:\n    solver: {dt: 0.02, cg_tolerance: 1.0e-5}\n    frame_id: map\n/robot/organ:\n  ros__parameters:\n    solver:\n      dt: 0.004\n    tools.0.shape.radius: 0.01\nother:\n  ros__parameters: {frame_id: nope}\n",
         )
         .unwrap();
-        let parsed = RosArgs::parse(&args(&format!("--ros-args -r __ns:=/robot -r __node:=organ --params-file {} -p frame_id:=odom", path.display())), "defvol").unwrap();
+        let parsed = RosArgs::parse(
+            &args(&format!(
+                "--ros-args -r __ns:=/robot -r __node:=organ --params-file {} -p frame_id:=odom",
+                path.display()
+            )),
+            "defvol",
+        )
+        .unwrap();
         assert_eq!(parsed.parameters["solver.dt"], Value::from(0.004), "the node's section wins over /**");
         assert_eq!(parsed.parameters["solver.cg_tolerance"], Value::from(1e-5));
         assert_eq!(parsed.parameters["frame_id"], Value::from("odom"), "-p wins over the file");
@@ -261,7 +299,9 @@ mod tests {
         assert_eq!(scene.tools[0].shape.radius(), 0.01);
         let bad = dir.path().join("bad.yaml");
         std::fs::write(&bad, "defvol: [1, 2\n").unwrap();
-        let e = RosArgs::parse(&args(&format!("--ros-args --params-file {}", bad.display())), "defvol").unwrap_err().to_string();
+        let e = RosArgs::parse(&args(&format!("--ros-args --params-file {}", bad.display())), "defvol")
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("bad.yaml"), "{e}");
     }
 
@@ -284,7 +324,9 @@ mod tests {
     fn the_scene_round_trips_through_its_flat_parameters() {
         let scene = Scene::default_scene().unwrap();
         let flat = scene_parameters(&scene);
-        assert!(flat.contains_key("solver.dt") && flat.contains_key("camera.width") && flat.contains_key("stages.dpcm"));
+        assert!(
+            flat.contains_key("solver.dt") && flat.contains_key("camera.width") && flat.contains_key("stages.dpcm")
+        );
         assert_eq!(scene_from_parameters(&flat).unwrap(), scene);
     }
 }

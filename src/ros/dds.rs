@@ -32,17 +32,24 @@ pub fn settings(env: impl Fn(&str) -> Option<String>, open: bool) -> Result<(u16
         Some(v) => v.trim().parse::<u16>().ok().filter(|d| *d <= 232).ok_or(DdsError::DomainId(v))?,
         None => 0,
     };
-    let range = match env("ROS_AUTOMATIC_DISCOVERY_RANGE").map(|v| v.trim().to_ascii_uppercase()).filter(|v| !v.is_empty()) {
-        None => Discovery::Localhost,
-        Some(v) => match v.as_str() {
-            "LOCALHOST" | "OFF" => Discovery::Localhost,
-            "SUBNET" | "SYSTEM_DEFAULT" => Discovery::Subnet,
-            _ => return Err(DdsError::DiscoveryRange(v)),
-        },
-    };
+    let range =
+        match env("ROS_AUTOMATIC_DISCOVERY_RANGE").map(|v| v.trim().to_ascii_uppercase()).filter(|v| !v.is_empty()) {
+            None => Discovery::Localhost,
+            Some(v) => match v.as_str() {
+                "LOCALHOST" | "OFF" => Discovery::Localhost,
+                "SUBNET" | "SYSTEM_DEFAULT" => Discovery::Subnet,
+                _ => return Err(DdsError::DiscoveryRange(v)),
+            },
+        };
     // ROS_LOCALHOST_ONLY=1 (Humble's switch) keeps it local even if the range says otherwise.
     let localhost_only = env("ROS_LOCALHOST_ONLY").is_some_and(|v| v.trim() == "1");
-    let discovery = if open { Discovery::Subnet } else if localhost_only { Discovery::Localhost } else { range };
+    let discovery = if open {
+        Discovery::Subnet
+    } else if localhost_only {
+        Discovery::Localhost
+    } else {
+        range
+    };
     Ok((domain, discovery))
 }
 
@@ -81,11 +88,20 @@ mod tests {
         assert_eq!(settings(env(&[]), false), Ok((0, Discovery::Localhost)));
         assert_eq!(settings(env(&[("ROS_DOMAIN_ID", "42")]), false), Ok((42, Discovery::Localhost)));
         assert_eq!(settings(env(&[("ROS_AUTOMATIC_DISCOVERY_RANGE", "SUBNET")]), false), Ok((0, Discovery::Subnet)));
-        assert_eq!(settings(env(&[("ROS_AUTOMATIC_DISCOVERY_RANGE", "localhost")]), false), Ok((0, Discovery::Localhost)));
-        assert_eq!(settings(env(&[("ROS_AUTOMATIC_DISCOVERY_RANGE", "SUBNET"), ("ROS_LOCALHOST_ONLY", "1")]), false), Ok((0, Discovery::Localhost)));
+        assert_eq!(
+            settings(env(&[("ROS_AUTOMATIC_DISCOVERY_RANGE", "localhost")]), false),
+            Ok((0, Discovery::Localhost))
+        );
+        assert_eq!(
+            settings(env(&[("ROS_AUTOMATIC_DISCOVERY_RANGE", "SUBNET"), ("ROS_LOCALHOST_ONLY", "1")]), false),
+            Ok((0, Discovery::Localhost))
+        );
         assert_eq!(settings(env(&[]), true), Ok((0, Discovery::Subnet)));
         assert_eq!(settings(env(&[("ROS_DOMAIN_ID", "300")]), false), Err(DdsError::DomainId("300".into())));
         assert_eq!(settings(env(&[("ROS_DOMAIN_ID", "x")]), false), Err(DdsError::DomainId("x".into())));
-        assert!(matches!(settings(env(&[("ROS_AUTOMATIC_DISCOVERY_RANGE", "WIDE")]), false), Err(DdsError::DiscoveryRange(_))));
+        assert!(matches!(
+            settings(env(&[("ROS_AUTOMATIC_DISCOVERY_RANGE", "WIDE")]), false),
+            Err(DdsError::DiscoveryRange(_))
+        ));
     }
 }

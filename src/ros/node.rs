@@ -7,13 +7,19 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{mpsc, Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use ros2_client::{MessageTypeName, Name, Node, NodeName, ParameterValue, Publisher, QosProfile, Server, ServiceMapping, ServiceTypeName, Subscription};
+use ros2_client::{
+    MessageTypeName, Name, Node, NodeName, ParameterValue, Publisher, QosProfile, Server, ServiceMapping,
+    ServiceTypeName, Subscription,
+};
 use serde_yaml_ng::Value;
 
 use super::args::{self, RosArgs};
 use super::dds::{self, Discovery};
-use crate::engine::BackendChoice;
-use crate::msgs::{DeformedMesh, DiagnosticArray, Image, LoadSceneRequest, Marker, Message, PoseStamped, Time, TriggerRequest, TriggerResponse, WarpedVolumeInfo, WrenchStamped};
+use crate::backend::BackendChoice;
+use crate::msgs::{
+    DeformedMesh, DiagnosticArray, Image, LoadSceneRequest, Marker, Message, PoseStamped, Time, TriggerRequest,
+    TriggerResponse, WarpedVolumeInfo, WrenchStamped,
+};
 use crate::pipeline::inputs::InputLimits;
 use crate::pipeline::{Demand, FrameMode, Pipeline, PipelineError};
 use crate::record::Qos;
@@ -32,6 +38,8 @@ pub enum NodeError {
     #[error(transparent)]
     Pipeline(#[from] PipelineError),
     #[error(transparent)]
+    Backend(#[from] crate::backend::BackendError),
+    #[error(transparent)]
     Session(#[from] SessionError),
 }
 
@@ -44,14 +52,26 @@ macro_rules! ros_messages {
         $(impl ros2_client::Message for $ty {})*
     };
 }
-ros_messages!(PoseStamped, WrenchStamped, DeformedMesh, Marker, Image, WarpedVolumeInfo, DiagnosticArray, TriggerRequest, TriggerResponse, LoadSceneRequest);
+ros_messages!(
+    PoseStamped,
+    WrenchStamped,
+    DeformedMesh,
+    Marker,
+    Image,
+    WarpedVolumeInfo,
+    DiagnosticArray,
+    TriggerRequest,
+    TriggerResponse,
+    LoadSceneRequest
+);
 
 /// How the node runs, beside its scene.
 #[derive(Debug, Clone)]
 pub struct NodeSettings {
     pub ros: RosArgs,
     pub record: RecordOptions,
-    pub backend: BackendChoice,
+    /// The command line's backend, over the scene's `backend` parameter.
+    pub backend: Option<BackendChoice>,
     pub allow_software_gpu: bool,
     pub open_discovery: bool,
     /// Stop after this long (tests, benchmarks); run until Ctrl-C when `None`.
@@ -71,8 +91,13 @@ pub fn qos(kind: Qos) -> QosProfile {
     let base = QosProfile::subscription_default();
     match kind {
         Qos::SensorData => base.history(History::KeepLast { depth: 5 }),
-        Qos::Reliable => base.reliability(Reliability::Reliable { when_full: WhenFull::Fail }).history(History::KeepLast { depth: 10 }),
-        Qos::Latched => base.reliability(Reliability::Reliable { when_full: WhenFull::Fail }).durability(Durability::TransientLocal).history(History::KeepLast { depth: 1 }),
+        Qos::Reliable => base
+            .reliability(Reliability::Reliable { when_full: WhenFull::Fail })
+            .history(History::KeepLast { depth: 10 }),
+        Qos::Latched => base
+            .reliability(Reliability::Reliable { when_full: WhenFull::Fail })
+            .durability(Durability::TransientLocal)
+            .history(History::KeepLast { depth: 1 }),
     }
 }
 
@@ -88,7 +113,12 @@ impl Topics<'_> {
         qualified(self.namespace, remapped)
     }
 
-    fn publisher<T: Message + ros2_client::Message>(&self, node: &mut Node, topic: &str, kind: Qos) -> Result<(String, Publisher<T>), NodeError> {
+    fn publisher<T: Message + ros2_client::Message>(
+        &self,
+        node: &mut Node,
+        topic: &str,
+        kind: Qos,
+    ) -> Result<(String, Publisher<T>), NodeError> {
         let full = self.resolve(topic);
         let name = Name::parse(&full).map_err(|e| NodeError::Ros(format!("topic {full}: {e:?}")))?;
         let t = node.create_topic(&name, type_name::<T>(), &qos(kind)).map_err(ros_err(&full))?;
@@ -96,7 +126,11 @@ impl Topics<'_> {
         Ok((full, publisher))
     }
 
-    fn subscription<T: Message + ros2_client::Message + 'static>(&self, node: &mut Node, topic: &str) -> Result<(String, Subscription<T>), NodeError> {
+    fn subscription<T: Message + ros2_client::Message + 'static>(
+        &self,
+        node: &mut Node,
+        topic: &str,
+    ) -> Result<(String, Subscription<T>), NodeError> {
         let full = self.resolve(topic);
         let name = Name::parse(&full).map_err(|e| NodeError::Ros(format!("topic {full}: {e:?}")))?;
         let t = node.create_topic(&name, type_name::<T>(), &qos(Qos::SensorData)).map_err(ros_err(&full))?;
@@ -107,16 +141,22 @@ impl Topics<'_> {
         Ok((full, subscription))
     }
 
-    fn server<Req: ros2_client::Message + Clone + 'static, Resp: ros2_client::Message + 'static>(&self, node: &mut Node, service: &str, package: &str, ty: &str) -> Result<Server<Req, Resp>, NodeError> {
+    fn server<Req: ros2_client::Message + Clone + 'static, Resp: ros2_client::Message + 'static>(
+        &self,
+        node: &mut Node,
+        service: &str,
+        package: &str,
+        ty: &str,
+    ) -> Result<Server<Req, Resp>, NodeError> {
         let full = self.resolve(service);
         let name = Name::parse(&full).map_err(|e| NodeError::Ros(format!("service {full}: {e:?}")))?;
         let q = qos(Qos::Reliable);
-        node.create_server(ServiceMapping::Enhanced, &name, &ServiceTypeName::new(package, ty), q.clone(), q).map_err(ros_err(&full))
+        node.create_server(ServiceMapping::Enhanced, &name, &ServiceTypeName::new(package, ty), q.clone(), q)
+            .map_err(ros_err(&full))
     }
 }
 
 struct Publishers {
-    feedback: (String, Publisher<WrenchStamped>),
     mesh: (String, Publisher<DeformedMesh>),
     marker: (String, Publisher<Marker>),
     raycast: (String, Publisher<Image>),
@@ -156,10 +196,18 @@ fn parameter_of(value: &Value) -> ParameterValue {
         Value::Number(n) if n.is_i64() => ParameterValue::Integer(n.as_i64().unwrap_or_default()),
         Value::Number(n) => ParameterValue::Double(n.as_f64().unwrap_or_default()),
         Value::String(s) => ParameterValue::String(s.clone()),
-        Value::Sequence(items) if items.iter().all(Value::is_bool) => ParameterValue::BooleanArray(items.iter().filter_map(Value::as_bool).collect()),
-        Value::Sequence(items) if items.iter().all(|v| v.as_i64().is_some()) => ParameterValue::IntegerArray(items.iter().filter_map(Value::as_i64).collect()),
-        Value::Sequence(items) if items.iter().all(Value::is_number) => ParameterValue::DoubleArray(items.iter().filter_map(Value::as_f64).collect()),
-        Value::Sequence(items) => ParameterValue::StringArray(items.iter().map(|v| serde_yaml_ng::to_string(v).unwrap_or_default().trim().to_owned()).collect()),
+        Value::Sequence(items) if items.iter().all(Value::is_bool) => {
+            ParameterValue::BooleanArray(items.iter().filter_map(Value::as_bool).collect())
+        }
+        Value::Sequence(items) if items.iter().all(|v| v.as_i64().is_some()) => {
+            ParameterValue::IntegerArray(items.iter().filter_map(Value::as_i64).collect())
+        }
+        Value::Sequence(items) if items.iter().all(Value::is_number) => {
+            ParameterValue::DoubleArray(items.iter().filter_map(Value::as_f64).collect())
+        }
+        Value::Sequence(items) => ParameterValue::StringArray(
+            items.iter().map(|v| serde_yaml_ng::to_string(v).unwrap_or_default().trim().to_owned()).collect(),
+        ),
         Value::Null => ParameterValue::NotSet,
         other => ParameterValue::String(serde_yaml_ng::to_string(other).unwrap_or_default().trim().to_owned()),
     }
@@ -169,18 +217,31 @@ fn parameter_of(value: &Value) -> ParameterValue {
 pub fn run(settings: NodeSettings) -> Result<(), NodeError> {
     let scene = args::scene_from_parameters(&settings.ros.parameters)?;
     let limits = InputLimits::default();
-    let mut pipeline = Pipeline::new(scene, settings.backend, settings.allow_software_gpu, limits, FrameMode::Background)?;
+    // Chosen once per run: a reloaded scene keeps it.
+    let backend = scene.backend(settings.backend, settings.allow_software_gpu)?;
+    let mut pipeline = Pipeline::new(scene, &backend, limits, FrameMode::Background)?;
 
     let (domain, discovery) = dds::settings(|name| std::env::var(name).ok(), settings.open_discovery)?;
     let context = dds::context(domain, discovery)?;
-    tracing::info!("DDS domain {domain}, discovery {}", if discovery == Discovery::Localhost { "on 127.0.0.1 only" } else { "open to the subnet" });
-    let node_name = NodeName::new(&settings.ros.namespace, &settings.ros.node_name).map_err(|e| NodeError::Ros(format!("node name: {e:?}")))?;
+    tracing::info!(
+        "DDS domain {domain}, discovery {}",
+        if discovery == Discovery::Localhost { "on 127.0.0.1 only" } else { "open to the subnet" }
+    );
+    let node_name = NodeName::new(&settings.ros.namespace, &settings.ros.node_name)
+        .map_err(|e| NodeError::Ros(format!("node name: {e:?}")))?;
 
     // Every scene field is a declared parameter; a change is checked, then reloads the scene.
     let (changes, changed) = mpsc::channel::<(String, Value)>();
     let mut options = ros2_client::NodeOptions::new().enable_rosout(true).start_parameter_services(true);
     let mut declared = args::scene_parameters(pipeline.scene());
     declared.extend(settings.ros.parameters.clone());
+    // The command line's choices are the ones in force.
+    if let Some(choice) = settings.backend {
+        declared.insert("backend".into(), Value::String(choice.name().into()));
+    }
+    if settings.allow_software_gpu {
+        declared.insert("allow_software_gpu".into(), Value::Bool(true));
+    }
     for (name, value) in &declared {
         options = options.declare_parameter(name, parameter_of(value));
     }
@@ -188,13 +249,22 @@ pub fn run(settings: NodeSettings) -> Result<(), NodeError> {
     let parameters = Arc::new(Mutex::new(declared));
     let validator_parameters = parameters.clone();
     options = options.parameter_validator(Box::new(move |name, value| {
-        let Ok(mut candidate) = validator_parameters.lock().map(|p| p.clone()) else { return Err("parameter store poisoned".into()) };
+        let Ok(mut candidate) = validator_parameters.lock().map(|p| p.clone()) else {
+            return Err("parameter store poisoned".into());
+        };
+        let in_force = candidate.get(name).map_or(ParameterValue::NotSet, parameter_of);
+        if args::RUN_PARAMETERS.contains(&name) && in_force != *value {
+            return Err(format!("`{name}` is chosen once per run: restart the node to change it"));
+        }
         candidate.insert(name.to_owned(), yaml_of(value));
         args::check_scene(&candidate).map(drop)
     }));
     let changes = Mutex::new(changes);
     options = options.parameter_set_action(Box::new(move |name, value| {
-        let sent = changes.lock().map_err(|_| "parameter channel poisoned".to_owned())?.send((name.to_owned(), yaml_of(value)));
+        let sent = changes
+            .lock()
+            .map_err(|_| "parameter channel poisoned".to_owned())?
+            .send((name.to_owned(), yaml_of(value)));
         sent.map_err(|_| "the node is stopping".to_owned())
     }));
     let mut node = context.new_node(node_name, options).map_err(|e| NodeError::Ros(format!("node: {e:?}")))?;
@@ -207,7 +277,6 @@ pub fn run(settings: NodeSettings) -> Result<(), NodeError> {
 
     let topics = Topics { namespace: &settings.ros.namespace, remaps: &settings.ros.remaps };
     let publishers = Publishers {
-        feedback: topics.publisher(&mut node, topics::TOOL_FEEDBACK, Qos::SensorData)?,
         mesh: topics.publisher(&mut node, topics::DEFORMED_MESH, Qos::Reliable)?,
         marker: topics.publisher(&mut node, topics::SURFACE_MARKER, Qos::Reliable)?,
         raycast: topics.publisher(&mut node, topics::RAYCAST_IMAGE, Qos::SensorData)?,
@@ -217,20 +286,26 @@ pub fn run(settings: NodeSettings) -> Result<(), NodeError> {
         diagnostics: topics.publisher(&mut node, topics::DIAGNOSTICS, Qos::Reliable)?,
     };
     let mut tools = subscribe_tools(&topics, &mut node, &pipeline)?;
+    let mut feedback = feedback_publishers(&topics, &mut node, &pipeline)?;
     let reset: Server<TriggerRequest, TriggerResponse> = topics.server(&mut node, "reset", "std_srvs", "Trigger")?;
     let pause: Server<TriggerRequest, TriggerResponse> = topics.server(&mut node, "pause", "std_srvs", "Trigger")?;
     let resume: Server<TriggerRequest, TriggerResponse> = topics.server(&mut node, "resume", "std_srvs", "Trigger")?;
-    let load: Server<LoadSceneRequest, TriggerResponse> = topics.server(&mut node, "load_scene", "defvol", "LoadScene")?;
+    let load: Server<LoadSceneRequest, TriggerResponse> =
+        topics.server(&mut node, "load_scene", "defvol", "LoadScene")?;
 
     #[cfg(feature = "shm")]
-    let mut shm = shm_publisher(&pipeline);
+    let mut shm = shm_publisher(&mut pipeline);
     let mut session = Session::open(&settings.ros.namespace, &settings.record, &pipeline)?;
     let stop = Arc::new(AtomicBool::new(false));
     let stop_flag = stop.clone();
     if let Err(e) = ctrlc::set_handler(move || stop_flag.store(true, Ordering::SeqCst)) {
         tracing::warn!("no Ctrl-C handler ({e}); stop the node with SIGTERM");
     }
-    tracing::info!("node {} up: tools on {:?}", node.fully_qualified_name(), tools.iter().map(|t| &t.pose_topic).collect::<Vec<_>>());
+    tracing::info!(
+        "node {} up: tools on {:?}",
+        node.fully_qualified_name(),
+        tools.iter().map(|t| &t.pose_topic).collect::<Vec<_>>()
+    );
 
     let started = Instant::now();
     let period = Duration::from_secs_f64(pipeline.scene().solver.dt);
@@ -243,7 +318,11 @@ pub fn run(settings: NodeSettings) -> Result<(), NodeError> {
         for tool in &tools {
             inputs += drain(&tool.pose, |msg| {
                 if pipeline.apply_pose(&tool.pose_topic, &msg, now).is_ok() {
-                    session.record_pose(&qualified(&settings.ros.namespace, &tool.pose_topic), &msg, pipeline.tool_on(&tool.pose_topic));
+                    session.record_pose(
+                        &qualified(&settings.ros.namespace, &tool.pose_topic),
+                        &msg,
+                        pipeline.tool_on(&tool.pose_topic),
+                    );
                 }
             });
             inputs += drain(&tool.wrench, |msg| {
@@ -252,7 +331,9 @@ pub fn run(settings: NodeSettings) -> Result<(), NodeError> {
                 }
             });
         }
-        serve(&reset, |_| result(pipeline.reset().map(|()| "reset to the rest state".into()).map_err(|e| e.to_string())));
+        serve(&reset, |_| {
+            result(pipeline.reset().map(|()| "reset to the rest state".into()).map_err(|e| e.to_string()))
+        });
         serve(&pause, |_| {
             pipeline.pause();
             result(Ok("paused".into()))
@@ -263,17 +344,23 @@ pub fn run(settings: NodeSettings) -> Result<(), NodeError> {
         });
         let mut reloaded = false;
         serve(&load, |request| {
-            let loaded = scene_of(&request.scene).and_then(|scene| pipeline.load_scene(scene).map_err(|e| e.to_string()));
+            let loaded =
+                scene_of(&request.scene).and_then(|scene| pipeline.load_scene(scene).map_err(|e| e.to_string()));
             reloaded = loaded.is_ok();
             result(loaded.map(|()| "scene loaded".into()).map_err(|e| format!("kept the running scene: {e}")))
         });
         while let Ok((name, value)) = changed.try_recv() {
             let Ok(mut store) = parameters.lock() else { break };
-            if store.get(&name) == Some(&value) || (parameter_of(&value) == parameter_of(store.get(&name).unwrap_or(&Value::Null))) {
+            if store.get(&name) == Some(&value)
+                || (parameter_of(&value) == parameter_of(store.get(&name).unwrap_or(&Value::Null)))
+            {
                 continue;
             }
             store.insert(name.clone(), value);
-            match args::scene_from_parameters(&store).map_err(|e| e.to_string()).and_then(|scene| pipeline.load_scene(scene).map_err(|e| e.to_string())) {
+            match args::scene_from_parameters(&store)
+                .map_err(|e| e.to_string())
+                .and_then(|scene| pipeline.load_scene(scene).map_err(|e| e.to_string()))
+            {
                 Ok(()) => {
                     tracing::info!("parameter {name} set: scene reloaded");
                     reloaded = true;
@@ -283,11 +370,13 @@ pub fn run(settings: NodeSettings) -> Result<(), NodeError> {
         }
         if reloaded {
             tools = subscribe_tools(&topics, &mut node, &pipeline)?;
+            feedback = feedback_publishers(&topics, &mut node, &pipeline)?;
             #[cfg(feature = "shm")]
             {
                 // The old publisher goes first: the service allows one.
+                pipeline.set_volume_sink(None);
                 drop(shm.take());
-                shm = shm_publisher(&pipeline);
+                shm = shm_publisher(&mut pipeline);
             }
         }
 
@@ -295,11 +384,11 @@ pub fn run(settings: NodeSettings) -> Result<(), NodeError> {
         if ticks.is_multiple_of(10) {
             let recorded = session.recording();
             #[cfg(feature = "shm")]
-            let shm_listens = shm.as_ref().is_some_and(crate::shm::WarpedVolumePublisher::has_subscribers);
+            let shm_listens = shm.as_ref().is_some_and(|s| crate::pipeline::VolumeSink::has_subscribers(s.as_ref()));
             #[cfg(not(feature = "shm"))]
             let shm_listens = false;
             demand = Demand {
-                tool_feedback: recorded || listened(&node, &publishers.feedback),
+                tool_feedback: recorded || feedback.iter().any(|p| listened(&node, p)),
                 deformed_mesh: recorded || listened(&node, &publishers.mesh),
                 surface_marker: recorded || listened(&node, &publishers.marker),
                 raycast: recorded || listened(&node, &publishers.raycast),
@@ -314,14 +403,10 @@ pub fn run(settings: NodeSettings) -> Result<(), NodeError> {
         match pipeline.tick(stamp, &demand) {
             Ok(out) => {
                 session.record_outputs(&out, &pipeline, stamp);
-                #[cfg(feature = "shm")]
-                if let (true, Some(shm), Some(warped)) = (out.warped_volume, shm.as_mut(), pipeline.warped_volume()) {
-                    if let Err(e) = shm.publish(&warped.grid, &warped.data, warped.sequence, stamp) {
-                        tracing::warn!("warped volume not sent: {e}");
-                    }
-                }
                 let info = out.warped_volume.then(|| crate::session::warped_info(&pipeline, stamp)).flatten();
-                publish(&publishers.feedback, out.tool_feedback);
+                for (publisher, msg) in feedback.iter().zip(out.tool_feedback) {
+                    publish(publisher, Some(msg));
+                }
                 publish(&publishers.mesh, out.deformed_mesh);
                 publish(&publishers.marker, out.surface_marker);
                 publish(&publishers.raycast, out.raycast);
@@ -352,14 +437,19 @@ pub fn run(settings: NodeSettings) -> Result<(), NodeError> {
     Ok(())
 }
 
-/// The warped-volume publisher; without one (no room in /dev/shm, the service taken by
-/// another node) the node runs on, saying why once: `warped_volume/info` still comes.
+/// The warped-volume publisher, handed to the pipeline as its volume sink (the warp writes
+/// into its samples). Without one (no room in /dev/shm, the service taken by another node)
+/// the node runs on, saying why once: `warped_volume/info` still comes.
 #[cfg(feature = "shm")]
-fn shm_publisher(pipeline: &Pipeline) -> Option<crate::shm::WarpedVolumePublisher> {
+fn shm_publisher(pipeline: &mut Pipeline) -> Option<Arc<crate::shm::WarpedVolumePublisher>> {
     let grid = pipeline.warped_grid()?;
-    let service = &pipeline.scene().warp.service;
-    match crate::shm::WarpedVolumePublisher::new(service, grid) {
-        Ok(publisher) => Some(publisher),
+    let service = pipeline.scene().warp.service.clone();
+    match crate::shm::WarpedVolumePublisher::new(&service, grid) {
+        Ok(publisher) => {
+            let publisher = Arc::new(publisher);
+            pipeline.set_volume_sink(Some(publisher.clone()));
+            Some(publisher)
+        }
         Err(e) => {
             tracing::error!("{e}; warped volumes are not shared (another node on `{service}`? give each its own `-p warp.service:=…`)");
             None
@@ -367,7 +457,20 @@ fn shm_publisher(pipeline: &Pipeline) -> Option<crate::shm::WarpedVolumePublishe
     }
 }
 
-fn subscribe_tools(topics: &Topics<'_>, node: &mut Node, pipeline: &Pipeline) -> Result<Vec<ToolSubscriptions>, NodeError> {
+/// One `tool_feedback` publisher per tool (`<tool>/tool_feedback` after the first).
+fn feedback_publishers(
+    topics: &Topics<'_>,
+    node: &mut Node,
+    pipeline: &Pipeline,
+) -> Result<Vec<(String, Publisher<WrenchStamped>)>, NodeError> {
+    pipeline.feedback_topics().iter().map(|topic| topics.publisher(node, topic, Qos::SensorData)).collect()
+}
+
+fn subscribe_tools(
+    topics: &Topics<'_>,
+    node: &mut Node,
+    pipeline: &Pipeline,
+) -> Result<Vec<ToolSubscriptions>, NodeError> {
     pipeline
         .tool_topics()
         .into_iter()
@@ -416,7 +519,10 @@ fn result(outcome: Result<String, String>) -> TriggerResponse {
     }
 }
 
-fn serve<Req: ros2_client::Message + Clone + 'static>(server: &Server<Req, TriggerResponse>, mut handle: impl FnMut(Req) -> TriggerResponse) {
+fn serve<Req: ros2_client::Message + Clone + 'static>(
+    server: &Server<Req, TriggerResponse>,
+    mut handle: impl FnMut(Req) -> TriggerResponse,
+) {
     while let Ok(Some((id, request))) = server.receive_request() {
         if let Err(e) = server.send_response(id, handle(request)) {
             tracing::warn!("service reply not sent: {e:?}");
@@ -442,7 +548,10 @@ fn scene_of(text: &str) -> Result<Scene, String> {
 
 /// The node's own options, outside `--ros-args` (each also a node parameter).
 #[derive(Debug, clap::Parser)]
-#[command(name = "defvol_node", about = "The defvol ROS 2 node: tool poses in; deformed meshes, warped volumes, DPCM surfaces and raycast images out")]
+#[command(
+    name = "defvol_node",
+    about = "The defvol ROS 2 node: tool poses in; deformed meshes, warped volumes, DPCM surfaces and raycast images out"
+)]
 struct NodeCli {
     /// Record every input and output topic to this MCAP file (rosbag2's format).
     #[arg(long)]
@@ -453,8 +562,9 @@ struct NodeCli {
     /// Stream the session to a running rerun viewer (e.g. rerun+http://127.0.0.1:9876/proxy).
     #[arg(long)]
     rerun_connect: Option<String>,
-    #[arg(long, value_enum, default_value = "auto")]
-    backend: BackendChoice,
+    /// auto, cpu or gpu (over the scene's `backend` parameter).
+    #[arg(long)]
+    backend: Option<BackendChoice>,
     #[arg(long)]
     allow_software_gpu: bool,
     /// Let DDS discovery reach other hosts (as ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET does).
@@ -478,19 +588,19 @@ pub fn settings_from_args(args: &[String]) -> Result<NodeSettings, NodeError> {
         _ => None,
     };
     let flag = |name: &str| ros.parameters.get(name).and_then(Value::as_bool).unwrap_or(false);
-    let backend = match text("backend") {
-        Some(name) => clap::ValueEnum::from_str(&name, true).map_err(|_| args::ArgsError::Parameter { name: "backend".into(), message: format!("`{name}` is not auto, cpu, cpu-f64 or gpu") })?,
-        None => cli.backend,
-    };
     let run_for = match cli.seconds {
         Some(s) if s.is_finite() && s > 0.0 => Some(Duration::from_secs_f64(s)),
         Some(s) => return Err(NodeError::Ros(format!("--seconds {s} must be positive"))),
         None => None,
     };
     Ok(NodeSettings {
-        record: RecordOptions { mcap: cli.record.or_else(|| text("record").map(Into::into)), rerun_file: cli.rerun.or_else(|| text("rerun").map(Into::into)), rerun_connect: cli.rerun_connect },
-        backend,
-        allow_software_gpu: cli.allow_software_gpu || flag("allow_software_gpu"),
+        record: RecordOptions {
+            mcap: cli.record.or_else(|| text("record").map(Into::into)),
+            rerun_file: cli.rerun.or_else(|| text("rerun").map(Into::into)),
+            rerun_connect: cli.rerun_connect,
+        },
+        backend: cli.backend,
+        allow_software_gpu: cli.allow_software_gpu,
         open_discovery: cli.open_discovery || flag("dds.open_discovery"),
         run_for,
         ros,

@@ -157,7 +157,12 @@ pub struct CsrF32 {
 
 impl From<&Csr> for CsrF32 {
     fn from(m: &Csr) -> Self {
-        Self { rows: m.rows, indptr: m.indptr.iter().map(|&p| p as u32).collect(), indices: m.indices.clone(), values: m.values.iter().map(|&v| v as f32).collect() }
+        Self {
+            rows: m.rows,
+            indptr: m.indptr.iter().map(|&p| p as u32).collect(),
+            indices: m.indices.clone(),
+            values: m.values.iter().map(|&v| v as f32).collect(),
+        }
     }
 }
 
@@ -165,7 +170,11 @@ impl CsrF32 {
     pub fn spmv(&self, x: &[f64], y: &mut [f64]) {
         y.par_iter_mut().enumerate().with_min_len(512).for_each(|(r, out)| {
             let span = self.indptr[r] as usize..self.indptr[r + 1] as usize;
-            *out = self.indices[span.clone()].iter().zip(&self.values[span]).map(|(c, v)| *v as f64 * x[*c as usize]).sum();
+            *out = self.indices[span.clone()]
+                .iter()
+                .zip(&self.values[span])
+                .map(|(c, v)| *v as f64 * x[*c as usize])
+                .sum();
         });
     }
 }
@@ -239,7 +248,13 @@ fn aggregate(neighbours: &[Vec<u32>], excluded: &[bool]) -> (Vec<Option<u32>>, u
 
 /// Tentative prolongator: per aggregate, QR of the stacked null-space rows.
 /// `dofs[node]` lists the node's rows; `nullspace` has one row of `modes` values per row.
-fn tentative(rows: usize, dofs: &[Vec<usize>], agg: &[Option<u32>], count: usize, nullspace: &DMatrix<f64>) -> (Csr, Vec<Vec<usize>>, DMatrix<f64>) {
+fn tentative(
+    rows: usize,
+    dofs: &[Vec<usize>],
+    agg: &[Option<u32>],
+    count: usize,
+    nullspace: &DMatrix<f64>,
+) -> (Csr, Vec<Vec<usize>>, DMatrix<f64>) {
     let modes = nullspace.ncols();
     let mut members: Vec<Vec<usize>> = vec![Vec::new(); count];
     for (node, a) in agg.iter().enumerate() {
@@ -389,7 +404,15 @@ impl Amg {
             }
         }
         let coarsest = dense.cholesky();
-        Some(Self { p: CsrF32::from(&p), r: CsrF32::from(&r), levels, coarsest, coarsest_a: coarse, fine_omega, coarse_sizes })
+        Some(Self {
+            p: CsrF32::from(&p),
+            r: CsrF32::from(&r),
+            levels,
+            coarsest,
+            coarsest_a: coarse,
+            fine_omega,
+            coarse_sizes,
+        })
     }
 
     /// Solves (approximately) the first coarse level's system A_c e = rc by a V-cycle.
@@ -457,7 +480,11 @@ mod tests {
 
     #[test]
     fn matmul_and_transpose_match_dense() {
-        let a = Csr::from_triplets(3, 4, vec![(0, 0, 1.0), (0, 3, 2.0), (1, 1, -1.0), (2, 0, 3.0), (2, 2, 4.0), (0, 0, 0.5)]);
+        let a = Csr::from_triplets(
+            3,
+            4,
+            vec![(0, 0, 1.0), (0, 3, 2.0), (1, 1, -1.0), (2, 0, 3.0), (2, 2, 4.0), (0, 0, 0.5)],
+        );
         let b = Csr::from_triplets(4, 2, vec![(0, 0, 1.0), (1, 1, 2.0), (2, 0, -1.0), (3, 1, 5.0)]);
         let dense = |m: &Csr| {
             let mut d = DMatrix::<f64>::zeros(m.rows, m.cols);

@@ -4,14 +4,18 @@
 use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
 
+use super::amg::{Amg, Csr};
 use super::kernels::{self, ContactTool, SpringTerms};
 use super::model::MassSpringModel;
 use super::tool::{spread_weights, Tool};
-use super::amg::{Amg, Csr};
-use super::{Integrator, Preconditioner, Real, SolverError, SolverParams, StepReport};
+use super::{Integrator, Preconditioner, Reaction, SolverError, SolverParams, StepReport};
+use crate::math::Real;
 
 /// Nodes per parallel chunk; also the unit of the deterministic reductions.
 const CHUNK: usize = 1024;
+
+/// A sparse matrix as (row, column, value) entries.
+pub type Triplets = Vec<(usize, usize, f64)>;
 
 /// Outcome of one linear solve.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -85,7 +89,8 @@ impl<T: Real> Simulation<T> {
         params.validate()?;
         let n = model.node_count();
         let conv = |v: &[f64]| v.iter().map(|x| T::of(*x)).collect::<Vec<T>>();
-        let rest_edge = model.springs.iter().map(|[a, b]| (model.rest[*b as usize] - model.rest[*a as usize]).map(T::of)).collect();
+        let rest_edge =
+            model.springs.iter().map(|[a, b]| (model.rest[*b as usize] - model.rest[*a as usize]).map(T::of)).collect();
         let (lo, hi) = crate::mesh::bounds(&model.rest);
         Ok(Self {
             params,
@@ -107,7 +112,10 @@ impl<T: Real> Simulation<T> {
             tools,
             step: 0,
             time: 0.0,
-            terms: vec![SpringTerms { force: Vector3::zeros(), kv: Vector3::zeros(), block: Matrix3::zeros() }; model.springs.len()],
+            terms: vec![
+                SpringTerms { force: Vector3::zeros(), kv: Vector3::zeros(), block: Matrix3::zeros() };
+                model.springs.len()
+            ],
             diag: vec![Matrix3::zeros(); n],
             precond: vec![Matrix3::zeros(); n],
             rhs: vec![Vector3::zeros(); n],
@@ -192,7 +200,12 @@ impl<T: Real> Simulation<T> {
                 if !(c.a.iter().chain(c.b.iter()).all(|v| v.is_finite())) {
                     return Err(SolverError::NonFiniteToolInput { index, what: "pose" });
                 }
-                Ok(ContactTool { a: c.a.map(T::of), b: c.b.map(T::of), radius: T::of(c.radius), stiffness: T::of(c.stiffness) })
+                Ok(ContactTool {
+                    a: c.a.map(T::of),
+                    b: c.b.map(T::of),
+                    radius: T::of(c.radius),
+                    stiffness: T::of(c.stiffness),
+                })
             })
             .collect()
     }
@@ -241,13 +254,24 @@ impl<T: Real> Simulation<T> {
     }
 
     fn snapshot(&self) -> Snapshot<T> {
-        Snapshot { u: self.u.clone(), v: self.v.clone(), history: self.history.clone(), history_valid: self.history_valid }
+        Snapshot {
+            u: self.u.clone(),
+            v: self.v.clone(),
+            history: self.history.clone(),
+            history_valid: self.history_valid,
+        }
     }
 
     /// Takes a state computed elsewhere (the GPU) as this step's result, with the same
     /// reporting and divergence check as a CPU step.
     #[cfg_attr(not(feature = "gpu"), allow(dead_code))]
-    pub(crate) fn accept_step(&mut self, tools: &[ContactTool<T>], u: Vec<Vector3<T>>, v: Vec<Vector3<T>>, cg: CgStats) -> Result<StepReport, SolverError> {
+    pub(crate) fn accept_step(
+        &mut self,
+        tools: &[ContactTool<T>],
+        u: Vec<Vector3<T>>,
+        v: Vec<Vector3<T>>,
+        cg: CgStats,
+    ) -> Result<StepReport, SolverError> {
         let saved = self.snapshot();
         self.u = u;
         self.v = v;
@@ -300,16 +324,40 @@ impl<T: Real> Simulation<T> {
                 let [a, b] = self.springs[e];
                 let (a, b) = (a as usize, b as usize);
                 let d = self.rest_edge[e] + self.u[b] - self.u[a];
-                kernels::spring_force(&d, &v_eval[a], &v_eval[b], self.rest_length[e], self.stiffness[e], self.damping[e])
+                kernels::spring_force(
+                    &d,
+                    &v_eval[a],
+                    &v_eval[b],
+                    self.rest_length[e],
+                    self.stiffness[e],
+                    self.damping[e],
+                )
             })
             .collect();
-        let terms: Vec<SpringTerms<T>> = spring_forces.into_iter().map(|force| SpringTerms { force, kv: Vector3::zeros(), block: Matrix3::zeros() }).collect();
+        let terms: Vec<SpringTerms<T>> = spring_forces
+            .into_iter()
+            .map(|force| SpringTerms { force, kv: Vector3::zeros(), block: Matrix3::zeros() })
+            .collect();
         (0..self.u.len())
             .into_par_iter()
             .with_min_len(CHUNK)
             .map(|i| {
                 let adj = &self.adjacency[self.offsets[i] as usize..self.offsets[i + 1] as usize];
-                kernels::node_terms(i, adj, &self.springs, &terms, self.mass[i], self.fixed[i], &self.world(i), &v_eval[i], &self.external[i], &g, tools, h).force
+                kernels::node_terms(
+                    i,
+                    adj,
+                    &self.springs,
+                    &terms,
+                    self.mass[i],
+                    self.fixed[i],
+                    &self.world(i),
+                    &v_eval[i],
+                    &self.external[i],
+                    &g,
+                    tools,
+                    h,
+                )
+                .force
             })
             .collect()
     }
@@ -339,18 +387,21 @@ impl<T: Real> Simulation<T> {
         let f = self.forces(tools, &self.v);
         let (mass, fixed) = (&self.mass, &self.fixed);
         let two = T::of(2.0);
-        (self.u.par_iter_mut(), self.v.par_iter_mut(), self.history.par_iter_mut()).into_par_iter().enumerate().for_each(|(i, (x, v, prev))| {
-            if fixed[i] {
-                *v = Vector3::zeros();
+        (self.u.par_iter_mut(), self.v.par_iter_mut(), self.history.par_iter_mut())
+            .into_par_iter()
+            .enumerate()
+            .for_each(|(i, (x, v, prev))| {
+                if fixed[i] {
+                    *v = Vector3::zeros();
+                    *prev = *x;
+                    return;
+                }
+                let accel = f[i] / mass[i];
+                let next = *x * two - *prev + accel * (h * h);
+                *v = (next - *x) / h + accel * (h * T::of(0.5));
                 *prev = *x;
-                return;
-            }
-            let accel = f[i] / mass[i];
-            let next = *x * two - *prev + accel * (h * h);
-            *v = (next - *x) / h + accel * (h * T::of(0.5));
-            *prev = *x;
-            *x = next;
-        });
+                *x = next;
+            });
     }
 
     /// Velocity Verlet; the damping force at the new positions uses the predicted velocity.
@@ -393,14 +444,28 @@ impl<T: Real> Simulation<T> {
         });
         let x: Vec<Vector3<T>> = (0..u.len()).map(|i| self.world(i)).collect();
         let terms = &self.terms;
-        let (offsets, adjacency, mass, fixed, external) = (&self.offsets, &self.adjacency, &self.mass, &self.fixed, &self.external);
+        let (offsets, adjacency, mass, fixed, external) =
+            (&self.offsets, &self.adjacency, &self.mass, &self.fixed, &self.external);
         (self.rhs.par_iter_mut(), self.diag.par_iter_mut(), self.precond.par_iter_mut())
             .into_par_iter()
             .with_min_len(CHUNK)
             .enumerate()
             .for_each(|(i, (rhs, diag, precond))| {
                 let adj = &adjacency[offsets[i] as usize..offsets[i + 1] as usize];
-                let t = kernels::node_terms(i, adj, springs, terms, mass[i], fixed[i], &x[i], &v[i], &external[i], &g, tools, h);
+                let t = kernels::node_terms(
+                    i,
+                    adj,
+                    springs,
+                    terms,
+                    mass[i],
+                    fixed[i],
+                    &x[i],
+                    &v[i],
+                    &external[i],
+                    &g,
+                    tools,
+                    h,
+                );
                 *rhs = t.rhs;
                 *diag = t.diag;
                 *precond = t.precond;
@@ -414,7 +479,11 @@ impl<T: Real> Simulation<T> {
         let last = self.dv.clone();
         if self.solves >= 2 {
             let two = T::of(2.0);
-            self.dv.par_iter_mut().zip(self.dv_previous.par_iter()).with_min_len(CHUNK).for_each(|(dv, prev)| *dv = *dv * two - prev);
+            self.dv
+                .par_iter_mut()
+                .zip(self.dv_previous.par_iter())
+                .with_min_len(CHUNK)
+                .for_each(|(dv, prev)| *dv = *dv * two - prev);
         }
         if self.params.preconditioner == Preconditioner::Amg && self.amg.as_ref().is_none_or(|a| a.stale) {
             self.build_amg();
@@ -490,7 +559,14 @@ impl<T: Real> Simulation<T> {
             }
             let alpha = rz / pq;
             // x, r, z updates and both dots in one pass.
-            let partials: Vec<(T, T)> = (self.dv.par_chunks_mut(CHUNK), self.r.par_chunks_mut(CHUNK), self.z.par_chunks_mut(CHUNK), self.p.par_chunks(CHUNK), q.par_chunks(CHUNK), precond.par_chunks(CHUNK))
+            let partials: Vec<(T, T)> = (
+                self.dv.par_chunks_mut(CHUNK),
+                self.r.par_chunks_mut(CHUNK),
+                self.z.par_chunks_mut(CHUNK),
+                self.p.par_chunks(CHUNK),
+                q.par_chunks(CHUNK),
+                precond.par_chunks(CHUNK),
+            )
                 .into_par_iter()
                 .map(|(dv, r, z, p, q, m)| {
                     let (mut rz, mut rr) = (T::zero(), T::zero());
@@ -554,7 +630,13 @@ impl<T: Real> Simulation<T> {
         let n = self.u.len();
         let a = Csr::from_triplets(3 * n, 3 * n, self.system_triplets());
         let neighbours: Vec<Vec<u32>> = (0..n)
-            .map(|i| self.adjacency[self.offsets[i] as usize..self.offsets[i + 1] as usize].iter().map(|[j, _]| *j).filter(|j| !self.fixed[*j as usize]).collect())
+            .map(|i| {
+                self.adjacency[self.offsets[i] as usize..self.offsets[i + 1] as usize]
+                    .iter()
+                    .map(|[j, _]| *j)
+                    .filter(|j| !self.fixed[*j as usize])
+                    .collect()
+            })
             .collect();
         let positions = self.positions_f64();
         self.amg = Amg::new(&a, &positions, &self.fixed, &neighbours).map(|mut amg| {
@@ -573,7 +655,15 @@ impl<T: Real> Simulation<T> {
     /// Damping 4/(3 λmax) of the fine block-Jacobi smoother, λmax of D⁻¹A by power iteration.
     fn block_jacobi_omega(&self) -> f64 {
         let n = self.u.len();
-        let mut x: Vec<Vector3<T>> = (0..n).map(|i| if self.fixed[i] { Vector3::zeros() } else { Vector3::repeat(T::one() + T::of(((i * 7919) % 13) as f64 / 13.0)) }).collect();
+        let mut x: Vec<Vector3<T>> = (0..n)
+            .map(|i| {
+                if self.fixed[i] {
+                    Vector3::zeros()
+                } else {
+                    Vector3::repeat(T::one() + T::of(((i * 7919) % 13) as f64 / 13.0))
+                }
+            })
+            .collect();
         let mut y = vec![Vector3::zeros(); n];
         let mut lambda = 1.0;
         for _ in 0..12 {
@@ -599,17 +689,29 @@ impl<T: Real> Simulation<T> {
         let Some(state) = &self.amg else { return r.to_vec() };
         let omega = T::of(state.amg.fine_omega);
         let n = r.len();
-        let mut z: Vec<Vector3<T>> = r.par_iter().zip(self.precond.par_iter()).with_min_len(CHUNK).map(|(r, m)| m * r * omega).collect();
+        let mut z: Vec<Vector3<T>> =
+            r.par_iter().zip(self.precond.par_iter()).with_min_len(CHUNK).map(|(r, m)| m * r * omega).collect();
         let mut az = vec![Vector3::zeros(); n];
         self.spmv_into(&z, &mut az);
-        let residual: Vec<f64> = r.iter().zip(&az).flat_map(|(r, a)| {
-            let d = r - a;
-            [d.x.to_f64(), d.y.to_f64(), d.z.to_f64()]
-        }).collect();
+        let residual: Vec<f64> = r
+            .iter()
+            .zip(&az)
+            .flat_map(|(r, a)| {
+                let d = r - a;
+                [d.x.to_f64(), d.y.to_f64(), d.z.to_f64()]
+            })
+            .collect();
         let e = state.amg.coarse_correction(&residual);
-        z.par_iter_mut().with_min_len(CHUNK).enumerate().for_each(|(i, zi)| *zi += Vector3::new(T::of(e[3 * i]), T::of(e[3 * i + 1]), T::of(e[3 * i + 2])));
+        z.par_iter_mut()
+            .with_min_len(CHUNK)
+            .enumerate()
+            .for_each(|(i, zi)| *zi += Vector3::new(T::of(e[3 * i]), T::of(e[3 * i + 1]), T::of(e[3 * i + 2])));
         self.spmv_into(&z, &mut az);
-        z.par_iter_mut().zip(az.par_iter()).with_min_len(CHUNK).enumerate().for_each(|(i, (zi, a))| *zi += self.precond[i] * (r[i] - a) * omega);
+        z.par_iter_mut()
+            .zip(az.par_iter())
+            .with_min_len(CHUNK)
+            .enumerate()
+            .for_each(|(i, (zi, a))| *zi += self.precond[i] * (r[i] - a) * omega);
         z
     }
 
@@ -627,23 +729,21 @@ impl<T: Real> Simulation<T> {
         let kinetic = chunked_sum(self.u.len(), |i| 0.5 * self.mass[i].to_f64() * self.v[i].norm_squared().to_f64());
         let gravity = chunked_sum(self.u.len(), |i| -self.mass[i].to_f64() * g.dot(&self.u[i].map(T::to_f64)));
         let mut contact_energy = 0.0;
-        let mut reaction_force = Vector3::zeros();
-        let mut reaction_torque = Vector3::zeros();
-        for (index, tool) in tools.iter().enumerate() {
+        let mut reactions = Vec::with_capacity(tools.len());
+        for (tool, commanded) in tools.iter().zip(&self.tools) {
+            // The mesh pushes back the tool's own commanded force, and every contact force.
+            let mut force = -commanded.applied_force;
+            let mut torque = Vector3::zeros();
             for i in 0..self.u.len() {
                 let p = &self.world(i);
                 if let Some((f, _)) = kernels::contact(p, &tool.a, &tool.b, tool.radius, tool.stiffness) {
                     let f = f.map(T::to_f64);
                     contact_energy += 0.5 * f.norm_squared() / tool.stiffness.to_f64();
-                    if index == 0 {
-                        reaction_force -= f;
-                        reaction_torque -= (p.map(T::to_f64) - tool.a.map(T::to_f64)).cross(&f);
-                    }
+                    force -= f;
+                    torque -= (p.map(T::to_f64) - tool.a.map(T::to_f64)).cross(&f);
                 }
             }
-        }
-        if let Some(tool) = self.tools.first() {
-            reaction_force -= tool.applied_force;
+            reactions.push(Reaction { force: force.into(), torque: torque.into() });
         }
         let max_displacement = self.u.iter().map(|u| u.norm().to_f64()).fold(0.0, f64::max);
         StepReport {
@@ -654,13 +754,12 @@ impl<T: Real> Simulation<T> {
             kinetic_energy: kinetic,
             potential_energy: self.spring_energy() + gravity + contact_energy,
             max_displacement,
-            reaction_force: reaction_force.into(),
-            reaction_torque: reaction_torque.into(),
+            reactions,
         }
     }
 
     /// The assembled system as f64 triplets (row, col, value), for checks against direct solvers.
-    pub fn assembled_system(&mut self) -> Result<(Vec<(usize, usize, f64)>, Vec<f64>), SolverError> {
+    pub fn assembled_system(&mut self) -> Result<(Triplets, Vec<f64>), SolverError> {
         let tools = self.contact_tools()?;
         self.spread_external_forces()?;
         self.assemble(&tools);
@@ -687,12 +786,17 @@ impl<T: Real> Simulation<T> {
 
 /// Deterministic parallel dot product of two vector fields.
 fn dot<T: Real>(a: &[Vector3<T>], b: &[Vector3<T>]) -> T {
-    let partials: Vec<T> = a.par_chunks(CHUNK).zip(b.par_chunks(CHUNK)).map(|(a, b)| a.iter().zip(b).fold(T::zero(), |s, (x, y)| s + x.dot(y))).collect();
+    let partials: Vec<T> = a
+        .par_chunks(CHUNK)
+        .zip(b.par_chunks(CHUNK))
+        .map(|(a, b)| a.iter().zip(b).fold(T::zero(), |s, (x, y)| s + x.dot(y)))
+        .collect();
     partials.into_iter().fold(T::zero(), |s, x| s + x)
 }
 
 /// Deterministic parallel sum of `f(0..n)` in f64.
 fn chunked_sum(n: usize, f: impl Fn(usize) -> f64 + Sync) -> f64 {
-    let partials: Vec<f64> = (0..n.div_ceil(CHUNK)).into_par_iter().map(|c| (c * CHUNK..((c + 1) * CHUNK).min(n)).map(&f).sum()).collect();
+    let partials: Vec<f64> =
+        (0..n.div_ceil(CHUNK)).into_par_iter().map(|c| (c * CHUNK..((c + 1) * CHUNK).min(n)).map(&f).sum()).collect();
     partials.into_iter().sum()
 }

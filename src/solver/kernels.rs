@@ -13,7 +13,7 @@
 
 use nalgebra::{Matrix3, Vector3};
 
-use super::Real;
+use crate::math::Real;
 
 /// Per-spring quantities of one implicit step.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -27,7 +27,14 @@ pub struct SpringTerms<T: Real> {
 /// Spring force on node a (elastic + damping along the spring); `edge` is x_b - x_a,
 /// formed by the caller as rest edge + (u_b - u_a).
 #[inline]
-pub fn spring_force<T: Real>(edge: &Vector3<T>, va: &Vector3<T>, vb: &Vector3<T>, rest: T, k: T, damping: T) -> Vector3<T> {
+pub fn spring_force<T: Real>(
+    edge: &Vector3<T>,
+    va: &Vector3<T>,
+    vb: &Vector3<T>,
+    rest: T,
+    k: T,
+    damping: T,
+) -> Vector3<T> {
     let d = *edge;
     let l = d.norm();
     if l <= T::default_epsilon() {
@@ -39,7 +46,15 @@ pub fn spring_force<T: Real>(edge: &Vector3<T>, va: &Vector3<T>, vb: &Vector3<T>
 
 #[inline]
 #[allow(clippy::too_many_arguments)]
-pub fn spring_terms<T: Real>(edge: &Vector3<T>, va: &Vector3<T>, vb: &Vector3<T>, rest: T, k: T, damping: T, h: T) -> SpringTerms<T> {
+pub fn spring_terms<T: Real>(
+    edge: &Vector3<T>,
+    va: &Vector3<T>,
+    vb: &Vector3<T>,
+    rest: T,
+    k: T,
+    damping: T,
+    h: T,
+) -> SpringTerms<T> {
     let d = *edge;
     let l = d.norm();
     if l <= T::default_epsilon() {
@@ -58,7 +73,13 @@ pub fn spring_terms<T: Real>(edge: &Vector3<T>, va: &Vector3<T>, vb: &Vector3<T>
 
 /// Penalty contact of one tool on a node: (force, n nᵀ · k_c) when inside.
 #[inline]
-pub fn contact<T: Real>(p: &Vector3<T>, a: &Vector3<T>, b: &Vector3<T>, radius: T, stiffness: T) -> Option<(Vector3<T>, Matrix3<T>)> {
+pub fn contact<T: Real>(
+    p: &Vector3<T>,
+    a: &Vector3<T>,
+    b: &Vector3<T>,
+    radius: T,
+    stiffness: T,
+) -> Option<(Vector3<T>, Matrix3<T>)> {
     let ab = b - a;
     let len2 = ab.norm_squared();
     let t = if len2 > T::zero() { ((p - a).dot(&ab) / len2).clamp(T::zero(), T::one()) } else { T::zero() };
@@ -137,7 +158,14 @@ pub fn node_terms<T: Real>(
 
 /// Row i of q = A p: the diagonal block minus the spring blocks of its neighbours.
 #[inline]
-pub fn spmv_row<T: Real>(i: usize, adjacency: &[[u32; 2]], blocks: &[SpringTerms<T>], diag: &Matrix3<T>, fixed: bool, p: &[Vector3<T>]) -> Vector3<T> {
+pub fn spmv_row<T: Real>(
+    i: usize,
+    adjacency: &[[u32; 2]],
+    blocks: &[SpringTerms<T>],
+    diag: &Matrix3<T>,
+    fixed: bool,
+    p: &[Vector3<T>],
+) -> Vector3<T> {
     if fixed {
         return Vector3::zeros();
     }
@@ -177,7 +205,8 @@ mod tests {
 
     #[test]
     fn compressed_spring_block_stays_positive_semidefinite() {
-        let t = spring_terms(&Vector3::new(0.5f64, 0.1, 0.0), &Vector3::zeros(), &Vector3::zeros(), 1.0, 100.0, 0.0, 1.0);
+        let t =
+            spring_terms(&Vector3::new(0.5f64, 0.1, 0.0), &Vector3::zeros(), &Vector3::zeros(), 1.0, 100.0, 0.0, 1.0);
         let eig = t.block.symmetric_eigenvalues();
         assert!(eig.iter().all(|e| *e >= -1e-12), "{eig}");
         assert_relative_eq!(t.block, t.block.transpose());

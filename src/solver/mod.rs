@@ -5,6 +5,9 @@
 
 pub mod amg;
 pub mod cpu;
+pub mod engine;
+#[cfg(feature = "gpu")]
+pub mod gpu;
 pub mod kernels;
 pub mod model;
 pub mod tool;
@@ -12,6 +15,7 @@ pub mod tool;
 use serde::{Deserialize, Serialize};
 
 pub use cpu::Simulation;
+pub use engine::{SolverEngine, SolverEngineError};
 pub use model::{FixedNodes, MassSpringModel, Material, TissueRow};
 pub use tool::{Tool, ToolShape};
 
@@ -29,7 +33,7 @@ pub enum SolverError {
 }
 
 /// Time integration scheme.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Integrator {
     ExplicitEuler,
@@ -39,7 +43,8 @@ pub enum Integrator {
 }
 
 impl Integrator {
-    pub const ALL: [Integrator; 4] = [Integrator::ExplicitEuler, Integrator::Verlet, Integrator::VelocityVerlet, Integrator::ImplicitEuler];
+    pub const ALL: [Integrator; 4] =
+        [Integrator::ExplicitEuler, Integrator::Verlet, Integrator::VelocityVerlet, Integrator::ImplicitEuler];
     pub fn name(self) -> &'static str {
         match self {
             Integrator::ExplicitEuler => "explicit_euler",
@@ -51,7 +56,7 @@ impl Integrator {
 }
 
 /// Preconditioner of the implicit step's CG.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Preconditioner {
     /// Inverse 3x3 diagonal blocks: cheap, on both backends; iterations grow with resolution.
@@ -95,7 +100,9 @@ impl Default for SolverParams {
 
 impl SolverParams {
     pub fn validate(&self) -> Result<(), SolverError> {
-        let bad = |name: &str, value: f64, why: &str| Err(SolverError::BadParameter { name: name.into(), value, why: why.into() });
+        let bad = |name: &str, value: f64, why: &str| {
+            Err(SolverError::BadParameter { name: name.into(), value, why: why.into() })
+        };
         if !(self.dt.is_finite() && self.dt > 0.0) {
             return bad("dt", self.dt, "the time step must be positive and finite");
         }
@@ -127,53 +134,21 @@ pub struct StepReport {
     /// Spring + contact + gravity potential (gravity relative to the rest shape).
     pub potential_energy: f64,
     pub max_displacement: f64,
-    /// Reaction on tool 0 (N, world), i.e. what a haptic device should render.
-    pub reaction_force: [f64; 3],
-    /// Reaction torque on tool 0 about its tip (N·m, world).
-    pub reaction_torque: [f64; 3],
+    /// The reaction on each tool, in the scene's order: what its haptic device renders.
+    pub reactions: Vec<Reaction>,
 }
 
-/// Floating-point type of a CPU simulation: f32 (fast path, matches the GPU) or f64 (reference).
-pub trait Real: nalgebra::RealField + Copy + Default + Send + Sync + 'static {
-    fn of(x: f64) -> Self;
-    fn to_f64(self) -> f64;
-    /// Truncation to i32 and back: single instructions in hot loops, where the
-    /// usize/u64 conversions are multi-instruction sequences.
-    fn trunc_i32(self) -> i32;
-    fn of_i32(i: i32) -> Self;
-    fn of_f32(x: f32) -> Self;
-}
-impl Real for f32 {
-    fn of(x: f64) -> Self {
-        x as f32
-    }
-    fn to_f64(self) -> f64 {
-        self as f64
-    }
-    fn trunc_i32(self) -> i32 {
-        self as i32
-    }
-    fn of_i32(i: i32) -> Self {
-        i as f32
-    }
-    fn of_f32(x: f32) -> Self {
-        x
+impl StepReport {
+    /// The reaction on tool `index` (none for a tool that does not exist).
+    pub fn reaction(&self, index: usize) -> Reaction {
+        self.reactions.get(index).copied().unwrap_or_default()
     }
 }
-impl Real for f64 {
-    fn of(x: f64) -> Self {
-        x
-    }
-    fn to_f64(self) -> f64 {
-        self
-    }
-    fn trunc_i32(self) -> i32 {
-        self as i32
-    }
-    fn of_i32(i: i32) -> Self {
-        i as f64
-    }
-    fn of_f32(x: f32) -> Self {
-        x as f64
-    }
+
+/// What the mesh does to one tool: the force (N) and the torque about the tool's tip (N·m),
+/// world frame. It includes the tool's own commanded force, pushed back.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]
+pub struct Reaction {
+    pub force: [f64; 3],
+    pub torque: [f64; 3],
 }

@@ -28,7 +28,11 @@ pub enum Material {
 
 impl Material {
     fn validate(&self) -> Result<(), SolverError> {
-        let bad = |what: &str, value: f64| SolverError::BadParameter { name: what.to_owned(), value, why: "must be finite and >= 0".into() };
+        let bad = |what: &str, value: f64| SolverError::BadParameter {
+            name: what.to_owned(),
+            value,
+            why: "must be finite and >= 0".into(),
+        };
         match self {
             Material::Uniform { stiffness, damping } => {
                 if !(stiffness.is_finite() && *stiffness >= 0.0) {
@@ -40,7 +44,11 @@ impl Material {
             }
             Material::Table { rows } => {
                 if rows.is_empty() {
-                    return Err(SolverError::BadParameter { name: "material.rows".into(), value: 0.0, why: "a tissue table needs at least one row".into() });
+                    return Err(SolverError::BadParameter {
+                        name: "material.rows".into(),
+                        value: 0.0,
+                        why: "a tissue table needs at least one row".into(),
+                    });
                 }
                 for w in rows.windows(2) {
                     if w[1].intensity <= w[0].intensity {
@@ -81,11 +89,19 @@ impl Material {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case", tag = "kind")]
 pub enum FixedNodes {
-    Indices { nodes: Vec<u32> },
+    Indices {
+        nodes: Vec<u32>,
+    },
     /// Nodes inside the axis-aligned box [min, max] (world units).
-    Box { min: [f64; 3], max: [f64; 3] },
+    Box {
+        min: [f64; 3],
+        max: [f64; 3],
+    },
     /// Nodes with `normal · x <= offset` (a clamp plane; the side the normal points away from).
-    Plane { normal: [f64; 3], offset: f64 },
+    Plane {
+        normal: [f64; 3],
+        offset: f64,
+    },
 }
 
 impl FixedNodes {
@@ -113,7 +129,11 @@ impl FixedNodes {
             FixedNodes::Plane { normal, offset } => {
                 let n = Vector3::from(*normal);
                 if !(n.norm() > 0.0 && n.iter().all(|c| c.is_finite())) {
-                    return Err(SolverError::BadParameter { name: "fixed.normal".into(), value: n.norm(), why: "plane normal must be a finite non-zero vector".into() });
+                    return Err(SolverError::BadParameter {
+                        name: "fixed.normal".into(),
+                        value: n.norm(),
+                        why: "plane normal must be a finite non-zero vector".into(),
+                    });
                 }
                 let n = n.normalize();
                 let tol = 1e-9 * (1.0 + offset.abs());
@@ -125,6 +145,9 @@ impl FixedNodes {
         Ok(fixed)
     }
 }
+
+/// The volume intensity at a world point (tissue tables look springs up on it).
+pub type IntensityAt<'a> = &'a dyn Fn(&Vector3<f64>) -> Option<f32>;
 
 /// The model in f64, independent of precision and backend; each backend converts once.
 #[derive(Debug, Clone)]
@@ -149,15 +172,23 @@ impl MassSpringModel {
         material: &Material,
         density: f64,
         fixed: &[bool],
-        intensity_at: Option<&dyn Fn(&Vector3<f64>) -> Option<f32>>,
+        intensity_at: Option<IntensityAt<'_>>,
     ) -> Result<Self, SolverError> {
         if !(density.is_finite() && density > 0.0) {
-            return Err(SolverError::BadParameter { name: "density".into(), value: density, why: "mass must be positive: density > 0".into() });
+            return Err(SolverError::BadParameter {
+                name: "density".into(),
+                value: density,
+                why: "mass must be positive: density > 0".into(),
+            });
         }
         material.validate()?;
         let nodes = mesh.nodes();
         if fixed.len() != nodes.len() {
-            return Err(SolverError::BadParameter { name: "fixed".into(), value: fixed.len() as f64, why: format!("one flag per node expected ({})", nodes.len()) });
+            return Err(SolverError::BadParameter {
+                name: "fixed".into(),
+                value: fixed.len() as f64,
+                why: format!("one flag per node expected ({})", nodes.len()),
+            });
         }
         let mut mass = vec![0.0; nodes.len()];
         for t in 0..mesh.tets().len() {
@@ -167,15 +198,26 @@ impl MassSpringModel {
             }
         }
         if let Some(i) = mass.iter().position(|m| *m <= 0.0) {
-            return Err(SolverError::BadParameter { name: "mass".into(), value: mass[i], why: format!("node {i} belongs to no tet, so it has no mass") });
+            return Err(SolverError::BadParameter {
+                name: "mass".into(),
+                value: mass[i],
+                why: format!("node {i} belongs to no tet, so it has no mass"),
+            });
         }
         let springs = mesh.edges().to_vec();
-        let rest_length: Vec<f64> = springs.iter().map(|[a, b]| (nodes[*b as usize] - nodes[*a as usize]).norm()).collect();
+        let rest_length: Vec<f64> =
+            springs.iter().map(|[a, b]| (nodes[*b as usize] - nodes[*a as usize]).norm()).collect();
         let (stiffness, damping): (Vec<f64>, Vec<f64>) = match material {
-            Material::Uniform { stiffness, damping } => (vec![*stiffness; springs.len()], vec![*damping; springs.len()]),
+            Material::Uniform { stiffness, damping } => {
+                (vec![*stiffness; springs.len()], vec![*damping; springs.len()])
+            }
             Material::Table { rows } => {
                 let Some(sample) = intensity_at else {
-                    return Err(SolverError::BadParameter { name: "material".into(), value: 0.0, why: "a tissue table needs a volume to sample".into() });
+                    return Err(SolverError::BadParameter {
+                        name: "material".into(),
+                        value: 0.0,
+                        why: "a tissue table needs a volume to sample".into(),
+                    });
                 };
                 springs
                     .iter()
@@ -204,7 +246,17 @@ impl MassSpringModel {
             adjacency[cursor[*b as usize] as usize] = [*a, e as u32];
             cursor[*b as usize] += 1;
         }
-        Ok(Self { rest: nodes.to_vec(), mass, fixed: fixed.to_vec(), springs, rest_length, stiffness, damping, offsets, adjacency })
+        Ok(Self {
+            rest: nodes.to_vec(),
+            mass,
+            fixed: fixed.to_vec(),
+            springs,
+            rest_length,
+            stiffness,
+            damping,
+            offsets,
+            adjacency,
+        })
     }
 
     pub fn node_count(&self) -> usize {
@@ -214,7 +266,12 @@ impl MassSpringModel {
     /// Energy at which every spring would be stretched by its own length: far beyond any
     /// physical state, so a simulation above it has diverged.
     pub fn divergence_energy(&self) -> f64 {
-        self.springs.iter().enumerate().map(|(e, _)| 0.5 * self.stiffness[e] * self.rest_length[e].powi(2)).sum::<f64>().max(f64::MIN_POSITIVE)
+        self.springs
+            .iter()
+            .enumerate()
+            .map(|(e, _)| 0.5 * self.stiffness[e] * self.rest_length[e].powi(2))
+            .sum::<f64>()
+            .max(f64::MIN_POSITIVE)
     }
 }
 
@@ -227,7 +284,9 @@ mod tests {
     fn lumped_mass_sums_to_body_mass() {
         let mesh = generate::bar(0.1).unwrap();
         let fixed = vec![false; mesh.nodes().len()];
-        let m = MassSpringModel::new(&mesh, &Material::Uniform { stiffness: 100.0, damping: 0.0 }, 1000.0, &fixed, None).unwrap();
+        let m =
+            MassSpringModel::new(&mesh, &Material::Uniform { stiffness: 100.0, damping: 0.0 }, 1000.0, &fixed, None)
+                .unwrap();
         let total: f64 = m.mass.iter().sum();
         assert!((total - 0.1 * 0.025 * 0.025 * 1000.0).abs() < 1e-12);
         assert_eq!(m.adjacency.len(), 2 * m.springs.len());

@@ -111,10 +111,8 @@ pub fn spread_weights(nodes: &[Vector3<f64>], tip: &Vector3<f64>, radius: f64) -
         .filter(|(_, w)| *w > 0.0)
         .collect();
     if w.is_empty() {
-        let nearest = nodes
-            .iter()
-            .enumerate()
-            .min_by(|a, b| (a.1 - tip).norm_squared().total_cmp(&(b.1 - tip).norm_squared()));
+        let nearest =
+            nodes.iter().enumerate().min_by(|a, b| (a.1 - tip).norm_squared().total_cmp(&(b.1 - tip).norm_squared()));
         if let Some((i, _)) = nearest {
             w.push((i as u32, 1.0));
         }

@@ -47,8 +47,12 @@ impl Grid {
     /// The affine map from this grid's continuous index to `other`'s: (matrix, offset).
     pub fn index_map_to(&self, other: &Grid) -> (Matrix3<f64>, Vector3<f64>) {
         let world_from_index = self.direction * Matrix3::from_diagonal(&Vector3::from(self.spacing));
-        let other_from_world = Matrix3::from_diagonal(&Vector3::from(other.spacing).map(|s| 1.0 / s)) * other.direction.transpose();
-        (other_from_world * world_from_index, other_from_world * (Vector3::from(self.origin) - Vector3::from(other.origin)))
+        let other_from_world =
+            Matrix3::from_diagonal(&Vector3::from(other.spacing).map(|s| 1.0 / s)) * other.direction.transpose();
+        (
+            other_from_world * world_from_index,
+            other_from_world * (Vector3::from(self.origin) - Vector3::from(other.origin)),
+        )
     }
 }
 
@@ -112,6 +116,11 @@ impl Volume {
     pub fn data(&self) -> &[f32] {
         &self.data
     }
+    /// The samples in place, for a stage that rewrites them (the warp's host copy); what it
+    /// writes must stay finite, as `new` checks.
+    pub fn data_mut(&mut self) -> &mut [f32] {
+        &mut self.data
+    }
     pub fn len(&self) -> usize {
         self.data.len()
     }
@@ -148,7 +157,13 @@ impl Volume {
     pub fn bounds(&self) -> (Vector3<f64>, Vector3<f64>) {
         let d = self.dims.map(|d| (d - 1) as f64);
         let corners: Vec<Vector3<f64>> = (0..8)
-            .map(|c| self.world_from_index(Vector3::new(d[0] * (c & 1) as f64, d[1] * ((c >> 1) & 1) as f64, d[2] * ((c >> 2) & 1) as f64)))
+            .map(|c| {
+                self.world_from_index(Vector3::new(
+                    d[0] * (c & 1) as f64,
+                    d[1] * ((c >> 1) & 1) as f64,
+                    d[2] * ((c >> 2) & 1) as f64,
+                ))
+            })
             .collect();
         crate::mesh::bounds(&corners)
     }
@@ -172,7 +187,7 @@ impl Volume {
 /// The trilinear blend of a voxel cube: `v(offset)` reads a corner, `strides` are the x,
 /// y, z offsets (0 along a flat axis), `f` the fractions. Shared by every trilinear sampler.
 #[inline(always)]
-pub fn lerp_cube<T: crate::solver::Real>(v: impl Fn(usize) -> T, strides: [usize; 3], f: [T; 3]) -> T {
+pub fn lerp_cube<T: crate::math::Real>(v: impl Fn(usize) -> T, strides: [usize; 3], f: [T; 3]) -> T {
     let [sx, sy, sz] = strides;
     let c00 = v(0) + (v(sx) - v(0)) * f[0];
     let c10 = v(sy) + (v(sy + sx) - v(sy)) * f[0];
@@ -186,7 +201,7 @@ pub fn lerp_cube<T: crate::solver::Real>(v: impl Fn(usize) -> T, strides: [usize
 /// The point moved onto the voxel-centre box when within `tolerance` (voxels) of it;
 /// `None` when further out.
 #[inline]
-pub fn clamp_to_box<T: crate::solver::Real>(dims: [usize; 3], x: T, y: T, z: T, tolerance: T) -> Option<(T, T, T)> {
+pub fn clamp_to_box<T: crate::math::Real>(dims: [usize; 3], x: T, y: T, z: T, tolerance: T) -> Option<(T, T, T)> {
     let c = |v: T, n: usize| {
         let max = T::of((n - 1) as f64);
         (v >= -tolerance && v <= max + tolerance).then(|| v.clamp(T::zero(), max))
@@ -197,13 +212,21 @@ pub fn clamp_to_box<T: crate::solver::Real>(dims: [usize; 3], x: T, y: T, z: T, 
 /// Trilinear interpolation of x-fastest samples at a continuous index, in precision T;
 /// `None` beyond `tolerance` outside the voxel-centre box.
 #[inline]
-pub fn trilinear<T: crate::solver::Real>(data: &[f32], dims: [usize; 3], x: T, y: T, z: T, tolerance: T) -> Option<T> {
+pub fn trilinear<T: crate::math::Real>(data: &[f32], dims: [usize; 3], x: T, y: T, z: T, tolerance: T) -> Option<T> {
     let (x, y, z) = clamp_to_box(dims, x, y, z, tolerance)?;
     let cell = |c: T, n: usize| (c.trunc_i32().max(0) as usize).min(n.saturating_sub(2));
     let (i, j, k) = (cell(x, dims[0]), cell(y, dims[1]), cell(z, dims[2]));
-    let strides = [usize::from(dims[0] > 1), if dims[1] > 1 { dims[0] } else { 0 }, if dims[2] > 1 { dims[0] * dims[1] } else { 0 }];
+    let strides = [
+        usize::from(dims[0] > 1),
+        if dims[1] > 1 { dims[0] } else { 0 },
+        if dims[2] > 1 { dims[0] * dims[1] } else { 0 },
+    ];
     let base = i + dims[0] * (j + dims[1] * k);
-    Some(lerp_cube(|o| T::of_f32(data[base + o]), strides, [x - T::of(i as f64), y - T::of(j as f64), z - T::of(k as f64)]))
+    Some(lerp_cube(
+        |o| T::of_f32(data[base + o]),
+        strides,
+        [x - T::of(i as f64), y - T::of(j as f64), z - T::of(k as f64)],
+    ))
 }
 
 #[cfg(test)]
@@ -237,11 +260,13 @@ mod tests {
 
     #[test]
     fn bad_geometry_is_named() {
-        let e = Volume::new([2, 2, 1], [1.0, 0.0, 1.0], [0.0; 3], Matrix3::identity(), vec![0.0; 4], "a.mha").unwrap_err();
+        let e =
+            Volume::new([2, 2, 1], [1.0, 0.0, 1.0], [0.0; 3], Matrix3::identity(), vec![0.0; 4], "a.mha").unwrap_err();
         assert!(e.to_string().contains("a.mha") && e.to_string().contains("spacing"), "{e}");
         let e = Volume::new([2, 2, 1], [1.0; 3], [0.0; 3], Matrix3::identity(), vec![0.0; 3], "a").unwrap_err();
         assert!(matches!(e, VolumeError::SampleCount { got: 3, expected: 4, .. }));
-        let e = Volume::new([2, 2, 1], [1.0; 3], [0.0; 3], Matrix3::identity(), vec![0.0, 0.0, f32::NAN, 0.0], "a").unwrap_err();
+        let e = Volume::new([2, 2, 1], [1.0; 3], [0.0; 3], Matrix3::identity(), vec![0.0, 0.0, f32::NAN, 0.0], "a")
+            .unwrap_err();
         assert!(matches!(e, VolumeError::NonFiniteSample { index: 2, voxel: [0, 1, 0], .. }));
     }
 }

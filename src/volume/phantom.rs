@@ -103,7 +103,8 @@ pub fn phantom(dims: [usize; 3], spacing_mm: f64) -> Result<Volume, VolumeError>
             for i in 0..dims[0] {
                 let mut sum = 0.0;
                 for s in 0..8 {
-                    let off = Vector3::new((s & 1) as f64, ((s >> 1) & 1) as f64, ((s >> 2) & 1) as f64) * 0.5 - Vector3::repeat(0.25);
+                    let off = Vector3::new((s & 1) as f64, ((s >> 1) & 1) as f64, ((s >> 2) & 1) as f64) * 0.5
+                        - Vector3::repeat(0.25);
                     let p = Vector3::new(
                         origin[0] + (i as f64 + off.x) * spacing_mm,
                         origin[1] + (j as f64 + off.y) * spacing_mm,

@@ -70,13 +70,22 @@ impl DisplacementVolume {
             return Err(format!("extent {} must be positive", self.extent));
         }
         if d.norm() >= 0.5 * self.extent {
-            return Err(format!("displacement {:.4} is not below half the extent ({:.4}); the deformation would fold", d.norm(), 0.5 * self.extent));
+            return Err(format!(
+                "displacement {:.4} is not below half the extent ({:.4}); the deformation would fold",
+                d.norm(),
+                0.5 * self.extent
+            ));
         }
         let w = if d.norm() > 0.0 { d.normalize() } else { Vector3::z() };
         let helper = if w.x.abs() < 0.9 { Vector3::x() } else { Vector3::y() };
         let u = helper.cross(&w).normalize();
         let v = w.cross(&u);
-        Ok(CompiledDisplacement { centre: c, displacement: d, frame: Matrix3::from_rows(&[u.transpose(), v.transpose(), w.transpose()]), extent: self.extent })
+        Ok(CompiledDisplacement {
+            centre: c,
+            displacement: d,
+            frame: Matrix3::from_rows(&[u.transpose(), v.transpose(), w.transpose()]),
+            extent: self.extent,
+        })
     }
 }
 
@@ -154,11 +163,15 @@ mod tests {
     #[test]
     fn composition_applies_the_last_deformation_first_and_separate_ones_commute() {
         let a = DisplacementVolume { centre: [0.0; 3], displacement: [0.5, 0.0, 0.0], extent: 2.0 }.compile().unwrap();
-        let b = DisplacementVolume { centre: [20.0, 0.0, 0.0], displacement: [0.0, 0.5, 0.0], extent: 2.0 }.compile().unwrap();
+        let b = DisplacementVolume { centre: [20.0, 0.0, 0.0], displacement: [0.0, 0.5, 0.0], extent: 2.0 }
+            .compile()
+            .unwrap();
         let p = Vector3::new(0.2, 0.1, 0.0);
         assert_eq!(backward_all(&[a, b], &p), backward_all(&[b, a], &p));
         assert_eq!(backward_all(&[a, b], &p), a.backward(&p));
-        let c = DisplacementVolume { centre: [0.3, 0.0, 0.0], displacement: [0.0, 0.6, 0.0], extent: 2.0 }.compile().unwrap();
+        let c = DisplacementVolume { centre: [0.3, 0.0, 0.0], displacement: [0.0, 0.6, 0.0], extent: 2.0 }
+            .compile()
+            .unwrap();
         assert_eq!(backward_all(&[a, c], &p), a.backward(&c.backward(&p)));
     }
 
@@ -175,7 +188,8 @@ mod tests {
 
     #[test]
     fn folding_pushes_are_refused() {
-        let e = DisplacementVolume { centre: [0.0; 3], displacement: [0.0, 0.0, 2.0], extent: 4.0 }.compile().unwrap_err();
+        let e =
+            DisplacementVolume { centre: [0.0; 3], displacement: [0.0, 0.0, 2.0], extent: 4.0 }.compile().unwrap_err();
         assert!(e.contains("fold"), "{e}");
         assert!(DisplacementVolume { centre: [0.0; 3], displacement: [0.0; 3], extent: -1.0 }.compile().is_err());
     }

@@ -17,6 +17,9 @@
 //! order, so a run is deterministic and a voxel on a shared face takes the later tet's value.
 
 pub mod bspline;
+pub mod engine;
+#[cfg(feature = "gpu")]
+pub mod gpu;
 
 use std::sync::Arc;
 
@@ -27,8 +30,8 @@ use serde::{Deserialize, Serialize};
 pub use bspline::DisplacementVolume;
 use bspline::{backward_all, CompiledDisplacement};
 
+use crate::math::Real;
 use crate::mesh::TetMesh;
-use crate::solver::Real;
 pub use crate::volume::trilinear;
 use crate::volume::{Grid, Volume, VolumeError};
 
@@ -49,7 +52,7 @@ pub enum WarpError {
     Volume(#[from] VolumeError),
 }
 
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Scheme {
     Spans,
@@ -57,7 +60,7 @@ pub enum Scheme {
     Bbox,
 }
 
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Sampling {
     Trilinear,
@@ -82,7 +85,14 @@ pub struct WarpOptions {
 
 impl Default for WarpOptions {
     fn default() -> Self {
-        Self { scheme: Scheme::Spans, sampling: Sampling::Trilinear, background: 0.0, keep_uncovered: false, displacements: Vec::new(), max_bytes: 4 << 30 }
+        Self {
+            scheme: Scheme::Spans,
+            sampling: Sampling::Trilinear,
+            background: 0.0,
+            keep_uncovered: false,
+            displacements: Vec::new(),
+            max_bytes: 4 << 30,
+        }
     }
 }
 
@@ -213,7 +223,12 @@ impl TetMap {
 }
 
 /// The maps of every tet; `None` for deformed tets that are inverted, degenerate or miss the grid.
-pub fn tet_maps(rest: &TetMesh, deformed: &[Vector3<f64>], source: &Grid, grid: &Grid) -> Result<Vec<Option<TetMap>>, WarpError> {
+pub fn tet_maps(
+    rest: &TetMesh,
+    deformed: &[Vector3<f64>],
+    source: &Grid,
+    grid: &Grid,
+) -> Result<Vec<Option<TetMap>>, WarpError> {
     if deformed.len() != rest.nodes().len() {
         return Err(WarpError::NodeCount { got: deformed.len(), expected: rest.nodes().len() });
     }
@@ -243,7 +258,8 @@ fn tet_map(t: &[u32; 4], out_index: &[Vector3<f64>], src_index: &[Vector3<f64>],
     let qm = Matrix3::from_columns(&[q[1] - q[0], q[2] - q[0], q[3] - q[0]]);
     let (det, rest_det) = (d.determinant(), qm.determinant());
     // Same orientation as at rest, and not flat: |det| against the cube of its longest edge.
-    let longest = (0..4).flat_map(|a| (a + 1..4).map(move |b| (a, b))).map(|(a, b)| (p[a] - p[b]).norm()).fold(0.0, f64::max);
+    let longest =
+        (0..4).flat_map(|a| (a + 1..4).map(move |b| (a, b))).map(|(a, b)| (p[a] - p[b]).norm()).fold(0.0, f64::max);
     if det * rest_det <= 0.0 || det.abs() < 1e-9 * longest.powi(3) {
         return None;
     }
@@ -264,7 +280,9 @@ fn tet_map(t: &[u32; 4], out_index: &[Vector3<f64>], src_index: &[Vector3<f64>],
     for a in 0..3 {
         // Widened by the sample tolerance: a vertex at 38.9999999 still covers voxel 39.
         let min = (p.iter().map(|v| v[a]).fold(f64::INFINITY, f64::min) - SAMPLE_TOLERANCE).ceil().max(0.0);
-        let max = (p.iter().map(|v| v[a]).fold(f64::NEG_INFINITY, f64::max) + SAMPLE_TOLERANCE).floor().min((dims[a] - 1) as f64);
+        let max = (p.iter().map(|v| v[a]).fold(f64::NEG_INFINITY, f64::max) + SAMPLE_TOLERANCE)
+            .floor()
+            .min((dims[a] - 1) as f64);
         if min > max {
             return None;
         }
@@ -309,7 +327,14 @@ impl<'a> Sampler<'a> {
             .enumerate()
             .map(|(index, d)| d.compile().map_err(|why| WarpError::BadDisplacement { index, why }))
             .collect::<Result<_, _>>()?;
-        Ok(Self { data: source.data(), dims: source.dims(), sampling: options.sampling, background: options.background, displacements, source: source.grid() })
+        Ok(Self {
+            data: source.data(),
+            dims: source.dims(),
+            sampling: options.sampling,
+            background: options.background,
+            displacements,
+            source: source.grid(),
+        })
     }
 
     /// Value at a continuous source index, after the displacement volumes.
@@ -352,11 +377,16 @@ impl<'a> Sampler<'a> {
         for (n, slot) in out[first..=last].iter_mut().enumerate() {
             let fi = T::of_i32((i0 + first + n) as i32);
             let (x, y, z) = (base[0] + step[0] * fi, base[1] + step[1] * fi, base[2] + step[2] * fi);
-            let (i, j, k) = (x.trunc_i32().clamp(0, top[0]), y.trunc_i32().clamp(0, top[1]), z.trunc_i32().clamp(0, top[2]));
+            let (i, j, k) =
+                (x.trunc_i32().clamp(0, top[0]), y.trunc_i32().clamp(0, top[1]), z.trunc_i32().clamp(0, top[2]));
             let b = (i + nx * j + nxy * k) as usize;
             // One bounds check for the whole cell instead of one per corner.
             let cell = &data[b..=b + sx + sy + sz];
-            *slot = crate::volume::lerp_cube(|o| T::of_f32(cell[o]), [sx, sy, sz], [x - T::of_i32(i), y - T::of_i32(j), z - T::of_i32(k)]);
+            *slot = crate::volume::lerp_cube(
+                |o| T::of_f32(cell[o]),
+                [sx, sy, sz],
+                [x - T::of_i32(i), y - T::of_i32(j), z - T::of_i32(k)],
+            );
         }
     }
 
@@ -366,7 +396,11 @@ impl<'a> Sampler<'a> {
         let limit = self.dims.map(|n| (n - 1) as f64);
         let (mut first, mut last) = (0.0f64, len as f64 - 1.0);
         for a in 0..3 {
-            let (b0, s0, lim) = ((base[a] + step[a] * T::of_i32(i0 as i32)).to_f64() + SAMPLE_TOLERANCE, step[a].to_f64(), limit[a] + 2.0 * SAMPLE_TOLERANCE);
+            let (b0, s0, lim) = (
+                (base[a] + step[a] * T::of_i32(i0 as i32)).to_f64() + SAMPLE_TOLERANCE,
+                step[a].to_f64(),
+                limit[a] + 2.0 * SAMPLE_TOLERANCE,
+            );
             if s0 > 0.0 {
                 first = first.max((-b0 / s0).ceil());
                 last = last.min(((lim - b0) / s0).floor());
@@ -400,7 +434,8 @@ impl<'a> Sampler<'a> {
     #[inline]
     fn at_index<T: Real>(&self, x: T, y: T, z: T) -> T {
         match self.sampling {
-            Sampling::Trilinear => trilinear(self.data, self.dims, x, y, z, T::of(SAMPLE_TOLERANCE)).unwrap_or(T::of(self.background as f64)),
+            Sampling::Trilinear => trilinear(self.data, self.dims, x, y, z, T::of(SAMPLE_TOLERANCE))
+                .unwrap_or(T::of(self.background as f64)),
             Sampling::Tricubic => tricubic(self.data, self.dims, x, y, z).unwrap_or(T::of(self.background as f64)),
         }
     }
@@ -412,7 +447,13 @@ fn catmull_rom<T: Real>(t: T) -> [T; 4] {
     let (h, one, two, three) = (T::of(0.5), T::one(), T::of(2.0), T::of(3.0));
     let t2 = t * t;
     let t3 = t2 * t;
-    [h * (-t3 + two * t2 - t), h * (three * t3 - T::of(5.0) * t2 + two), h * (-three * t3 + T::of(4.0) * t2 + t), h * (t3 - t2)].map(|w| w * one)
+    [
+        h * (-t3 + two * t2 - t),
+        h * (three * t3 - T::of(5.0) * t2 + two),
+        h * (-three * t3 + T::of(4.0) * t2 + t),
+        h * (t3 - t2),
+    ]
+    .map(|w| w * one)
 }
 
 /// Tricubic (Catmull-Rom) interpolation; taps beyond the edges repeat the edge voxel.
@@ -420,7 +461,8 @@ pub fn tricubic<T: Real>(data: &[f32], dims: [usize; 3], x: T, y: T, z: T) -> Op
     let (x, y, z) = crate::volume::clamp_to_box(dims, x, y, z, T::of(SAMPLE_TOLERANCE))?;
     let base = |c: T| c.to_f64().floor() as i64;
     let (bi, bj, bk) = (base(x), base(y), base(z));
-    let (wx, wy, wz) = (catmull_rom(x - T::of(bi as f64)), catmull_rom(y - T::of(bj as f64)), catmull_rom(z - T::of(bk as f64)));
+    let (wx, wy, wz) =
+        (catmull_rom(x - T::of(bi as f64)), catmull_rom(y - T::of(bj as f64)), catmull_rom(z - T::of(bk as f64)));
     let clamp = |v: i64, n: usize| v.clamp(0, n as i64 - 1) as usize;
     let mut acc = T::zero();
     for (c, wzc) in wz.iter().enumerate() {
@@ -439,7 +481,14 @@ pub fn tricubic<T: Real>(data: &[f32], dims: [usize; 3], x: T, y: T, z: T) -> Op
 }
 
 /// Output grid and its initial contents.
-fn initial_value<T: Real>(sampler: &Sampler, identity: &(Matrix3<f64>, Vector3<f64>), keep_uncovered: bool, i: usize, j: usize, k: usize) -> T {
+fn initial_value<T: Real>(
+    sampler: &Sampler,
+    identity: &(Matrix3<f64>, Vector3<f64>),
+    keep_uncovered: bool,
+    i: usize,
+    j: usize,
+    k: usize,
+) -> T {
     if !keep_uncovered {
         return T::of(sampler.background as f64);
     }
@@ -521,7 +570,8 @@ fn rasterize_slice<T: Real>(
                     let mut ic = m.lo[0];
                     while ic <= m.hi[0] {
                         let corners = [(ic, jc), (ic + CELL, jc), (ic, jc + CELL), (ic + CELL, jc + CELL)];
-                        let culled = corners.iter().fold(0xFFu8, |acc, &(i, j)| acc & mask(i, j, kc0) & mask(i, j, kc1));
+                        let culled =
+                            corners.iter().fold(0xFFu8, |acc, &(i, j)| acc & mask(i, j, kc0) & mask(i, j, kc1));
                         if culled == 0 {
                             for j in jc.max(j0)..=(jc + CELL - 1).min(j1) {
                                 let a = m.row(j, k);
@@ -579,7 +629,11 @@ fn slice_bins(maps: &[Option<TetMap>], nz: usize) -> Vec<Vec<u32>> {
 fn check_size(grid: &Grid, bytes_per_voxel: u64, options: &WarpOptions) -> Result<(), WarpError> {
     let needed = grid.len() as u64 * bytes_per_voxel;
     if needed > options.max_bytes {
-        return Err(WarpError::TooLarge { dims: grid.dims, needed_mib: needed.div_ceil(1 << 20), limit_mib: options.max_bytes >> 20 });
+        return Err(WarpError::TooLarge {
+            dims: grid.dims,
+            needed_mib: needed.div_ceil(1 << 20),
+            limit_mib: options.max_bytes >> 20,
+        });
     }
     Ok(())
 }
@@ -643,7 +697,13 @@ pub fn warp_into<T: Real>(
 }
 
 /// The f32 warp as a volume on `grid`.
-pub fn warp(source: &Volume, rest: &TetMesh, deformed: &[Vector3<f64>], grid: &Grid, options: &WarpOptions) -> Result<(Volume, WarpStats), WarpError> {
+pub fn warp(
+    source: &Volume,
+    rest: &TetMesh,
+    deformed: &[Vector3<f64>],
+    grid: &Grid,
+    options: &WarpOptions,
+) -> Result<(Volume, WarpStats), WarpError> {
     let (data, stats) = warp_samples::<f32>(source, rest, deformed, grid, options)?;
     Ok((Volume::from_grid(grid, data, "warped volume")?, stats))
 }
@@ -665,8 +725,21 @@ pub fn displace(source: &Volume, grid: &Grid, options: &WarpOptions) -> Result<V
     Ok(Volume::from_grid(grid, out, "displaced volume")?)
 }
 
-/// A warp kept up to date as the mesh moves: only the region of tets whose nodes moved
-/// more than `tolerance` since the last update is recomputed.
+/// A box of output voxels, inclusive.
+type Region = ([usize; 3], [usize; 3]);
+
+/// Advances whose moved regions are remembered: a buffer that held a warp up to this many
+/// advances ago is brought up to date region by region, an older one whole.
+const HISTORY: usize = 64;
+
+/// A warp kept up to date as the mesh moves, written wherever its consumer wants it.
+///
+/// [`IncrementalWarp::advance`] takes new deformed positions and notes the region of the
+/// tets with a node that moved more than `tolerance`; [`IncrementalWarp::write_into`] then
+/// brings any buffer to the current warp: one that holds an earlier warp of this sequence
+/// (its owner says which) is re-warped only inside the regions moved since, any other is
+/// warped whole. A rotating set of shared-memory samples is therefore written in place,
+/// each only where the volume changed since it last went out, and never copied.
 pub struct IncrementalWarp {
     source: Arc<Volume>,
     rest: Arc<TetMesh>,
@@ -674,34 +747,61 @@ pub struct IncrementalWarp {
     options: WarpOptions,
     positions: Vec<Vector3<f64>>,
     maps: Vec<Option<TetMap>>,
-    data: Vec<f32>,
+    /// Advances so far: the warp the positions describe.
+    sequence: u64,
+    /// The moved region of each recent advance (`None`: nothing moved), oldest first.
+    history: std::collections::VecDeque<(u64, Option<Region>)>,
 }
 
 impl IncrementalWarp {
-    pub fn new(source: Arc<Volume>, rest: Arc<TetMesh>, deformed: &[Vector3<f64>], grid: Grid, options: WarpOptions) -> Result<(Self, WarpStats), WarpError> {
-        let (data, stats) = warp_samples::<f32>(&source, &rest, deformed, &grid, &options)?;
+    /// The warp of `deformed` (sequence 0); nothing is written until [`Self::write_into`].
+    pub fn new(
+        source: Arc<Volume>,
+        rest: Arc<TetMesh>,
+        deformed: &[Vector3<f64>],
+        grid: Grid,
+        options: WarpOptions,
+    ) -> Result<Self, WarpError> {
+        check_size(&grid, 4, &options)?;
+        Sampler::new(&source, &options)?;
         let maps = tet_maps(&rest, deformed, &source.grid(), &grid)?;
-        Ok((Self { source, rest, grid, options, positions: deformed.to_vec(), maps, data }, stats))
+        Ok(Self {
+            source,
+            rest,
+            grid,
+            options,
+            positions: deformed.to_vec(),
+            maps,
+            sequence: 0,
+            history: Default::default(),
+        })
     }
 
-    pub fn data(&self) -> &[f32] {
-        &self.data
-    }
     pub fn grid(&self) -> &Grid {
         &self.grid
     }
 
-    /// Re-warps the box covering the old and new extents of every tet with a node that
-    /// moved more than `tolerance`; returns the work done (zero when nothing moved).
-    pub fn update(&mut self, deformed: &[Vector3<f64>], tolerance: f64) -> Result<WarpStats, WarpError> {
+    /// The warp the last positions describe.
+    pub fn sequence(&self) -> u64 {
+        self.sequence
+    }
+
+    /// Tets skipped as inverted, degenerate or off the grid at the current positions.
+    pub fn skipped_tets(&self) -> u64 {
+        self.maps.iter().filter(|m| m.is_none()).count() as u64
+    }
+
+    /// Takes new deformed positions: the box covering the old and new extents of every tet
+    /// with a node that moved more than `tolerance` is what changed. Returns the new sequence.
+    pub fn advance(&mut self, deformed: &[Vector3<f64>], tolerance: f64) -> Result<u64, WarpError> {
         let maps = tet_maps(&self.rest, deformed, &self.source.grid(), &self.grid)?;
         let moved: Vec<bool> = self.positions.iter().zip(deformed).map(|(a, b)| (a - b).norm() > tolerance).collect();
-        let mut region: Option<([usize; 3], [usize; 3])> = None;
-        let mut grow = |m: &TetMap| {
-            let (lo, hi) = region.get_or_insert((m.lo, m.hi));
+        let mut region: Option<Region> = None;
+        let mut grow = |lo_in: [usize; 3], hi_in: [usize; 3]| {
+            let (lo, hi) = region.get_or_insert((lo_in, hi_in));
             for a in 0..3 {
-                lo[a] = lo[a].min(m.lo[a]);
-                hi[a] = hi[a].max(m.hi[a]);
+                lo[a] = lo[a].min(lo_in[a]);
+                hi[a] = hi[a].max(hi_in[a]);
             }
         };
         for (t, tet) in self.rest.tets().iter().enumerate() {
@@ -709,44 +809,85 @@ impl IncrementalWarp {
                 continue;
             }
             for m in [&self.maps[t], &maps[t]].into_iter().flatten() {
-                grow(m);
+                grow(m.lo, m.hi);
             }
-        }
-        // Inverted tets have no map: cover their nodes' positions too.
-        for (t, tet) in self.rest.tets().iter().enumerate() {
-            if tet.iter().any(|n| moved[*n as usize]) && (self.maps[t].is_none() || maps[t].is_none()) {
+            // Inverted tets have no map: cover their nodes' positions too.
+            if self.maps[t].is_none() || maps[t].is_none() {
                 for p in tet.iter().flat_map(|n| [self.positions[*n as usize], deformed[*n as usize]]) {
                     let ijk = self.grid.index_from_world(p);
-                    let clampi = |v: f64, a: usize| v.clamp(0.0, (self.grid.dims[a] - 1) as f64);
-                    let c = [0, 1, 2].map(|a| clampi(ijk[a], a));
-                    grow(&TetMap {
-                        lo: c.map(|v| v.floor() as usize),
-                        hi: c.map(|v| v.ceil() as usize),
-                        bary: [[0.0; 4]; 4],
-                        src: [[0.0; 4]; 3],
-                        verts: [[0.0; 3]; 4],
-                        inv_c: [0.0; 4],
-                        src_inside: true,
-                    });
+                    let c = [0, 1, 2].map(|a| ijk[a].clamp(0.0, (self.grid.dims[a] - 1) as f64));
+                    grow(c.map(|v| v.floor() as usize), c.map(|v| v.ceil() as usize));
                 }
             }
         }
         self.positions = deformed.to_vec();
         self.maps = maps;
-        let Some((lo, hi)) = region else { return Ok(WarpStats::default()) };
+        self.sequence += 1;
+        self.history.push_back((self.sequence, region));
+        if self.history.len() > HISTORY {
+            self.history.pop_front();
+        }
+        Ok(self.sequence)
+    }
+
+    /// Brings `out` to the current warp. `holds`: the sequence of the warp `out` holds, if
+    /// it holds one of this warp's (its owner's knowledge); then only the regions moved
+    /// since are re-warped, else all of it. Returns the work done (`voxels`: those
+    /// re-warped; zero when `out` was up to date).
+    pub fn write_into(&self, out: &mut [f32], holds: Option<u64>) -> Result<WarpStats, WarpError> {
+        if out.len() != self.grid.len() {
+            return Err(WarpError::BufferSize { got: out.len(), expected: self.grid.len() });
+        }
+        let whole: Region = ([0; 3], self.grid.dims.map(|d| d - 1));
+        let oldest_known = self.history.front().map_or(self.sequence, |(s, _)| s - 1);
+        let region = match holds {
+            Some(s) if s == self.sequence => return Ok(WarpStats::default()),
+            Some(s) if s < self.sequence && s >= oldest_known => {
+                let mut union: Option<Region> = None;
+                for (_, moved) in self.history.iter().filter(|(q, _)| *q > s) {
+                    if let Some((lo, hi)) = moved {
+                        let (ulo, uhi) = union.get_or_insert((*lo, *hi));
+                        for a in 0..3 {
+                            ulo[a] = ulo[a].min(lo[a]);
+                            uhi[a] = uhi[a].max(hi[a]);
+                        }
+                    }
+                }
+                match union {
+                    Some(region) => region,
+                    None => return Ok(WarpStats::default()),
+                }
+            }
+            _ => whole,
+        };
+        let mut stats = self.rewarp(out, region)?;
+        if region == whole {
+            stats.skipped_tets = self.skipped_tets();
+        }
+        Ok(stats)
+    }
+
+    /// Re-warps the box `[lo, hi]` of `out`: its initial values, then every tet over it.
+    fn rewarp(&self, out: &mut [f32], (lo, hi): Region) -> Result<WarpStats, WarpError> {
         let sampler = Sampler::new(&self.source, &self.options)?;
         let identity = self.grid.index_map_to(&self.source.grid());
         let [nx, ny, _] = self.grid.dims;
         let bins = slice_bins(&self.maps, self.grid.dims[2]);
         let (maps, options) = (&self.maps, &self.options);
-        let mut stats = self.data[lo[2] * nx * ny..(hi[2] + 1) * nx * ny]
+        let background = options.background;
+        let mut stats = out[lo[2] * nx * ny..(hi[2] + 1) * nx * ny]
             .par_chunks_mut(nx * ny)
             .enumerate()
             .map(|(dk, slice)| {
                 let k = lo[2] + dk;
                 for j in lo[1]..=hi[1] {
-                    for i in lo[0]..=hi[0] {
-                        slice[i + nx * j] = initial_value(&sampler, &identity, options.keep_uncovered, i, j, k);
+                    let row = &mut slice[nx * j + lo[0]..=nx * j + hi[0]];
+                    if options.keep_uncovered {
+                        for (di, v) in row.iter_mut().enumerate() {
+                            *v = initial_value(&sampler, &identity, true, lo[0] + di, j, k);
+                        }
+                    } else {
+                        row.fill(background);
                     }
                 }
                 rasterize_slice(slice, nx, k, &bins[k], maps, &sampler, options.scheme, [lo[0], lo[1]], [hi[0], hi[1]])
@@ -757,5 +898,64 @@ impl IncrementalWarp {
             });
         stats.voxels = ((hi[0] - lo[0] + 1) * (hi[1] - lo[1] + 1) * (hi[2] - lo[2] + 1)) as u64;
         Ok(stats)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::mesh::generate::{self, CellSplit};
+    use crate::volume::phantom;
+
+    /// Three buffers taking turns, as shared-memory samples do: each is brought from the
+    /// warp it last held to the current one, and always equals a full warp.
+    #[test]
+    fn buffers_taking_turns_always_hold_the_current_warp() {
+        let source = Arc::new(phantom::phantom([48, 32, 24], 5.0).unwrap());
+        let (lo, hi) = source.bounds();
+        let mesh = Arc::new(generate::lattice_for_box(lo, hi, 600, CellSplit::Five).unwrap());
+        let options = WarpOptions { keep_uncovered: true, ..Default::default() };
+        let grid = source.grid();
+        let mut warp =
+            IncrementalWarp::new(source.clone(), mesh.clone(), mesh.nodes(), grid.clone(), options.clone()).unwrap();
+        let mut buffers: Vec<(Vec<f32>, Option<u64>)> = (0..3).map(|_| (vec![f32::NAN; grid.len()], None)).collect();
+        let centre = (lo + hi) / 2.0;
+        for step in 1..=9 {
+            // A probe pressing in at a point that wanders: a local change each step.
+            let tip = centre
+                + Vector3::new(40.0 * (step as f64 * 0.7).sin(), 20.0 * (step as f64 * 0.4).cos(), hi.z - centre.z);
+            let pressed: Vec<Vector3<f64>> = mesh
+                .nodes()
+                .iter()
+                .map(|p| {
+                    let d = (p - tip).norm();
+                    if d < 40.0 {
+                        p - Vector3::z() * (3.0 * step as f64 / 9.0 * (1.0 - d / 40.0))
+                    } else {
+                        *p
+                    }
+                })
+                .collect();
+            let sequence = warp.advance(&pressed, 1e-9).unwrap();
+            let (buffer, holds) = &mut buffers[step % 3];
+            let stats = warp.write_into(buffer, *holds).unwrap();
+            *holds = Some(sequence);
+            let (full, _) = super::warp(&source, &mesh, &pressed, &grid, &options).unwrap();
+            assert!(
+                buffer.iter().zip(full.data()).all(|(a, b)| a.to_bits() == b.to_bits()),
+                "step {step}: the buffer differs from a full warp"
+            );
+            if step > 3 {
+                assert!(
+                    stats.voxels < grid.len() as u64,
+                    "step {step}: a buffer three warps behind is re-warped in part, not whole ({stats:?})"
+                );
+            } else {
+                assert_eq!(stats.voxels, grid.len() as u64, "step {step}: a fresh buffer is warped whole");
+            }
+        }
+        // Up to date: nothing to do.
+        let (buffer, holds) = &mut buffers[0];
+        assert_eq!(warp.write_into(buffer, *holds).unwrap().voxels, 0);
     }
 }

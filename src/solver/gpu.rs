@@ -1,4 +1,4 @@
-//! The solver on the GPU: `shaders/solver.wgsl` run through wgpu. A host-side
+//! The solver on the GPU: `solver.wgsl` beside this file, run through wgpu. A host-side
 //! [`Simulation<f32>`] mirrors the state: it validates tool inputs, spreads commanded forces,
 //! and checks and reports each step exactly as the CPU path does, so both paths report alike.
 //!
@@ -11,13 +11,13 @@ use std::sync::Arc;
 use bytemuck::{Pod, Zeroable};
 use nalgebra::Vector3;
 
-use super::{GpuContext, GpuError};
-use crate::solver::cpu::CgStats;
-use crate::solver::kernels::ContactTool;
-use crate::solver::{Integrator, MassSpringModel, Simulation, SolverError, SolverParams, StepReport, Tool};
+use super::cpu::CgStats;
+use super::kernels::ContactTool;
+use super::{Integrator, MassSpringModel, Simulation, SolverError, SolverParams, StepReport, Tool};
+use crate::gpu::{GpuContext, GpuError};
 
 /// Storage buffers the solver shader binds at once.
-pub const STORAGE_BUFFERS: u32 = 25;
+const STORAGE_BUFFERS: u32 = 25;
 /// Tools the GPU kernels take per step.
 pub const MAX_TOOLS: usize = 4;
 const WORKGROUP: u32 = 256;
@@ -87,7 +87,27 @@ enum Kernel {
 }
 
 impl Kernel {
-    const ALL: [Kernel; 19] = [Kernel::SpringTerms, Kernel::SpringForces, Kernel::SpringForcesPredicted, Kernel::NodeTerms, Kernel::CgStartSpmv, Kernel::CgInit, Kernel::CgInitReduce, Kernel::CgSpmv, Kernel::CgAlpha, Kernel::CgUpdate, Kernel::CgBeta, Kernel::CgDirection, Kernel::ImplicitUpdate, Kernel::NodeForces, Kernel::ExplicitEulerUpdate, Kernel::VerletUpdate, Kernel::VelocityVerletPositions, Kernel::VelocityVerletVelocities, Kernel::AccelerationFromForce];
+    const ALL: [Kernel; 19] = [
+        Kernel::SpringTerms,
+        Kernel::SpringForces,
+        Kernel::SpringForcesPredicted,
+        Kernel::NodeTerms,
+        Kernel::CgStartSpmv,
+        Kernel::CgInit,
+        Kernel::CgInitReduce,
+        Kernel::CgSpmv,
+        Kernel::CgAlpha,
+        Kernel::CgUpdate,
+        Kernel::CgBeta,
+        Kernel::CgDirection,
+        Kernel::ImplicitUpdate,
+        Kernel::NodeForces,
+        Kernel::ExplicitEulerUpdate,
+        Kernel::VerletUpdate,
+        Kernel::VelocityVerletPositions,
+        Kernel::VelocityVerletVelocities,
+        Kernel::AccelerationFromForce,
+    ];
 
     fn entry_point(self) -> &'static str {
         match self {
@@ -149,17 +169,23 @@ fn groups(count: u32) -> u32 {
 }
 
 impl GpuSimulation {
-    pub fn new(ctx: Arc<GpuContext>, model: &MassSpringModel, params: SolverParams, tools: Vec<Tool>) -> Result<Self, GpuSolverError> {
+    pub fn new(
+        ctx: Arc<GpuContext>,
+        model: &MassSpringModel,
+        params: SolverParams,
+        tools: Vec<Tool>,
+    ) -> Result<Self, GpuSolverError> {
         if tools.len() > MAX_TOOLS {
             return Err(GpuSolverError::TooManyTools(tools.len()));
         }
+        ctx.require_storage_buffers("the solver", STORAGE_BUFFERS)?;
         let mirror = Simulation::<f32>::new(model, params, tools)?;
         let n = model.node_count();
         let e = model.springs.len();
         let device = &ctx.device;
         let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
             label: Some("solver.wgsl"),
-            source: wgpu::ShaderSource::Wgsl(include_str!("../../shaders/solver.wgsl").into()),
+            source: wgpu::ShaderSource::Wgsl(include_str!("solver.wgsl").into()),
         });
         let entries: Vec<wgpu::BindGroupLayoutEntry> = (0..=STORAGE_BUFFERS)
             .map(|binding| wgpu::BindGroupLayoutEntry {
@@ -177,7 +203,8 @@ impl GpuSimulation {
                 count: None,
             })
             .collect();
-        let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor { label: Some("solver"), entries: &entries });
+        let layout = device
+            .create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor { label: Some("solver"), entries: &entries });
         let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
             label: Some("solver"),
             bind_group_layouts: &[Some(&layout)],
@@ -200,13 +227,20 @@ impl GpuSimulation {
         let zeros4 = |count: usize| vec![[0f32; 4]; count.max(1)];
         let mat3 = |count: usize| vec![0f32; 12 * count.max(1)];
         let springs: Vec<[u32; 2]> = model.springs.clone();
-        let spring_params: Vec<[f32; 4]> = (0..e).map(|s| [model.rest_length[s] as f32, model.stiffness[s] as f32, model.damping[s] as f32, 0.0]).collect();
-        let node_params: Vec<[f32; 4]> = (0..n).map(|i| [model.mass[i] as f32, if model.fixed[i] { 1.0 } else { 0.0 }, 0.0, 0.0]).collect();
+        let spring_params: Vec<[f32; 4]> = (0..e)
+            .map(|s| [model.rest_length[s] as f32, model.stiffness[s] as f32, model.damping[s] as f32, 0.0])
+            .collect();
+        let node_params: Vec<[f32; 4]> =
+            (0..n).map(|i| [model.mass[i] as f32, if model.fixed[i] { 1.0 } else { 0.0 }, 0.0, 0.0]).collect();
         let adjacency: Vec<[u32; 2]> = model.adjacency.clone();
-        let rest_edge: Vec<[f32; 4]> = model.springs.iter().map(|[a, b]| {
-            let d = model.rest[*b as usize] - model.rest[*a as usize];
-            [d.x as f32, d.y as f32, d.z as f32, 0.0]
-        }).collect();
+        let rest_edge: Vec<[f32; 4]> = model
+            .springs
+            .iter()
+            .map(|[a, b]| {
+                let d = model.rest[*b as usize] - model.rest[*a as usize];
+                [d.x as f32, d.y as f32, d.z as f32, 0.0]
+            })
+            .collect();
         let rest_pos: Vec<[f32; 4]> = model.rest.iter().map(|p| [p.x as f32, p.y as f32, p.z as f32, 0.0]).collect();
         let buf = |label: &str, bytes: &[u8]| ctx.storage_buffer(label, bytes);
         let b = Buffers {
@@ -244,19 +278,68 @@ impl GpuSimulation {
             buf("rest_edge", bytemuck::cast_slice(&rest_edge)),
             buf("rest_pos", bytemuck::cast_slice(&rest_pos)),
         ];
-        let [springs_b, spring_params_b, offsets_b, adjacency_b, node_params_b, spring_force_b, spring_kv_b, spring_block_b, diag_b, precond_b, rhs_b, r_b, z_b, q_b, partials_b, force_b, rest_edge_b, rest_pos_b] = &others;
+        let [springs_b, spring_params_b, offsets_b, adjacency_b, node_params_b, spring_force_b, spring_kv_b, spring_block_b, diag_b, precond_b, rhs_b, r_b, z_b, q_b, partials_b, force_b, rest_edge_b, rest_pos_b] =
+            &others;
         let order: [&wgpu::Buffer; 26] = [
-            &b.params, springs_b, spring_params_b, offsets_b, adjacency_b, node_params_b, &b.x, &b.v, &b.external, spring_force_b, spring_kv_b, spring_block_b,
-            diag_b, precond_b, rhs_b, &b.dv, r_b, z_b, &b.p, q_b, partials_b, &b.scalars, &b.aux, force_b, rest_edge_b, rest_pos_b,
+            &b.params,
+            springs_b,
+            spring_params_b,
+            offsets_b,
+            adjacency_b,
+            node_params_b,
+            &b.x,
+            &b.v,
+            &b.external,
+            spring_force_b,
+            spring_kv_b,
+            spring_block_b,
+            diag_b,
+            precond_b,
+            rhs_b,
+            &b.dv,
+            r_b,
+            z_b,
+            &b.p,
+            q_b,
+            partials_b,
+            &b.scalars,
+            &b.aux,
+            force_b,
+            rest_edge_b,
+            rest_pos_b,
         ];
-        let bind_entries: Vec<wgpu::BindGroupEntry> =
-            order.iter().enumerate().map(|(binding, buffer)| wgpu::BindGroupEntry { binding: binding as u32, resource: buffer.as_entire_binding() }).collect();
-        let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor { label: Some("solver"), layout: &layout, entries: &bind_entries });
-        Ok(Self { ctx, mirror, nodes: n as u32, springs: e as u32, pipelines, bind_group, buffers: b, history_valid: false })
+        let bind_entries: Vec<wgpu::BindGroupEntry> = order
+            .iter()
+            .enumerate()
+            .map(|(binding, buffer)| wgpu::BindGroupEntry {
+                binding: binding as u32,
+                resource: buffer.as_entire_binding(),
+            })
+            .collect();
+        let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("solver"),
+            layout: &layout,
+            entries: &bind_entries,
+        });
+        Ok(Self {
+            ctx,
+            mirror,
+            nodes: n as u32,
+            springs: e as u32,
+            pipelines,
+            bind_group,
+            buffers: b,
+            history_valid: false,
+        })
     }
 
     pub fn context(&self) -> &GpuContext {
         &self.ctx
+    }
+    /// Node displacements from rest (`vec4<f32>` per node, world units), where the other
+    /// stages read them.
+    pub fn displacements(&self) -> &wgpu::Buffer {
+        &self.buffers.x
     }
     /// The host mirror: last accepted state, tools, parameters.
     pub fn mirror(&self) -> &Simulation<f32> {
@@ -272,9 +355,11 @@ impl GpuSimulation {
     }
 
     fn run(&self, kernels: &[(Kernel, u32)]) {
-        let mut encoder = self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("solver") });
+        let mut encoder =
+            self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("solver") });
         {
-            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("solver"), timestamp_writes: None });
+            let mut pass = encoder
+                .begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("solver"), timestamp_writes: None });
             pass.set_bind_group(0, &self.bind_group, &[]);
             for (kernel, invocations) in kernels {
                 self.dispatch(&mut pass, *kernel, *invocations);
@@ -296,7 +381,11 @@ impl GpuSimulation {
             tools: gpu_tools,
         };
         self.ctx.queue.write_buffer(&self.buffers.params, 0, bytemuck::bytes_of(&params));
-        self.ctx.queue.write_buffer(&self.buffers.external, 0, bytemuck::cast_slice(&vec4s(self.mirror.external_forces())));
+        self.ctx.queue.write_buffer(
+            &self.buffers.external,
+            0,
+            bytemuck::cast_slice(&vec4s(self.mirror.external_forces())),
+        );
     }
 
     fn read_vec(&self, buffer: &wgpu::Buffer) -> Result<Vec<Vector3<f32>>, GpuError> {
@@ -308,13 +397,28 @@ impl GpuSimulation {
     fn solve(&self) -> Result<CgStats, GpuError> {
         let (n, q) = (self.nodes, &self.ctx.queue);
         q.write_buffer(&self.buffers.scalars, 0, bytemuck::bytes_of(&CgScalars::zeroed()));
-        let mut encoder = self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("cg start") });
+        let mut encoder =
+            self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("cg start") });
         encoder.copy_buffer_to_buffer(&self.buffers.dv, 0, &self.buffers.p, 0, n as u64 * 16);
         self.ctx.queue.submit([encoder.finish()]);
-        self.run(&[(Kernel::SpringTerms, self.springs), (Kernel::NodeTerms, n), (Kernel::CgStartSpmv, n), (Kernel::CgInit, n), (Kernel::CgInitReduce, 1)]);
+        self.run(&[
+            (Kernel::SpringTerms, self.springs),
+            (Kernel::NodeTerms, n),
+            (Kernel::CgStartSpmv, n),
+            (Kernel::CgInit, n),
+            (Kernel::CgInitReduce, 1),
+        ]);
         let params = self.mirror.params();
         let batch: Vec<(Kernel, u32)> = (0..params.cg_check_interval)
-            .flat_map(|_| [(Kernel::CgSpmv, n), (Kernel::CgAlpha, 1), (Kernel::CgUpdate, n), (Kernel::CgBeta, 1), (Kernel::CgDirection, n)])
+            .flat_map(|_| {
+                [
+                    (Kernel::CgSpmv, n),
+                    (Kernel::CgAlpha, 1),
+                    (Kernel::CgUpdate, n),
+                    (Kernel::CgBeta, 1),
+                    (Kernel::CgDirection, n),
+                ]
+            })
             .collect();
         loop {
             let bytes = self.ctx.read_back(&self.buffers.scalars, std::mem::size_of::<CgScalars>() as u64)?;
@@ -339,11 +443,19 @@ impl GpuSimulation {
                 cg = self.solve()?;
                 self.run(&[(Kernel::ImplicitUpdate, n)]);
             }
-            Integrator::ExplicitEuler => self.run(&[(Kernel::SpringForces, e), (Kernel::NodeForces, n), (Kernel::ExplicitEulerUpdate, n)]),
+            Integrator::ExplicitEuler => {
+                self.run(&[(Kernel::SpringForces, e), (Kernel::NodeForces, n), (Kernel::ExplicitEulerUpdate, n)])
+            }
             Integrator::Verlet => {
                 if !self.history_valid {
                     let h = self.mirror.params().dt as f32;
-                    let prev: Vec<Vector3<f32>> = self.mirror.displacements().iter().zip(self.mirror.velocities()).map(|(x, v)| x - v * h).collect();
+                    let prev: Vec<Vector3<f32>> = self
+                        .mirror
+                        .displacements()
+                        .iter()
+                        .zip(self.mirror.velocities())
+                        .map(|(x, v)| x - v * h)
+                        .collect();
                     self.ctx.queue.write_buffer(&self.buffers.aux, 0, bytemuck::cast_slice(&vec4s(&prev)));
                 }
                 self.run(&[(Kernel::SpringForces, e), (Kernel::NodeForces, n), (Kernel::VerletUpdate, n)]);
@@ -352,7 +464,12 @@ impl GpuSimulation {
                 if !self.history_valid {
                     self.run(&[(Kernel::SpringForces, e), (Kernel::NodeForces, n), (Kernel::AccelerationFromForce, n)]);
                 }
-                self.run(&[(Kernel::VelocityVerletPositions, n), (Kernel::SpringForcesPredicted, e), (Kernel::NodeForces, n), (Kernel::VelocityVerletVelocities, n)]);
+                self.run(&[
+                    (Kernel::VelocityVerletPositions, n),
+                    (Kernel::SpringForcesPredicted, e),
+                    (Kernel::NodeForces, n),
+                    (Kernel::VelocityVerletVelocities, n),
+                ]);
             }
         }
         self.history_valid = true;
@@ -362,7 +479,11 @@ impl GpuSimulation {
             Ok(report) => Ok(report),
             Err(err) => {
                 // Put the last stable state back on the GPU too.
-                self.ctx.queue.write_buffer(&self.buffers.x, 0, bytemuck::cast_slice(&vec4s(self.mirror.displacements())));
+                self.ctx.queue.write_buffer(
+                    &self.buffers.x,
+                    0,
+                    bytemuck::cast_slice(&vec4s(self.mirror.displacements())),
+                );
                 self.ctx.queue.write_buffer(&self.buffers.v, 0, bytemuck::cast_slice(&vec4s(self.mirror.velocities())));
                 self.history_valid = false;
                 Err(err.into())
@@ -378,11 +499,13 @@ mod tests {
     use crate::solver::{FixedNodes, Material, ToolShape};
     use nalgebra::Isometry3;
 
-
     fn cantilever() -> MassSpringModel {
-        let mesh = generate::lattice(Vector3::zeros(), Vector3::new(0.12, 0.03, 0.03), [8, 2, 2], generate::CellSplit::Five).unwrap();
+        let mesh =
+            generate::lattice(Vector3::zeros(), Vector3::new(0.12, 0.03, 0.03), [8, 2, 2], generate::CellSplit::Five)
+                .unwrap();
         let fixed = FixedNodes::Plane { normal: [1.0, 0.0, 0.0], offset: 0.0 }.select(mesh.nodes()).unwrap();
-        MassSpringModel::new(&mesh, &Material::Uniform { stiffness: 800.0, damping: 0.5 }, 1000.0, &fixed, None).unwrap()
+        MassSpringModel::new(&mesh, &Material::Uniform { stiffness: 800.0, damping: 0.5 }, 1000.0, &fixed, None)
+            .unwrap()
     }
 
     /// Every integrator, with a tool pressing in: GPU and CPU (f32) agree after 100 steps.
@@ -392,7 +515,8 @@ mod tests {
         let model = cantilever();
         for integrator in Integrator::ALL {
             let dt = if integrator == Integrator::ImplicitEuler { 0.005 } else { 2e-4 };
-            let params = SolverParams { integrator, dt, cg_tolerance: 1e-6, cg_check_interval: 4, ..Default::default() };
+            let params =
+                SolverParams { integrator, dt, cg_tolerance: 1e-6, cg_check_interval: 4, ..Default::default() };
             let mut tool = Tool::new(ToolShape::Sphere { radius: 0.01 }, 500.0);
             tool.world_from_tool = Isometry3::translation(0.1, 0.015, 0.038);
             tool.applied_force = Vector3::new(0.0, 0.0, -0.05);
@@ -405,12 +529,21 @@ mod tests {
             }
             let scale = rc.max_displacement;
             assert!(scale > 1e-4, "{integrator:?} moved: {scale}");
-            let worst = cpu.displacements().iter().zip(gpu.mirror().displacements()).map(|(a, b)| (a - b).norm() as f64).fold(0.0, f64::max);
+            let worst = cpu
+                .displacements()
+                .iter()
+                .zip(gpu.mirror().displacements())
+                .map(|(a, b)| (a - b).norm() as f64)
+                .fold(0.0, f64::max);
             // lavapipe: 0 (explicit) to 4e-7 (implicit, CG to 1e-6); hardware FMA rounding differs more.
-            assert!(worst <= 2e-5 * scale, "{integrator:?}: GPU differs from CPU by {worst:e} m (max displacement {scale:e} m)");
+            assert!(
+                worst <= 2e-5 * scale,
+                "{integrator:?}: GPU differs from CPU by {worst:e} m (max displacement {scale:e} m)"
+            );
             if integrator == Integrator::ImplicitEuler {
                 assert!(rg.cg_iterations > 0 && rg.residual <= 1e-5, "{rg:?}");
-                assert!((rc.reaction_force[2] - rg.reaction_force[2]).abs() <= 1e-2 * rc.reaction_force[2].abs().max(1e-3));
+                let (fc, fg) = (rc.reaction(0).force[2], rg.reaction(0).force[2]);
+                assert!((fc - fg).abs() <= 1e-2 * fc.abs().max(1e-3), "reaction {fc} on the CPU, {fg} on the GPU");
             }
         }
     }

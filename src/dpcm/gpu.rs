@@ -1,4 +1,4 @@
-//! The DPCM step on the GPU: `shaders/dpcm.wgsl`, one invocation per phyxel, markers binned
+//! The DPCM step on the GPU: `dpcm.wgsl` beside this file, one invocation per phyxel, markers binned
 //! on the CPU (the same [`MarkerBins`] as the CPU path) and gathered per tile.
 //!
 //! Z(n+1), Z(n) and Z(n-1) live in three buffers that rotate, so a step uploads only the
@@ -9,9 +9,9 @@ use std::sync::Arc;
 
 use bytemuck::{Pod, Zeroable};
 
-use super::{GpuContext, GpuError, Kernels};
-use crate::dpcm::kernel::{Coeffs, KernelMarker, TILE};
-use crate::dpcm::{to_kernel_markers, DpcmConfig, DpcmError, Marker, MarkerBins, StepStats, Surface};
+use super::kernel::{Coeffs, KernelMarker, TILE};
+use super::{to_kernel_markers, DpcmConfig, DpcmError, Marker, MarkerBins, StepStats, Surface};
+use crate::gpu::{GpuContext, GpuError, Kernels};
 
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
@@ -20,8 +20,6 @@ pub enum GpuDpcmError {
     Dpcm(#[from] DpcmError),
     #[error(transparent)]
     Gpu(#[from] GpuError),
-    #[error("a {width} x {height} grid needs {needed_mib} MiB per GPU buffer; the adapter allows {limit_mib} MiB")]
-    TooLarge { width: usize, height: usize, needed_mib: u64, limit_mib: u64 },
 }
 
 #[repr(C)]
@@ -77,30 +75,40 @@ impl GpuSurface {
     pub fn from_surface(ctx: Arc<GpuContext>, surface: &Surface) -> Result<Self, GpuDpcmError> {
         let config = surface.config().clone();
         let phyxels = config.width * config.height;
-        let limit = ctx.device.limits().max_storage_buffer_binding_size;
-        let bytes = phyxels as u64 * 4;
-        if bytes > limit {
-            return Err(GpuDpcmError::TooLarge { width: config.width, height: config.height, needed_mib: bytes.div_ceil(1 << 20), limit_mib: limit >> 20 });
-        }
-        use super::Binding::{Read, ReadWrite, Uniform};
-        let Kernels { layout, pipelines: [pipeline] } = ctx.kernels("dpcm.wgsl", include_str!("../../shaders/dpcm.wgsl"), &[Uniform, Read, Read, ReadWrite, ReadWrite, Read, Read, Read, Read, Read], ["step"]);
+        ctx.require_binding_size("the DPCM grid", phyxels as u64 * 4)?;
+        use crate::gpu::Binding::{Read, ReadWrite, Uniform};
+        let Kernels { layout, pipelines: [pipeline] } = ctx.kernels(
+            "dpcm.wgsl",
+            include_str!("dpcm.wgsl"),
+            &[Uniform, Read, Read, ReadWrite, ReadWrite, Read, Read, Read, Read, Read],
+            ["step"],
+        );
         let device = &ctx.device;
         let coeffs = *surface.coeffs();
         let rest = surface.rest_deviations();
         let per_phyxel_rest = !rest.is_empty();
         let ground: Vec<(f32, f32)> = (0..phyxels).map(|i| surface.ground_coeffs(i)).collect();
         let textured = ground.iter().any(|g| *g != (coeffs.ground_a, coeffs.ground_b));
-        let flags = if textured { FLAG_GROUND_TEXTURE } else { 0 } | if per_phyxel_rest { FLAG_REST_PER_PHYXEL } else { 0 };
+        let flags =
+            if textured { FLAG_GROUND_TEXTURE } else { 0 } | if per_phyxel_rest { FLAG_REST_PER_PHYXEL } else { 0 };
         let tiles_x = config.width.div_ceil(TILE);
         let block = uniform_block(&config, coeffs, tiles_x, flags);
-        let params = wgpu::util::DeviceExt::create_buffer_init(device, &wgpu::util::BufferInitDescriptor { label: Some("dpcm params"), contents: bytemuck::bytes_of(&block), usage: wgpu::BufferUsages::UNIFORM });
+        let params = wgpu::util::DeviceExt::create_buffer_init(
+            device,
+            &wgpu::util::BufferInitDescriptor {
+                label: Some("dpcm params"),
+                contents: bytemuck::bytes_of(&block),
+                usage: wgpu::BufferUsages::UNIFORM,
+            },
+        );
         let heights = [
             ctx.storage_buffer("dpcm u(n)", bytemuck::cast_slice(surface.deviations())),
             ctx.storage_buffer("dpcm u(n+1)", bytemuck::cast_slice(surface.deviations())),
             ctx.storage_buffer("dpcm u(n-1)", bytemuck::cast_slice(surface.previous_deviations())),
         ];
         let rest = storage(&ctx, "dpcm rest", rest, 0.0f32);
-        let (ga, gb): (Vec<f32>, Vec<f32>) = if textured { ground.iter().copied().unzip() } else { (Vec::new(), Vec::new()) };
+        let (ga, gb): (Vec<f32>, Vec<f32>) =
+            if textured { ground.iter().copied().unzip() } else { (Vec::new(), Vec::new()) };
         let ground = [storage(&ctx, "dpcm ground a", &ga, 0.0f32), storage(&ctx, "dpcm ground b", &gb, 0.0f32)];
         let tiles = tiles_x * config.height.div_ceil(TILE);
         let markers = storage(&ctx, "dpcm markers", &[], KernelMarker::zeroed());
@@ -133,7 +141,22 @@ impl GpuSurface {
         self.bind_groups = (0..3)
             .map(|r| {
                 let (z, out, zp) = (&self.heights[r], &self.heights[(r + 1) % 3], &self.heights[(r + 2) % 3]);
-                self.ctx.bind_group("dpcm", &self.layout, &[&self.params, z, zp, out, &self.rest, &self.ground[0], &self.ground[1], &self.markers, &self.offsets, &self.indices])
+                self.ctx.bind_group(
+                    "dpcm",
+                    &self.layout,
+                    &[
+                        &self.params,
+                        z,
+                        zp,
+                        out,
+                        &self.rest,
+                        &self.ground[0],
+                        &self.ground[1],
+                        &self.markers,
+                        &self.offsets,
+                        &self.indices,
+                    ],
+                )
             })
             .collect();
     }
@@ -164,12 +187,18 @@ impl GpuSurface {
         self.upload(|s| &mut s.offsets, "dpcm tile offsets", &bins.offsets);
         self.upload(|s| &mut s.indices, "dpcm tile indices", &bins.indices);
         self.bins = bins;
-        let mut encoder = self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("dpcm step") });
+        let mut encoder =
+            self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("dpcm step") });
         {
-            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("dpcm step"), timestamp_writes: None });
+            let mut pass = encoder
+                .begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("dpcm step"), timestamp_writes: None });
             pass.set_pipeline(&self.pipeline);
             pass.set_bind_group(0, &self.bind_groups[self.current], &[]);
-            pass.dispatch_workgroups(self.config.width.div_ceil(TILE) as u32, self.config.height.div_ceil(TILE) as u32, 1);
+            pass.dispatch_workgroups(
+                self.config.width.div_ceil(TILE) as u32,
+                self.config.height.div_ceil(TILE) as u32,
+                1,
+            );
         }
         self.ctx.queue.submit([encoder.finish()]);
         self.current = (self.current + 1) % 3;
@@ -191,7 +220,14 @@ impl GpuSurface {
 
 /// The uniform block for `config`.
 fn uniform_block(config: &DpcmConfig, coeffs: Coeffs, tiles_x: usize, flags: u32) -> Params {
-    Params { c: coeffs, width: config.width as u32, height: config.height as u32, tiles_x: tiles_x as u32, flags, _pad: [0; 4] }
+    Params {
+        c: coeffs,
+        width: config.width as u32,
+        height: config.height as u32,
+        tiles_x: tiles_x as u32,
+        flags,
+        _pad: [0; 4],
+    }
 }
 
 #[cfg(test)]
@@ -199,7 +235,6 @@ mod tests {
     use super::*;
     use crate::dpcm::markers::{Pattern, Script};
     use crate::dpcm::{Interaction, Topology};
-
 
     /// The GPU step against the CPU step, over every topology and ground kind, with
     /// markers moving: same state within f32 round-off (the GPU may fuse multiply-adds).
@@ -234,7 +269,10 @@ mod tests {
             let gpu_heights = gpu.read_heights().unwrap();
             let worst = cpu.heights().iter().zip(&gpu_heights).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
             assert!(peak > 5e-4, "{topology:?}: markers engraved too little ({peak})");
-            assert!(worst <= 1e-4 * peak, "{topology:?} p={probability}: GPU off the CPU by {worst:e} of a peak {peak:e}");
+            assert!(
+                worst <= 1e-4 * peak,
+                "{topology:?} p={probability}: GPU off the CPU by {worst:e} of a peak {peak:e}"
+            );
         }
     }
 

@@ -1,7 +1,8 @@
 // The volume raycaster, one invocation per pixel: line by line the twin of
-// src/render/raycast.rs (Caster::cast, composite, iso, shade, sample; Tables::sample and
+// render/raycast.rs (Caster::cast, composite, iso, shade, sample; Tables::sample and
 // segment; MacroCells::visible_at and exit; clip); Camera::ray and the tools are
-// camera_tools.wgsl's, compiled in front of this file.
+// camera_tools.wgsl's, compiled in front of this file. `macro_cells` is MacroCells::new,
+// run on the device when the volume is a device buffer another stage rewrites (the warp).
 
 struct Params {
     // world_from_camera: rotation columns and the eye.
@@ -41,7 +42,7 @@ const CELL: f32 = 8.0;
 @group(0) @binding(1) var<storage, read> volume: array<f32>;
 @group(0) @binding(2) var<storage, read> lut: array<vec4<f32>>;
 @group(0) @binding(3) var<storage, read> pre: array<vec4<f32>>;
-@group(0) @binding(4) var<storage, read> cells: array<u32>;
+@group(0) @binding(4) var<storage, read_write> cells: array<u32>;
 @group(0) @binding(5) var<storage, read_write> out_rgba: array<u32>;
 @group(0) @binding(6) var<storage, read_write> out_depth: array<f32>;
 
@@ -345,4 +346,40 @@ fn render(@builtin(global_invocation_id) gid: vec3<u32>) {
         depth = behind;
     }
     out_depth[pixel] = depth;
+}
+
+// MacroCells::new for one cell: can any sample in it be visible? The scalar range of the
+// voxels a sample in the cell reads (one past its far side), then the largest extinction
+// over that range of the table (Tables::max_tau), widened by one entry each way: the
+// device's division may round a level differently, and a visible cell must never be
+// skipped.
+@compute @workgroup_size(64)
+fn macro_cells(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let c = gid.x + gid.y * p.shading.z * 64u;
+    let count = p.cells.x * p.cells.y * p.cells.z;
+    if c >= count {
+        return;
+    }
+    let cc = vec3<u32>(c % p.cells.x, (c / p.cells.x) % p.cells.y, c / (p.cells.x * p.cells.y));
+    let start = cc * 8u;
+    let stop = min(start + vec3<u32>(9u), p.dims.xyz);
+    var lo = 1e38;
+    var hi = -1e38;
+    for (var k = start.z; k < stop.z; k++) {
+        for (var j = start.y; j < stop.y; j++) {
+            for (var i = start.x; i < stop.x; i++) {
+                let v = voxel(i, j, k);
+                lo = min(lo, v);
+                hi = max(hi, v);
+            }
+        }
+    }
+    let level = (LUT_SIZE - 1u);
+    let a = u32(clamp((lo - p.tf.x) / (p.tf.y - p.tf.x), 0.0, 1.0) * f32(level));
+    let b = u32(clamp((hi - p.tf.x) / (p.tf.y - p.tf.x), 0.0, 1.0) * f32(level));
+    var tau = 0.0;
+    for (var e = max(a, 1u) - 1u; e <= min(b + 2u, level); e++) {
+        tau = max(tau, lut[e].w);
+    }
+    cells[c] = select(0u, 1u, tau > 0.0);
 }

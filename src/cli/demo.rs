@@ -6,12 +6,13 @@ use std::path::PathBuf;
 use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 
-use defvol::engine::BackendChoice;
 use defvol::msgs::{Header, Pose, PoseStamped, Time};
 use defvol::pipeline::inputs::InputLimits;
 use defvol::pipeline::{Demand, FrameMode, Pipeline};
 use defvol::scene::Scene;
 use defvol::session::{qualified, RecordOptions, Session};
+
+use super::choices::CliBackend;
 
 #[derive(clap::Args)]
 pub struct DemoArgs {
@@ -24,8 +25,9 @@ pub struct DemoArgs {
     /// Scene file (YAML); the embedded default scene when absent.
     #[arg(long)]
     scene: Option<PathBuf>,
-    #[arg(long, value_enum, default_value = "auto")]
-    backend: BackendChoice,
+    /// Where the stages run (the scene's `backend` when absent).
+    #[arg(long, value_enum)]
+    backend: Option<CliBackend>,
     #[arg(long)]
     allow_software_gpu: bool,
     /// Leave out the rerun log (demo.rrd).
@@ -53,17 +55,23 @@ pub(super) fn replay_limits() -> InputLimits {
     InputLimits { max_age: None, ..Default::default() }
 }
 
-pub fn demo(args: DemoArgs) -> Result<()> {
+pub fn run(args: DemoArgs) -> Result<()> {
     if !(args.seconds.is_finite() && args.seconds > 0.0) {
         bail!("--seconds {} must be positive", args.seconds);
     }
     let scene = load_scene(&args.scene)?;
-    let mut pipeline = Pipeline::new(scene, args.backend, args.allow_software_gpu, replay_limits(), FrameMode::Lockstep).context("starting the pipeline")?;
+    let backend = scene.backend(args.backend.map(Into::into), args.allow_software_gpu)?;
+    let mut pipeline =
+        Pipeline::new(scene, &backend, replay_limits(), FrameMode::Lockstep).context("starting the pipeline")?;
     std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
     if !cfg!(feature = "mcap") {
         tracing::warn!("defvol was built without the `mcap` feature: no demo.mcap");
     }
-    let records = RecordOptions { mcap: cfg!(feature = "mcap").then(|| args.out.join("demo.mcap")), rerun_file: (!args.no_rerun).then(|| args.out.join("demo.rrd")), rerun_connect: None };
+    let records = RecordOptions {
+        mcap: cfg!(feature = "mcap").then(|| args.out.join("demo.mcap")),
+        rerun_file: (!args.no_rerun).then(|| args.out.join("demo.rrd")),
+        rerun_connect: None,
+    };
     let mut session = Session::open("/", &records, &pipeline)?;
     let dt_ns = (pipeline.scene().solver.dt * 1e9).round() as u64;
     let steps = (args.seconds * 1e9 / dt_ns as f64).round().max(1.0) as u64;
@@ -79,7 +87,10 @@ pub fn demo(args: DemoArgs) -> Result<()> {
             let Some(path) = &tool.path else { continue };
             let p = path.position(stamp.as_secs());
             let world_from_tool = nalgebra::Isometry3::translation(p.x, p.y, p.z);
-            let msg = PoseStamped { header: Header { stamp, frame_id: pipeline.scene().frame_id.clone() }, pose: Pose::from_isometry(&world_from_tool) };
+            let msg = PoseStamped {
+                header: Header { stamp, frame_id: pipeline.scene().frame_id.clone() },
+                pose: Pose::from_isometry(&world_from_tool),
+            };
             if let Err(rejection) = pipeline.apply_pose(pose_topic, &msg, stamp) {
                 tracing::warn!("{rejection}");
             }
@@ -104,7 +115,7 @@ pub fn demo(args: DemoArgs) -> Result<()> {
         args.seconds,
         pipeline.backend_name(),
         r.map_or(0.0, |r| r.max_displacement),
-        r.map(|r| r.reaction_force.map(|f| (f * 1e3).round() / 1e3))
+        r.map(|r| r.reaction(0).force.map(|f| (f * 1e3).round() / 1e3))
     );
     Ok(())
 }

@@ -1,0 +1,167 @@
+//! `defvol bench solver`: implicit Euler over CG tolerances, time steps and
+//! preconditioners, and the explicit schemes, each against an f64 run converged to 1e-10.
+
+use std::time::Instant;
+
+use nalgebra::Vector3;
+use serde_json::json;
+
+use super::{cantilever, cpu_description, relative_error, time_stats, BenchRow, ErrorMeasure};
+use crate::backend::{Backend, BackendChoice};
+use crate::solver::{Integrator, MassSpringModel, Preconditioner, SolverEngine, SolverEngineError, SolverParams};
+
+pub struct SolverBenchOptions {
+    pub sizes: Vec<usize>,
+    pub steps: usize,
+    /// Each resolved once (`gpu` with no usable adapter is an error).
+    pub backends: Vec<BackendChoice>,
+    pub allow_software_gpu: bool,
+    pub tolerances: Vec<f64>,
+    pub dts: Vec<f64>,
+    pub explicit_dt: f64,
+    pub preconditioners: Vec<Preconditioner>,
+}
+
+/// A reference run's scheme and time step (its bits).
+type ReferenceKey = (Integrator, u64);
+
+struct Run {
+    positions: Vec<Vector3<f64>>,
+    step_ms: Vec<f64>,
+    cg_iterations: f64,
+    backend: &'static str,
+    device: String,
+}
+
+/// `backend`: the run's, or `None` for the f64 reference.
+fn run(
+    backend: Option<&Backend>,
+    model: &MassSpringModel,
+    params: SolverParams,
+    steps: usize,
+) -> Result<Run, SolverEngineError> {
+    let mut engine = match backend {
+        Some(backend) => SolverEngine::new(backend, model, params, Vec::new())?,
+        None => SolverEngine::reference_f64(model, params, Vec::new())?,
+    };
+    // Settle: the first step pays for allocation, pipeline compilation and warm caches.
+    engine.step()?;
+    let mut step_ms = Vec::with_capacity(steps);
+    let mut iterations = 0u64;
+    for _ in 1..steps {
+        let start = Instant::now();
+        let report = engine.step()?;
+        step_ms.push(start.elapsed().as_secs_f64() * 1e3);
+        iterations += report.cg_iterations as u64;
+    }
+    Ok(Run {
+        positions: engine.positions(),
+        step_ms,
+        cg_iterations: iterations as f64 / (steps.max(2) - 1) as f64,
+        backend: engine.backend(),
+        device: engine.name(),
+    })
+}
+
+/// Implicit Euler over CG tolerances and time steps, and the explicit schemes at their
+/// stable step, each against an f64 run of the same scheme and step converged to 1e-10.
+pub fn solver(opts: &SolverBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result<(), SolverEngineError> {
+    let device = cpu_description();
+    let backends =
+        opts.backends.iter().map(|b| Backend::choose(*b, opts.allow_software_gpu)).collect::<Result<Vec<_>, _>>()?;
+    for &size in &opts.sizes {
+        let model = cantilever(size)?;
+        let case = format!("cantilever{}", model.node_count());
+        let tets = size;
+        let mut configs: Vec<SolverParams> = Vec::new();
+        for &dt in &opts.dts {
+            for &tol in &opts.tolerances {
+                for &preconditioner in &opts.preconditioners {
+                    configs.push(SolverParams {
+                        integrator: Integrator::ImplicitEuler,
+                        dt,
+                        cg_tolerance: tol,
+                        cg_max_iterations: 5000,
+                        preconditioner,
+                        ..Default::default()
+                    });
+                }
+            }
+        }
+        for integrator in [Integrator::ExplicitEuler, Integrator::Verlet, Integrator::VelocityVerlet] {
+            configs.push(SolverParams { integrator, dt: opts.explicit_dt, ..Default::default() });
+        }
+        // Per (scheme, step): the f64 run's positions, or none where it was unstable.
+        let mut references: Vec<(ReferenceKey, Option<Vec<Vector3<f64>>>)> = Vec::new();
+        for params in configs {
+            let key = (params.integrator, params.dt.to_bits());
+            if !references.iter().any(|(k, _)| *k == key) {
+                let tight = SolverParams { cg_tolerance: 1e-10, cg_max_iterations: 20_000, ..params.clone() };
+                match run(None, &model, tight, opts.steps) {
+                    Ok(reference) => references.push((key, Some(reference.positions))),
+                    Err(SolverEngineError::Solver(e)) => {
+                        tracing::warn!("{case} {} h={}: unstable, skipped ({e})", params.integrator.name(), params.dt);
+                        references.push((key, None));
+                    }
+                    Err(e) => return Err(e),
+                }
+            }
+            let Some((_, Some(reference))) = references.iter().find(|(k, _)| *k == key) else { continue };
+            for backend in &backends {
+                let result = match run(Some(backend), &model, params.clone(), opts.steps) {
+                    Ok(r) => r,
+                    Err(SolverEngineError::Solver(e)) => {
+                        tracing::warn!("{case} {}: {e}", params.integrator.name());
+                        continue;
+                    }
+                    Err(e) => return Err(e),
+                };
+                let device_name = if result.backend == "gpu" { result.device.clone() } else { device.clone() };
+                emit(&BenchRow {
+                    stage: "solver",
+                    case: case.clone(),
+                    backend: result.backend.into(),
+                    device: device_name,
+                    params: json!({"integrator": params.integrator.name(), "dt": params.dt, "cg_tolerance": params.cg_tolerance, "steps": opts.steps, "preconditioner": preconditioner_name(result.backend, &params)}),
+                    runs: result.step_ms.len(),
+                    time_ms: time_stats(result.step_ms),
+                    error: Some(ErrorMeasure {
+                        metric: "max_node_distance_over_max_displacement",
+                        value: relative_error(&model, &result.positions, reference),
+                        reference: "f64",
+                    }),
+                    work: json!({"tets": tets, "nodes": model.node_count(), "springs": model.springs.len(), "cg_iterations_mean": result.cg_iterations}),
+                });
+            }
+        }
+    }
+    Ok(())
+}
+
+/// The preconditioner a run really used: the GPU path has block Jacobi only; explicit
+/// schemes solve nothing.
+fn preconditioner_name(backend: &str, params: &SolverParams) -> &'static str {
+    match (params.integrator, params.preconditioner) {
+        (Integrator::ImplicitEuler, _) if backend == "gpu" => "block_jacobi",
+        (Integrator::ImplicitEuler, Preconditioner::BlockJacobi) => "block_jacobi",
+        (Integrator::ImplicitEuler, Preconditioner::Amg) => "amg",
+        _ => "none",
+    }
+}
+
+/// The human table row for one measurement.
+pub fn table_row(row: &BenchRow) -> String {
+    let steps_per_s = if row.time_ms.median > 0.0 { 1e3 / row.time_ms.median } else { f64::INFINITY };
+    format!(
+        "{:<18} {:<8} {:<60} {:>10.3} {:>9.1} {:>10.2e} {:>8}",
+        row.case,
+        row.backend,
+        row.params.to_string(),
+        row.time_ms.median,
+        steps_per_s,
+        row.error.as_ref().map_or(f64::NAN, |e| e.value),
+        row.work.get("cg_iterations_mean").and_then(|v| v.as_f64()).map_or("-".into(), |v| format!("{v:.1}"))
+    )
+}
+
+pub const TABLE_HEADER: &str = "case               backend  params                                                        median ms   steps/s      error  CG its";

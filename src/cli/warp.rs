@@ -1,0 +1,143 @@
+//! `defvol warp`: a volume through a deformed mesh and/or displacement volumes; with no
+//! files, the phantom through a generated bend.
+
+use std::path::PathBuf;
+
+use anyhow::{bail, Context, Result};
+
+use defvol::backend::Backend;
+use defvol::io;
+use defvol::mesh::TetMesh;
+use defvol::volume::{Grid, Volume};
+use defvol::warp::{DisplacementVolume, WarpOptions};
+
+use super::choices::{CliBackend, CliSampling, CliScheme};
+
+#[derive(clap::Args)]
+pub struct WarpArgs {
+    /// Rest mesh (.vtu, .vtk, .msh, .node/.ele), in the volume's physical units.
+    #[arg(long, requires = "deformed")]
+    rest: Option<PathBuf>,
+    /// Deformed mesh: same topology, moved nodes.
+    #[arg(long, requires = "rest")]
+    deformed: Option<PathBuf>,
+    /// Source volume (.nii, .nii.gz, .nrrd, .nhdr, .mha, .mhd); the phantom when absent.
+    #[arg(long)]
+    volume: Option<PathBuf>,
+    /// Output volume (.nii, .nii.gz, .nrrd, .mha, .mhd), in the source's units and conventions.
+    #[arg(long)]
+    out: PathBuf,
+    /// A displacement volume "cx,cy,cz:dx,dy,dz:extent" (repeatable; applied in order).
+    #[arg(long)]
+    displace: Vec<String>,
+    #[arg(long, value_enum, default_value = "spans")]
+    scheme: CliScheme,
+    #[arg(long, value_enum, default_value = "trilinear")]
+    sampling: CliSampling,
+    #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
+    background: f32,
+    /// Voxels outside the mesh keep the source's value.
+    #[arg(long)]
+    keep_uncovered: bool,
+    /// `auto`: the GPU when a hardware adapter exists and the options allow (trilinear, no
+    /// displacement volumes), else the CPU.
+    #[arg(long, value_enum, default_value = "auto")]
+    backend: CliBackend,
+    #[arg(long)]
+    allow_software_gpu: bool,
+}
+
+fn parse_displacement(text: &str) -> Result<DisplacementVolume> {
+    let parts: Vec<&str> = text.split(':').collect();
+    let vec3 = |s: &str| -> Result<[f64; 3]> {
+        let v: Vec<f64> = s
+            .split(',')
+            .map(|c| c.trim().parse::<f64>())
+            .collect::<Result<_, _>>()
+            .with_context(|| format!("`{s}` is not three numbers"))?;
+        let [x, y, z] = v[..] else { bail!("`{s}` is not three numbers") };
+        Ok([x, y, z])
+    };
+    let [centre, displacement, extent] = parts[..] else {
+        bail!("--displace `{text}`: expected cx,cy,cz:dx,dy,dz:extent")
+    };
+    Ok(DisplacementVolume {
+        centre: vec3(centre)?,
+        displacement: vec3(displacement)?,
+        extent: extent.trim().parse().with_context(|| format!("--displace `{text}`: bad extent"))?,
+    })
+}
+
+pub fn run(args: WarpArgs) -> Result<()> {
+    let source = match &args.volume {
+        Some(path) => io::read_volume(path)?,
+        None => defvol::volume::phantom::phantom(defvol::volume::phantom::DEFAULT_DIMS, 1.0)?,
+    };
+    let displacements = args.displace.iter().map(|d| parse_displacement(d)).collect::<Result<Vec<_>>>()?;
+    let options = WarpOptions {
+        scheme: args.scheme.into(),
+        sampling: args.sampling.into(),
+        background: args.background,
+        keep_uncovered: args.keep_uncovered,
+        displacements,
+        ..Default::default()
+    };
+    let started = std::time::Instant::now();
+    let result = match (&args.rest, &args.deformed) {
+        (Some(rest_path), Some(deformed_path)) => {
+            let rest = io::read_mesh(rest_path)?;
+            let deformed = io::read_mesh(deformed_path)?;
+            if deformed.tets() != rest.tets() {
+                bail!(
+                    "{}: the deformed mesh's tets differ from the rest mesh's ({} vs {} tets, or other node order)",
+                    deformed_path.display(),
+                    deformed.tets().len(),
+                    rest.tets().len()
+                );
+            }
+            let grid = defvol::warp::default_grid(&source, deformed.nodes());
+            warp_on_backend(&args, &source, &rest, deformed.nodes(), grid, &options)?
+        }
+        _ if args.volume.is_some() && args.rest.is_none() && !options.displacements.is_empty() => {
+            defvol::warp::displace(&source, &source.grid(), &options)?
+        }
+        _ => {
+            // The phantom through a generated deformation: a bend.
+            let (lo, hi) = source.bounds();
+            let rest = defvol::mesh::generate::lattice_for_box(lo, hi, 700, defvol::mesh::generate::CellSplit::Five)?;
+            let (centre, half) = ((lo + hi) / 2.0, (hi - lo) / 2.0);
+            let bent = defvol::bench::WarpCase::Bend.deform(rest.nodes(), centre, half);
+            let grid = defvol::warp::default_grid(&source, &bent);
+            warp_on_backend(&args, &source, &rest, &bent, grid, &options)?
+        }
+    };
+    tracing::info!("warped to {:?} in {:.1} ms", result.dims(), started.elapsed().as_secs_f64() * 1e3);
+    io::write_volume(&args.out, &result)?;
+    tracing::info!("wrote {}", args.out.display());
+    Ok(())
+}
+
+/// The warp on the chosen backend (`auto` falls back to the CPU for options only it has).
+fn warp_on_backend(
+    args: &WarpArgs,
+    source: &Volume,
+    rest: &TetMesh,
+    deformed: &[nalgebra::Vector3<f64>],
+    grid: Grid,
+    options: &WarpOptions,
+) -> Result<Volume> {
+    let backend: Backend = super::backend_of(args.backend, args.allow_software_gpu)?;
+    #[cfg(feature = "gpu")]
+    if let Some(gpu) = backend
+        .try_gpu("warp", |ctx| defvol::warp::gpu::GpuWarp::new(ctx.clone(), source, rest, grid.clone(), options, 1.0))?
+    {
+        let (data, stats) = gpu.warp(rest, deformed)?;
+        tracing::info!("warped on the GPU: {stats:?}");
+        return Ok(Volume::from_grid(&grid, data, "warped volume")?);
+    }
+    #[cfg(not(feature = "gpu"))]
+    let _ = backend;
+    let (out, stats) = defvol::warp::warp(source, rest, deformed, &grid, options)?;
+    tracing::info!("warped on the CPU: {stats:?}");
+    Ok(out)
+}

@@ -1,0 +1,209 @@
+// Grid warp by exact row spans: the GPU twin of the `Spans` scheme in warp/mod.rs.
+// - `fill`: every output voxel gets the background, or with keep_uncovered the source's
+//   value at the same place (Sampler::at through the identity map, as `initial_value`);
+// - `tet_maps`: per tet, its maps from the deformed nodes (output index space) and the rest
+//   nodes (source index space), as `tet_map` computes them in f64; rebased on the tet's box
+//   corner so f32 keeps precision in voxel-local coordinates;
+// - `warp_tets`: one workgroup per tet; its threads take the rows (j, k) of the tet's box in
+//   turn (TetMap::span, rasterize_slice, Sampler::trilinear_run).
+
+struct Params {
+    out_dims: vec4<u32>,   // nx, ny, nz, tet count
+    src_dims: vec4<u32>,   // nx, ny, nz, -
+    background: vec4<f32>, // background, inside tolerance, sample tolerance, keep_uncovered (1/0)
+    identity: array<vec4<f32>, 3>, // source index from output index, rows (offset, di, dj, dk)
+    groups: vec4<u32>,     // row widths of the fill, tet-map and warp dispatch grids, -
+}
+
+@group(0) @binding(0) var<uniform> params: Params;
+// Per tet, 9 vec4: bary rows 0-3 (b = x + y·i + z·j + w·k, local), source rows 0-2
+// (likewise), box low corner (xyz), box size (xyz; 0 marks a skipped tet).
+@group(0) @binding(1) var<storage, read_write> maps: array<vec4<f32>>;
+@group(0) @binding(2) var<storage, read> source: array<f32>;
+@group(0) @binding(3) var<storage, read_write> out: array<f32>;
+// Deformed nodes in output index space (xyz), rest nodes in source index space (xyz).
+@group(0) @binding(4) var<storage, read> nodes: array<vec4<f32>>;
+@group(0) @binding(5) var<storage, read> rest: array<vec4<f32>>;
+@group(0) @binding(6) var<storage, read> tets: array<vec4<u32>>;
+// Voxels written from inside a tet; tets skipped (inverted, flat, or off the grid).
+@group(0) @binding(7) var<storage, read_write> stats: array<atomic<u32>, 2>;
+
+const WG: u32 = 64u;
+
+fn inside(a: vec4<f32>, c: vec4<f32>, i: f32) -> bool {
+    let b = a + c * i;
+    return all(b >= vec4<f32>(0.0));
+}
+
+fn trilinear(p: vec3<f32>) -> f32 {
+    let dims = vec3<f32>(params.src_dims.xyz);
+    let tol = params.background.z;
+    let top = dims - vec3<f32>(1.0);
+    if (any(p < vec3<f32>(-tol)) || any(p > top + vec3<f32>(tol))) {
+        return params.background.x;
+    }
+    let q = clamp(p, vec3<f32>(0.0), top);
+    let cell = min(vec3<u32>(q), max(params.src_dims.xyz, vec3<u32>(2u)) - vec3<u32>(2u));
+    let f = q - vec3<f32>(cell);
+    let nx = params.src_dims.x;
+    let nxy = params.src_dims.x * params.src_dims.y;
+    let sx = select(0u, 1u, params.src_dims.x > 1u);
+    let sy = select(0u, nx, params.src_dims.y > 1u);
+    let sz = select(0u, nxy, params.src_dims.z > 1u);
+    let b = cell.x + nx * cell.y + nxy * cell.z;
+    let c00 = mix(source[b], source[b + sx], f.x);
+    let c10 = mix(source[b + sy], source[b + sy + sx], f.x);
+    let c01 = mix(source[b + sz], source[b + sz + sx], f.x);
+    let c11 = mix(source[b + sz + sy], source[b + sz + sy + sx], f.x);
+    return mix(mix(c00, c10, f.y), mix(c01, c11, f.y), f.z);
+}
+
+@compute @workgroup_size(64)
+fn fill(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let v = gid.x + gid.y * params.groups.x * WG;
+    if (v >= arrayLength(&out)) {
+        return;
+    }
+    if (params.background.w == 0.0) {
+        out[v] = params.background.x;
+        return;
+    }
+    let nx = params.out_dims.x;
+    let ny = params.out_dims.y;
+    let ijk = vec3<f32>(f32(v % nx), f32((v / nx) % ny), f32(v / (nx * ny)));
+    let r = params.identity;
+    out[v] = trilinear(vec3<f32>(dot(r[0], vec4<f32>(1.0, ijk)), dot(r[1], vec4<f32>(1.0, ijk)), dot(r[2], vec4<f32>(1.0, ijk))));
+}
+
+fn skip_tet(base: u32) {
+    maps[base + 8u] = vec4<f32>(0.0);
+    atomicAdd(&stats[1], 1u);
+}
+
+@compute @workgroup_size(64)
+fn tet_maps(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let t = gid.x + gid.y * params.groups.y * WG;
+    if (t >= params.out_dims.w) {
+        return;
+    }
+    let ids = tets[t];
+    let base = t * 9u;
+    let p0 = nodes[ids.x].xyz;
+    let p1 = nodes[ids.y].xyz;
+    let p2 = nodes[ids.z].xyz;
+    let p3 = nodes[ids.w].xyz;
+    let stol = params.background.z;
+    let top = vec3<f32>(params.out_dims.xyz) - vec3<f32>(1.0);
+    // The box, widened by the sample tolerance (a vertex at 38.9999999 still covers 39).
+    let lo = max(ceil(min(min(p0, p1), min(p2, p3)) - vec3<f32>(stol)), vec3<f32>(0.0));
+    let hi = min(floor(max(max(p0, p1), max(p2, p3)) + vec3<f32>(stol)), top);
+    if (any(lo > hi)) {
+        skip_tet(base);
+        return;
+    }
+    let e1 = p1 - p0;
+    let e2 = p2 - p0;
+    let e3 = p3 - p0;
+    let q0 = rest[ids.x].xyz;
+    let f1 = rest[ids.y].xyz - q0;
+    let f2 = rest[ids.z].xyz - q0;
+    let f3 = rest[ids.w].xyz - q0;
+    let det = dot(e1, cross(e2, e3));
+    let rest_det = dot(f1, cross(f2, f3));
+    // Same orientation as at rest, and not flat: |det| against the cube of the longest edge.
+    let longest = max(max(max(length(e1), length(e2)), max(length(e3), length(p2 - p1))), max(length(p3 - p1), length(p3 - p2)));
+    if (det * rest_det <= 0.0 || abs(det) < 1e-9 * longest * longest * longest) {
+        skip_tet(base);
+        return;
+    }
+    // Rows of the inverse of the edge matrix (columns e1, e2, e3).
+    let r0 = cross(e2, e3) / det;
+    let r1 = cross(e3, e1) / det;
+    let r2 = cross(e1, e2) / det;
+    let l0 = p0 - lo;
+    let b1 = vec4<f32>(-dot(r0, l0), r0);
+    let b2 = vec4<f32>(-dot(r1, l0), r1);
+    let b3 = vec4<f32>(-dot(r2, l0), r2);
+    maps[base] = vec4<f32>(1.0, 0.0, 0.0, 0.0) - b1 - b2 - b3;
+    maps[base + 1u] = b1;
+    maps[base + 2u] = b2;
+    maps[base + 3u] = b3;
+    // Source index: q0 + Q · inverse · (x - l0), Q with columns f1, f2, f3.
+    let mx = f1.x * r0 + f2.x * r1 + f3.x * r2;
+    let my = f1.y * r0 + f2.y * r1 + f3.y * r2;
+    let mz = f1.z * r0 + f2.z * r1 + f3.z * r2;
+    maps[base + 4u] = vec4<f32>(q0.x - dot(mx, l0), mx);
+    maps[base + 5u] = vec4<f32>(q0.y - dot(my, l0), my);
+    maps[base + 6u] = vec4<f32>(q0.z - dot(mz, l0), mz);
+    maps[base + 7u] = vec4<f32>(lo, 0.0);
+    maps[base + 8u] = vec4<f32>(hi - lo + vec3<f32>(1.0), 0.0);
+}
+
+@compute @workgroup_size(64)
+fn warp_tets(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>) {
+    let t = wid.x + wid.y * params.groups.z;
+    if (t >= params.out_dims.w) {
+        return;
+    }
+    let base = t * 9u;
+    let size = vec3<u32>(maps[base + 8u].xyz);
+    if (size.x == 0u) {
+        return;
+    }
+    let lo = vec3<u32>(maps[base + 7u].xyz);
+    // Barycentric rows as columns of per-coordinate vectors: a(j, k) and the i slope.
+    let b0 = maps[base];
+    let b1 = maps[base + 1u];
+    let b2 = maps[base + 2u];
+    let b3 = maps[base + 3u];
+    let c = vec4<f32>(b0.y, b1.y, b2.y, b3.y);
+    let s0 = maps[base + 4u];
+    let s1 = maps[base + 5u];
+    let s2 = maps[base + 6u];
+    let rows = size.y * size.z;
+    let nx = params.out_dims.x;
+    let nxy = params.out_dims.x * params.out_dims.y;
+    let tol = params.background.y;
+    var written = 0u;
+    for (var r = lid.x; r < rows; r = r + WG) {
+        let jl = f32(r % size.y);
+        let kl = f32(r / size.y);
+        let a = vec4<f32>(b0.x + b0.z * jl + b0.w * kl, b1.x + b1.z * jl + b1.w * kl, b2.x + b2.z * jl + b2.w * kl, b3.x + b3.z * jl + b3.w * kl) + vec4<f32>(tol);
+        var first = 0.0;
+        var last = f32(size.x - 1u);
+        var empty = false;
+        for (var m = 0u; m < 4u; m = m + 1u) {
+            if (c[m] > 0.0) {
+                first = max(first, ceil(-a[m] / c[m]));
+            } else if (c[m] < 0.0) {
+                last = min(last, floor(-a[m] / c[m]));
+            } else if (a[m] < 0.0) {
+                empty = true;
+            }
+        }
+        if (empty) {
+            continue;
+        }
+        // Widen by one, then settle on the evaluated predicate (as TetMap::span does).
+        var i0 = i32(clamp(first - 1.0, 0.0, f32(size.x - 1u)));
+        var i1 = i32(clamp(last + 1.0, 0.0, f32(size.x - 1u)));
+        while (i0 <= i1 && !inside(a, c, f32(i0))) {
+            i0 = i0 + 1;
+        }
+        while (i1 >= i0 && !inside(a, c, f32(i1))) {
+            i1 = i1 - 1;
+        }
+        let row = (lo.y + r % size.y) * nx + (lo.z + r / size.y) * nxy + lo.x;
+        for (var i = i0; i <= i1; i = i + 1) {
+            let fi = f32(i);
+            let p = vec3<f32>(s0.x + s0.y * fi + s0.z * jl + s0.w * kl, s1.x + s1.y * fi + s1.z * jl + s1.w * kl, s2.x + s2.y * fi + s2.z * jl + s2.w * kl);
+            out[row + u32(i)] = trilinear(p);
+        }
+        if (i1 >= i0) {
+            written = written + u32(i1 - i0 + 1);
+        }
+    }
+    if (written > 0u) {
+        atomicAdd(&stats[0], written);
+    }
+}

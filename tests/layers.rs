@@ -1,0 +1,147 @@
+//! The dependency rules of ARCHITECTURE.md, checked on the sources: every `crate::<module>`
+//! a file names is a dependency of its module, and these must hold.
+
+use std::collections::BTreeSet;
+use std::path::{Path, PathBuf};
+
+/// The algorithms: they know nothing of ROS, records, messages or the node's wiring.
+const ALGORITHMS: [&str; 10] = ["math", "mesh", "volume", "io", "gpu", "backend", "solver", "warp", "dpcm", "render"];
+/// What no algorithm may import.
+const ABOVE_ALGORITHMS: [&str; 8] = ["ros", "record", "msgs", "session", "shm", "pipeline", "scene", "bench"];
+/// The stages: each one folder with its CPU path, GPU host code, shaders and agreement tests.
+const STAGES: [&str; 4] = ["solver", "warp", "dpcm", "render"];
+
+fn rust_files(dir: &Path, out: &mut Vec<PathBuf>) {
+    for entry in std::fs::read_dir(dir).unwrap() {
+        let path = entry.unwrap().path();
+        if path.is_dir() {
+            rust_files(&path, out);
+        } else if path.extension().is_some_and(|e| e == "rs") {
+            out.push(path);
+        }
+    }
+}
+
+/// The top-level module a source file belongs to (`src/warp/gpu.rs` → `warp`).
+fn module_of(src: &Path, file: &Path) -> String {
+    let relative = file.strip_prefix(src).unwrap();
+    let first = relative.components().next().unwrap().as_os_str().to_string_lossy().into_owned();
+    first.trim_end_matches(".rs").to_owned()
+}
+
+/// The crate modules a file names (`crate::x`), outside comments.
+fn dependencies(text: &str) -> BTreeSet<String> {
+    let mut found = BTreeSet::new();
+    for line in text.lines() {
+        let code = line.split("//").next().unwrap_or_default();
+        let mut rest = code;
+        while let Some(at) = rest.find("crate::") {
+            let after = &rest[at + "crate::".len()..];
+            let name: String = after.chars().take_while(|c| c.is_ascii_alphanumeric() || *c == '_').collect();
+            if !name.is_empty() {
+                found.insert(name);
+            }
+            rest = after;
+        }
+    }
+    found
+}
+
+/// Every (module, dependency, file) in the library.
+fn edges() -> Vec<(String, String, PathBuf)> {
+    let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
+    let mut files = Vec::new();
+    rust_files(&src, &mut files);
+    let mut out = Vec::new();
+    for file in files {
+        let module = module_of(&src, &file);
+        if ["main", "lib", "cli", "bin"].contains(&module.as_str()) {
+            continue;
+        }
+        let text = std::fs::read_to_string(&file).unwrap();
+        for dependency in dependencies(&text) {
+            if dependency != module {
+                out.push((module.clone(), dependency, file.clone()));
+            }
+        }
+    }
+    out
+}
+
+#[test]
+fn the_module_scan_sees_the_known_dependencies() {
+    // The rules below are only as good as the scan: it must see edges that exist.
+    let edges = edges();
+    let has = |a: &str, b: &str| edges.iter().any(|(m, d, _)| m == a && d == b);
+    assert!(
+        has("warp", "volume") && has("pipeline", "warp") && has("ros", "pipeline") && has("solver", "math"),
+        "{edges:?}"
+    );
+}
+
+#[test]
+fn algorithms_never_import_ros_records_messages_or_the_wiring() {
+    let broken: Vec<_> = edges()
+        .into_iter()
+        .filter(|(m, d, _)| ALGORITHMS.contains(&m.as_str()) && ABOVE_ALGORITHMS.contains(&d.as_str()))
+        .collect();
+    assert!(broken.is_empty(), "algorithms importing upper layers: {broken:?}");
+}
+
+#[test]
+fn the_gpu_plumbing_imports_no_stage_and_no_data() {
+    let broken: Vec<_> = edges().into_iter().filter(|(m, d, _)| m == "gpu" && d != "math").collect();
+    assert!(broken.is_empty(), "gpu/ imports more than the ground floor: {broken:?}");
+}
+
+#[test]
+fn no_stage_imports_another() {
+    let broken: Vec<_> =
+        edges().into_iter().filter(|(m, d, _)| STAGES.contains(&m.as_str()) && STAGES.contains(&d.as_str())).collect();
+    assert!(broken.is_empty(), "stages importing each other: {broken:?}");
+}
+
+#[test]
+fn the_ground_floor_and_the_messages_stand_alone() {
+    let broken: Vec<_> = edges().into_iter().filter(|(m, _, _)| m == "math" || m == "msgs").collect();
+    assert!(broken.is_empty(), "math and msgs import nothing of the crate: {broken:?}");
+}
+
+#[test]
+fn every_shader_sits_beside_its_host_code() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    assert!(!root.join("shaders").exists(), "shaders live in their stage's folder, not in shaders/");
+    let src = root.join("src");
+    let mut shaders = Vec::new();
+    let mut stack = vec![src.clone()];
+    while let Some(dir) = stack.pop() {
+        for entry in std::fs::read_dir(dir).unwrap() {
+            let path = entry.unwrap().path();
+            if path.is_dir() {
+                stack.push(path);
+            } else if path.extension().is_some_and(|e| e == "wgsl") {
+                shaders.push(path);
+            }
+        }
+    }
+    assert!(shaders.len() >= 7, "{shaders:?}");
+    for shader in shaders {
+        let module = module_of(&src, &shader);
+        assert!(
+            STAGES.contains(&module.as_str()) || module == "gpu",
+            "{}: a shader outside the stages and gpu/",
+            shader.display()
+        );
+        let name = shader.file_name().unwrap().to_string_lossy().into_owned();
+        let folder = shader.parent().unwrap();
+        let users: Vec<PathBuf> = std::fs::read_dir(folder)
+            .unwrap()
+            .map(|e| e.unwrap().path())
+            .filter(|p| {
+                p.extension().is_some_and(|e| e == "rs")
+                    && std::fs::read_to_string(p).unwrap().contains(&format!("include_str!(\"{name}\")"))
+            })
+            .collect();
+        assert!(!users.is_empty(), "{}: no host file beside it includes it", shader.display());
+    }
+}
