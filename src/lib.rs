@@ -6,7 +6,7 @@
 //! its shader and their agreement tests: [`solver`], [`warp`], [`dpcm`], [`render`];
 //! [`backend`], the one CPU-or-GPU choice a run hands every stage; [`scene`], what a run
 //! loads; [`pipeline`], the stages chained for the node without ROS; then the records and
-//! the wire: [`msgs`], [`record`], [`session`], [`shm`], [`ros`]; and [`bench`].
+//! the wire: [`msgs`], [`record`], [`session`], [`shm`], [`ros`]; and [`bench`](mod@bench).
 
 // Errors are returned, not unwrapped (tests may unwrap).
 #![cfg_attr(not(test), deny(clippy::unwrap_used, clippy::expect_used))]

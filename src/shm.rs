@@ -30,7 +30,7 @@ pub enum ShmError {
 
 /// What precedes the samples (x fastest, then y, then z), as a C struct: readers in any
 /// language map it directly. Spacing and origin are in the volume's file units (mm); voxel
-/// (i, j, k) sits at origin + direction · (i·spacing[0], j·spacing[1], k·spacing[2]), the
+/// (i, j, k) sits at `origin + direction · (i·spacing[0], j·spacing[1], k·spacing[2])`, the
 /// direction row major, as ITK places it.
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
 #[type_name("WarpedVolumeHeader")]

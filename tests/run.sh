@@ -26,9 +26,10 @@ fi
 
 # Independent peers and readers for the interop tests, in a virtual environment beside the
 # build: Foxglove's ROS 2 MCAP reader, rerun's CLI, Eclipse Cyclone DDS, iceoryx2's Python
-# binding, SimpleITK. Versions are pinned to what the Rust side speaks.
+# binding, and the field's file tools (meshio, VTK, Gmsh, SimpleITK, nibabel, pynrrd).
+# Versions are pinned to what the Rust side speaks.
 venv="${CARGO_TARGET_DIR:-target}/interop-venv"
-requirements="mcap==1.6.0 mcap-ros2-support==0.6.0 rerun-sdk==0.36.3 cyclonedds==11.0.1 iceoryx2==0.10.0 SimpleITK==2.5.3"
+requirements="mcap==1.6.0 mcap-ros2-support==0.6.0 rerun-sdk==0.36.3 cyclonedds==11.0.1 iceoryx2==0.10.0 SimpleITK==2.5.3 numpy==2.4.6 meshio==5.3.5 vtk==9.7.2 gmsh==4.15.2 nibabel==5.4.2 pynrrd==1.1.3"
 if [ "$(cat "$venv/.requirements" 2>/dev/null)" != "$requirements" ]; then
     if ! python3 -m venv --help >/dev/null 2>&1 || ! python3 -c 'import ensurepip' >/dev/null 2>&1; then
         as_root apt-get update -qq
@@ -48,8 +49,9 @@ export XDG_RUNTIME_DIR="${XDG_RUNTIME_DIR:-$(mktemp -d)}"
 # GPU tests must run, not skip, once the adapter is installed.
 export DEFVOL_REQUIRE_GPU=1
 
-# The code's shape and lints first: a change out of rustfmt shape or with a clippy warning
-# fails the suite.
+# The code's shape, lints and API docs first: a change out of rustfmt shape, with a clippy
+# warning or a broken doc link fails the suite.
 cargo fmt --check
 cargo clippy --locked --all-targets -- -D warnings
+RUSTDOCFLAGS="-D warnings" cargo doc --locked --no-deps
 cargo test --locked "$@"

@@ -154,7 +154,7 @@ pub const AXIAL: [(isize, isize); 4] = [(-1, 0), (1, 0), (0, -1), (0, 1)];
 pub const DIAGONAL: [(isize, isize); 4] = [(-1, -1), (-1, 1), (1, -1), (1, 1)];
 
 /// The plastic ground link's rest point after Z(n): dragged so that |Z - rest| <= threshold
-/// (the hysteresis of [CLH96]). Elastic when the threshold is negative.
+/// (the hysteresis of \[CLH96\]). Elastic when the threshold is negative.
 #[inline(always)]
 pub fn plastic_rest(c: &Coeffs, rest: f32, z: f32) -> f32 {
     if c.plastic_threshold < 0.0 {
@@ -275,7 +275,7 @@ impl RestRow for PlasticRest<'_> {
     }
 }
 
-/// Which links of a phyxel exist: bit k for [`AXIAL`]\[k], bit 4 + k for [`DIAGONAL`]\[k].
+/// Which links of a phyxel exist: bit k for [`AXIAL`]`[k]`, bit 4 + k for [`DIAGONAL`]`[k]`.
 pub trait LinkMask: Copy {
     fn at(self, x: usize) -> u8;
 }

@@ -66,7 +66,7 @@ pub enum Interaction {
         stiffness: f64,
         damping: f64,
     },
-    /// Hysteretic spring ([CLH96]): its rest point follows the mass once the stretch exceeds
+    /// Hysteretic spring (\[CLH96\]): its rest point follows the mass once the stretch exceeds
     /// `threshold` (metres), leaving a permanent mark. Ground links only.
     Plastic {
         stiffness: f64,

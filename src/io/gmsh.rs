@@ -1,144 +1,379 @@
-//! Gmsh `.msh`: version 4.1 (ASCII or binary) through mshio; version 2.2 ASCII read here.
-//! Files are written as 4.1 ASCII. Only linear tets (type 4) become elements; points,
-//! lines and triangles (physical groups, boundaries) are skipped.
+//! Gmsh `.msh` versions 2.2 and 4.1, ASCII and binary, read here (every count checked
+//! against the bytes that are there); written as 4.1 ASCII. Linear tets (type 4) become the
+//! mesh; the other elements Gmsh writes beside them (points, lines, boundary triangles of the
+//! physical groups) are counted and skipped.
 
 use std::collections::HashMap;
-use std::path::Path;
 
 use nalgebra::Vector3;
 
-use super::vtk::MeshParts;
-use super::{io_error, malformed, IoError};
+use super::MeshFile;
 
-const TET4: i64 = 4;
+type Fault = String;
 
-pub(super) fn read(path: &Path) -> Result<MeshParts, IoError> {
-    let bytes = std::fs::read(path).map_err(io_error(path))?;
-    let head = String::from_utf8_lossy(&bytes[..bytes.len().min(64)]).into_owned();
-    let version = head.lines().nth(1).and_then(|l| l.split_whitespace().next()).unwrap_or("").to_owned();
-    if version.starts_with("2.") {
-        return read_v2(path, &bytes);
+const TET4: u32 = 4;
+
+/// Nodes per element of Gmsh's element types (`None`: a type this reader does not know).
+fn nodes_per_element(ty: u32) -> Option<usize> {
+    Some(match ty {
+        1 => 2,
+        2 => 3,
+        3 => 4,
+        4 => 4,
+        5 => 8,
+        6 => 6,
+        7 => 5,
+        8 => 3,
+        9 => 6,
+        10 => 9,
+        11 => 10,
+        12 => 27,
+        13 => 18,
+        14 => 14,
+        15 => 1,
+        16 => 8,
+        17 => 20,
+        18 => 15,
+        19 => 13,
+        _ => return None,
+    })
+}
+
+fn element_name(ty: u32) -> &'static str {
+    match ty {
+        1 => "line",
+        2 => "triangle",
+        3 => "quadrangle",
+        5 => "hexahedron",
+        6 => "prism",
+        7 => "pyramid",
+        8 => "quadratic line",
+        9 => "quadratic triangle",
+        11 => "quadratic tetrahedron",
+        15 => "point",
+        _ => "other element",
     }
-    let msh = mshio::parse_msh_bytes(&bytes).map_err(|e| {
-        malformed(path, format!("not a readable Gmsh 4.1 file: {e:?}").chars().take(300).collect::<String>())
-    })?;
-    let Some(node_data) = msh.data.nodes else { return Err(malformed(path, "no $Nodes section")) };
+}
+
+/// Text and binary reads over the file's bytes.
+struct Cursor<'a> {
+    bytes: &'a [u8],
+    position: usize,
+    /// Bytes of a `size_t` in binary files (4.1).
+    size_t: usize,
+}
+
+impl<'a> Cursor<'a> {
+    fn remaining(&self) -> usize {
+        self.bytes.len() - self.position
+    }
+
+    fn word(&mut self) -> Option<&'a str> {
+        while self.bytes.get(self.position).is_some_and(|b| b.is_ascii_whitespace()) {
+            self.position += 1;
+        }
+        let start = self.position;
+        while self.bytes.get(self.position).is_some_and(|b| !b.is_ascii_whitespace()) {
+            self.position += 1;
+        }
+        (self.position > start).then(|| std::str::from_utf8(&self.bytes[start..self.position]).unwrap_or("\u{fffd}"))
+    }
+
+    fn number<T: std::str::FromStr>(&mut self, what: &str) -> Result<T, Fault> {
+        let w = self.word().ok_or_else(|| format!("the file ends where {what} should be"))?;
+        w.parse().map_err(|_| format!("{what}: `{}` is not a number", w.chars().take(20).collect::<String>()))
+    }
+
+    /// Skips the rest of the line (before binary data).
+    fn end_line(&mut self) {
+        while self.bytes.get(self.position).is_some_and(|b| *b != b'\n') {
+            self.position += 1;
+        }
+        self.position = (self.position + 1).min(self.bytes.len());
+    }
+
+    fn take(&mut self, n: usize) -> Result<&'a [u8], Fault> {
+        if n > self.remaining() {
+            return Err(format!("{n} bytes of binary data announced, {} left", self.remaining()));
+        }
+        let out = &self.bytes[self.position..self.position + n];
+        self.position += n;
+        Ok(out)
+    }
+
+    fn int(&mut self) -> Result<i64, Fault> {
+        let b = self.take(4)?;
+        Ok(i64::from(i32::from_le_bytes([b[0], b[1], b[2], b[3]])))
+    }
+
+    fn size(&mut self) -> Result<u64, Fault> {
+        let b = self.take(self.size_t)?;
+        let mut w = [0u8; 8];
+        w[..b.len()].copy_from_slice(b);
+        Ok(u64::from_le_bytes(w))
+    }
+
+    fn double(&mut self) -> Result<f64, Fault> {
+        let b = self.take(8)?;
+        Ok(f64::from_le_bytes([b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7]]))
+    }
+
+    /// Skips to just after the line `$End<section>`.
+    fn skip_section(&mut self, section: &str) -> Result<(), Fault> {
+        let end = format!("$End{section}");
+        let at = self.bytes[self.position..]
+            .windows(end.len())
+            .position(|w| w == end.as_bytes())
+            .ok_or_else(|| format!("${section} never ends"))?;
+        self.position += at + end.len();
+        Ok(())
+    }
+}
+
+/// A count from a header that must fit the bytes left, `per` bytes each at least.
+fn bounded(count: u64, per: usize, c: &Cursor, what: &str) -> Result<usize, Fault> {
+    let count = usize::try_from(count).map_err(|_| format!("{what} {count} is beyond this machine"))?;
+    if count.saturating_mul(per) > c.remaining() {
+        return Err(format!("{count} {what} announced, the file is too short for them"));
+    }
+    Ok(count)
+}
+
+pub(super) fn parse(bytes: &[u8]) -> Result<MeshFile, Fault> {
+    let mut c = Cursor { bytes, position: 0, size_t: 8 };
+    if c.word() != Some("$MeshFormat") {
+        return Err("missing $MeshFormat".into());
+    }
+    let version: String = c.number("the version")?;
+    let binary = c.number::<u32>("the file type")? == 1;
+    let data_size: usize = c.number("the data size")?;
+    if data_size != 4 && data_size != 8 {
+        return Err(format!("data size {data_size}: only 4 or 8 bytes"));
+    }
+    c.size_t = data_size;
+    if binary {
+        c.end_line();
+        if c.int()? != 1 {
+            return Err("a binary file in the other byte order".into());
+        }
+    }
+    let v4 = match version.as_str() {
+        "4.1" => true,
+        v if v.starts_with("2.") => false,
+        other => return Err(format!("version {other}: only 2.2 and 4.1 are read")),
+    };
+    let mut mesh = MeshFile::default();
     let mut index_of_tag: HashMap<u64, u32> = HashMap::new();
-    let mut nodes = Vec::new();
-    let mut next_tag = node_data.min_node_tag;
-    for block in &node_data.node_blocks {
-        let tags: Vec<u64> = match &block.node_tags {
-            Some(map) => {
-                let mut by_index = vec![0u64; block.nodes.len()];
-                for (&tag, &i) in map {
-                    if let Some(slot) = by_index.get_mut(i) {
-                        *slot = tag;
-                    }
-                }
-                by_index
+    while let Some(word) = c.word() {
+        match word {
+            "$EndMeshFormat" => {}
+            "$Nodes" if v4 => read_nodes_v4(&mut c, binary, &mut mesh, &mut index_of_tag)?,
+            "$Nodes" | "$NOD" => read_nodes_v2(&mut c, binary, &mut mesh, &mut index_of_tag)?,
+            "$Elements" if v4 => read_elements_v4(&mut c, binary, &mut mesh, &index_of_tag)?,
+            "$Elements" | "$ELM" => read_elements_v2(&mut c, binary, &mut mesh, &index_of_tag)?,
+            section if section.starts_with('$') && !section.starts_with("$End") => c.skip_section(&section[1..])?,
+            other => {
+                return Err(format!("unexpected `{}` between sections", other.chars().take(30).collect::<String>()))
             }
-            None => (0..block.nodes.len() as u64).map(|k| next_tag + k).collect(),
+        }
+    }
+    Ok(mesh)
+}
+
+fn add_node(mesh: &mut MeshFile, index_of_tag: &mut HashMap<u64, u32>, tag: u64, p: Vector3<f64>) -> Result<(), Fault> {
+    let index = u32::try_from(mesh.nodes.len()).map_err(|_| "more nodes than u32 indices")?;
+    if index_of_tag.insert(tag, index).is_some() {
+        return Err(format!("node tag {tag} appears twice"));
+    }
+    mesh.nodes.push(p);
+    Ok(())
+}
+
+fn add_element(
+    mesh: &mut MeshFile,
+    index_of_tag: &HashMap<u64, u32>,
+    tag: u64,
+    ty: u32,
+    nodes: &[u64],
+) -> Result<(), Fault> {
+    if ty != TET4 {
+        *mesh.skipped.entry(element_name(ty)).or_insert(0) += 1;
+        return Ok(());
+    }
+    let mut t = [0u32; 4];
+    for (slot, node) in t.iter_mut().zip(nodes) {
+        *slot = *index_of_tag.get(node).ok_or_else(|| format!("element {tag} references unknown node {node}"))?;
+    }
+    mesh.tets.push(t);
+    Ok(())
+}
+
+fn read_nodes_v2(c: &mut Cursor, binary: bool, mesh: &mut MeshFile, tags: &mut HashMap<u64, u32>) -> Result<(), Fault> {
+    let count: u64 = c.number("the node count")?;
+    let count = bounded(count, if binary { 28 } else { 8 }, c, "nodes")?;
+    if binary {
+        c.end_line();
+    }
+    for _ in 0..count {
+        let (tag, p) = if binary {
+            let tag = c.int()?;
+            (tag, Vector3::new(c.double()?, c.double()?, c.double()?))
+        } else {
+            (c.number("a node tag")?, Vector3::new(c.number("x")?, c.number("y")?, c.number("z")?))
         };
-        for (tag, n) in tags.iter().zip(&block.nodes) {
-            index_of_tag.insert(*tag, nodes.len() as u32);
-            nodes.push(Vector3::new(n.x, n.y, n.z));
-            next_tag = next_tag.max(tag + 1);
-        }
+        let tag = u64::try_from(tag).map_err(|_| format!("node tag {tag} is negative"))?;
+        add_node(mesh, tags, tag, p)?;
     }
-    let Some(elements) = msh.data.elements else { return Err(malformed(path, "no $Elements section")) };
-    let mut tets = Vec::new();
-    for block in &elements.element_blocks {
-        if block.element_type as i64 != TET4 {
-            if block.entity_dim == 3 {
-                return Err(malformed(
-                    path,
-                    format!(
-                        "volume elements of type {:?}; only linear tetrahedra (Tet4) are supported",
-                        block.element_type
-                    ),
-                ));
-            }
-            continue;
-        }
-        for el in &block.elements {
-            let mut t = [0u32; 4];
-            for (slot, tag) in t.iter_mut().zip(&el.nodes) {
-                *slot = *index_of_tag.get(tag).ok_or_else(|| {
-                    malformed(path, format!("element {} references unknown node {tag}", el.element_tag))
-                })?;
-            }
-            tets.push(t);
-        }
-    }
-    Ok((nodes, tets, None))
+    c.skip_section("Nodes").or_else(|_| c.skip_section("NOD"))
 }
 
-fn read_v2(path: &Path, bytes: &[u8]) -> Result<MeshParts, IoError> {
-    let text = std::str::from_utf8(bytes)
-        .map_err(|_| malformed(path, "Gmsh 2.2 binary files are not supported; save as ASCII"))?;
-    let mut lines = text.lines().enumerate().map(|(n, l)| (n + 1, l.trim()));
-    let mut index_of_tag: HashMap<u64, u32> = HashMap::new();
-    let mut nodes = Vec::new();
-    let mut tets = Vec::new();
-    let bad = |line: usize, what: &str| malformed(path, format!("line {line}: {what}"));
-    while let Some((_, l)) = lines.next() {
-        match l {
-            "$MeshFormat" => {
-                if let Some((n, fmt)) = lines.next() {
-                    if fmt.split_whitespace().nth(1) != Some("0") {
-                        return Err(bad(n, "Gmsh 2.2 binary files are not supported; save as ASCII"));
-                    }
-                }
+fn read_elements_v2(c: &mut Cursor, binary: bool, mesh: &mut MeshFile, tags: &HashMap<u64, u32>) -> Result<(), Fault> {
+    let count: u64 = c.number("the element count")?;
+    let count = bounded(count, if binary { 12 } else { 8 }, c, "elements")?;
+    if binary {
+        c.end_line();
+        // Blocks of one type: (type, elements in the block, tags per element), then each
+        // element as its number, its tags and its nodes.
+        let mut read = 0usize;
+        while read < count {
+            let ty = u32::try_from(c.int()?).map_err(|_| "a negative element type")?;
+            let in_block = usize::try_from(c.int()?).map_err(|_| "a negative block size")?;
+            let ntags = usize::try_from(c.int()?).map_err(|_| "a negative tag count")?;
+            let per = nodes_per_element(ty).ok_or_else(|| format!("element type {ty} is not known"))?;
+            let ints = (1 + ntags).checked_add(per).ok_or("an element's size overflows")?;
+            bounded(in_block as u64, ints.saturating_mul(4), c, "elements in a block")?;
+            if in_block == 0 || in_block > count - read {
+                return Err(format!("an element block of {in_block} where {} are left", count - read));
             }
-            "$Nodes" => {
-                let (n, count) = lines.next().ok_or_else(|| bad(0, "missing node count"))?;
-                let count: usize = count.parse().map_err(|_| bad(n, "expected the node count"))?;
-                for _ in 0..count {
-                    let (n, l) = lines.next().ok_or_else(|| bad(n, "file ends inside $Nodes"))?;
-                    let w: Vec<f64> = l
-                        .split_whitespace()
-                        .map(str::parse)
-                        .collect::<Result<_, _>>()
-                        .map_err(|_| bad(n, "expected: tag x y z"))?;
-                    let [tag, x, y, z] = w[..] else { return Err(bad(n, "expected: tag x y z")) };
-                    index_of_tag.insert(tag as u64, nodes.len() as u32);
-                    nodes.push(Vector3::new(x, y, z));
+            for _ in 0..in_block {
+                let tag = c.int()?;
+                for _ in 0..ntags {
+                    c.int()?;
                 }
-            }
-            "$Elements" => {
-                let (n, count) = lines.next().ok_or_else(|| bad(0, "missing element count"))?;
-                let count: usize = count.parse().map_err(|_| bad(n, "expected the element count"))?;
-                for _ in 0..count {
-                    let (n, l) = lines.next().ok_or_else(|| bad(n, "file ends inside $Elements"))?;
-                    let w: Vec<u64> = l
-                        .split_whitespace()
-                        .map(str::parse)
-                        .collect::<Result<_, _>>()
-                        .map_err(|_| bad(n, "expected integers"))?;
-                    let (Some(&ty), Some(&ntags)) = (w.get(1), w.get(2)) else {
-                        return Err(bad(n, "expected: tag type ntags ..."));
-                    };
-                    if ty as i64 != TET4 {
-                        continue;
-                    }
-                    let start = 3 + ntags as usize;
-                    let Some(ids) = w.get(start..start + 4) else {
-                        return Err(bad(n, "tetrahedron with fewer than 4 nodes"));
-                    };
-                    let mut t = [0u32; 4];
-                    for (slot, tag) in t.iter_mut().zip(ids) {
-                        *slot = *index_of_tag.get(tag).ok_or_else(|| bad(n, &format!("unknown node {tag}")))?;
-                    }
-                    tets.push(t);
+                let mut nodes = Vec::with_capacity(per);
+                for _ in 0..per {
+                    nodes.push(u64::try_from(c.int()?).map_err(|_| "a negative node tag")?);
                 }
+                add_element(mesh, tags, tag.max(0) as u64, ty, &nodes)?;
             }
-            _ => {}
+            read += in_block;
+        }
+    } else {
+        for _ in 0..count {
+            let tag: u64 = c.number("an element tag")?;
+            let ty: u32 = c.number("an element type")?;
+            let ntags: usize = c.number("a tag count")?;
+            let per = nodes_per_element(ty).ok_or_else(|| format!("element {tag}: type {ty} is not known"))?;
+            bounded(ntags as u64, 2, c, "element tags")?;
+            for _ in 0..ntags {
+                c.number::<i64>("an element tag")?;
+            }
+            let mut nodes = Vec::with_capacity(per);
+            for _ in 0..per {
+                nodes.push(c.number("a node tag")?);
+            }
+            add_element(mesh, tags, tag, ty, &nodes)?;
         }
     }
-    Ok((nodes, tets, None))
+    c.skip_section("Elements").or_else(|_| c.skip_section("ELM"))
 }
 
-pub(super) fn write(path: &Path, nodes: &[Vector3<f64>], tets: &[[u32; 4]]) -> Result<(), IoError> {
+fn read_nodes_v4(c: &mut Cursor, binary: bool, mesh: &mut MeshFile, tags: &mut HashMap<u64, u32>) -> Result<(), Fault> {
+    let (blocks, total) = if binary {
+        c.end_line();
+        let b = c.size()?;
+        let t = c.size()?;
+        c.size()?;
+        c.size()?;
+        (b, t)
+    } else {
+        let b: u64 = c.number("the entity block count")?;
+        let t: u64 = c.number("the node count")?;
+        c.number::<u64>("the smallest node tag")?;
+        c.number::<u64>("the largest node tag")?;
+        (b, t)
+    };
+    let blocks = bounded(blocks, 4, c, "node blocks")?;
+    bounded(total, if binary { 32 } else { 8 }, c, "nodes")?;
+    for _ in 0..blocks {
+        let (parametric, in_block) = if binary {
+            c.int()?;
+            c.int()?;
+            let parametric = c.int()?;
+            (parametric, c.size()?)
+        } else {
+            c.number::<i64>("an entity dimension")?;
+            c.number::<i64>("an entity tag")?;
+            let parametric: i64 = c.number("the parametric flag")?;
+            (parametric, c.number("the nodes in a block")?)
+        };
+        if parametric != 0 {
+            return Err("parametric node coordinates are not supported".into());
+        }
+        let in_block = bounded(in_block, if binary { c.size_t + 24 } else { 8 }, c, "nodes in a block")?;
+        let mut block_tags = Vec::with_capacity(in_block);
+        for _ in 0..in_block {
+            block_tags.push(if binary { c.size()? } else { c.number("a node tag")? });
+        }
+        for tag in block_tags {
+            let p = if binary {
+                Vector3::new(c.double()?, c.double()?, c.double()?)
+            } else {
+                Vector3::new(c.number("x")?, c.number("y")?, c.number("z")?)
+            };
+            add_node(mesh, tags, tag, p)?;
+        }
+    }
+    c.skip_section("Nodes")
+}
+
+fn read_elements_v4(c: &mut Cursor, binary: bool, mesh: &mut MeshFile, tags: &HashMap<u64, u32>) -> Result<(), Fault> {
+    let blocks = if binary {
+        c.end_line();
+        let b = c.size()?;
+        for _ in 0..3 {
+            c.size()?;
+        }
+        b
+    } else {
+        let b: u64 = c.number("the entity block count")?;
+        for what in ["the element count", "the smallest element tag", "the largest element tag"] {
+            c.number::<u64>(what)?;
+        }
+        b
+    };
+    let blocks = bounded(blocks, 4, c, "element blocks")?;
+    for _ in 0..blocks {
+        let (ty, in_block) = if binary {
+            c.int()?;
+            c.int()?;
+            let ty = c.int()?;
+            (ty, c.size()?)
+        } else {
+            c.number::<i64>("an entity dimension")?;
+            c.number::<i64>("an entity tag")?;
+            let ty: i64 = c.number("an element type")?;
+            (ty, c.number("the elements in a block")?)
+        };
+        let ty = u32::try_from(ty).map_err(|_| format!("element type {ty} is negative"))?;
+        let per = nodes_per_element(ty).ok_or_else(|| format!("element type {ty} is not known"))?;
+        let in_block =
+            bounded(in_block, if binary { (per + 1) * c.size_t } else { 2 * (per + 1) }, c, "elements in a block")?;
+        let mut nodes = Vec::with_capacity(per);
+        for _ in 0..in_block {
+            let tag = if binary { c.size()? } else { c.number("an element tag")? };
+            nodes.clear();
+            for _ in 0..per {
+                nodes.push(if binary { c.size()? } else { c.number("a node tag")? });
+            }
+            add_element(mesh, tags, tag, ty, &nodes)?;
+        }
+    }
+    c.skip_section("Elements")
+}
+
+/// A tet mesh as Gmsh 4.1 ASCII bytes (one volume entity; tags from 1).
+pub(super) fn write(nodes: &[Vector3<f64>], tets: &[[u32; 4]]) -> Vec<u8> {
     use std::fmt::Write;
     let (n, m) = (nodes.len(), tets.len());
     let mut s = String::with_capacity(64 * (n + m));
@@ -154,5 +389,5 @@ pub(super) fn write(path: &Path, nodes: &[Vector3<f64>], tets: &[[u32; 4]]) -> R
         let _ = writeln!(s, "{} {} {} {} {}", e + 1, t[0] + 1, t[1] + 1, t[2] + 1, t[3] + 1);
     }
     s.push_str("$EndElements\n");
-    std::fs::write(path, s).map_err(io_error(path))
+    s.into_bytes()
 }

@@ -1,6 +1,15 @@
-//! Mesh and volume files, chosen by extension. Maintained crates do the formats where one
-//! exists (vtkio: VTK; mshio: Gmsh 4.1; nifti: NIfTI-1); Gmsh 2.2, TetGen, NRRD and
-//! MetaImage are small text-header formats read and written here.
+//! Mesh and volume files, chosen by extension, as the field's tools write them.
+//!
+//! Meshes: VTK XML `.vtu` in every encoding VTK and meshio write (`vtk_xml.rs`), legacy
+//! `.vtk` 2.0-5.1 ASCII and binary (`vtk_legacy.rs`), Gmsh 2.2 and 4.1 ASCII and binary
+//! (`gmsh.rs`; 4.1 through mshio), TetGen `.node`/`.ele`. Volumes: NIfTI-1 (the nifti crate),
+//! NRRD and MetaImage (text headers read here). Other cells than tets are counted and skipped.
+//!
+//! No input crashes the process: every count and size a header gives is checked against the
+//! bytes that are there before anything is allocated from it, and arithmetic on header
+//! values is checked. Every parser takes bytes (`parse_mesh`, `parse_volume`), so the fuzz
+//! tests drive them without files. Writes go to a temporary name beside the target and are
+//! renamed at the end: a failure or a kill never leaves a half file under the final name.
 
 mod gmsh;
 mod metaimage;
@@ -8,7 +17,10 @@ mod nifti_io;
 mod nrrd;
 mod tetgen;
 mod vtk;
+mod vtk_legacy;
+mod vtk_xml;
 
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use nalgebra::Vector3;
@@ -25,6 +37,8 @@ pub enum IoError {
     UnsupportedExtension { path: PathBuf, expected: &'static str },
     #[error("{path}: {message}")]
     Malformed { path: PathBuf, message: String },
+    #[error("{path}: {message}")]
+    Unrepresentable { path: PathBuf, message: String },
     #[error(transparent)]
     Mesh(#[from] MeshError),
     #[error(transparent)]
@@ -46,32 +60,139 @@ fn file_name(path: &Path) -> String {
 const MESH_TYPES: &str = ".vtu, .vtk, .msh, .node/.ele";
 const VOLUME_TYPES: &str = ".nii, .nii.gz, .nrrd, .nhdr, .mha, .mhd";
 
-/// A named one-component point array of a VTK mesh (`.vtu`/`.vtk`): node values to render
-/// when the file holds several (dose, temperature, a segmentation's labels).
-pub fn read_mesh_point_array(path: &Path, name: &str) -> Result<Vec<f32>, IoError> {
-    let file = file_name(path);
-    if !(file.ends_with(".vtu") || file.ends_with(".vtk")) {
-        return Err(IoError::UnsupportedExtension {
-            path: path.to_owned(),
-            expected: ".vtu, .vtk (named point arrays)",
-        });
-    }
-    vtk::read_point_array(path, name)
+/// The most bytes one array or volume may decode to (a claim beyond it is a broken header).
+pub(crate) const MAX_DECODED_BYTES: usize = 1 << 33;
+
+/// A named point array of a mesh file: `components` values per node.
+#[derive(Debug, Clone, PartialEq)]
+pub(crate) struct PointArray {
+    pub name: String,
+    pub components: usize,
+    pub values: Vec<f32>,
+    /// Tagged as the active scalars (legacy SCALARS, XML `Scalars="…"`).
+    pub active_scalars: bool,
 }
 
-/// Reads a tetrahedral mesh (VTK `.vtu`/`.vtk`, Gmsh `.msh` 4.1 or 2.2, TetGen `.node`/`.ele`).
-pub fn read_mesh(path: &Path) -> Result<TetMesh, IoError> {
-    let name = file_name(path);
-    let (nodes, tets, scalars) = if name.ends_with(".vtu") || name.ends_with(".vtk") {
-        vtk::read(path)?
-    } else if name.ends_with(".msh") {
-        gmsh::read(path)?
-    } else if name.ends_with(".node") || name.ends_with(".ele") {
-        tetgen::read(path)?
-    } else {
+/// A mesh as its file holds it: nodes, tets, point arrays, and the other cells skipped.
+#[derive(Debug, Clone, Default)]
+pub(crate) struct MeshFile {
+    pub nodes: Vec<Vector3<f64>>,
+    pub tets: Vec<[u32; 4]>,
+    pub arrays: Vec<PointArray>,
+    /// Cells other than linear tets, by kind.
+    pub skipped: BTreeMap<&'static str, usize>,
+}
+
+impl MeshFile {
+    /// Adds a piece's array whose nodes start at `first_node`: appended to the earlier
+    /// pieces' array of that name, or new for the first piece.
+    fn push_array(&mut self, first_node: usize, array: PointArray) {
+        match self.arrays.iter_mut().find(|a| a.name == array.name && a.components == array.components) {
+            Some(existing) if existing.values.len() == first_node * existing.components => {
+                existing.values.extend(array.values)
+            }
+            Some(_) => {}
+            None if first_node == 0 => self.arrays.push(array),
+            None => {}
+        }
+    }
+
+    /// The mesh's own scalars: the first one-component array tagged as the active scalars.
+    fn scalars(&self) -> Option<Vec<f32>> {
+        self.arrays.iter().find(|a| a.active_scalars && a.components == 1).map(|a| a.values.clone())
+    }
+
+    fn into_mesh(self, path: &Path) -> Result<(TetMesh, SkippedCells), IoError> {
+        if !self.skipped.is_empty() {
+            let skipped: Vec<String> = self.skipped.iter().map(|(kind, n)| format!("{n} {kind}")).collect();
+            tracing::info!("{}: kept {} tets, skipped {}", path.display(), self.tets.len(), skipped.join(", "));
+        }
+        let scalars = self.scalars();
+        Ok((TetMesh::new(self.nodes, self.tets, scalars, &path.display().to_string())?, self.skipped))
+    }
+}
+
+/// The cells other than linear tets a mesh file held, by kind: counted, and skipped.
+pub type SkippedCells = BTreeMap<&'static str, usize>;
+
+/// The mesh format a file name asks for.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum MeshFormat {
+    VtkXml,
+    VtkLegacy,
+    Gmsh,
+}
+
+impl MeshFormat {
+    fn of(path: &Path) -> Option<Self> {
+        let name = file_name(path);
+        if name.ends_with(".vtu") {
+            Some(Self::VtkXml)
+        } else if name.ends_with(".vtk") {
+            Some(Self::VtkLegacy)
+        } else if name.ends_with(".msh") {
+            Some(Self::Gmsh)
+        } else {
+            None
+        }
+    }
+}
+
+fn parse_mesh_file(path: &Path, bytes: &[u8], format: MeshFormat) -> Result<MeshFile, IoError> {
+    let parsed = match format {
+        MeshFormat::VtkXml => vtk_xml::parse(bytes),
+        MeshFormat::VtkLegacy => vtk_legacy::parse(bytes),
+        MeshFormat::Gmsh => gmsh::parse(bytes),
+    };
+    parsed.map_err(|message| malformed(path, message))
+}
+
+/// Parses a one-file mesh (`.vtu`, `.vtk`, `.msh`) from its bytes; `path` names it in errors.
+pub fn parse_mesh(path: &Path, bytes: &[u8], format: MeshFormat) -> Result<TetMesh, IoError> {
+    Ok(parse_mesh_file(path, bytes, format)?.into_mesh(path)?.0)
+}
+
+/// Parses a TetGen pair from the bytes of its `.node` and `.ele` files.
+pub fn parse_tetgen(path: &Path, node: &[u8], ele: &[u8]) -> Result<TetMesh, IoError> {
+    Ok(tetgen::parse(node, ele).map_err(|message| malformed(path, message))?.into_mesh(path)?.0)
+}
+
+fn read_mesh_file(path: &Path) -> Result<MeshFile, IoError> {
+    if file_name(path).ends_with(".node") || file_name(path).ends_with(".ele") {
+        let (node_path, ele_path) = (path.with_extension("node"), path.with_extension("ele"));
+        let node = std::fs::read(&node_path).map_err(io_error(&node_path))?;
+        let (mut mesh, first_index) = tetgen::parse_nodes(&node).map_err(|message| malformed(&node_path, message))?;
+        let ele = std::fs::read(&ele_path).map_err(io_error(&ele_path))?;
+        tetgen::parse_elements(&mut mesh, first_index, &ele).map_err(|message| malformed(&ele_path, message))?;
+        return Ok(mesh);
+    }
+    let Some(format) = MeshFormat::of(path) else {
         return Err(IoError::UnsupportedExtension { path: path.to_owned(), expected: MESH_TYPES });
     };
-    Ok(TetMesh::new(nodes, tets, scalars, &path.display().to_string())?)
+    let bytes = std::fs::read(path).map_err(io_error(path))?;
+    parse_mesh_file(path, &bytes, format)
+}
+
+/// A named one-component point array of a mesh file: node values to render when the file
+/// holds several (dose, temperature, a segmentation's labels).
+pub fn read_mesh_point_array(path: &Path, name: &str) -> Result<Vec<f32>, IoError> {
+    let file = read_mesh_file(path)?;
+    let names: Vec<&str> = file.arrays.iter().filter(|a| a.components == 1).map(|a| a.name.as_str()).collect();
+    let message = format!("no one-component point array `{name}`; it has {names:?}");
+    match file.arrays.iter().find(|a| a.name == name && a.components == 1) {
+        Some(array) => Ok(array.values.clone()),
+        None => Err(malformed(path, message)),
+    }
+}
+
+/// Reads a tetrahedral mesh (VTK `.vtu`/`.vtk`, Gmsh `.msh` 2.2 or 4.1, TetGen `.node`/`.ele`).
+pub fn read_mesh(path: &Path) -> Result<TetMesh, IoError> {
+    Ok(read_mesh_with_skipped(path)?.0)
+}
+
+/// [`read_mesh`], and how many cells of each other kind the file held beside the tets.
+pub fn read_mesh_with_skipped(path: &Path) -> Result<(TetMesh, SkippedCells), IoError> {
+    read_mesh_file(path)?.into_mesh(path)
 }
 
 /// Writes `mesh` with node positions `positions` (the deformed state, or the mesh's own).
@@ -81,15 +202,19 @@ pub fn write_mesh(path: &Path, mesh: &TetMesh, positions: Option<&[Vector3<f64>]
         return Err(malformed(path, format!("{} positions for a mesh of {} nodes", nodes.len(), mesh.nodes().len())));
     }
     let name = file_name(path);
-    if name.ends_with(".vtu") || name.ends_with(".vtk") {
-        vtk::write(path, nodes, mesh.tets(), mesh.scalars())
-    } else if name.ends_with(".msh") {
-        gmsh::write(path, nodes, mesh.tets())
-    } else if name.ends_with(".node") || name.ends_with(".ele") {
-        tetgen::write(path, nodes, mesh.tets())
-    } else {
-        Err(IoError::UnsupportedExtension { path: path.to_owned(), expected: MESH_TYPES })
+    if name.ends_with(".node") || name.ends_with(".ele") {
+        return tetgen::write(path, nodes, mesh.tets());
     }
+    let points: Vec<[f64; 3]> = nodes.iter().map(|p| [p.x, p.y, p.z]).collect();
+    let bytes = match MeshFormat::of(path) {
+        Some(MeshFormat::VtkXml) => vtk::xml(&points, mesh.tets(), vtk::TETRA, mesh.scalars()),
+        Some(MeshFormat::VtkLegacy) => {
+            vtk::legacy(&points, mesh.tets(), vtk::TETRA, mesh.scalars(), "defvol tetrahedral mesh")
+        }
+        Some(MeshFormat::Gmsh) => gmsh::write(nodes, mesh.tets()),
+        None => return Err(IoError::UnsupportedExtension { path: path.to_owned(), expected: MESH_TYPES }),
+    };
+    write_atomically(path, &bytes)
 }
 
 /// Writes a triangle surface with per-vertex scalars (`.vtu` or legacy `.vtk`).
@@ -99,35 +224,80 @@ pub fn write_triangles(
     triangles: &[[u32; 3]],
     scalars: Option<&[f32]>,
 ) -> Result<(), IoError> {
+    let points: Vec<[f64; 3]> = nodes.iter().map(|p| p.map(f64::from)).collect();
+    let bytes = match MeshFormat::of(path) {
+        Some(MeshFormat::VtkXml) => vtk::xml(&points, triangles, vtk::TRIANGLE, scalars),
+        Some(MeshFormat::VtkLegacy) => vtk::legacy(&points, triangles, vtk::TRIANGLE, scalars, "defvol surface"),
+        _ => return Err(IoError::UnsupportedExtension { path: path.to_owned(), expected: ".vtu, .vtk" }),
+    };
+    write_atomically(path, &bytes)
+}
+
+/// A temporary name beside `path` with the same extensions (writers that choose
+/// compression by extension see the right one) and no other dot in its stem.
+pub(crate) fn temporary_beside(path: &Path) -> PathBuf {
+    use std::sync::atomic::{AtomicU64, Ordering};
+    static NEXT: AtomicU64 = AtomicU64::new(0);
     let name = file_name(path);
-    if name.ends_with(".vtu") || name.ends_with(".vtk") {
-        vtk::write_triangles(path, nodes, triangles, scalars)
+    let extensions = if name.ends_with(".nii.gz") { "nii.gz" } else { name.rsplit('.').next().unwrap_or("tmp") };
+    let unique =
+        format!(".defvol-partial-{}-{}.{extensions}", std::process::id(), NEXT.fetch_add(1, Ordering::Relaxed));
+    path.parent().unwrap_or(Path::new(".")).join(unique)
+}
+
+/// Moves a finished temporary file to its final name.
+pub(crate) fn commit(temporary: &Path, path: &Path) -> Result<(), IoError> {
+    std::fs::rename(temporary, path).map_err(|e| {
+        let _ = std::fs::remove_file(temporary);
+        IoError::Io { path: path.to_owned(), source: e }
+    })
+}
+
+/// Writes `bytes` to exactly `path`, through a temporary file beside it.
+pub(crate) fn write_atomically(path: &Path, bytes: &[u8]) -> Result<(), IoError> {
+    let temporary = temporary_beside(path);
+    if let Err(source) = std::fs::write(&temporary, bytes) {
+        let _ = std::fs::remove_file(&temporary);
+        return Err(IoError::Io { path: path.to_owned(), source });
+    }
+    commit(&temporary, path)
+}
+
+/// Parses a volume of the format `path` names from its bytes; `sidecar` gives the bytes of
+/// a file the header names (a detached NRRD or MetaImage data file), or `None`.
+pub fn parse_volume(path: &Path, bytes: &[u8], sidecar: &dyn Fn(&str) -> Option<Vec<u8>>) -> Result<Volume, IoError> {
+    let name = file_name(path);
+    if name.ends_with(".nii") || name.ends_with(".nii.gz") {
+        nifti_io::parse(path, bytes)
+    } else if name.ends_with(".nrrd") || name.ends_with(".nhdr") {
+        nrrd::parse(path, bytes, sidecar)
+    } else if name.ends_with(".mha") || name.ends_with(".mhd") {
+        metaimage::parse(path, bytes, sidecar)
     } else {
-        Err(IoError::UnsupportedExtension { path: path.to_owned(), expected: ".vtu, .vtk" })
+        Err(IoError::UnsupportedExtension { path: path.to_owned(), expected: VOLUME_TYPES })
     }
 }
 
 /// Reads a scalar volume (NIfTI-1 `.nii[.gz]`, NRRD `.nrrd`/`.nhdr`, MetaImage `.mha`/`.mhd`).
 pub fn read_volume(path: &Path) -> Result<Volume, IoError> {
     let name = file_name(path);
-    if name.ends_with(".nii") || name.ends_with(".nii.gz") {
-        nifti_io::read(path)
-    } else if name.ends_with(".nrrd") || name.ends_with(".nhdr") {
-        nrrd::read(path)
-    } else if name.ends_with(".mha") || name.ends_with(".mhd") {
-        metaimage::read(path)
-    } else {
-        Err(IoError::UnsupportedExtension { path: path.to_owned(), expected: VOLUME_TYPES })
+    if !VOLUME_TYPES.split(", ").any(|ext| name.ends_with(ext)) {
+        return Err(IoError::UnsupportedExtension { path: path.to_owned(), expected: VOLUME_TYPES });
     }
+    let bytes = std::fs::read(path).map_err(io_error(path))?;
+    let folder = path.parent().unwrap_or(Path::new(".")).to_owned();
+    parse_volume(path, &bytes, &|name| std::fs::read(folder.join(name)).ok())
 }
 
-/// Writes a volume as f32 samples in the format the extension names.
+/// Writes a volume as f32 samples in the format the extension names, to exactly `path`
+/// (through a temporary file beside it). What the format cannot hold (dims over its
+/// limits) is refused by name.
 pub fn write_volume(path: &Path, volume: &Volume) -> Result<(), IoError> {
     let name = file_name(path);
     if name.ends_with(".nii") || name.ends_with(".nii.gz") {
         nifti_io::write(path, volume)
     } else if name.ends_with(".nrrd") {
-        nrrd::write(path, volume)
+        write_atomically(path, &nrrd::encode(volume)?)
     } else if name.ends_with(".mha") || name.ends_with(".mhd") {
         metaimage::write(path, volume)
     } else {
@@ -144,6 +314,8 @@ pub(crate) enum SampleType {
     I16,
     U32,
     I32,
+    U64,
+    I64,
     F32,
     F64,
 }
@@ -154,7 +326,7 @@ impl SampleType {
             SampleType::U8 | SampleType::I8 => 1,
             SampleType::U16 | SampleType::I16 => 2,
             SampleType::U32 | SampleType::I32 | SampleType::F32 => 4,
-            SampleType::F64 => 8,
+            SampleType::U64 | SampleType::I64 | SampleType::F64 => 8,
         }
     }
 
@@ -170,12 +342,14 @@ impl SampleType {
                     b[..n].reverse();
                 }
                 match self {
-                    SampleType::U8 => b[0] as f32,
-                    SampleType::I8 => b[0] as i8 as f32,
-                    SampleType::U16 => u16::from_le_bytes([b[0], b[1]]) as f32,
-                    SampleType::I16 => i16::from_le_bytes([b[0], b[1]]) as f32,
+                    SampleType::U8 => f32::from(b[0]),
+                    SampleType::I8 => f32::from(b[0] as i8),
+                    SampleType::U16 => f32::from(u16::from_le_bytes([b[0], b[1]])),
+                    SampleType::I16 => f32::from(i16::from_le_bytes([b[0], b[1]])),
                     SampleType::U32 => u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as f32,
                     SampleType::I32 => i32::from_le_bytes([b[0], b[1], b[2], b[3]]) as f32,
+                    SampleType::U64 => u64::from_le_bytes(b) as f32,
+                    SampleType::I64 => i64::from_le_bytes(b) as f32,
                     SampleType::F32 => f32::from_le_bytes([b[0], b[1], b[2], b[3]]),
                     SampleType::F64 => f64::from_le_bytes(b) as f32,
                 }
@@ -184,7 +358,20 @@ impl SampleType {
     }
 }
 
-/// Reads `expected` bytes of samples from a possibly gzip/zlib-compressed payload.
+/// The bytes `dims` samples of `sample` take, checked (overflow, and the decoding limit).
+pub(crate) fn sample_bytes(path: &Path, dims: [usize; 3], sample: SampleType) -> Result<usize, IoError> {
+    let bytes = dims.iter().try_fold(sample.size(), |acc, d| acc.checked_mul(*d));
+    match bytes {
+        Some(b) if b <= MAX_DECODED_BYTES => Ok(b),
+        _ => Err(malformed(
+            path,
+            format!("dims {dims:?} of {} bytes each: more data than a volume file can hold here", sample.size()),
+        )),
+    }
+}
+
+/// The samples from a payload: compressed streams are read up to `expected` bytes, never
+/// grown into beyond; too few bytes is an error naming how many there were.
 pub(crate) fn decompress(
     path: &Path,
     payload: &[u8],
@@ -192,20 +379,20 @@ pub(crate) fn decompress(
     expected: usize,
 ) -> Result<Vec<u8>, IoError> {
     use std::io::Read;
-    let mut out = Vec::with_capacity(expected);
+    let limit = expected as u64;
+    let mut out = Vec::new();
     let result = match compression {
         Compression::None => {
-            out.extend_from_slice(payload);
+            out.extend_from_slice(&payload[..payload.len().min(expected)]);
             Ok(())
         }
-        Compression::Gzip => flate2::read::MultiGzDecoder::new(payload).read_to_end(&mut out).map(|_| ()),
-        Compression::Zlib => flate2::read::ZlibDecoder::new(payload).read_to_end(&mut out).map(|_| ()),
+        Compression::Gzip => flate2::read::MultiGzDecoder::new(payload).take(limit).read_to_end(&mut out).map(|_| ()),
+        Compression::Zlib => flate2::read::ZlibDecoder::new(payload).take(limit).read_to_end(&mut out).map(|_| ()),
     };
     result.map_err(|e| malformed(path, format!("cannot decompress the sample data: {e}")))?;
     if out.len() < expected {
         return Err(malformed(path, format!("sample data holds {} bytes, {} needed", out.len(), expected)));
     }
-    out.truncate(expected);
     Ok(out)
 }
 
@@ -214,6 +401,60 @@ pub(crate) enum Compression {
     None,
     Gzip,
     Zlib,
+}
+
+/// Header text as `Key = Value` or `key: value` lines: the value of a key, any case.
+pub(crate) struct Fields(BTreeMap<String, String>);
+
+impl Fields {
+    pub(crate) fn get(&self, key: &str) -> Option<&str> {
+        self.0.get(&key.to_ascii_lowercase()).map(String::as_str)
+    }
+
+    pub(crate) fn insert(&mut self, key: &str, value: &str) {
+        self.0.insert(key.trim().to_ascii_lowercase(), value.trim().to_owned());
+    }
+
+    pub(crate) fn new() -> Self {
+        Self(BTreeMap::new())
+    }
+}
+
+/// Samples named by pattern (`name%03d.raw 1 10 1`, as MetaImage and NRRD detached headers
+/// give per-slice files): the file names, checked for count.
+pub(crate) fn pattern_files(path: &Path, spec: &str, max_files: usize) -> Result<Vec<String>, IoError> {
+    let words: Vec<&str> = spec.split_whitespace().collect();
+    let [format, min, max, step, ..] = words[..] else {
+        return Err(malformed(path, format!("data file pattern `{spec}`: expected `format min max step`")));
+    };
+    let parse = |w: &str| {
+        w.parse::<i32>()
+            .map(i128::from)
+            .map_err(|_| malformed(path, format!("data file pattern `{spec}`: `{w}` is not an integer")))
+    };
+    let (min, max, step) = (parse(min)?, parse(max)?, parse(step)?);
+    if step == 0 || (max - min).signum() * step.signum() < 0 {
+        return Err(malformed(path, format!("data file pattern `{spec}`: step {step} never reaches {max} from {min}")));
+    }
+    let count = ((max - min) / step + 1).unsigned_abs() as usize;
+    if count > max_files {
+        return Err(malformed(path, format!("data file pattern `{spec}`: {count} files for {max_files} slices")));
+    }
+    let Some(percent) = format.find('%') else {
+        return Err(malformed(path, format!("data file pattern `{spec}`: no %d in `{format}`")));
+    };
+    let Some(d) = format[percent..].find('d') else {
+        return Err(malformed(path, format!("data file pattern `{spec}`: no %d in `{format}`")));
+    };
+    let width: usize = format[percent + 1..percent + d].trim_start_matches('0').parse().unwrap_or(0);
+    let zero = format[percent + 1..percent + d].starts_with('0');
+    Ok((0..count as i128)
+        .map(|k| {
+            let n = min + k * step;
+            let number = if zero { format!("{n:0width$}") } else { format!("{n:width$}") };
+            format!("{}{number}{}", &format[..percent], &format[percent + d + 1..])
+        })
+        .collect())
 }
 
 #[cfg(test)]
@@ -295,8 +536,15 @@ mod tests {
             let err = read_mesh_point_array(&path, "dose").unwrap_err().to_string();
             assert!(err.contains("`dose`") && err.contains("\"scalar\"") && err.contains(name), "{err}");
         }
+        // A Gmsh file carries no point arrays: the error lists none.
         let msh = dir.path().join("m.msh");
-        assert!(matches!(read_mesh_point_array(&msh, "scalar"), Err(IoError::UnsupportedExtension { .. })));
+        write_mesh(&msh, &mesh, None).unwrap();
+        let err = read_mesh_point_array(&msh, "scalar").unwrap_err().to_string();
+        assert!(err.contains("`scalar`") && err.contains("[]"), "{err}");
+        assert!(matches!(
+            read_mesh_point_array(Path::new("m.stl"), "scalar"),
+            Err(IoError::UnsupportedExtension { .. })
+        ));
     }
 
     #[test]
@@ -328,5 +576,76 @@ mod tests {
         std::fs::write(dir.path().join("inv.ele"), "2 4 0\n0 0 1 2 3\n1 1 3 2 4\n").unwrap();
         let e = read_mesh(&path).unwrap_err().to_string();
         assert!(e.contains("inv.node") && e.contains("tet 1") && e.contains("inverted"), "{e}");
+    }
+
+    /// The headers the field's users sent: each is an error naming what was wrong, not an
+    /// abort or a panic.
+    #[test]
+    fn impossible_headers_are_refused_by_name() {
+        let dir = tempfile::tempdir().unwrap();
+        let huge = dir.path().join("huge.nrrd");
+        std::fs::write(
+            &huge,
+            "NRRD0004\ntype: float\ndimension: 3\nsizes: 100000 100000 100000\nencoding: raw\n\n\0\0\0\0",
+        )
+        .unwrap();
+        let e = read_volume(&huge).unwrap_err().to_string();
+        assert!(e.contains("huge.nrrd") && e.contains("100000"), "{e}");
+        let overflow = dir.path().join("overflow.nrrd");
+        std::fs::write(
+            &overflow,
+            "NRRD0004\ntype: float\ndimension: 3\nsizes: 4294967296 4294967296 4294967296\nencoding: raw\n\n",
+        )
+        .unwrap();
+        let e = read_volume(&overflow).unwrap_err().to_string();
+        assert!(e.contains("overflow.nrrd") && e.contains("4294967296"), "{e}");
+        let nodes = dir.path().join("many.node");
+        std::fs::write(&nodes, "100000000000 3 0 0\n0 0 0 0\n").unwrap();
+        std::fs::write(dir.path().join("many.ele"), "0 4 0\n").unwrap();
+        let e = read_mesh(&nodes).unwrap_err().to_string();
+        assert!(e.contains("many.node") && e.contains("100000000000"), "{e}");
+        let four_d = dir.path().join("4d.mha");
+        std::fs::write(&four_d, "NDims = 4\nDimSize = 2 2 2 3\nElementType = MET_FLOAT\nElementDataFile = LOCAL\n")
+            .unwrap();
+        let e = read_volume(&four_d).unwrap_err().to_string();
+        assert!(e.contains("4d.mha") && e.contains("4D"), "{e}");
+        let sheared = dir.path().join("sheared.mha");
+        std::fs::write(&sheared, "NDims = 3\nDimSize = 1 1 1\nTransformMatrix = 1 0 0 0.5 1 0 0 0 1\nElementType = MET_UCHAR\nElementDataFile = LOCAL\n\x07").unwrap();
+        let e = read_volume(&sheared).unwrap_err().to_string();
+        assert!(e.contains("sheared.mha") && e.contains("sheared"), "{e}");
+    }
+
+    /// The path written is exactly the path asked (a dot in the stem included), through a
+    /// temporary file that never lingers; NIfTI-1's dim limit is refused by name.
+    #[test]
+    fn writes_land_under_exactly_the_name_asked() {
+        let dir = tempfile::tempdir().unwrap();
+        let v = sample_volume();
+        std::fs::write(dir.path().join("scan.nii"), b"someone else's file").unwrap();
+        for name in ["scan.v2.nii", "scan.v2.nii.gz", "scan.v2.nrrd", "scan.v2.mha", "scan.v2.mhd"] {
+            write_volume(&dir.path().join(name), &v).unwrap_or_else(|e| panic!("{name}: {e}"));
+            let back = read_volume(&dir.path().join(name)).unwrap_or_else(|e| panic!("{name}: {e}"));
+            assert_eq!(back.data(), v.data(), "{name}");
+        }
+        assert_eq!(
+            std::fs::read(dir.path().join("scan.nii")).unwrap(),
+            b"someone else's file",
+            "another file was replaced"
+        );
+        let mut names: Vec<String> = std::fs::read_dir(dir.path())
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        names.sort();
+        assert_eq!(
+            names,
+            ["scan.nii", "scan.v2.mha", "scan.v2.mhd", "scan.v2.nii", "scan.v2.nii.gz", "scan.v2.nrrd", "scan.v2.zraw"]
+        );
+        let wide =
+            Volume::new([40_000, 1, 1], [1.0; 3], [0.0; 3], nalgebra::Matrix3::identity(), vec![0.0; 40_000], "wide")
+                .unwrap();
+        let e = write_volume(&dir.path().join("wide.nii"), &wide).unwrap_err().to_string();
+        assert!(e.contains("wide.nii") && e.contains("32767"), "{e}");
+        assert!(!dir.path().join("wide.nii").exists());
     }
 }

@@ -1,13 +1,16 @@
-//! NRRD (`.nrrd` attached, `.nhdr` detached): the header fields a 3D scalar volume uses.
+//! NRRD (`.nrrd` attached, `.nhdr` detached), as ITK, 3D Slicer and pynrrd write 2D and 3D
+//! scalar volumes: raw, gzip or ascii encodings; `byte skip` (-1: the data end the file)
+//! and `line skip`; one data file, a `LIST` of slice files or a `%d` pattern; every `space`
+//! ITK reads, placed where ITK places it (RAS and LAS turned as ITK's reader turns them;
+//! other spaces taken as they are).
 //! Written as NRRD0004, f32, gzip, in LPS space.
 
-use std::collections::HashMap;
 use std::io::Write;
 use std::path::Path;
 
 use nalgebra::{Matrix3, Vector3};
 
-use super::{decompress, io_error, malformed, Compression, IoError, SampleType};
+use super::{decompress, malformed, pattern_files, sample_bytes, Compression, Fields, IoError, SampleType};
 use crate::volume::Volume;
 
 fn parse_vector(path: &Path, field: &str, text: &str) -> Result<Vector3<f64>, IoError> {
@@ -18,114 +21,239 @@ fn parse_vector(path: &Path, field: &str, text: &str) -> Result<Vector3<f64>, Io
         .split(',')
         .map(|c| c.trim().parse::<f64>())
         .collect::<Result<_, _>>()
-        .map_err(|_| malformed(path, format!("`{field}`: expected (x,y,z), got `{text}`")))?;
+        .map_err(|_| {
+            malformed(path, format!("`{field}`: expected (x,y,z), got `{}`", text.chars().take(60).collect::<String>()))
+        })?;
     match v[..] {
-        [x, y, z] => Ok(Vector3::new(x, y, z)),
-        _ => Err(malformed(path, format!("`{field}`: expected 3 components, got `{text}`"))),
+        [x, y, z] if v.iter().all(|c| c.is_finite()) => Ok(Vector3::new(x, y, z)),
+        _ => Err(malformed(
+            path,
+            format!("`{field}`: expected 3 finite components, got `{}`", text.chars().take(60).collect::<String>()),
+        )),
     }
 }
 
-pub(super) fn read(path: &Path) -> Result<Volume, IoError> {
-    let bytes = std::fs::read(path).map_err(io_error(path))?;
+fn sample_type(path: &Path, name: &str) -> Result<SampleType, IoError> {
+    Ok(match name {
+        "uchar" | "unsigned char" | "uint8" | "uint8_t" => SampleType::U8,
+        "signed char" | "int8" | "int8_t" => SampleType::I8,
+        "ushort" | "unsigned short" | "unsigned short int" | "uint16" | "uint16_t" => SampleType::U16,
+        "short" | "short int" | "signed short" | "signed short int" | "int16" | "int16_t" => SampleType::I16,
+        "uint" | "unsigned int" | "uint32" | "uint32_t" => SampleType::U32,
+        "int" | "signed int" | "int32" | "int32_t" => SampleType::I32,
+        "ulonglong" | "unsigned long long" | "unsigned long long int" | "uint64" | "uint64_t" => SampleType::U64,
+        "longlong"
+        | "long long"
+        | "long long int"
+        | "signed long long"
+        | "signed long long int"
+        | "int64"
+        | "int64_t" => SampleType::I64,
+        "float" => SampleType::F32,
+        "double" => SampleType::F64,
+        other => return Err(malformed(path, format!("`type: {other}` is not supported"))),
+    })
+}
+
+/// The header fields and where the attached data start (`None` for a detached header);
+/// `LIST` data files follow the header lines.
+fn header(path: &Path, bytes: &[u8]) -> Result<(Fields, Option<usize>, Vec<String>), IoError> {
     if !bytes.starts_with(b"NRRD000") {
         return Err(malformed(path, "missing the NRRD000x magic line"));
     }
-    let mut fields: HashMap<String, String> = HashMap::new();
-    let mut pos = 0;
-    let mut header_end = None;
+    let mut fields = Fields::new();
+    let mut list = Vec::new();
+    let mut in_list = false;
+    let mut position = 0;
     for line in bytes.split(|b| *b == b'\n') {
-        pos += line.len() + 1;
+        position += line.len() + 1;
         let text = String::from_utf8_lossy(line).trim_end_matches('\r').to_owned();
         if text.is_empty() {
-            header_end = Some(pos);
-            break;
+            return Ok((fields, Some(position.min(bytes.len())), list));
         }
-        if text.starts_with('#') || text.starts_with("NRRD") {
+        if in_list {
+            list.push(text.trim().to_owned());
             continue;
         }
-        if let Some((k, v)) = text.split_once(": ") {
-            fields.insert(k.trim().to_lowercase(), v.trim().to_owned());
+        if text.starts_with('#') || text.starts_with("NRRD") || text.contains(":=") {
+            continue;
+        }
+        let Some((key, value)) = text.split_once(": ") else {
+            return Err(malformed(
+                path,
+                format!("header line `{}` is not `field: value`", text.chars().take(60).collect::<String>()),
+            ));
+        };
+        fields.insert(key, value);
+        if (key.eq_ignore_ascii_case("data file") || key.eq_ignore_ascii_case("datafile"))
+            && value.trim().starts_with("LIST")
+        {
+            in_list = true;
         }
     }
-    let get = |k: &str| fields.get(k).map(String::as_str);
-    let need = |k: &str| get(k).ok_or_else(|| malformed(path, format!("header has no `{k}` field")));
-    if need("dimension")? != "3" {
-        return Err(malformed(path, format!("dimension {}: only 3D scalar volumes are supported", need("dimension")?)));
-    }
+    Ok((fields, None, list))
+}
+
+pub(super) fn parse(path: &Path, bytes: &[u8], sidecar: &dyn Fn(&str) -> Option<Vec<u8>>) -> Result<Volume, IoError> {
+    let (fields, attached_at, list) = header(path, bytes)?;
+    let need = |k: &str| fields.get(k).ok_or_else(|| malformed(path, format!("header has no `{k}` field")));
+    let dimension: usize = need("dimension")?.parse().map_err(|_| malformed(path, "`dimension` is not an integer"))?;
     let sizes: Vec<usize> = need("sizes")?
         .split_whitespace()
         .map(str::parse)
         .collect::<Result<_, _>>()
-        .map_err(|_| malformed(path, "`sizes`: expected 3 integers"))?;
-    let [nx, ny, nz] = sizes[..] else { return Err(malformed(path, "`sizes`: expected 3 integers")) };
-    let sample = match need("type")? {
-        "uchar" | "unsigned char" | "uint8" | "uint8_t" => SampleType::U8,
-        "signed char" | "int8" | "int8_t" => SampleType::I8,
-        "ushort" | "unsigned short" | "uint16" | "uint16_t" => SampleType::U16,
-        "short" | "signed short" | "int16" | "int16_t" => SampleType::I16,
-        "uint" | "unsigned int" | "uint32" | "uint32_t" => SampleType::U32,
-        "int" | "signed int" | "int32" | "int32_t" => SampleType::I32,
-        "float" => SampleType::F32,
-        "double" => SampleType::F64,
-        other => return Err(malformed(path, format!("`type: {other}` is not supported"))),
+        .map_err(|_| malformed(path, "`sizes`: expected integers"))?;
+    if sizes.len() != dimension {
+        return Err(malformed(path, format!("`sizes` has {} values for dimension {dimension}", sizes.len())));
+    }
+    let dims = match sizes[..] {
+        [nx, ny] => [nx, ny, 1],
+        [nx, ny, nz] => [nx, ny, nz],
+        _ => return Err(IoError::Unrepresentable { path: path.to_owned(), message: format!("dimension {dimension} (sizes {sizes:?}): only 2D and 3D scalar volumes, not a 4D volume or a vector image") }),
     };
-    let compression = match need("encoding")? {
-        "raw" => Compression::None,
-        "gzip" | "gz" => Compression::Gzip,
-        other => return Err(malformed(path, format!("`encoding: {other}` is not supported (raw, gzip)"))),
-    };
-    let big_endian = get("endian") == Some("big");
+    let sample = sample_type(path, need("type")?)?;
+    let big_endian = fields.get("endian") == Some("big");
+    let spatial = dimension.min(3);
     let (mut direction, mut spacing) = (Matrix3::identity(), [1.0; 3]);
-    if let Some(dirs) = get("space directions") {
+    if let Some(dirs) = fields.get("space directions") {
         let cols: Vec<&str> = dirs.split_whitespace().collect();
-        if cols.len() != 3 {
-            return Err(malformed(path, format!("`space directions`: expected 3 vectors, got `{dirs}`")));
+        if cols.len() != spatial {
+            return Err(malformed(path, format!("`space directions`: expected {spatial} vectors, got `{dirs}`")));
         }
         for (a, c) in cols.iter().enumerate() {
+            if *c == "none" {
+                return Err(IoError::Unrepresentable {
+                    path: path.to_owned(),
+                    message: format!("axis {a} is not spatial (`none` in `space directions`)"),
+                });
+            }
             let v = parse_vector(path, "space directions", c)?;
             spacing[a] = v.norm();
             direction.set_column(a, &(v / spacing[a].max(f64::MIN_POSITIVE)));
         }
-    } else if let Some(sp) = get("spacings") {
+    } else if let Some(sp) = fields.get("spacings") {
         for (a, s) in sp.split_whitespace().take(3).enumerate() {
             spacing[a] = s.parse().map_err(|_| malformed(path, format!("`spacings`: bad value `{s}`")))?;
         }
     }
-    let mut origin = match get("space origin") {
+    let mut origin = match fields.get("space origin") {
         Some(o) => parse_vector(path, "space origin", o)?,
         None => Vector3::zeros(),
     };
-    if let Some(space) = get("space") {
-        let flip = match space {
-            "left-posterior-superior" | "LPS" => false,
-            "right-anterior-superior" | "RAS" => true,
-            other => return Err(malformed(path, format!("`space: {other}` is not supported (LPS, RAS)"))),
-        };
-        if flip {
-            for r in 0..2 {
-                origin[r] = -origin[r];
-                for c in 0..3 {
-                    direction[(r, c)] = -direction[(r, c)];
-                }
-            }
+    // As ITK reads them (its reference for where voxels are): RAS negating x and y, LAS
+    // negating x (so ITK's NRRD reader does), other spaces as they are.
+    let flips: [f64; 3] = match fields.get("space").map(str::to_ascii_lowercase).as_deref() {
+        Some("right-anterior-superior" | "ras") => [-1.0, -1.0, 1.0],
+        Some("left-anterior-superior" | "las") => [-1.0, 1.0, 1.0],
+        Some(
+            "left-posterior-superior"
+            | "lps"
+            | "scanner-xyz"
+            | "3d-right-handed"
+            | "3d-left-handed"
+            | "right-anterior-superior-time"
+            | "left-anterior-superior-time"
+            | "left-posterior-superior-time",
+        )
+        | None => [1.0; 3],
+        Some(other) => return Err(malformed(path, format!("`space: {other}` is not a space ITK reads"))),
+    };
+    for r in 0..3 {
+        origin[r] *= flips[r];
+        for c in 0..3 {
+            direction[(r, c)] *= flips[r];
         }
     }
-    let payload = match get("data file").or(get("datafile")) {
-        Some(file) => {
-            let data_path = path.parent().unwrap_or(Path::new(".")).join(file);
-            std::fs::read(&data_path).map_err(io_error(&data_path))?
-        }
-        None => bytes
-            [header_end.ok_or_else(|| malformed(path, "header never ends (no blank line)"))?.min(bytes.len())..]
-            .to_vec(),
+    let expected = sample_bytes(path, dims, sample)?;
+    let encoding = need("encoding")?;
+    let compression = match encoding {
+        "raw" => Some(Compression::None),
+        "gzip" | "gz" => Some(Compression::Gzip),
+        "ascii" | "text" | "txt" => None,
+        other => return Err(malformed(path, format!("`encoding: {other}` is not supported (raw, gzip, ascii)"))),
     };
-    let count = nx * ny * nz;
-    let raw = decompress(path, &payload, compression, count * sample.size())?;
-    let data = sample.decode(&raw, big_endian);
-    Ok(Volume::new([nx, ny, nz], spacing, origin.into(), direction, data, &path.display().to_string())?)
+    let data_file = fields.get("data file").or(fields.get("datafile"));
+    let files: Vec<String> = match data_file {
+        None => Vec::new(),
+        Some(spec) if spec.starts_with("LIST") => list,
+        Some(spec) if spec.contains('%') => pattern_files(path, spec, dims[2].max(1))?,
+        Some(name) => vec![name.to_owned()],
+    };
+    let payload = if files.is_empty() {
+        let start =
+            attached_at.ok_or_else(|| malformed(path, "a detached header (no blank line) names no data file"))?;
+        bytes[start..].to_vec()
+    } else {
+        let mut joined = Vec::new();
+        for name in &files {
+            let data = sidecar(name).ok_or_else(|| malformed(path, format!("data file `{name}` cannot be read")))?;
+            if joined.len().saturating_add(data.len()) > super::MAX_DECODED_BYTES {
+                return Err(malformed(path, "the data files hold more than a volume here can"));
+            }
+            joined.extend_from_slice(&data);
+        }
+        joined
+    };
+    let payload = skip(path, &fields, payload, expected, compression == Some(Compression::None))?;
+    let data = match compression {
+        Some(compression) => sample.decode(&decompress(path, &payload, compression, expected)?, big_endian),
+        None => {
+            let count = expected / sample.size();
+            let text = String::from_utf8_lossy(&payload);
+            let values: Vec<f32> = text
+                .split_ascii_whitespace()
+                .take(count)
+                .map(|w| {
+                    w.parse::<f32>().map_err(|_| {
+                        malformed(path, format!("`{}` is not a number", w.chars().take(20).collect::<String>()))
+                    })
+                })
+                .collect::<Result<_, _>>()?;
+            if values.len() != count {
+                return Err(malformed(path, format!("{} values for {count} samples", values.len())));
+            }
+            values
+        }
+    };
+    Ok(Volume::new(dims, spacing, origin.into(), direction, data, &path.display().to_string())?)
 }
 
-pub(super) fn write(path: &Path, volume: &Volume) -> Result<(), IoError> {
+/// `line skip` lines, then `byte skip` bytes (-1: the data are the payload's last bytes).
+fn skip(path: &Path, fields: &Fields, mut payload: Vec<u8>, expected: usize, raw: bool) -> Result<Vec<u8>, IoError> {
+    if let Some(lines) = fields.get("line skip").or(fields.get("lineskip")) {
+        let lines: usize =
+            lines.parse().map_err(|_| malformed(path, format!("`line skip: {lines}` is not a count")))?;
+        let mut at = 0;
+        for _ in 0..lines {
+            let next = payload[at..]
+                .iter()
+                .position(|b| *b == b'\n')
+                .ok_or_else(|| malformed(path, format!("`line skip: {lines}` skips past the data")))?;
+            at += next + 1;
+        }
+        payload.drain(..at);
+    }
+    if let Some(bytes) = fields.get("byte skip").or(fields.get("byteskip")) {
+        let skip: i64 =
+            bytes.parse().map_err(|_| malformed(path, format!("`byte skip: {bytes}` is not an integer")))?;
+        let at = match skip {
+            -1 if raw => payload.len().checked_sub(expected).ok_or_else(|| {
+                malformed(path, format!("`byte skip: -1` but the data hold {} bytes of {expected}", payload.len()))
+            })?,
+            -1 => return Err(malformed(path, "`byte skip: -1` is for raw data only")),
+            n if n >= 0 => usize::try_from(n).map_err(|_| malformed(path, "`byte skip` is too large"))?,
+            n => return Err(malformed(path, format!("`byte skip: {n}` is negative"))),
+        };
+        if at > payload.len() {
+            return Err(malformed(path, format!("`byte skip: {at}` skips past the {} bytes of data", payload.len())));
+        }
+        payload.drain(..at);
+    }
+    Ok(payload)
+}
+
+/// The volume as attached NRRD0004 bytes (f32, gzip, LPS).
+pub(super) fn encode(volume: &Volume) -> Result<Vec<u8>, IoError> {
     let [nx, ny, nz] = volume.dims();
     let d = volume.direction();
     let sp = volume.spacing();
@@ -141,10 +269,7 @@ pub(super) fn write(path: &Path, volume: &Volume) -> Result<(), IoError> {
         o[1],
         o[2]
     );
-    let file = std::fs::File::create(path).map_err(io_error(path))?;
-    let mut w = std::io::BufWriter::new(file);
-    w.write_all(header.as_bytes()).map_err(io_error(path))?;
-    let mut gz = flate2::write::GzEncoder::new(w, flate2::Compression::fast());
-    gz.write_all(bytemuck::cast_slice(volume.data())).map_err(io_error(path))?;
-    gz.finish().and_then(|mut w| w.flush()).map_err(io_error(path))
+    let mut gz = flate2::write::GzEncoder::new(header.into_bytes(), flate2::Compression::fast());
+    gz.write_all(bytemuck::cast_slice(volume.data())).map_err(|e| malformed(Path::new("nrrd"), e.to_string()))?;
+    gz.finish().map_err(|e| malformed(Path::new("nrrd"), e.to_string()))
 }

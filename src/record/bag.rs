@@ -292,6 +292,8 @@ impl Drop for BagThread {
 pub struct BagMessage {
     pub topic: String,
     pub type_name: String,
+    /// The channel's message encoding (`cdr` for ROS 2).
+    pub encoding: String,
     pub log_time_ns: u64,
     pub data: Vec<u8>,
 }
@@ -300,14 +302,65 @@ pub struct BagMessage {
 /// summary: a crash or a full disk while recording) is read up to its last whole chunk.
 pub fn read_messages(path: &Path, topics: &[&str]) -> Result<Vec<BagMessage>, RecordError> {
     let bytes = std::fs::read(path).map_err(|e| RecordError::Read { path: path.to_owned(), message: e.to_string() })?;
+    parse_messages(path, &bytes, topics)
+}
+
+/// The most a chunk may claim to grow when decompressed: beyond it the header is broken (a
+/// damaged or hostile file), and it is refused before anything is allocated for it.
+const MAX_CHUNK_EXPANSION: u64 = 4096;
+
+/// [`read_messages`] on a bag's bytes (`path` names it in errors). The records are walked
+/// here (chunks checked before they are decompressed), so no header in the file decides
+/// how much memory is taken.
+pub fn parse_messages(path: &Path, bytes: &[u8], topics: &[&str]) -> Result<Vec<BagMessage>, RecordError> {
+    use mcap::records::Record;
+    let bad = |message: String| RecordError::Read { path: path.to_owned(), message };
+    let mut schemas: HashMap<u16, String> = HashMap::new();
+    let mut channels: HashMap<u16, (String, u16, String)> = HashMap::new();
     let mut out = Vec::new();
-    for message in mcap::MessageStream::new(&bytes)
-        .map_err(|e| RecordError::Read { path: path.to_owned(), message: e.to_string() })?
-    {
-        let message = match message {
-            Ok(m) => m,
-            // A truncated tail is where the recording stopped; what came before counts.
-            Err(mcap::McapError::UnexpectedEof | mcap::McapError::UnexpectedEoc) if !out.is_empty() => {
+    // One record: a schema, a channel or a message (the rest of the data section is skipped).
+    let mut take = |record: Record, out: &mut Vec<BagMessage>| -> Result<(), String> {
+        match record {
+            Record::Schema { header, .. } => {
+                schemas.insert(header.id, header.name.clone());
+            }
+            Record::Channel(channel) => {
+                channels
+                    .insert(channel.id, (channel.topic.clone(), channel.schema_id, channel.message_encoding.clone()));
+            }
+            Record::Message { header, data } => {
+                let (topic, schema, encoding) = channels
+                    .get(&header.channel_id)
+                    .ok_or_else(|| format!("a message on unknown channel {}", header.channel_id))?;
+                if topics.is_empty() || topics.contains(&topic.as_str()) {
+                    let type_name = schemas.get(schema).cloned().unwrap_or_default();
+                    out.push(BagMessage {
+                        topic: topic.clone(),
+                        type_name,
+                        encoding: encoding.clone(),
+                        log_time_ns: header.log_time,
+                        data: data.into_owned(),
+                    });
+                }
+            }
+            _ => {}
+        }
+        Ok(())
+    };
+    let records = mcap::read::LinearReader::new_with_options(bytes, mcap::read::Options::IgnoreEndMagic.into())
+        .map_err(|e| bad(format!("not a readable MCAP file: {e}")))?;
+    for record in records {
+        // A truncated tail is where the recording stopped; what came before counts.
+        let record = match record {
+            Ok(record) => record,
+            // The writer leaves a chunk's length unset until the chunk is closed, so a cut-short
+            // chunk reads as a record longer than the whole file.
+            Err(
+                mcap::McapError::UnexpectedEof
+                | mcap::McapError::UnexpectedEoc
+                | mcap::McapError::RecordTooLarge { .. }
+                | mcap::McapError::BadChunkLength { .. },
+            ) if !out.is_empty() => {
                 tracing::warn!(
                     "{}: the bag ends mid-record (recording cut short); read {} messages",
                     path.display(),
@@ -315,21 +368,73 @@ pub fn read_messages(path: &Path, topics: &[&str]) -> Result<Vec<BagMessage>, Re
                 );
                 break;
             }
-            Err(e) => return Err(RecordError::Read { path: path.to_owned(), message: e.to_string() }),
+            Err(e) => return Err(bad(e.to_string())),
         };
-        if !topics.is_empty() && !topics.contains(&message.channel.topic.as_str()) {
-            continue;
+        match record {
+            Record::Chunk { header, data } => {
+                let plausible = (data.len() as u64).saturating_mul(MAX_CHUNK_EXPANSION).saturating_add(1 << 16);
+                if header.uncompressed_size > plausible {
+                    return Err(bad(format!(
+                        "a chunk of {} bytes claims to hold {}",
+                        data.len(),
+                        header.uncompressed_size
+                    )));
+                }
+                let records = decompress_chunk(&header, &data).map_err(|e| bad(format!("damaged chunk: {e}")))?;
+                let mut at = 0;
+                while at < records.len() {
+                    let (record, next) = chunk_record(&records, at).map_err(|e| bad(format!("damaged chunk: {e}")))?;
+                    take(record, &mut out).map_err(bad)?;
+                    at = next;
+                }
+            }
+            Record::DataEnd(_) => break,
+            other => take(other, &mut out).map_err(bad)?,
         }
-        let type_name = message.channel.schema.as_ref().map(|s| s.name.clone()).unwrap_or_default();
-        out.push(BagMessage {
-            topic: message.channel.topic.clone(),
-            type_name,
-            log_time_ns: message.log_time,
-            data: message.data.into_owned(),
-        });
     }
     out.sort_by_key(|m| m.log_time_ns);
     Ok(out)
+}
+
+/// A chunk's records, decompressed into exactly the size its header gives (already checked
+/// against the compressed size).
+fn decompress_chunk(header: &mcap::records::ChunkHeader, data: &[u8]) -> Result<Vec<u8>, String> {
+    use std::io::Read;
+    let size = usize::try_from(header.uncompressed_size).map_err(|_| "a chunk larger than this machine".to_owned())?;
+    let out = match header.compression.as_str() {
+        "" => data.to_vec(),
+        "zstd" => zstd::bulk::decompress(data, size).map_err(|e| format!("zstd: {e}"))?,
+        "lz4" => {
+            let mut out = Vec::new();
+            lz4_flex::frame::FrameDecoder::new(data)
+                .take(size as u64)
+                .read_to_end(&mut out)
+                .map_err(|e| format!("lz4: {e}"))?;
+            out
+        }
+        other => return Err(format!("compression `{other}` is not zstd or lz4")),
+    };
+    if out.len() != size {
+        return Err(format!("{} bytes decompressed, {size} announced", out.len()));
+    }
+    if header.uncompressed_crc != 0 && crc32fast::hash(&out) != header.uncompressed_crc {
+        return Err("its CRC does not match".into());
+    }
+    Ok(out)
+}
+
+/// The record at `at` of a chunk's records (opcode, u64 length, body) and where the next
+/// begins; the length is checked against what is there.
+fn chunk_record(records: &[u8], at: usize) -> Result<(mcap::records::Record<'_>, usize), String> {
+    let head = records.get(at..at + 9).ok_or("a record header cut short")?;
+    let length = u64::from_le_bytes([head[1], head[2], head[3], head[4], head[5], head[6], head[7], head[8]]);
+    let end = usize::try_from(length)
+        .ok()
+        .and_then(|l| (at + 9).checked_add(l))
+        .filter(|e| *e <= records.len())
+        .ok_or_else(|| format!("a record of {length} bytes where {} are left", records.len() - at - 9))?;
+    let record = mcap::read::parse_record(head[0], &records[at + 9..end]).map_err(|e| e.to_string())?;
+    Ok((record, end))
 }
 
 /// Tool poses recorded in a bag as DPCM marker tracks: every `geometry_msgs/msg/PoseStamped`
@@ -338,23 +443,19 @@ pub fn read_messages(path: &Path, topics: &[&str]) -> Result<Vec<BagMessage>, Re
 /// Samples with non-finite positions or going back in time are dropped and counted.
 pub fn motion_from_bag(path: &Path, topics: &[String]) -> Result<(MotionFile, TrackCounts), RecordError> {
     let bad = |message: String| RecordError::Read { path: path.to_owned(), message };
-    let bytes = std::fs::read(path).map_err(|e| bad(e.to_string()))?;
-    let stream = mcap::MessageStream::new(&bytes).map_err(|e| bad(format!("not a readable MCAP file: {e}")))?;
+    let messages = read_messages(path, &[])?;
     let mut samples: BTreeMap<String, Vec<(u64, Point3<f64>)>> = BTreeMap::new();
     let mut dropped = 0;
-    for message in stream {
-        let message = message.map_err(|e| bad(format!("damaged MCAP record: {e}")))?;
-        let channel = &message.channel;
-        let is_pose =
-            channel.schema.as_ref().is_some_and(|s| s.name == PoseStamped::NAME) && channel.message_encoding == "cdr";
-        let wanted = if topics.is_empty() { is_pose } else { topics.iter().any(|t| *t == channel.topic) };
+    for message in messages {
+        let is_pose = message.type_name == PoseStamped::NAME && message.encoding == "cdr";
+        let wanted = if topics.is_empty() { is_pose } else { topics.contains(&message.topic) };
         if !wanted {
             continue;
         }
         if !is_pose {
-            return Err(bad(format!("topic {} is not geometry_msgs/msg/PoseStamped in CDR", channel.topic)));
+            return Err(bad(format!("topic {} is not geometry_msgs/msg/PoseStamped in CDR", message.topic)));
         }
-        let pose: PoseStamped = match msgs::decode(&message.data, &channel.topic) {
+        let pose: PoseStamped = match msgs::decode(&message.data, &message.topic) {
             Ok(p) => p,
             Err(e) => {
                 tracing::warn!("{}: {e}; message dropped", path.display());
@@ -367,7 +468,7 @@ pub fn motion_from_bag(path: &Path, topics: &[String]) -> Result<(MotionFile, Tr
             dropped += 1;
             continue;
         }
-        samples.entry(channel.topic.clone()).or_default().push((message.log_time, Point3::new(p.x, p.y, p.z)));
+        samples.entry(message.topic).or_default().push((message.log_time_ns, Point3::new(p.x, p.y, p.z)));
     }
     for topic in topics {
         if !samples.contains_key(topic) {

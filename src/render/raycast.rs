@@ -2,7 +2,7 @@
 //! trilinear samples, front-to-back compositing with point-sampled or pre-integrated
 //! segments, early ray termination, empty-space skipping on 8³ macro cells, and shading by
 //! gradients or by the forward difference toward the light (seed 002, section 3.3).
-//! [`reference`] is the independent f64 ray integral the tests and benchmarks compare to.
+//! [`reference()`] is the independent f64 ray integral the tests and benchmarks compare to.
 
 use std::sync::Arc;
 

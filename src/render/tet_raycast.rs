@@ -1,6 +1,6 @@
 //! The tetrahedral-mesh raycaster (seed 000, section 5), CPU path, line by line the twin of
 //! `shaders/tet_raycast.wgsl`:
-//! - boundary faces are binned into 8x8-pixel tiles ([`bin_boundary`]); a ray's entry is
+//! - boundary faces are binned into 8x8-pixel tiles (`bin_boundary`); a ray's entry is
 //!   the nearest front-facing boundary face of its tile;
 //! - the walk leaves each tet through the face with the smallest ray parameter ahead and
 //!   goes on in the face neighbour; the scalar is linear inside a tet (a gradient per tet);
@@ -13,7 +13,7 @@
 //!
 //! Face planes and gradients are refreshed with [`TetRaycaster::update`] after every
 //! deformation step. Geometry is kept in f32 relative to the rest mesh's centre (`anchor`),
-//! as the GPU holds it. [`reference`] is the independent f64 integral the tests use.
+//! as the GPU holds it. [`reference()`] is the independent f64 integral the tests use.
 
 use bytemuck::{Pod, Zeroable};
 use nalgebra::{Matrix3, Point3, Vector3};

@@ -16,6 +16,8 @@ pub enum VolumeError {
     BadOrigin { file: String, origin: [f64; 3] },
     #[error("{file}: direction matrix is not a finite rotation (|det| = {det})")]
     BadDirection { file: String, det: f64 },
+    #[error("{file}: the direction matrix is sheared or scaled (|DᵀD - I| = {deviation:.2e}); a voxel grid's axes must be orthonormal")]
+    ShearedDirection { file: String, deviation: f64 },
     #[error("{file}: {got} samples for dims {dims:?} ({expected} expected)")]
     SampleCount { file: String, got: usize, expected: usize, dims: [usize; 3] },
     #[error("{file}: sample {index} (voxel {voxel:?}) is not finite")]
@@ -89,6 +91,12 @@ impl Volume {
         let det = direction.determinant();
         if !det.is_finite() || (det.abs() - 1.0).abs() > 1e-3 {
             return Err(VolumeError::BadDirection { file: src(), det });
+        }
+        // Its transpose is used as its inverse: it must be a rotation (or a reflection),
+        // to the precision files print it with.
+        let deviation = (direction.transpose() * direction - Matrix3::identity()).norm();
+        if deviation > 1e-4 {
+            return Err(VolumeError::ShearedDirection { file: src(), deviation });
         }
         let expected = dims[0] * dims[1] * dims[2];
         if data.len() != expected {

@@ -2,7 +2,7 @@
 //! sampling. The source volume, the rest mesh and the output grid go up once; a warp then
 //! takes the deformed nodes where they are ([`GpuWarp::place_from`]: another stage's device
 //! buffer; [`GpuWarp::place_host`]: from the host), computes every tet's maps on the device
-//! (`tet_maps`, the twin of [`super::tet_map`]) and rasterises them into an output buffer
+//! (`tet_maps`, the twin of `tet_map`) and rasterises them into an output buffer
 //! that stays on the device, for the volume raycaster to read and for one read-back
 //! straight into its destination ([`GpuWarp::read_into`]).
 //!

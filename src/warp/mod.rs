@@ -133,13 +133,13 @@ pub struct TetMap {
     /// Inclusive output voxel box, clipped to the grid.
     pub lo: [usize; 3],
     pub hi: [usize; 3],
-    /// b_m = bary[m][0] + bary[m][1]·i + bary[m][2]·j + bary[m][3]·k.
+    /// `b_m = bary[m][0] + bary[m][1]·i + bary[m][2]·j + bary[m][3]·k`.
     pub bary: [[f64; 4]; 4],
-    /// Source index r = src[r][0] + src[r][1]·i + src[r][2]·j + src[r][3]·k.
+    /// Source index `r = src[r][0] + src[r][1]·i + src[r][2]·j + src[r][3]·k`.
     pub src: [[f64; 4]; 3],
     /// Deformed vertices in output index space.
     pub verts: [[f64; 3]; 4],
-    /// 1 / bary[m][1] (0 where that is 0): the span bounds without divisions per row.
+    /// `1 / bary[m][1]` (0 where that is 0): the span bounds without divisions per row.
     pub inv_c: [f64; 4],
     /// The rest tet lies inside the source's voxel-centre box, so its samples need no
     /// bounds test (true for meshes embedding the volume).
@@ -147,7 +147,7 @@ pub struct TetMap {
 }
 
 impl TetMap {
-    /// Barycentric offsets of row (j, k): b_m(i) + ε = a[m] + bary[m][1]·i, with the
+    /// Barycentric offsets of row (j, k): `b_m(i) + ε = a[m] + bary[m][1]·i`, with the
     /// tolerance ε = [`INSIDE_TOLERANCE`] folded in.
     #[inline]
     pub fn row(&self, j: usize, k: usize) -> [f64; 4] {

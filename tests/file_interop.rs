@@ -1,0 +1,244 @@
+//! Files from the field's own tools, and defvol's files in them: meshio, VTK and Gmsh write
+//! meshes in every encoding they offer and SimpleITK, nibabel and pynrrd write volumes
+//! (tests/interop/files.py), defvol reads each and must find what was written (meshes: the
+//! points, the tets, the point array and how many other cells were skipped; volumes: where
+//! SimpleITK puts every voxel, and the values); then defvol writes volumes and meshes and
+//! every tool reads them back with the same values and geometry.
+
+use std::path::Path;
+use std::process::Command;
+
+use defvol::io;
+use defvol::volume::Volume;
+use nalgebra::{Matrix3, Vector3};
+use serde_json::Value;
+
+/// The tools' Python; under tests/run.sh (DEFVOL_REQUIRE_INTEROP=1) it must be there.
+fn have_tools() -> bool {
+    let ok = Command::new("python3")
+        .args(["-c", "import meshio, vtk, gmsh, SimpleITK, nibabel, nrrd"])
+        .output()
+        .is_ok_and(|o| o.status.success());
+    if !ok {
+        assert!(
+            std::env::var_os("DEFVOL_REQUIRE_INTEROP").is_none(),
+            "the Python file tools are missing (tests/run.sh installs them)"
+        );
+        eprintln!("skipped: meshio, vtk, gmsh, SimpleITK, nibabel or pynrrd is not installed");
+    }
+    ok
+}
+
+fn files_py(command: &str, folder: &Path) -> Value {
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/interop/files.py");
+    let out = Command::new("python3").arg(script).arg(command).arg(folder).output().unwrap();
+    assert!(out.status.success(), "files.py {command}: {}", String::from_utf8_lossy(&out.stderr));
+    serde_json::from_slice(&out.stdout).unwrap()
+}
+
+fn floats(v: &Value) -> Vec<f64> {
+    v.as_array().unwrap().iter().map(|x| x.as_f64().unwrap()).collect()
+}
+
+fn close(a: f64, b: f64, tolerance: f64) -> bool {
+    (a - b).abs() <= tolerance * (1.0 + a.abs().max(b.abs()))
+}
+
+#[test]
+fn every_file_the_tools_write_reads_as_written() {
+    if !have_tools() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let manifest = files_py("write", dir.path());
+    let mut checked = 0;
+    let mut failures = Vec::new();
+    for (name, expected) in manifest.as_object().unwrap() {
+        let path = dir.path().join(name);
+        let result = match expected["kind"].as_str() {
+            Some("mesh") => check_mesh(&path, expected),
+            _ => check_volume(&path, expected),
+        };
+        if let Err(why) = result {
+            failures.push(format!("{name} ({}): {why}", expected["tool"]));
+        }
+        checked += 1;
+    }
+    assert!(checked >= 80, "{checked} files");
+    assert!(failures.is_empty(), "{} of {checked} files read wrong:\n{}", failures.len(), failures.join("\n"));
+}
+
+fn check_mesh(path: &Path, expected: &Value) -> Result<(), String> {
+    let (mesh, skipped) = io::read_mesh_with_skipped(path).map_err(|e| e.to_string())?;
+    let points = expected["points"].as_array().unwrap();
+    if mesh.nodes().len() != points.len() {
+        return Err(format!("{} nodes, {} written", mesh.nodes().len(), points.len()));
+    }
+    for (k, (got, want)) in mesh.nodes().iter().zip(points).enumerate() {
+        let want = floats(want);
+        if !(0..3).all(|a| close(got[a], want[a], 1e-9)) {
+            return Err(format!("node {k} at {got:?}, written at {want:?}"));
+        }
+    }
+    let mut tets: Vec<[u32; 4]> = mesh.tets().to_vec();
+    let mut want: Vec<[u32; 4]> = expected["tets"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|t| {
+            let v: Vec<u32> = t.as_array().unwrap().iter().map(|x| x.as_u64().unwrap() as u32).collect();
+            [v[0], v[1], v[2], v[3]]
+        })
+        .collect();
+    tets.sort();
+    want.sort();
+    if tets != want {
+        return Err(format!("tets {tets:?}, written {want:?}"));
+    }
+    let skipped: usize = skipped.values().sum();
+    if skipped != expected["skipped"].as_u64().unwrap() as usize {
+        return Err(format!("{skipped} other cells skipped, {} written", expected["skipped"]));
+    }
+    if expected["has_array"].as_bool().unwrap() {
+        let values = io::read_mesh_point_array(path, expected["array"].as_str().unwrap()).map_err(|e| e.to_string())?;
+        let want = floats(&expected["values"]);
+        if values.len() != want.len() || values.iter().zip(&want).any(|(a, b)| !close(f64::from(*a), *b, 1e-6)) {
+            return Err(format!("point array {values:?}, written {want:?}"));
+        }
+    }
+    Ok(())
+}
+
+fn check_volume(path: &Path, itk: &Value) -> Result<(), String> {
+    let v = io::read_volume(path).map_err(|e| e.to_string())?;
+    compare_geometry(&v, itk)
+}
+
+/// `v` against what SimpleITK read (dims, origin, spacing, direction, checksum, voxels).
+fn compare_geometry(v: &Volume, itk: &Value) -> Result<(), String> {
+    let dims: Vec<usize> = itk["dims"].as_array().unwrap().iter().map(|d| d.as_u64().unwrap() as usize).collect();
+    if v.dims().to_vec() != dims {
+        return Err(format!("dims {:?}, ITK {dims:?}", v.dims()));
+    }
+    let (origin, spacing, direction) = (floats(&itk["origin"]), floats(&itk["spacing"]), floats(&itk["direction"]));
+    if !(0..3).all(|a| close(v.origin()[a], origin[a], 1e-5) && close(v.spacing()[a], spacing[a], 1e-5)) {
+        return Err(format!("origin {:?} spacing {:?}, ITK {origin:?} {spacing:?}", v.origin(), v.spacing()));
+    }
+    let itk_direction = Matrix3::from_row_slice(&direction);
+    if (v.direction() - itk_direction).norm() > 1e-5 {
+        return Err(format!("direction {}, ITK {itk_direction}", v.direction()));
+    }
+    let sum: f64 = v.data().iter().map(|x| f64::from(*x)).sum();
+    let itk_sum = itk["sum"].as_f64().unwrap();
+    if !close(sum, itk_sum, 1e-6) {
+        return Err(format!("values sum to {sum}, ITK's to {itk_sum}"));
+    }
+    for (index, value) in itk["picks"].as_object().unwrap() {
+        let got = v.data()[index.parse::<usize>().unwrap()];
+        if !close(f64::from(got), value.as_f64().unwrap(), 1e-6) {
+            return Err(format!("voxel {index} is {got}, ITK reads {value}"));
+        }
+    }
+    Ok(())
+}
+
+#[test]
+fn every_file_defvol_writes_opens_in_the_tools() {
+    if !have_tools() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let rotation = nalgebra::Rotation3::from_euler_angles(0.3, -0.2, 1.1).into_inner();
+    let data: Vec<f32> = (0..9 * 7 * 5).map(|i| (i as f32 * 0.37).sin() * 100.0).collect();
+    let volume = Volume::new([9, 7, 5], [0.7, 1.3, 2.1], [-4.5, 10.25, 33.0], rotation, data, "written").unwrap();
+    for name in ["out.nii", "out.nii.gz", "out.nrrd", "out.mha", "out.mhd"] {
+        io::write_volume(&dir.path().join(name), &volume).unwrap();
+    }
+    let mut mesh = defvol::mesh::generate::lattice(
+        Vector3::zeros(),
+        Vector3::new(0.3, 0.2, 0.1),
+        [3, 2, 2],
+        defvol::mesh::generate::CellSplit::Five,
+    )
+    .unwrap();
+    mesh.set_scalars((0..mesh.nodes().len()).map(|i| i as f32).collect()).unwrap();
+    for name in ["out.vtu", "out.vtk", "out.msh"] {
+        io::write_mesh(&dir.path().join(name), &mesh, None).unwrap();
+    }
+    let found = files_py("read", dir.path());
+    let mut failures = Vec::new();
+    let sum: f64 = volume.data().iter().map(|x| f64::from(*x)).sum();
+    for name in ["out.nii", "out.nii.gz", "out.nrrd", "out.mha", "out.mhd"] {
+        let entry = &found[name];
+        if let Some(e) = entry.get("error") {
+            failures.push(format!("{name}: {e}"));
+            continue;
+        }
+        if let Err(why) = compare_geometry(&volume, &entry["SimpleITK"]) {
+            failures.push(format!("{name} in SimpleITK: {why}"));
+        }
+        if let Some(nib) = entry.get("nibabel") {
+            // nibabel's affine is RAS: x and y of ours negated.
+            let affine: Vec<Vec<f64>> = nib["affine"].as_array().unwrap().iter().map(floats).collect();
+            for r in 0..3 {
+                let flip = if r < 2 { -1.0 } else { 1.0 };
+                for c in 0..3 {
+                    let want = flip * volume.direction()[(r, c)] * volume.spacing()[c];
+                    if !close(affine[r][c], want, 1e-5) {
+                        failures
+                            .push(format!("{name} in nibabel: affine[{r}][{c}] = {}, expected {want}", affine[r][c]));
+                    }
+                }
+                if !close(affine[r][3], flip * volume.origin()[r], 1e-5) {
+                    failures.push(format!(
+                        "{name} in nibabel: offset {r} = {}, expected {}",
+                        affine[r][3],
+                        flip * volume.origin()[r]
+                    ));
+                }
+            }
+            if !close(nib["sum"].as_f64().unwrap(), sum, 1e-6) {
+                failures.push(format!("{name} in nibabel: values sum to {}", nib["sum"]));
+            }
+        }
+        if let Some(nrrd) = entry.get("pynrrd") {
+            let origin = floats(&nrrd["space origin"]);
+            if nrrd["space"] != "left-posterior-superior"
+                || !(0..3).all(|a| close(origin[a], volume.origin()[a], 1e-6))
+                || !close(nrrd["sum"].as_f64().unwrap(), sum, 1e-6)
+            {
+                failures.push(format!("{name} in pynrrd: {nrrd}"));
+            }
+        }
+    }
+    for name in ["out.vtu", "out.vtk", "out.msh"] {
+        let entry = &found[name];
+        if let Some(e) = entry.get("error") {
+            failures.push(format!("{name}: {e}"));
+            continue;
+        }
+        let meshio = &entry["meshio"];
+        let tets = meshio["tets"].as_array().unwrap().len();
+        let points = meshio["points"].as_array().unwrap();
+        let first = floats(&points[1]);
+        if tets != mesh.tets().len()
+            || points.len() != mesh.nodes().len()
+            || !(0..3).all(|a| close(first[a], mesh.nodes()[1][a], 1e-12))
+        {
+            failures.push(format!("{name} in meshio: {tets} tets, {} points", points.len()));
+        }
+        if let Some(vtk) = entry.get("vtk") {
+            if vtk["points"].as_u64() != Some(mesh.nodes().len() as u64)
+                || vtk["cells"].as_u64() != Some(mesh.tets().len() as u64)
+            {
+                failures.push(format!("{name} in VTK: {vtk}"));
+            }
+        }
+        if let Some(gmsh) = entry.get("gmsh") {
+            if gmsh["tets"].as_u64() != Some(mesh.tets().len() as u64) {
+                failures.push(format!("{name} in Gmsh: {gmsh}"));
+            }
+        }
+    }
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
+}
