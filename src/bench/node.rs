@@ -201,6 +201,7 @@ fn feedback_rows(
 fn pose_to_volume(backend: &Backend, device: &str, frames: usize) -> Result<BenchRow, NodeBenchError> {
     use crate::shm::{WarpedVolumeHeader, WarpedVolumePublisher};
     use iceoryx2::prelude::*;
+    use std::sync::atomic::{AtomicBool, Ordering};
     use std::sync::Arc;
     use std::time::Duration;
 
@@ -218,6 +219,8 @@ fn pose_to_volume(backend: &Backend, device: &str, frames: usize) -> Result<Benc
     let (tx, rx) = std::sync::mpsc::channel::<(u64, Instant)>();
     let (ready_tx, ready_rx) = std::sync::mpsc::channel::<()>();
     let reader_service = service.clone();
+    let timed = Arc::new(AtomicBool::new(false));
+    let reader_done = timed.clone();
     let reader = std::thread::spawn(move || -> Result<(), String> {
         let node = NodeBuilder::new().create::<ipc::Service>().map_err(|e| format!("{e:?}"))?;
         let name: ServiceName = reader_service.as_str().try_into().map_err(|e| format!("{e:?}"))?;
@@ -230,7 +233,7 @@ fn pose_to_volume(backend: &Backend, device: &str, frames: usize) -> Result<Benc
         let subscriber = factory.subscriber_builder().create().map_err(|e| format!("{e:?}"))?;
         let _ = ready_tx.send(());
         let deadline = Instant::now() + Duration::from_secs(600);
-        while Instant::now() < deadline {
+        while Instant::now() < deadline && !reader_done.load(Ordering::Relaxed) {
             match subscriber.receive() {
                 Ok(Some(sample)) => {
                     let sequence = sample.user_header().sequence;
@@ -274,6 +277,8 @@ fn pose_to_volume(backend: &Backend, device: &str, frames: usize) -> Result<Benc
             samples.push((received - start).as_secs_f64() * 1e3);
         }
     }
+    // The reader may be idle with nothing left to take: tell it, rather than wait for a send to fail.
+    timed.store(true, Ordering::Relaxed);
     drop(rx);
     if let Ok(Err(e)) = reader.join() {
         return Err(NodeBenchError::Setup(format!("iceoryx2 subscriber: {e}")));
