@@ -120,7 +120,8 @@ impl Default for Stages {
 pub struct WarpStageConfig {
     /// Most warps per second of simulated time.
     pub rate_hz: f64,
-    /// Nodes that moved less than this (metres) since the last warp leave their tets alone.
+    /// Nodes that moved less than this (metres) from where the warp last placed them stay
+    /// there for the warp, and their tets alone; slow drift is caught once it adds up.
     pub tolerance: f64,
     /// The iceoryx2 service carrying the volumes.
     pub service: String,
@@ -164,6 +165,9 @@ pub enum CameraShows {
     /// The deformed tetrahedral mesh raycast directly (seed 000, section 5), its node values
     /// sampled from the source at rest: the picture needs no warp.
     Mesh,
+    /// The source volume at full resolution seen through the deformed mesh (each sample
+    /// mapped back to rest through its tet, seed 002): the detail of `volume` with no warp.
+    Source,
 }
 
 impl Scene {
@@ -192,7 +196,8 @@ pub struct CameraConfig {
     pub transfer_function: String,
     pub shows: CameraShows,
     /// Ray step in the volume's file units (for `shows: mesh`, the longest piece of a tet's
-    /// segment one pre-integrated lookup covers).
+    /// segment one pre-integrated lookup covers; for `volume` and `source`, the sample
+    /// spacing, best near the source's voxel spacing).
     pub step: f64,
     /// Most frames per second of simulated time.
     pub rate_hz: f64,

@@ -278,3 +278,80 @@ fn render_draws_a_tetrahedral_mesh_with_sampled_or_named_scalars() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success() && err.contains("`dose`") && err.contains("scalar"), "{err}");
 }
+
+#[test]
+fn render_shows_the_source_through_a_deformed_mesh_as_the_moved_volume_looks() {
+    let dir = tempfile::tempdir().unwrap();
+    let phantom = defvol::volume::phantom::phantom([64, 40, 31], 4.0).unwrap();
+    let (lo, hi) = phantom.bounds();
+    // The mesh on the voxel-centre box, moved 20 mm up: the source through it is the
+    // phantom moved 20 mm up.
+    let mesh = defvol::mesh::generate::lattice(lo, hi, [8, 5, 4], defvol::mesh::generate::CellSplit::Five).unwrap();
+    let lift = nalgebra::Vector3::new(0.0, 0.0, 20.0);
+    let mut moved = mesh.clone();
+    moved.map_nodes(|p| p + lift);
+    let lifted = defvol::volume::Volume::new(
+        phantom.dims(),
+        phantom.spacing(),
+        (nalgebra::Vector3::from(phantom.origin()) + lift).into(),
+        *phantom.direction(),
+        phantom.data().to_vec(),
+        "lifted",
+    )
+    .unwrap();
+    let paths = ["src.mha", "lifted.mha", "rest.vtu", "moved.vtu", "a.png", "b.png", "a.nrrd", "b.nrrd"]
+        .map(|name| dir.path().join(name));
+    defvol::io::write_volume(&paths[0], &phantom).unwrap();
+    defvol::io::write_volume(&paths[1], &lifted).unwrap();
+    defvol::io::write_mesh(&paths[2], &mesh, None).unwrap();
+    defvol::io::write_mesh(&paths[3], &moved, None).unwrap();
+    let c = (lo + hi) / 2.0 + lift;
+    let camera = format!("--camera={},{},{}:{},{},{}", c.x - 150.0, c.y - 380.0, c.z + 120.0, c.x, c.y, c.z);
+    let common = ["render", "--size", "48x40", "--step", "2", "--shading", "none", &camera];
+    let out = defvol()
+        .args(common)
+        .args(["--backend", "cpu", "--volume"])
+        .arg(&paths[0])
+        .arg("--mesh")
+        .arg(&paths[2])
+        .arg("--deformed")
+        .arg(&paths[3])
+        .arg("--out")
+        .arg(&paths[4])
+        .arg("--depth-out")
+        .arg(&paths[6])
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let out = defvol()
+        .args(common)
+        .args(["--backend", "cpu", "--volume"])
+        .arg(&paths[1])
+        .arg("--out")
+        .arg(&paths[5])
+        .arg("--depth-out")
+        .arg(&paths[7])
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let (a, b) = (defvol::io::read_volume(&paths[6]).unwrap(), defvol::io::read_volume(&paths[7]).unwrap());
+    let both: Vec<(f32, f32)> =
+        a.data().iter().zip(b.data()).filter(|(x, y)| **x > 0.0 && **y > 0.0).map(|(x, y)| (*x, *y)).collect();
+    assert!(both.len() > 48 * 40 / 5, "{} pixels see tissue in both", both.len());
+    let off = both.iter().filter(|(x, y)| (x - y).abs() > 2.0).count();
+    assert!(off <= both.len() / 50, "{off} of {} depths differ by more than a step", both.len());
+    // A deformed mesh that is not the rest mesh's is named.
+    let other = defvol::mesh::generate::lattice(lo, hi, [2, 2, 2], defvol::mesh::generate::CellSplit::Five).unwrap();
+    defvol::io::write_mesh(&paths[3], &other, None).unwrap();
+    let out = defvol()
+        .args(["render", "--mesh"])
+        .arg(&paths[2])
+        .arg("--deformed")
+        .arg(&paths[3])
+        .arg("--out")
+        .arg(&paths[4])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("its tets are not"), "{err}");
+}

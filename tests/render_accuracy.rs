@@ -691,3 +691,221 @@ mod tet_mesh {
         assert!(image.rgba.chunks_exact(4).all(|p| p == [0, 0, 0, 255]) && image.depth.iter().all(|d| d.is_infinite()));
     }
 }
+
+/// The source volume seen through the deformed mesh (`camera.shows: source`), against the
+/// volume raycaster, an f64 reference mapping each sample exactly, and a fine warp.
+mod source_through_mesh {
+    use super::*;
+    use defvol::mesh::generate::{self, CellSplit};
+    use defvol::mesh::TetMesh;
+    use defvol::render::source_raycast::{self, SourceSampling};
+    use defvol::render::tet_raycast::TetRaycaster;
+    use defvol::warp::{self, WarpOptions};
+    use std::sync::Arc;
+
+    /// An n³ volume at 1 mm of a smooth field with a bright ball (detail finer than any
+    /// tet), and a lattice mesh of `cells`³ on its voxel-centre box.
+    fn scan(n: usize, cells: usize) -> (Arc<Volume>, TetMesh) {
+        let c = (n - 1) as f64 / 2.0;
+        let data = (0..n * n * n)
+            .map(|i| {
+                let p = Vector3::new((i % n) as f64, ((i / n) % n) as f64, (i / (n * n)) as f64);
+                let ball = if (p - Vector3::new(c + 3.0, c - 2.0, c)).norm() < 4.0 { 120.0 } else { 0.0 };
+                (100.0 + 60.0 * (p.x * 0.3).sin() * (p.y * 0.25).cos() + 2.0 * p.z + ball) as f32
+            })
+            .collect();
+        let volume = Volume::new([n; 3], [1.0; 3], [0.0; 3], Matrix3::identity(), data, "scan").unwrap();
+        let top = (n - 1) as f64;
+        let mesh = generate::lattice(Vector3::zeros(), Vector3::repeat(top), [cells; 3], CellSplit::Five).unwrap();
+        (Arc::new(volume), mesh)
+    }
+
+    fn view(n: usize, size: usize) -> Camera {
+        let c = Point3::from(Vector3::repeat((n - 1) as f64 / 2.0));
+        Camera::look_at(
+            c + Vector3::new(-1.6, -2.6, 1.2) * n as f64,
+            c,
+            Vector3::z(),
+            Projection::Perspective { fov_y_deg: 30.0 },
+            size,
+            size,
+        )
+        .unwrap()
+    }
+
+    fn tf() -> TransferFunction {
+        TransferFunction {
+            points: vec![
+                TfPoint { value: 0.0, color: [0.0; 3], opacity: 0.0 },
+                TfPoint { value: 90.0, color: [0.2, 0.3, 0.9], opacity: 0.0 },
+                TfPoint { value: 140.0, color: [1.0, 0.7, 0.3], opacity: 0.06 },
+                TfPoint { value: 250.0, color: [1.0, 1.0, 1.0], opacity: 0.3 },
+            ],
+            relative: false,
+        }
+    }
+
+    fn as_reference(image: &defvol::render::Rendered) -> Vec<[f64; 4]> {
+        image.rgba.chunks_exact(4).map(|p| [0, 1, 2, 3].map(|c| f64::from(p[c]) / 255.0)).collect()
+    }
+
+    fn through(
+        mesh: &TetMesh,
+        volume: &Arc<Volume>,
+        positions: &[Vector3<f64>],
+        params: &RaycastParams,
+        camera: &Camera,
+    ) -> defvol::render::Rendered {
+        let mut raycaster =
+            TetRaycaster::with_source(mesh, volume.clone(), &tf(), params, &SourceSampling::default()).unwrap();
+        raycaster.update(positions).unwrap();
+        raycaster.render(camera).unwrap()
+    }
+
+    #[test]
+    fn through_an_undeformed_mesh_the_source_looks_as_the_volume_raycaster_shows_it() {
+        let (volume, mesh) = scan(24, 6);
+        let camera = view(24, 64);
+        for params in [
+            RaycastParams::default(),
+            RaycastParams { preintegrated: false, shading: Shading::ForwardDifference, ..Default::default() },
+            RaycastParams { step: 0.5, shading: Shading::None, empty_space_skipping: false, ..Default::default() },
+        ] {
+            let image = through(&mesh, &volume, mesh.nodes(), &params, &camera);
+            let voxels = raycast::raycast(&volume, &camera, &tf(), &params).unwrap();
+            assert!(
+                voxels.rgba.chunks_exact(4).filter(|p| p[0] > 20).count() > 64 * 64 / 6,
+                "the view is nearly empty"
+            );
+            let (mean, max) = image.errors(&as_reference(&voxels));
+            eprintln!("{params:?}: mean {mean:.3}, max {max:.1} levels");
+            assert!(mean < 0.5, "mean {mean:.3} levels from the volume raycaster ({params:?})");
+        }
+    }
+
+    /// A bend no affine map follows: nodes moved by a smooth field.
+    fn bend(n: usize) -> impl Fn(&Vector3<f64>) -> Vector3<f64> {
+        let c = (n - 1) as f64 / 2.0;
+        move |p| p + Vector3::new(0.0, 1.5 * ((p.z - c) / 6.0).sin(), 3.0 * ((p.x - c) / 8.0).sin())
+    }
+
+    #[test]
+    fn through_a_bent_mesh_the_source_matches_the_exact_map_and_a_fine_warp() {
+        let n = 24;
+        let (volume, mesh) = scan(n, 6);
+        let camera = view(n, 64);
+        let bent: Vec<Vector3<f64>> = mesh.nodes().iter().map(bend(n)).collect();
+        // A fine step on both paths: what is left is the map (and the warp's resampling).
+        let plain = RaycastParams { step: 0.1, shading: Shading::None, early_termination: 1.0, ..Default::default() };
+        let reference = source_raycast::reference(
+            &mesh,
+            &bent,
+            &volume,
+            &camera,
+            &tf(),
+            &RaycastParams { step: 0.02, ..plain.clone() },
+            &[],
+        )
+        .unwrap();
+        assert!(reference.iter().filter(|p| p[0] > 0.1).count() > 64 * 64 / 6, "the view is nearly empty");
+        let source = through(&mesh, &volume, &bent, &plain, &camera);
+        let (source_mean, source_max) = source.errors(&reference);
+        // Warp at a quarter of the source's spacing, then the volume raycaster.
+        let coarse = warp::default_grid(&volume, &bent);
+        let fine = defvol::volume::Grid {
+            dims: coarse.dims.map(|d| 4 * d),
+            spacing: [0.25; 3],
+            origin: coarse.origin,
+            direction: coarse.direction,
+        };
+        let (warped, _) = warp::warp(&volume, &mesh, &bent, &fine, &WarpOptions::default()).unwrap();
+        let warp_image = raycast::raycast(&warped, &camera, &tf(), &plain).unwrap();
+        let (warp_mean, warp_max) = warp_image.errors(&reference);
+        eprintln!("against the f64 map (levels, mean/max): source through the mesh {source_mean:.3}/{source_max:.1}, warp at 0.25 mm then raycast {warp_mean:.3}/{warp_max:.1}");
+        assert!(source_mean < 0.5 && source_max < 2.0, "source: mean {source_mean:.3}, max {source_max:.1} levels");
+        assert!(warp_mean < 1.0, "warp then raycast: mean {warp_mean:.3} levels");
+        // The bend is visible: the undeformed picture is much further off.
+        let at_rest = through(&mesh, &volume, mesh.nodes(), &plain, &camera);
+        let (rest_mean, _) = at_rest.errors(&reference);
+        assert!(rest_mean > 5.0 * source_mean.max(0.1), "the bend barely shows: {rest_mean:.2} levels at rest");
+    }
+
+    #[test]
+    fn an_affine_deformation_leaves_no_seams_between_tets() {
+        let n = 20;
+        let (volume, fine) = scan(n, 8);
+        let (_, coarse) = scan(n, 1);
+        let c = Vector3::repeat((n - 1) as f64 / 2.0);
+        let a = Matrix3::new(1.2, 0.25, 0.0, -0.1, 0.9, 0.15, 0.05, 0.0, 1.1);
+        let affine = |m: &TetMesh| -> Vec<Vector3<f64>> { m.nodes().iter().map(|p| c + a * (p - c)).collect() };
+        let camera = view(n, 64);
+        for params in [RaycastParams::default(), RaycastParams { preintegrated: false, ..Default::default() }] {
+            let many = through(&fine, &volume, &affine(&fine), &params, &camera);
+            let few = through(&coarse, &volume, &affine(&coarse), &params, &camera);
+            assert!(many.rgba.chunks_exact(4).filter(|p| p[0] > 20).count() > 64 * 64 / 6, "the view is nearly empty");
+            let (mean, max) = many.errors(&as_reference(&few));
+            eprintln!(
+                "{} tets against {}: mean {mean:.4}, max {max:.1} levels",
+                fine.tets().len(),
+                coarse.tets().len()
+            );
+            assert!(mean < 0.05 && max <= 2.0, "seams: mean {mean:.4}, max {max:.1} levels");
+        }
+    }
+
+    #[test]
+    fn bad_input_gives_a_valid_picture_or_a_named_error() {
+        let n = 16;
+        let (volume, mesh) = scan(n, 4);
+        let camera = view(n, 48);
+        let params = RaycastParams::default();
+        // A mesh in metres over a millimetre volume (and far away): named.
+        let mut metres = mesh.clone();
+        metres.map_nodes(|p| p * 1e-3 + Vector3::repeat(100.0));
+        let e = TetRaycaster::with_source(&metres, volume.clone(), &tf(), &params, &SourceSampling::default())
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(e.contains("does not reach the volume") && e.contains("units"), "{e}");
+        // Iso and MIP are the volume raycaster's modes.
+        let e = TetRaycaster::with_source(
+            &mesh,
+            volume.clone(),
+            &tf(),
+            &RaycastParams { mode: Mode::Mip, ..Default::default() },
+            &SourceSampling::default(),
+        )
+        .err()
+        .unwrap()
+        .to_string();
+        assert!(e.contains("Mip"), "{e}");
+        // Inverted tets after a violent step: a finite picture, no panic.
+        let mut violent: Vec<Vector3<f64>> = mesh.nodes().to_vec();
+        for (k, p) in violent.iter_mut().enumerate() {
+            if k % 3 == 0 {
+                *p = Vector3::repeat((n - 1) as f64) - *p;
+            }
+        }
+        let image = through(&mesh, &volume, &violent, &params, &camera);
+        assert!(image.depth.iter().all(|d| !d.is_nan()));
+        // A mesh covering part of the view: background where it is not.
+        let away = Camera::look_at(
+            Point3::new(200.0, 200.0, 200.0),
+            Point3::new(400.0, 400.0, 400.0),
+            Vector3::z(),
+            Projection::Perspective { fov_y_deg: 30.0 },
+            16,
+            16,
+        )
+        .unwrap();
+        let image = through(&mesh, &volume, mesh.nodes(), &params, &away);
+        assert!(image.rgba.chunks_exact(4).all(|p| p == [0, 0, 0, 255]) && image.depth.iter().all(|d| d.is_infinite()));
+        // Non-finite positions are refused by name.
+        let mut raycaster =
+            TetRaycaster::with_source(&mesh, volume.clone(), &tf(), &params, &SourceSampling::default()).unwrap();
+        let mut nan = mesh.nodes().to_vec();
+        nan[3].x = f64::NAN;
+        let e = raycaster.update(&nan).err().unwrap().to_string();
+        assert!(e.contains("finite"), "{e}");
+    }
+}

@@ -152,20 +152,25 @@ fn f32_path_is_within_bound_of_f64_and_inside_decisions_match_point_in_tet() {
     assert_eq!(disagreements, 0);
 }
 
-#[test]
-fn incremental_update_equals_a_full_warp() {
-    let v = source();
-    let mesh = box_mesh(&v, 700);
-    let grid = warp::default_grid(&v, mesh.nodes());
-    let opts = WarpOptions { keep_uncovered: true, ..options(Scheme::Spans) };
-    let mut inc = IncrementalWarp::new(
+/// An incremental warp of `v` through `mesh` at rest onto `grid`.
+fn incremental(v: &Volume, mesh: &TetMesh, grid: &Grid, opts: &WarpOptions) -> IncrementalWarp {
+    IncrementalWarp::new(
         std::sync::Arc::new(v.clone()),
         std::sync::Arc::new(mesh.clone()),
         mesh.nodes(),
         grid.clone(),
         opts.clone(),
     )
-    .unwrap();
+    .unwrap()
+}
+
+#[test]
+fn incremental_update_equals_a_full_warp() {
+    let v = source();
+    let mesh = box_mesh(&v, 700);
+    let grid = warp::default_grid(&v, mesh.nodes());
+    let opts = WarpOptions { keep_uncovered: true, ..options(Scheme::Spans) };
+    let mut inc = incremental(&v, &mesh, &grid, &opts);
     let mut out = vec![0f32; grid.len()];
     assert_eq!(inc.write_into(&mut out, None).unwrap().voxels, grid.len() as u64, "a fresh buffer is warped whole");
     // A tool presses locally: nodes near one point move.
@@ -189,6 +194,34 @@ fn incremental_update_equals_a_full_warp() {
     assert_eq!(out, full.data());
     let again = inc.advance(&pressed, 1e-9).unwrap();
     assert_eq!(inc.write_into(&mut out, Some(again - 1)).unwrap().voxels, 0, "nothing moved, nothing done");
+}
+
+/// Motion below the tolerance leaves the warp as it was (a volume held through it is
+/// still this warp's, to the bit) until it adds up past the tolerance; then the volume is
+/// the full warp of where the nodes were placed.
+#[test]
+fn drift_below_the_tolerance_changes_nothing_until_it_adds_up() {
+    let v = source();
+    let mesh = box_mesh(&v, 700);
+    let grid = warp::default_grid(&v, mesh.nodes());
+    let opts = options(Scheme::Spans);
+    let mut inc = incremental(&v, &mesh, &grid, &opts);
+    let mut held = vec![0f32; grid.len()];
+    inc.write_into(&mut held, None).unwrap();
+    let tolerance = 0.01;
+    // Every node creeps 0.6 of the tolerance a step (the solver's jitter, a slow sag).
+    let crept = |steps: f64| -> Vec<Vector3<f64>> {
+        mesh.nodes().iter().map(|p| p - Vector3::z() * (0.6 * tolerance * steps)).collect()
+    };
+    let first = inc.advance(&crept(1.0), tolerance).unwrap();
+    let mut fresh = vec![0f32; grid.len()];
+    inc.write_into(&mut fresh, None).unwrap();
+    assert_eq!(fresh, held, "below the tolerance, a whole new warp is the warp held");
+    assert_eq!(inc.write_into(&mut held, Some(first - 1)).unwrap().voxels, 0);
+    let second = inc.advance(&crept(2.0), tolerance).unwrap();
+    assert!(inc.write_into(&mut held, Some(second - 1)).unwrap().voxels > 0, "1.2 tolerances moved it");
+    let (full, _) = warp::warp(&v, &mesh, &crept(2.0), &grid, &opts).unwrap();
+    assert_eq!(held, full.data());
 }
 
 #[test]

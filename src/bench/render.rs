@@ -1,6 +1,8 @@
 //! `defvol bench render`: the phantom (256x160x122, 1 mm), plain and warped through the
 //! bend, at 512² and 1024²: ms per frame and PSNR against the f64 ray integral at a fine
-//! step, over steps, with and without pre-integration.
+//! step, over steps, with and without pre-integration; the tet raycaster; and the bent
+//! phantom seen through the mesh (`shows: source`) beside the warp + volume raycast it
+//! replaces, per backend, against the f64 reference that maps each sample exactly.
 
 use std::time::Instant;
 
@@ -25,6 +27,8 @@ pub struct RenderBenchOptions {
     pub warped: bool,
     /// Lattice meshes over the phantom for the tetrahedral-mesh raycaster (tets).
     pub meshes: Vec<usize>,
+    /// Lattice meshes bending the phantom: the source through the mesh beside warp + raycast.
+    pub source_meshes: Vec<usize>,
     /// Also time the GPU raycasters.
     pub gpu: Option<crate::backend::Backend>,
 }
@@ -187,7 +191,191 @@ pub fn run(opts: &RenderBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result
             }
         }
     }
+    for &target in &opts.source_meshes {
+        source_rows(&source, target, &tf, opts, &mut emit)?;
+    }
     Ok(())
+}
+
+/// The phantom bent through a `target`-tet lattice at each size and step: per frame (the
+/// mesh moving every frame, between the bend and 95 % of it) the source through the mesh
+/// (update + frame) and the warp + volume raycast it replaces (the whole volume warped,
+/// then a frame), on the CPU and on the GPU when asked; PSNR of the last frame (the full
+/// bend) against the f64 reference that maps each sample exactly.
+fn source_rows(
+    source: &Volume,
+    target: usize,
+    tf: &TransferFunction,
+    opts: &RenderBenchOptions,
+    emit: &mut impl FnMut(&BenchRow),
+) -> Result<(), RenderBenchError> {
+    use crate::backend::Backend;
+    use crate::render::engine::{MeshRenderer, Shown, VolumeRenderer};
+    use crate::render::source_raycast::{self, SourceSampling};
+    use crate::warp::engine::WarpEngine;
+    use std::sync::Arc;
+
+    let setup = |e: &dyn std::fmt::Display| RenderBenchError::Setup(e.to_string());
+    let (lo, hi) = source.bounds();
+    let rest = Arc::new(generate::lattice_for_box(lo, hi, target, CellSplit::Five).map_err(|e| setup(&e))?);
+    let (centre, half) = ((lo + hi) / 2.0, (hi - lo) / 2.0);
+    let bent = WarpCase::Bend.deform(rest.nodes(), centre, half);
+    let less: Vec<Vector3<f64>> = rest.nodes().iter().zip(&bent).map(|(r, b)| r + (b - r) * 0.95).collect();
+    // The grid the node warps onto: the source's spacing over the deformed box.
+    let grid = crate::warp::default_grid(source, &bent);
+    let half_grid = crate::volume::Grid {
+        dims: grid.dims.map(|d| 2 * d - 1),
+        spacing: grid.spacing.map(|s| s / 2.0),
+        ..grid.clone()
+    };
+    let shared = Arc::new(source.clone());
+    let mut backends = vec![(Backend::cpu(), cpu_description())];
+    if let Some(gpu) = &opts.gpu {
+        backends.push((gpu.clone(), gpu.describe()));
+    }
+    let case = |size: usize| format!("bend{}k_{size}", rest.tets().len() / 1000);
+    for &size in &opts.sizes {
+        let camera = phantom_camera(source, size)?;
+        let background = [0.0, 0.0, 0.0, 1.0];
+        let reference_step = opts.reference_step.max(0.25);
+        let reference = source_raycast::reference(
+            &rest,
+            &bent,
+            source,
+            &camera,
+            tf,
+            &RaycastParams { step: reference_step, background, ..Default::default() },
+            &[],
+        )?;
+        for &step in &opts.steps {
+            let params =
+                RaycastParams { step, preintegrated: true, shading: Shading::None, background, ..Default::default() };
+            for (backend, device) in &backends {
+                let frames = [&less, &bent];
+                // The source through the mesh.
+                let prepared =
+                    TetRaycaster::with_source(&rest, shared.clone(), tf, &params, &SourceSampling::default())?;
+                let mut mesh = MeshRenderer::new(backend, prepared, 1.0).map_err(|e| setup(&e))?;
+                let mut frame = |k: usize| -> Result<crate::render::Rendered, RenderBenchError> {
+                    mesh.update(frames[k % 2]).map_err(|e| setup(&e))?;
+                    mesh.render(&[], &camera).map_err(|e| setup(&e))
+                };
+                let (image, samples) = timed(opts.runs, &mut frame)?;
+                let on = mesh.backend();
+                emit(&source_row(&case(size), on, device, "source_through_mesh", step, samples, &image, &reference));
+                // Warp + volume raycast: onto the source's spacing (what the node does),
+                // and onto half of it (what it takes to come near the source's accuracy).
+                for (mode, warp_grid) in [("warp_then_raycast", &grid), ("warp_half_then_raycast", &half_grid)] {
+                    let warp = WarpEngine::new(
+                        backend,
+                        shared.clone(),
+                        rest.clone(),
+                        warp_grid.clone(),
+                        crate::warp::WarpOptions { background: source.range().0, ..Default::default() },
+                        1.0,
+                        0.0,
+                    );
+                    let mut warp = match warp {
+                        Ok(warp) => warp,
+                        // A grid over the adapter's buffer limit: no row, as for the others.
+                        Err(e) if backend.name() == "gpu" => {
+                            tracing::warn!("no {mode} row on {device}: {e}");
+                            continue;
+                        }
+                        Err(e) => return Err(setup(&e)),
+                    };
+                    let tables = Arc::new(VolumeRaycaster::tables_for(source.range(), tf, &params)?);
+                    let warped_grid = warp.grid().clone();
+                    let mut host = Volume::from_grid(&warped_grid, vec![0.0; warped_grid.len()], "warped volume")
+                        .map_err(|e| setup(&e))?;
+                    #[cfg(feature = "gpu")]
+                    let on_device = match (warp.device_output(), backend.context()) {
+                        (Some(samples), Some(ctx)) => Some(
+                            // The warped grid's device buffer (`host` only lends its grid).
+                            VolumeRenderer::on_device(ctx.clone(), samples.clone(), &host, &tables, &params)
+                                .map_err(|e| setup(&e))?,
+                        ),
+                        _ => None,
+                    };
+                    #[cfg(not(feature = "gpu"))]
+                    let on_device: Option<VolumeRenderer> = None;
+                    let mut volume = match on_device {
+                        Some(v) => v,
+                        None => VolumeRenderer::new(&Backend::cpu(), &host, tables, &params).map_err(|e| setup(&e))?,
+                    };
+                    let mut frame = |k: usize| -> Result<crate::render::Rendered, RenderBenchError> {
+                        let u: Vec<Vector3<f64>> = frames[k % 2].iter().zip(rest.nodes()).map(|(p, r)| p - r).collect();
+                        warp.advance(Some(&u)).map_err(|e| setup(&e))?;
+                        if volume.backend() == "gpu" {
+                            volume.volume_changed();
+                            volume.render(Shown::Device, &[], &camera).map_err(|e| setup(&e))
+                        } else {
+                            warp.write_into(host.data_mut(), None).map_err(|e| setup(&e))?;
+                            volume.render(Shown::Host(&host), &[], &camera).map_err(|e| setup(&e))
+                        }
+                    };
+                    let (image, samples) = timed(opts.runs, &mut frame)?;
+                    let on = warp.backend();
+                    emit(&source_row(&case(size), on, device, mode, step, samples, &image, &reference));
+                }
+            }
+        }
+    }
+    Ok(())
+}
+
+/// `2·runs` frames after one to settle, each timed; every frame moves the mesh (even k
+/// the partial bend, odd k the full one). The image is the last full bend's.
+fn timed(
+    runs: usize,
+    frame: &mut impl FnMut(usize) -> Result<crate::render::Rendered, RenderBenchError>,
+) -> Result<(crate::render::Rendered, Vec<f64>), RenderBenchError> {
+    let mut image = frame(1)?;
+    let mut samples = Vec::with_capacity(2 * runs);
+    for k in 2..2 * runs.max(1) + 2 {
+        let start = Instant::now();
+        let frame_k = frame(k)?;
+        samples.push(start.elapsed().as_secs_f64() * 1e3);
+        if k % 2 == 1 {
+            image = frame_k;
+        }
+    }
+    Ok((image, samples))
+}
+
+#[allow(clippy::too_many_arguments)]
+fn source_row(
+    case: &str,
+    backend: &str,
+    device: &str,
+    mode: &str,
+    step: f64,
+    samples: Vec<f64>,
+    image: &crate::render::Rendered,
+    reference: &[[f64; 4]],
+) -> BenchRow {
+    BenchRow {
+        stage: "render",
+        case: format!(
+            "{case} {}",
+            match mode {
+                "source_through_mesh" => "source",
+                "warp_then_raycast" => "warp+cast",
+                _ => "warp½+cast",
+            }
+        ),
+        backend: backend.into(),
+        device: device.into(),
+        params: json!({"mode": mode, "step_mm": step, "preintegrated": true, "shading": "none", "tf": "ct_soft_tissue", "includes_readback": true, "every_frame_moves_the_mesh": true}),
+        runs: samples.len(),
+        time_ms: time_stats(samples),
+        error: Some(ErrorMeasure {
+            metric: "psnr_db",
+            value: image.psnr(reference),
+            reference: "f64 map of each sample",
+        }),
+        work: json!({"rays": image.width * image.height}),
+    }
 }
 
 /// Frames timed on the GPU, read-back included, after one to settle.

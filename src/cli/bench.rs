@@ -53,6 +53,10 @@ pub enum BenchStage {
         /// when given without values.
         #[arg(long, value_delimiter = ',', num_args = 0.., default_value = "112000,157000")]
         meshes: Vec<usize>,
+        /// Lattice meshes (tets) bending the phantom: the source seen through the bent mesh
+        /// beside warp + volume raycast of the same bend; none when given without values.
+        #[arg(long, value_delimiter = ',', num_args = 0.., default_value = "5000")]
+        source_meshes: Vec<usize>,
         /// Also time the GPU raycasters (volume and mesh), read-back included.
         #[arg(long)]
         gpu: bool,
@@ -182,7 +186,18 @@ pub fn run(stage: BenchStage) -> Result<()> {
             };
             bench::node::run(&opts, row_printer(json, bench::node::TABLE_HEADER, bench::node::table_row))?;
         }
-        BenchStage::Render { sizes, steps, runs, reference_step, no_warped, meshes, gpu, allow_software_gpu, json } => {
+        BenchStage::Render {
+            sizes,
+            steps,
+            runs,
+            reference_step,
+            no_warped,
+            meshes,
+            source_meshes,
+            gpu,
+            allow_software_gpu,
+            json,
+        } => {
             let opts = bench::render::RenderBenchOptions {
                 sizes,
                 steps,
@@ -190,6 +205,7 @@ pub fn run(stage: BenchStage) -> Result<()> {
                 reference_step,
                 warped: !no_warped,
                 meshes,
+                source_meshes,
                 gpu: gpu_rows(gpu, allow_software_gpu)?,
             };
             bench::render::run(&opts, row_printer(json, bench::render::TABLE_HEADER, bench::render::table_row))?;

@@ -8,11 +8,12 @@ use nalgebra::{Point3, Vector3};
 use defvol::render::camera::{Camera, Projection};
 use defvol::render::engine::{MeshRenderer, Shown, VolumeRenderer};
 use defvol::render::raycast::{self, RaycastParams, VolumeRaycaster};
+use defvol::render::source_raycast::SourceSampling;
 use defvol::render::tet_raycast::{TetRaycastParams, TetRaycaster};
 use defvol::render::transfer::TransferFunction;
 use defvol::volume::{phantom, Volume};
 
-use super::choices::{CliBackend, CliMode, CliShading};
+use super::choices::{CliBackend, CliMode, CliSampling, CliShading};
 
 #[derive(clap::Args)]
 pub struct RenderArgs {
@@ -28,6 +29,19 @@ pub struct RenderArgs {
     /// .vtu/.vtk file (instead of its scalars or values sampled from the volume).
     #[arg(long, requires = "mesh")]
     scalars: Option<String>,
+    /// With --mesh as the rest mesh: the same mesh deformed (same nodes and tets). The
+    /// picture is the source volume (--volume, or the phantom) seen through the deformed
+    /// mesh, each sample mapped back to rest: the deformed scan with no warp. --step is then
+    /// the sample spacing (default: the source's finest voxel spacing).
+    #[arg(long, requires = "mesh", conflicts_with = "scalars")]
+    deformed: Option<PathBuf>,
+    /// With --deformed: how the source is read at each sample's rest position.
+    #[arg(long, value_enum, default_value = "trilinear", requires = "deformed")]
+    sampling: CliSampling,
+    /// With --deformed: a displacement volume "cx,cy,cz:dx,dy,dz:extent" in the source's
+    /// units, a backward distortion on top of the mesh's (repeatable; applied in order).
+    #[arg(long, requires = "deformed")]
+    displace: Vec<String>,
     /// Volume units per mesh unit (1000 for a metre mesh, as `simulate` writes, over a
     /// millimetre volume).
     #[arg(long, default_value_t = 1.0)]
@@ -166,6 +180,39 @@ pub fn run(args: RenderArgs) -> Result<()> {
             }
             let scale = args.mesh_scale;
             mesh.map_nodes(|p| p * scale);
+            if let Some(deformed_path) = &args.deformed {
+                let deformed = defvol::io::read_mesh(deformed_path)?;
+                if deformed.tets() != mesh.tets() {
+                    bail!(
+                        "--deformed {}: its tets are not --mesh {}'s ({} against {} tets, or in another order)",
+                        deformed_path.display(),
+                        path.display(),
+                        deformed.tets().len(),
+                        mesh.tets().len()
+                    );
+                }
+                let positions: Vec<Vector3<f64>> = deformed.nodes().iter().map(|p| p * scale).collect();
+                let sampling = SourceSampling {
+                    sampling: args.sampling.into(),
+                    displacements: args
+                        .displace
+                        .iter()
+                        .map(|d| super::warp::parse_displacement(d))
+                        .collect::<Result<Vec<_>>>()?,
+                };
+                let tets = mesh.tets().len();
+                // Samples about a voxel apart: the step follows the source, not the mesh.
+                let finest = volume.spacing().iter().copied().fold(f64::INFINITY, f64::min);
+                let params = RaycastParams { step: args.step.unwrap_or(finest), ..params.clone() };
+                let mut raycaster =
+                    TetRaycaster::with_source(&mesh, std::sync::Arc::new(volume.clone()), &tf, &params, &sampling)?;
+                raycaster.update(&positions)?;
+                let mut renderer = MeshRenderer::new(&backend, raycaster, 1.0)?;
+                let image = renderer.render(&tools, &camera)?;
+                let on =
+                    format!("the source through {tets} deformed tets, {} ({})", renderer.backend(), backend.describe());
+                return finish(&args, image, &on, started, (w, h));
+            }
             let scalars: Vec<f32> = match (&args.scalars, mesh.scalars(), &args.volume) {
                 (Some(name), _, _) => defvol::io::read_mesh_point_array(path, name)?,
                 (None, Some(s), None) => s.to_vec(),
@@ -196,6 +243,17 @@ pub fn run(args: RenderArgs) -> Result<()> {
             (image, format!("{} ({})", renderer.backend(), backend.describe()))
         }
     };
+    finish(&args, image, &on, started, (w, h))
+}
+
+/// Logs the frame and writes the picture (and the depth, when asked).
+fn finish(
+    args: &RenderArgs,
+    image: defvol::render::Rendered,
+    on: &str,
+    started: std::time::Instant,
+    (w, h): (usize, usize),
+) -> Result<()> {
     tracing::info!("rendered {w}x{h} on {on} in {:.1} ms", started.elapsed().as_secs_f64() * 1e3);
     image.write_png(&args.out)?;
     tracing::info!("wrote {}", args.out.display());

@@ -47,7 +47,7 @@ pub struct WarpArgs {
     allow_software_gpu: bool,
 }
 
-fn parse_displacement(text: &str) -> Result<DisplacementVolume> {
+pub(super) fn parse_displacement(text: &str) -> Result<DisplacementVolume> {
     let parts: Vec<&str> = text.split(':').collect();
     let vec3 = |s: &str| -> Result<[f64; 3]> {
         let v: Vec<f64> = s

@@ -22,6 +22,7 @@ use crate::msgs::{DeformedMesh, DiagnosticArray, Image, Marker, PoseStamped, Tim
 use crate::render::camera::{Camera, Projection};
 use crate::render::engine::{MeshRenderer, RenderEngineError, VolumeRenderer};
 use crate::render::raycast::{RaycastParams, ToolPicture, VolumeRaycaster};
+use crate::render::source_raycast::SourceSampling;
 use crate::render::tet_raycast::{TetRaycastParams, TetRaycaster};
 use crate::render::transfer::TransferFunction;
 use crate::render::RenderError;
@@ -323,6 +324,17 @@ impl Pipeline {
                             &scalars,
                             &tf,
                             &TetRaycastParams { step: c.step, ..Default::default() },
+                        )?;
+                        frames::Picture::Mesh(MeshRenderer::new(&self.backend, prepared, to_file)?)
+                    }
+                    CameraShows::Source => {
+                        let params = RaycastParams { step: c.step, ..Default::default() };
+                        let prepared = TetRaycaster::with_source(
+                            &rest,
+                            self.volume.clone(),
+                            &tf,
+                            &params,
+                            &SourceSampling::default(),
                         )?;
                         frames::Picture::Mesh(MeshRenderer::new(&self.backend, prepared, to_file)?)
                     }
@@ -883,6 +895,34 @@ mod tests {
     }
 
     #[test]
+    fn a_source_camera_needs_no_warp_and_shows_what_warp_then_raycast_shows() {
+        let stages = crate::scene::Stages { solver: true, warp: false, dpcm: false, raycast: true };
+        let mut s = scene(stages);
+        s.camera.shows = CameraShows::Source;
+        s.tools[0].path = None;
+        let mut warped = s.clone();
+        (warped.stages.warp, warped.camera.shows) = (true, CameraShows::Volume);
+        let mut through_mesh = pipeline(s);
+        let mut warp_then_raycast = pipeline(warped);
+        assert!(through_mesh.warped_grid().is_none(), "the warp is not built for a source picture");
+        let (mut a, mut b) = (None, None);
+        for k in 1..=20 {
+            let stamp = Time::from_secs(k as f64 * 0.01);
+            for p in [&mut through_mesh, &mut warp_then_raycast] {
+                p.apply_pose("tool_pose", &pose(k as f64 * 0.01, 5.0), stamp).unwrap();
+            }
+            a = through_mesh.tick(stamp, &Demand::ALL).unwrap().raycast.or(a);
+            b = warp_then_raycast.tick(stamp, &Demand::ALL).unwrap().raycast.or(b);
+        }
+        assert!(through_mesh.last_report().unwrap().max_displacement > 1e-4, "gravity moved the organ");
+        let (a, b) = (a.unwrap(), b.unwrap());
+        assert!(a.data.iter().filter(|v| **v > 10).count() > a.data.len() / 20, "the picture shows the organ");
+        let mean = a.data.iter().zip(&b.data).map(|(x, y)| (f64::from(*x) - f64::from(*y)).abs()).sum::<f64>()
+            / a.data.len() as f64;
+        assert!(mean < 2.0, "the source through the mesh and the warped volume differ by {mean:.2} levels");
+    }
+
+    #[test]
     fn a_mesh_camera_needs_no_warp_and_shows_the_current_deformation() {
         let stages = crate::scene::Stages { solver: true, warp: false, dpcm: false, raycast: true };
         let mut s = scene(stages);
@@ -1018,6 +1058,8 @@ mod tests {
         let stages = crate::scene::Stages { solver: true, warp: true, dpcm: false, raycast: false };
         let mut s = scene(stages);
         s.tools[0].path = None;
+        // Every motion reaches the warp, so the volume is the full warp of the mesh as it is.
+        s.warp.tolerance = 0.0;
         let mut p = pipeline(s.clone());
         let lender = Arc::new(Lender::default());
         p.set_volume_sink(Some(lender.clone()));
@@ -1105,12 +1147,13 @@ mod tests {
 
     /// The node's pipeline on the GPU (every stage) against the same pipeline on the CPU
     /// after a scripted press: the deformed mesh, the warped volume, the raycast image (of
-    /// the volume, and of the mesh) and the DPCM height agree.
+    /// the warped volume, of the mesh, and of the source through the mesh, with no warp
+    /// stage) and the DPCM height agree.
     #[cfg(feature = "gpu")]
     #[test]
     fn the_gpu_pipeline_matches_the_cpu_pipeline() {
         let Some(ctx) = crate::gpu::test_context() else { return };
-        for shows in [CameraShows::Volume, CameraShows::Mesh] {
+        for shows in [CameraShows::Volume, CameraShows::Mesh, CameraShows::Source] {
             let stages =
                 crate::scene::Stages { solver: true, warp: shows == CameraShows::Volume, dpcm: true, raycast: true };
             let mut s = scene(stages);

@@ -1,6 +1,7 @@
 //! Raycast images: cameras, transfer functions (with pre-integration), the volume
 //! raycaster (`raycast.rs`, its GPU twin `raycast_gpu.rs` + `raycast.wgsl`) and the
-//! tetrahedral-mesh raycaster (`tet_raycast.rs`, `tet_raycast_gpu.rs` + `tet_raycast.wgsl`);
+//! tetrahedral-mesh raycaster (`tet_raycast.rs`, `tet_raycast_gpu.rs` + `tet_raycast.wgsl`),
+//! which also shows the source volume through the deformed mesh (`source_raycast.rs`);
 //! both shaders share `camera_tools.wgsl`. [`engine`] runs either on the run's backend.
 
 pub mod camera;
@@ -8,6 +9,7 @@ pub mod engine;
 pub mod raycast;
 #[cfg(feature = "gpu")]
 pub mod raycast_gpu;
+pub mod source_raycast;
 pub mod tet_raycast;
 #[cfg(feature = "gpu")]
 pub mod tet_raycast_gpu;

@@ -149,7 +149,7 @@ impl Default for RaycastParams {
 }
 
 /// Side of the macro cells empty-space skipping works on.
-const CELL: usize = 8;
+pub(crate) const CELL: usize = 8;
 
 /// Per macro cell: can any sample inside it be visible?
 pub(crate) struct MacroCells {
@@ -157,31 +157,37 @@ pub(crate) struct MacroCells {
     pub(crate) visible: Vec<bool>,
 }
 
-impl MacroCells {
-    fn new(volume: &Volume, tables: &Tables) -> Self {
-        let d = volume.dims();
-        let dims = d.map(|n| n.div_ceil(CELL));
-        let data = volume.data();
-        let visible = (0..dims[0] * dims[1] * dims[2])
-            .into_par_iter()
-            .map(|c| {
-                let (cx, cy, cz) = (c % dims[0], (c / dims[0]) % dims[1], c / (dims[0] * dims[1]));
-                // Voxels a sample in the cell can read: one past the cell's far side.
-                let range = |c: usize, n: usize| c * CELL..((c + 1) * CELL + 1).min(n);
-                let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
-                for k in range(cz, d[2]) {
-                    for j in range(cy, d[1]) {
-                        for i in range(cx, d[0]) {
-                            let v = data[i + d[0] * (j + d[1] * k)];
-                            lo = lo.min(v);
-                            hi = hi.max(v);
-                        }
+/// Per macro cell of `CELL`³ voxels: the lowest and highest value a sample inside it can
+/// read (its voxels and one past its far sides). Returns the cells along each axis.
+pub(crate) fn cell_ranges(volume: &Volume) -> ([usize; 3], Vec<(f32, f32)>) {
+    let d = volume.dims();
+    let dims = d.map(|n| n.div_ceil(CELL));
+    let data = volume.data();
+    let ranges = (0..dims[0] * dims[1] * dims[2])
+        .into_par_iter()
+        .map(|c| {
+            let (cx, cy, cz) = (c % dims[0], (c / dims[0]) % dims[1], c / (dims[0] * dims[1]));
+            let range = |c: usize, n: usize| c * CELL..((c + 1) * CELL + 1).min(n);
+            let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
+            for k in range(cz, d[2]) {
+                for j in range(cy, d[1]) {
+                    for i in range(cx, d[0]) {
+                        let v = data[i + d[0] * (j + d[1] * k)];
+                        lo = lo.min(v);
+                        hi = hi.max(v);
                     }
                 }
-                tables.max_tau(lo, hi) > 0.0
-            })
-            .collect();
-        Self { dims, visible }
+            }
+            (lo, hi)
+        })
+        .collect();
+    (dims, ranges)
+}
+
+impl MacroCells {
+    fn new(volume: &Volume, tables: &Tables) -> Self {
+        let (dims, ranges) = cell_ranges(volume);
+        Self { dims, visible: ranges.into_par_iter().map(|(lo, hi)| tables.max_tau(lo, hi) > 0.0).collect() }
     }
 
     /// Whether the cell holding index-space point p may be visible.
@@ -375,6 +381,31 @@ pub fn raycast(
     VolumeRaycaster::new(volume, tf, params)?.render(camera)
 }
 
+/// Trilinear at a continuous index, the point clamped to the voxel-centre box: the same
+/// arithmetic as `volume::trilinear` without its range checks, for the hot loops.
+#[inline(always)]
+pub(crate) fn sample_clamped(data: &[f32], [nx, ny, nz]: [usize; 3], p: &Vector3<f32>) -> f32 {
+    let axis = |v: f32, n: usize| {
+        // Plain comparisons rather than `clamp` (points are finite here): the hot loop.
+        let top = (n - 1) as f32;
+        let v = if v > 0.0 {
+            if v < top {
+                v
+            } else {
+                top
+            }
+        } else {
+            0.0
+        };
+        let i = (v as usize).min(n.saturating_sub(2));
+        (i, v - i as f32)
+    };
+    let ((i, fx), (j, fy), (k, fz)) = (axis(p.x, nx), axis(p.y, ny), axis(p.z, nz));
+    let (sx, sy, sz) = (usize::from(nx > 1), if ny > 1 { nx } else { 0 }, if nz > 1 { nx * ny } else { 0 });
+    let base = i + nx * (j + ny * k);
+    crate::volume::lerp_cube(|o| data[base + o], [sx, sy, sz], [fx, fy, fz])
+}
+
 struct Caster<'a> {
     volume: &'a Volume,
     tables: &'a Tables,
@@ -385,32 +416,11 @@ struct Caster<'a> {
 }
 
 impl Caster<'_> {
-    /// Trilinear, the point clamped to the voxel-centre box (rays are clipped to it, so
-    /// only round-off and the gradient's neighbours at the border are clamped). The same
-    /// arithmetic as `volume::trilinear`, without its range checks, in the hot loop.
+    /// Trilinear, clamped (rays are clipped to the box, so only round-off and the
+    /// gradient's neighbours at the border are clamped).
     #[inline(always)]
     fn sample(&self, p: &Vector3<f32>) -> f32 {
-        let [nx, ny, nz] = self.volume.dims();
-        let data = self.volume.data();
-        let axis = |v: f32, n: usize| {
-            // Plain comparisons rather than `clamp` (points are finite here): the hot loop.
-            let top = (n - 1) as f32;
-            let v = if v > 0.0 {
-                if v < top {
-                    v
-                } else {
-                    top
-                }
-            } else {
-                0.0
-            };
-            let i = (v as usize).min(n.saturating_sub(2));
-            (i, v - i as f32)
-        };
-        let ((i, fx), (j, fy), (k, fz)) = (axis(p.x, nx), axis(p.y, ny), axis(p.z, nz));
-        let (sx, sy, sz) = (usize::from(nx > 1), if ny > 1 { nx } else { 0 }, if nz > 1 { nx * ny } else { 0 });
-        let base = i + nx * (j + ny * k);
-        crate::volume::lerp_cube(|o| data[base + o], [sx, sy, sz], [fx, fy, fz])
+        sample_clamped(self.volume.data(), self.volume.dims(), p)
     }
 
     /// Lambert factor at p for the light (index-space direction `light_index`, world `light`).

@@ -21,6 +21,7 @@ use rayon::prelude::*;
 
 use super::camera::{Camera, Projection};
 use super::raycast::{nearest_tool, ToolPicture, MAX_TOOLS};
+use super::source_raycast::SourceLook;
 use super::transfer::{SegmentTable, Tables, TransferFunction};
 use super::{RenderError, Rendered};
 use crate::mesh::{TetMesh, TET_FACES};
@@ -110,6 +111,13 @@ fn tet_geometry_f32(x: &[V3; 4], s: &[f32; 4]) -> TetGeometry {
         n = if len > 0.0 { n / len } else { V3::zeros() };
         g.planes[k] = [n.x, n.y, n.z, n.dot(&a)];
     }
+    g.gradient = linear_field(x, s);
+    g
+}
+
+/// The linear field taking the values `s` at the tet's vertices `x`: gradient and offset
+/// (s(p) = g·p + w); a constant, their mean, on a degenerate tet.
+pub(crate) fn linear_field(x: &[V3; 4], s: &[f32; 4]) -> [f32; 4] {
     // The rows of M are the edges from vertex 0; M⁻¹'s columns are the rows' cross products
     // over det.
     let (r0, r1, r2) = (x[1] - x[0], x[2] - x[0], x[3] - x[0]);
@@ -120,8 +128,7 @@ fn tet_geometry_f32(x: &[V3; 4], s: &[f32; 4]) -> TetGeometry {
         V3::zeros()
     };
     let offset = if grad != V3::zeros() { s[0] - grad.dot(&x[0]) } else { (s[0] + s[1] + s[2] + s[3]) / 4.0 };
-    g.gradient = [grad.x, grad.y, grad.z, offset];
-    g
+    [grad.x, grad.y, grad.z, offset]
 }
 
 /// The faces with no neighbour, as tet · 4 + face.
@@ -232,7 +239,7 @@ struct Hit {
     front: bool,
 }
 
-type V3 = Vector3<f32>;
+pub(crate) type V3 = Vector3<f32>;
 
 #[inline]
 fn plane_t(plane: &[f32; 4], o: &V3, d: &V3) -> (f32, f32) {
@@ -258,6 +265,8 @@ pub struct TetRaycaster {
     /// Scalars outside this open interval are transparent ([`TransferFunction::visible_span`]).
     pub(crate) visible: (f32, f32),
     pub(crate) params: TetRaycastParams,
+    /// Showing the source volume through the mesh instead of node scalars.
+    pub(crate) source: Option<Box<SourceLook>>,
 }
 
 impl TetRaycaster {
@@ -267,6 +276,16 @@ impl TetRaycaster {
         scalars: &[f32],
         tf: &TransferFunction,
         params: &TetRaycastParams,
+    ) -> Result<Self, RenderError> {
+        Self::prepare(mesh, scalars, tf, params, None)
+    }
+
+    pub(crate) fn prepare(
+        mesh: &TetMesh,
+        scalars: &[f32],
+        tf: &TransferFunction,
+        params: &TetRaycastParams,
+        source: Option<Box<SourceLook>>,
     ) -> Result<Self, RenderError> {
         if scalars.len() != mesh.nodes().len() || scalars.iter().any(|s| !s.is_finite()) {
             return Err(RenderError::Parameter(format!(
@@ -336,6 +355,7 @@ impl TetRaycaster {
             tolerance: (1e-5 * diagonal.max(1e-9)) as f32,
             visible: (far(visible.0), far(visible.1)),
             params: params.clone(),
+            source,
         };
         raycaster.update(mesh.nodes())?;
         Ok(raycaster)
@@ -376,6 +396,9 @@ impl TetRaycaster {
             .par_iter()
             .map(|tet| tet_geometry_f32(&tet.map(|i| anchored[i as usize]), &tet.map(|i| scalars[i as usize])))
             .collect();
+        if let Some(source) = &mut self.source {
+            source.update_maps(&self.tets, &anchored);
+        }
         Ok(())
     }
 
@@ -528,6 +551,8 @@ impl TetRaycaster {
         let (mut tet, mut face_in, mut t_in) = start;
         let termination = self.params.early_termination as f32;
         let mut stalled = 0;
+        // Showing the source: samples on one grid from where the ray came in.
+        let mut march = self.source.as_ref().map(|s| s.march(o, d, t_in));
         let scalar =
             |g: &[f32; 4], t: f32| g[0] * (o.x + d.x * t) + g[1] * (o.y + d.y * t) + g[2] * (o.z + d.z * t) + g[3];
         // The scalar is continuous across faces: a tet's entry value is the last exit value.
@@ -556,14 +581,23 @@ impl TetRaycaster {
                 return t_out;
             }
             let s_out = scalar(&g.gradient, t_out);
-            if s_in.max(s_out) > self.visible.0 && s_in.min(s_out) < self.visible.1 {
-                self.integrate(acc, depth, t_in, t_out, s_in, s_out);
+            match (&self.source, &mut march) {
+                (Some(source), Some(march)) => source.cross(march, tet as usize, t_out, acc, depth),
+                _ => {
+                    if s_in.max(s_out) > self.visible.0 && s_in.min(s_out) < self.visible.1 {
+                        self.integrate(acc, depth, t_in, t_out, s_in, s_out);
+                    }
+                }
             }
-            if acc[3] >= termination || t_out >= t_stop {
+            if acc[3] >= termination {
                 return t_out;
             }
             let link = self.links[tet as usize][exit_k as usize];
-            if link < 0 {
+            if t_out >= t_stop || link < 0 {
+                // The ray leaves the mesh or meets a tool: the source's last, shorter segment.
+                if let (Some(source), Some(march)) = (&self.source, &march) {
+                    source.finish(march, tet as usize, t_out, acc, depth);
+                }
                 return t_out;
             }
             (tet, face_in, t_in, s_in) = ((link >> 2) as u32, (link & 3) as u32, t_out, s_out);
@@ -641,6 +675,37 @@ pub fn reference(
         .iter()
         .map(|tet| tet_geometry(&tet.map(|i| positions[i as usize]), &tet.map(|i| f64::from(scalars[i as usize]))))
         .collect();
+    let step = params.step;
+    reference_walk(mesh, positions, camera, params, |tet, o, d, t_in, t_out, acc| {
+        let g = &geometry[tet].1;
+        let s = |t: f64| g[0] * (o.x + d.x * t) + g[1] * (o.y + d.y * t) + g[2] * (o.z + d.z * t) + g[3];
+        let n = ((t_out - t_in) / step).ceil().max(1.0) as usize;
+        let ds = (t_out - t_in) / n as f64;
+        for m in 0..n {
+            let (color, tau) = tf.eval(s(t_in + (m as f64 + 0.5) * ds));
+            let alpha = (1.0 - acc[3]) * (1.0 - (-tau * ds).exp());
+            for c in 0..3 {
+                acc[c] += alpha * color[c];
+            }
+            acc[3] += alpha;
+        }
+    })
+}
+
+/// The exact walk of the references: every boundary face of the ray's tile tested exactly
+/// (Möller-Trumbore), tets crossed in f64, `segment(tet, o, d, t_in, t_out, acc)` adding
+/// each tet's part of the ray; tools end rays as in the fast paths.
+pub(crate) fn reference_walk(
+    mesh: &TetMesh,
+    positions: &[Vector3<f64>],
+    camera: &Camera,
+    params: &TetRaycastParams,
+    segment: impl Fn(usize, &Vector3<f64>, &Vector3<f64>, f64, f64, &mut [f64; 4]) + Sync,
+) -> Result<Vec<[f64; 4]>, RenderError> {
+    camera.validate()?;
+    check_positions(positions, mesh.nodes().len())?;
+    let geometry: Vec<_> =
+        mesh.tets().iter().map(|tet| tet_geometry(&tet.map(|i| positions[i as usize]), &[0.0; 4])).collect();
     let neighbours = mesh.neighbours();
     let boundary = boundary_faces(neighbours);
     let bins = bin_boundary(mesh.tets(), &boundary, positions, camera);
@@ -695,7 +760,7 @@ pub fn reference(
                 let (mut tet, mut face_in, mut t_in) = (tet0, face0, t0);
                 let mut stalled = 0;
                 for _ in 0..MAX_WALK {
-                    let (planes, g) = &geometry[tet];
+                    let (planes, _) = &geometry[tet];
                     let exit = (0..4)
                         .filter(|&k| Some(k) != face_in)
                         .filter_map(|k| {
@@ -711,17 +776,7 @@ pub fn reference(
                         left_at = t_out;
                         break;
                     }
-                    let s = |t: f64| g[0] * (o.x + d.x * t) + g[1] * (o.y + d.y * t) + g[2] * (o.z + d.z * t) + g[3];
-                    let n = ((t_out - t_in) / params.step).ceil().max(1.0) as usize;
-                    let ds = (t_out - t_in) / n as f64;
-                    for m in 0..n {
-                        let (color, tau) = tf.eval(s(t_in + (m as f64 + 0.5) * ds));
-                        let alpha = (1.0 - acc[3]) * (1.0 - (-tau * ds).exp());
-                        for c in 0..3 {
-                            acc[c] += alpha * color[c];
-                        }
-                        acc[3] += alpha;
-                    }
+                    segment(tet, &o, &d, t_in, t_out, &mut acc);
                     left_at = t_out;
                     if t_out >= t_stop {
                         break 'entries;

@@ -3,6 +3,9 @@
 // TetRaycaster::render and cast, with nearest_hit, locate_back, walk and integrate,
 // SegmentTable::lookup and Tables::sample, one invocation per pixel (Camera::ray and the
 // tools are camera_tools.wgsl's). Coordinates are anchored (world minus the rest mesh's centre).
+// Showing the source volume through the mesh (src/render/source_raycast.rs): `geometry` also
+// writes each tet's map to the source's index, and the walk samples the source on one grid
+// along the ray (SourceLook::cross and finish, shade, value; Tables::sample_step and segment).
 
 struct Params {
     // world_from_camera: rotation columns and the anchored eye.
@@ -23,6 +26,15 @@ struct Params {
     background: vec4<f32>,
     // tets, tools, where the 1D lut starts in `tables`, tiles in all
     counts: vec4<u32>,
+    // the source's dims; flags: 1 shows the source, 2 pre-integrated, 4 gradient shading,
+    // 8 forward-difference shading
+    src_dims: vec4<u32>,
+    // where the full-step lut and the pre-integrated table start in `tables`
+    src_at: vec4<u32>,
+    // pre-integrated lo and hi, the forward difference's gradient scale, sample tolerance
+    src_tf: vec4<f32>,
+    // toward the light (world), w = 1 when given (else the headlight)
+    src_light: vec4<f32>,
     // per tool: anchored tip and radius, anchored tail, colour
     tools: array<vec4<f32>, 12>,
 }
@@ -30,6 +42,11 @@ struct Params {
 struct TetGeometry {
     planes: array<vec4<f32>, 4>,
     gradient: vec4<f32>,
+}
+
+// Rows of the affine map from anchored deformed positions to the source's index.
+struct TetMap {
+    rows: array<vec4<f32>, 3>,
 }
 
 struct Hit {
@@ -52,6 +69,7 @@ const LEVELS: u32 = 128u;
 const LENGTHS: u32 = 32u;
 const LUT_SIZE: u32 = 1024u;
 const FAR: f32 = 1e30;
+const PRE_SIZE: u32 = 512u;
 
 @group(0) @binding(0) var<uniform> p: Params;
 @group(0) @binding(1) var<storage, read_write> geo: array<TetGeometry>;
@@ -61,6 +79,28 @@ const FAR: f32 = 1e30;
 @group(0) @binding(5) var<storage, read_write> out: array<u32>;
 @group(0) @binding(6) var<storage, read> nodes: array<vec4<f32>>;
 @group(0) @binding(7) var<storage, read> tets: array<vec4<u32>>;
+@group(0) @binding(8) var<storage, read_write> maps: array<TetMap>;
+@group(0) @binding(9) var<storage, read> rest_index: array<vec4<f32>>;
+@group(0) @binding(10) var<storage, read> source: array<f32>;
+@group(0) @binding(11) var<storage, read> tet_visible: array<u32>;
+
+// linear_field: gradient and offset of the field taking the values s at the vertices x.
+fn linear_field(x: array<vec3<f32>, 4>, s: vec4<f32>) -> vec4<f32> {
+    // The rows of M are the edges from vertex 0; M⁻¹'s columns are the rows' cross products over det.
+    let r0 = x[1] - x[0];
+    let r1 = x[2] - x[0];
+    let r2 = x[3] - x[0];
+    let det = dot(r0, cross(r1, r2));
+    var grad = vec3<f32>(0.0);
+    if det != 0.0 {
+        grad = (cross(r1, r2) * (s.y - s.x) + cross(r2, r0) * (s.z - s.x) + cross(r0, r1) * (s.w - s.x)) / det;
+    }
+    var offset = (s.x + s.y + s.z + s.w) / 4.0;
+    if any(grad != vec3<f32>(0.0)) {
+        offset = s.x - dot(grad, x[0]);
+    }
+    return vec4<f32>(grad, offset);
+}
 
 // tet_geometry: outward face planes (face k opposite vertex k) and the scalar's gradient.
 @compute @workgroup_size(64)
@@ -89,21 +129,17 @@ fn geometry(@builtin(global_invocation_id) gid: vec3<u32>) {
         }
         g.planes[k] = vec4<f32>(n, dot(n, a));
     }
-    // The rows of M are the edges from vertex 0; M⁻¹'s columns are the rows' cross products over det.
-    let r0 = x[1] - x[0];
-    let r1 = x[2] - x[0];
-    let r2 = x[3] - x[0];
-    let det = dot(r0, cross(r1, r2));
-    var grad = vec3<f32>(0.0);
-    if det != 0.0 {
-        grad = (cross(r1, r2) * (s.y - s.x) + cross(r2, r0) * (s.z - s.x) + cross(r0, r1) * (s.w - s.x)) / det;
-    }
-    var offset = (s.x + s.y + s.z + s.w) / 4.0;
-    if any(grad != vec3<f32>(0.0)) {
-        offset = s.x - dot(grad, x[0]);
-    }
-    g.gradient = vec4<f32>(grad, offset);
+    g.gradient = linear_field(x, s);
     geo[t] = g;
+    // SourceLook::update_maps
+    if (p.src_dims.w & 1u) != 0u {
+        var m: TetMap;
+        for (var c = 0u; c < 3u; c++) {
+            let q = vec4<f32>(rest_index[ids.x][c], rest_index[ids.y][c], rest_index[ids.z][c], rest_index[ids.w][c]);
+            m.rows[c] = linear_field(x, q);
+        }
+        maps[t] = m;
+    }
 }
 
 // plane_t: (n·d, the ray parameter on the plane)
@@ -252,6 +288,211 @@ fn locate_back(start: u32, o: vec3<f32>, d: vec3<f32>, t_from: f32) -> Start {
     return Start(tet, NO_FACE, t_from);
 }
 
+struct March {
+    t0: f32,
+    k: u32,
+    front: f32,
+    has_front: bool,
+}
+
+fn apply(m: TetMap, x: vec3<f32>) -> vec3<f32> {
+    let r0 = m.rows[0];
+    let r1 = m.rows[1];
+    let r2 = m.rows[2];
+    return vec3<f32>(
+        r0.x * x.x + r0.y * x.y + r0.z * x.z + r0.w,
+        r1.x * x.x + r1.y * x.y + r1.z * x.z + r1.w,
+        r2.x * x.x + r2.y * x.y + r2.z * x.z + r2.w,
+    );
+}
+
+fn src_voxel(i: u32, j: u32, k: u32) -> f32 {
+    return source[i + p.src_dims.x * (j + p.src_dims.y * k)];
+}
+
+// sample_clamped
+fn src_clamped(q: vec3<f32>) -> f32 {
+    let n = vec3<f32>(p.src_dims.xyz);
+    let c = clamp(q, vec3<f32>(0.0), n - 1.0);
+    let i = min(vec3<u32>(c), max(p.src_dims.xyz, vec3<u32>(2u)) - 2u);
+    let f = c - vec3<f32>(i);
+    let i1 = min(i + 1u, p.src_dims.xyz - 1u);
+    let c00 = src_voxel(i.x, i.y, i.z) + (src_voxel(i1.x, i.y, i.z) - src_voxel(i.x, i.y, i.z)) * f.x;
+    let c10 = src_voxel(i.x, i1.y, i.z) + (src_voxel(i1.x, i1.y, i.z) - src_voxel(i.x, i1.y, i.z)) * f.x;
+    let c01 = src_voxel(i.x, i.y, i1.z) + (src_voxel(i1.x, i.y, i1.z) - src_voxel(i.x, i.y, i1.z)) * f.x;
+    let c11 = src_voxel(i.x, i1.y, i1.z) + (src_voxel(i1.x, i1.y, i1.z) - src_voxel(i.x, i1.y, i1.z)) * f.x;
+    let c0 = c00 + (c10 - c00) * f.y;
+    let c1 = c01 + (c11 - c01) * f.y;
+    return c0 + (c1 - c0) * f.z;
+}
+
+// SourceLook::value: (value, 1 inside the voxel-centre box, else 0)
+fn src_value(q: vec3<f32>) -> vec2<f32> {
+    let tol = p.src_tf.w;
+    let top = vec3<f32>(p.src_dims.xyz) - 1.0;
+    if any(q < vec3<f32>(-tol)) || any(q > top + tol) {
+        return vec2<f32>(0.0, 0.0);
+    }
+    return vec2<f32>(src_clamped(q), 1.0);
+}
+
+// Tables::sample_step
+fn src_step_lut(s: f32) -> vec4<f32> {
+    let x = clamp((s - p.lut.x) / (p.lut.y - p.lut.x), 0.0, 1.0) * f32(LUT_SIZE - 1u);
+    let i = min(u32(x), LUT_SIZE - 2u);
+    let f = x - f32(i);
+    let a = tables[p.src_at.x + i];
+    let b = tables[p.src_at.x + i + 1u];
+    return a + (b - a) * f;
+}
+
+// Tables::segment
+fn src_segment(front: f32, back: f32) -> vec4<f32> {
+    let n = f32(PRE_SIZE - 1u);
+    let x = clamp((front - p.src_tf.x) / (p.src_tf.y - p.src_tf.x), 0.0, 1.0) * n;
+    let y = clamp((back - p.src_tf.x) / (p.src_tf.y - p.src_tf.x), 0.0, 1.0) * n;
+    let i = min(u32(x), PRE_SIZE - 2u);
+    let j = min(u32(y), PRE_SIZE - 2u);
+    let fx = x - f32(i);
+    let fy = y - f32(j);
+    let base = p.src_at.y;
+    let a = tables[base + i * PRE_SIZE + j];
+    let b = tables[base + i * PRE_SIZE + j + 1u];
+    let c = tables[base + (i + 1u) * PRE_SIZE + j];
+    let d = tables[base + (i + 1u) * PRE_SIZE + j + 1u];
+    let top = a + (b - a) * fy;
+    let bottom = c + (d - c) * fy;
+    return top + (bottom - top) * fx;
+}
+
+// SourceLook::shade
+fn src_shade(q: vec3<f32>, m: TetMap, light: vec3<f32>) -> f32 {
+    let ambient = p.lut.w;
+    if (p.src_dims.w & 4u) != 0u {
+        let gi = vec3<f32>(
+            src_clamped(q + vec3<f32>(1.0, 0.0, 0.0)) - src_clamped(q - vec3<f32>(1.0, 0.0, 0.0)),
+            src_clamped(q + vec3<f32>(0.0, 1.0, 0.0)) - src_clamped(q - vec3<f32>(0.0, 1.0, 0.0)),
+            src_clamped(q + vec3<f32>(0.0, 0.0, 1.0)) - src_clamped(q - vec3<f32>(0.0, 0.0, 1.0)),
+        ) * 0.5;
+        let g = m.rows[0].xyz * gi.x + m.rows[1].xyz * gi.y + m.rows[2].xyz * gi.z;
+        let len = length(g);
+        if len > 1e-12 {
+            return ambient + (1.0 - ambient) * abs(dot(g, light) / len);
+        }
+        return 1.0;
+    }
+    if (p.src_dims.w & 8u) != 0u {
+        let l = vec3<f32>(dot(m.rows[0].xyz, light), dot(m.rows[1].xyz, light), dot(m.rows[2].xyz, light));
+        let fall = src_clamped(q) - src_clamped(q + l);
+        return ambient + (1.0 - ambient) * clamp(fall / p.src_tf.z, 0.0, 1.0);
+    }
+    return 1.0;
+}
+
+// SourceLook::add
+fn src_add(state: ptr<function, Accumulator>, e: vec4<f32>, q: vec3<f32>, m: TetMap, light: vec3<f32>, t_mid: f32) {
+    if e.w <= 1e-5 {
+        return;
+    }
+    let shade = src_shade(q, m, light);
+    let weight = 1.0 - (*state).acc.w;
+    (*state).acc = (*state).acc + weight * vec4<f32>(e.xyz * shade, e.w);
+    if (*state).depth >= FAR && (*state).acc.w >= 0.5 {
+        (*state).depth = t_mid;
+    }
+}
+
+fn src_offset() -> f32 {
+    if (p.src_dims.w & 2u) != 0u {
+        return 0.0;
+    }
+    return 0.5;
+}
+
+// SourceLook::cross
+fn src_cross(state: ptr<function, Accumulator>, march: ptr<function, March>, tet: u32, t_out: f32, o: vec3<f32>, d: vec3<f32>, light: vec3<f32>) {
+    let step = p.proj.w;
+    let pre = (p.src_dims.w & 2u) != 0u;
+    let offset = src_offset();
+    let m = maps[tet];
+    let t0 = (*march).t0;
+    // In a tet with nothing to see, only the segment coming in from the tet before adds anything.
+    var composite = tet_visible[tet] != 0u || (pre && (*march).has_front);
+    for (var n = 0u; n < MAX_WALK; n++) {
+        let t = t0 + (f32((*march).k) + offset) * step;
+        if !(t <= t_out) {
+            return;
+        }
+        if !composite {
+            var last = u32(max(floor((t_out - t0) / step - offset), f32((*march).k)));
+            if t0 + (f32(last) + offset) * step > t_out {
+                last = max(max(last, 1u) - 1u, (*march).k);
+            }
+            if pre {
+                let v = src_value(apply(m, o + d * (t0 + (f32(last) + offset) * step)));
+                (*march).front = v.x;
+                (*march).has_front = v.y > 0.0;
+            }
+            (*march).k = last + 1u;
+            return;
+        }
+        composite = tet_visible[tet] != 0u;
+        let q = apply(m, o + d * t);
+        let v = src_value(q);
+        if pre {
+            if (*march).has_front && v.y > 0.0 && (*march).k > 0u {
+                let middle = apply(m, o + d * (t - 0.5 * step));
+                src_add(state, src_segment((*march).front, v.x), middle, m, light, t - 0.5 * step);
+            }
+            (*march).front = v.x;
+            (*march).has_front = v.y > 0.0;
+        } else if v.y > 0.0 {
+            src_add(state, src_step_lut(v.x), q, m, light, t);
+        }
+        (*march).k += 1u;
+        if (*state).acc.w >= p.lut.z {
+            return;
+        }
+    }
+}
+
+// SourceLook::finish
+fn src_finish(state: ptr<function, Accumulator>, march: March, tet: u32, t_end: f32, o: vec3<f32>, d: vec3<f32>, light: vec3<f32>) {
+    let step = p.proj.w;
+    let m = maps[tet];
+    let pre = (p.src_dims.w & 2u) != 0u;
+    var start = march.t0 + f32(march.k) * step;
+    if pre {
+        start -= step;
+    }
+    let len = t_end - start;
+    if len <= 1e-6 * step {
+        return;
+    }
+    let middle = apply(m, o + d * (start + 0.5 * len));
+    if pre {
+        let back = src_value(apply(m, o + d * t_end));
+        if !march.has_front || back.y == 0.0 {
+            return;
+        }
+        let seg = src_segment(march.front, back.x);
+        let alpha = 1.0 - pow(max(1.0 - seg.w, 0.0), len / step);
+        var scale = len / step;
+        if seg.w > 0.0 {
+            scale = alpha / seg.w;
+        }
+        src_add(state, vec4<f32>(seg.xyz * scale, alpha), middle, m, light, start + 0.5 * len);
+    } else {
+        let v = src_value(middle);
+        if v.y == 0.0 {
+            return;
+        }
+        let e = lut_sample(v.x);
+        let alpha = 1.0 - exp(-e.w * len);
+        src_add(state, vec4<f32>(e.xyz * alpha, alpha), middle, m, light, start + 0.5 * len);
+    }
+}
+
 fn scalar(g: vec4<f32>, o: vec3<f32>, d: vec3<f32>, t: f32) -> f32 {
     return g.x * (o.x + d.x * t) + g.y * (o.y + d.y * t) + g.z * (o.z + d.z * t) + g.w;
 }
@@ -263,6 +504,12 @@ fn walk(state: ptr<function, Accumulator>, start: Start, o: vec3<f32>, d: vec3<f
     var t_in = start.t;
     var stalled = 0u;
     var s_in = scalar(geo[tet].gradient, o, d, t_in);
+    let shows_source = (p.src_dims.w & 1u) != 0u;
+    var march = March(t_in, 0u, 0.0, false);
+    var light = -d;
+    if p.src_light.w > 0.0 {
+        light = p.src_light.xyz;
+    }
     for (var n = 0u; n < MAX_WALK; n++) {
         var num = 0.0;
         var den = 0.0;
@@ -293,14 +540,20 @@ fn walk(state: ptr<function, Accumulator>, start: Start, o: vec3<f32>, d: vec3<f
             return t_out;
         }
         let s_out = scalar(geo[tet].gradient, o, d, t_out);
-        if max(s_in, s_out) > p.scales.z && min(s_in, s_out) < p.scales.w {
+        if shows_source {
+            src_cross(state, &march, tet, t_out, o, d, light);
+        } else if max(s_in, s_out) > p.scales.z && min(s_in, s_out) < p.scales.w {
             integrate(state, t_in, t_out, s_in, s_out);
         }
-        if (*state).acc.w >= p.lut.z || t_out >= t_stop {
+        if (*state).acc.w >= p.lut.z {
             return t_out;
         }
         let link = links[tet][exit_k];
-        if link < 0 {
+        if t_out >= t_stop || link < 0 {
+            // The ray leaves the mesh or meets a tool: the source's last, shorter segment.
+            if shows_source {
+                src_finish(state, march, tet, t_out, o, d, light);
+            }
             return t_out;
         }
         tet = u32(link) >> 2u;

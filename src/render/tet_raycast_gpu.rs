@@ -15,11 +15,13 @@ use nalgebra::{Matrix3, Vector3};
 use wgpu::util::DeviceExt;
 
 use super::camera::Camera;
-use super::raycast::{ToolPicture, MAX_TOOLS};
+use super::raycast::{Shading, ToolPicture, MAX_TOOLS};
 use super::raycast_gpu::{camera_block, GpuRenderError};
+use super::source_raycast::{SourceLook, TetMap, EDGE_TOLERANCE};
 use super::tet_raycast::{TetGeometry, TetRaycaster, TILE};
 use super::{RenderError, Rendered};
 use crate::gpu::{self, DeviceNodes, GpuContext, Kernels};
+use crate::volume::Sampling;
 
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable)]
@@ -32,6 +34,10 @@ struct Params {
     lut: [f32; 4],
     background: [f32; 4],
     counts: [u32; 4],
+    src_dims: [u32; 4],
+    src_at: [u32; 4],
+    src_tf: [f32; 4],
+    src_light: [f32; 4],
     tools: [[f32; 4]; 3 * MAX_TOOLS],
 }
 
@@ -68,6 +74,9 @@ pub struct GpuTetRaycaster {
     tables: wgpu::Buffer,
     tets: wgpu::Buffer,
     boundary: wgpu::Buffer,
+    /// Showing the source: the tets' maps, the nodes' rest index, the source's samples and
+    /// the tets' visibility (placeholders for node scalars).
+    source: [wgpu::Buffer; 4],
     /// Tile starts then faces, and how many faces it can hold.
     tiles: wgpu::Buffer,
     capacity: usize,
@@ -84,11 +93,12 @@ impl GpuTetRaycaster {
         if !(to_file.is_finite() && to_file > 0.0) {
             return Err(RenderError::Parameter(format!("unit scale {to_file} must be finite and > 0")).into());
         }
+        ctx.require_storage_buffers("the mesh raycaster", 11)?;
         use crate::gpu::Binding::{Read, ReadWrite, Uniform};
         let kernels = ctx.kernels(
             "tet_raycast.wgsl",
             concat!(include_str!("camera_tools.wgsl"), include_str!("tet_raycast.wgsl")),
-            &[Uniform, ReadWrite, Read, Read, Read, ReadWrite, Read, Read],
+            &[Uniform, ReadWrite, Read, Read, Read, ReadWrite, Read, Read, ReadWrite, Read, Read, Read],
             ["geometry", "render"],
         );
         let bin_kernels = ctx.kernels(
@@ -99,8 +109,17 @@ impl GpuTetRaycaster {
         );
         let params = prepared.params();
         let table = &prepared.table;
-        let lut_start = table.entries.len();
-        let tables: Vec<[f32; 4]> = table.entries.iter().chain(&prepared.tables.lut).copied().collect();
+        let (tables, lut_start, lut_range, source, source_block) = match &prepared.source {
+            None => {
+                let tables: Vec<[f32; 4]> = table.entries.iter().chain(&prepared.tables.lut).copied().collect();
+                let placeholders = ["tet maps", "tet rest index", "tet source", "tet visibility"].map(|label| {
+                    ctx.zeroed_buffer(&format!("{label} placeholder"), std::mem::size_of::<TetMap>() as u64)
+                });
+                let lut_range = (prepared.tables.lo, prepared.tables.hi);
+                (tables, table.entries.len(), lut_range, placeholders, SourceBlock::default())
+            }
+            Some(look) => source_buffers(&ctx, look, tets.len())?,
+        };
         let anchor = prepared.anchor;
         let base_nodes: Vec<[f64; 4]> = prepared
             .positions
@@ -122,9 +141,13 @@ impl GpuTetRaycaster {
             proj: [0.0, 0.0, 0.0, params.step as f32],
             table: [table.lo, table.hi, table.max_len, prepared.tolerance],
             scales: [table.level_scale, table.length_scale, prepared.visible.0, prepared.visible.1],
-            lut: [prepared.tables.lo, prepared.tables.hi, params.early_termination as f32, params.ambient as f32],
+            lut: [lut_range.0, lut_range.1, params.early_termination as f32, params.ambient as f32],
             background: params.background.map(|c| c as f32),
             counts: [tets.len() as u32, params.tools.len() as u32, lut_start as u32, 0],
+            src_dims: source_block.dims,
+            src_at: source_block.at,
+            src_tf: source_block.tf,
+            src_light: source_block.light,
             tools,
         };
         let capacity = (prepared.boundary.len() * ENTRIES_PER_FACE).max(1024);
@@ -145,6 +168,7 @@ impl GpuTetRaycaster {
             tables: tables_buffer,
             tets: tet_buffer,
             boundary,
+            source,
             capacity,
         };
         raycaster.refresh();
@@ -192,6 +216,10 @@ impl GpuTetRaycaster {
                 &placeholders[1],
                 self.nodes.buffer(),
                 &self.tets,
+                &self.source[0],
+                &self.source[1],
+                &self.source[2],
+                &self.source[3],
             ],
         );
         let mut encoder =
@@ -282,6 +310,10 @@ impl GpuTetRaycaster {
                     &out,
                     self.nodes.buffer(),
                     &self.tets,
+                    &self.source[0],
+                    &self.source[1],
+                    &self.source[2],
+                    &self.source[3],
                 ],
             );
             let mut encoder =
@@ -321,6 +353,63 @@ impl GpuTetRaycaster {
     }
 }
 
+/// The source's part of the uniform block.
+#[derive(Default)]
+struct SourceBlock {
+    dims: [u32; 4],
+    at: [u32; 4],
+    tf: [f32; 4],
+    light: [f32; 4],
+}
+
+/// What showing the source needs on the device: tables (the full-step lut and the
+/// pre-integrated table after the 1D lut), where the lut starts and its range, the
+/// buffers and the uniform block's part. Tricubic sampling and displacement volumes run on
+/// the CPU path only.
+#[allow(clippy::type_complexity)]
+fn source_buffers(
+    ctx: &Arc<GpuContext>,
+    look: &SourceLook,
+    tets: usize,
+) -> Result<(Vec<[f32; 4]>, usize, (f32, f32), [wgpu::Buffer; 4], SourceBlock), GpuRenderError> {
+    if look.sampling != Sampling::Trilinear || !look.displacements.is_empty() {
+        return Err(RenderError::Parameter(
+            "the GPU shows the source with trilinear sampling and no displacement volumes (tricubic sampling and displacement volumes run on the CPU)".into(),
+        )
+        .into());
+    }
+    let volume = &look.volume;
+    ctx.require_binding_size("the source volume", (volume.data().len() * 4) as u64)?;
+    ctx.require_binding_size("the tets' maps", (tets * std::mem::size_of::<TetMap>()) as u64)?;
+    let t = &look.tables;
+    let tables: Vec<[f32; 4]> = t.lut.iter().chain(&t.stepped).chain(&t.preintegrated).copied().collect();
+    ctx.require_binding_size("the source's tables", (tables.len() * 16) as u64)?;
+    let buffers = [
+        ctx.zeroed_buffer("tet maps", (tets.max(1) * std::mem::size_of::<TetMap>()) as u64),
+        ctx.storage_buffer("tet rest index", bytemuck::cast_slice(&look.rest_index)),
+        ctx.storage_buffer("tet source", bytemuck::cast_slice(volume.data())),
+        ctx.storage_buffer("tet visibility", bytemuck::cast_slice(&look.visible)),
+    ];
+    let params = &look.params;
+    let shading = match params.shading {
+        Shading::None => 0,
+        Shading::Gradient => 4,
+        Shading::ForwardDifference => 8,
+    };
+    let dims = volume.dims().map(|n| n as u32);
+    let light = params.light.map_or([0.0; 4], |l| {
+        let l = Vector3::from(l).normalize();
+        [l.x as f32, l.y as f32, l.z as f32, 1.0]
+    });
+    let block = SourceBlock {
+        dims: [dims[0], dims[1], dims[2], 1 | if params.preintegrated { 2 } else { 0 } | shading],
+        at: [t.lut.len() as u32, (t.lut.len() + t.stepped.len()) as u32, 0, 0],
+        tf: [t.pre_lo, t.pre_hi, look.gradient_scale, EDGE_TOLERANCE],
+        light,
+    };
+    Ok((tables, 0, (t.lo, t.hi), buffers, block))
+}
+
 /// The tools in the uniform block: anchored tip and radius, anchored tail, colour.
 fn fill_tools(block: &mut [[f32; 4]; 3 * MAX_TOOLS], tools: &[ToolPicture], anchor: Vector3<f64>) {
     *block = [[0.0; 4]; 3 * MAX_TOOLS];
@@ -338,20 +427,20 @@ fn fill_tools(block: &mut [[f32; 4]; 3 * MAX_TOOLS], tools: &[ToolPicture], anch
 mod tests {
     use super::*;
     use crate::mesh::generate::{self, CellSplit};
+    use crate::mesh::TetMesh;
     use crate::render::camera::Projection;
     use crate::render::raycast_gpu::tests::compare;
     use crate::render::tet_raycast::TetRaycastParams;
     use crate::render::transfer::TransferFunction;
+    use crate::volume::Volume;
     use nalgebra::Point3;
 
-    #[test]
-    fn gpu_frames_match_the_cpu_tet_raycaster() {
-        let Some(ctx) = crate::gpu::test_context() else { return };
+    /// The coarse phantom, a lattice of about `tets` over it, its centre, and two views:
+    /// from outside, and with the eye in the organ looking along it.
+    fn phantom_views(tets: usize) -> (Volume, TetMesh, Point3<f64>, Camera, Camera) {
         let volume = crate::volume::phantom::phantom([64, 40, 31], 4.0).unwrap();
         let (lo, hi) = volume.bounds();
-        let mesh = generate::lattice_for_box(lo, hi, 6000, CellSplit::Five).unwrap();
-        let outside = volume.range().0;
-        let scalars: Vec<f32> = mesh.nodes().iter().map(|p| volume.sample_world(*p).unwrap_or(outside)).collect();
+        let mesh = generate::lattice_for_box(lo, hi, tets, CellSplit::Five).unwrap();
         let centre = Point3::from((lo + hi) / 2.0);
         let outside_view = Camera::look_at(
             centre + Vector3::new(-150.0, -380.0, 120.0),
@@ -362,7 +451,6 @@ mod tests {
             48,
         )
         .unwrap();
-        // The eye in the organ, looking along it.
         let inside_view = Camera::look_at(
             centre + Vector3::new(-60.0, 0.0, 0.0),
             centre,
@@ -372,6 +460,30 @@ mod tests {
             48,
         )
         .unwrap();
+        (volume, mesh, centre, outside_view, inside_view)
+    }
+
+    /// A tool reaching into the organ from the outside view's side.
+    fn probe(centre: &Point3<f64>) -> ToolPicture {
+        ToolPicture {
+            tip: [centre.x, centre.y - 30.0, centre.z],
+            tail: [centre.x, centre.y - 160.0, centre.z + 60.0],
+            radius: 8.0,
+            color: [0.3, 0.9, 0.3],
+        }
+    }
+
+    /// A bend (nodes moved by a smooth field): the deformation step.
+    fn bend(mesh: &TetMesh, centre: &Point3<f64>) -> Vec<Vector3<f64>> {
+        mesh.nodes().iter().map(|p| p + Vector3::new(0.0, 0.0, 12.0 * ((p.x - centre.x) / 60.0).sin())).collect()
+    }
+
+    #[test]
+    fn gpu_frames_match_the_cpu_tet_raycaster() {
+        let Some(ctx) = crate::gpu::test_context() else { return };
+        let (volume, mesh, centre, outside_view, inside_view) = phantom_views(6000);
+        let outside = volume.range().0;
+        let scalars: Vec<f32> = mesh.nodes().iter().map(|p| volume.sample_world(*p).unwrap_or(outside)).collect();
         let ortho_view = Camera::look_at(
             centre + Vector3::new(0.0, -300.0, 0.0),
             centre,
@@ -382,15 +494,8 @@ mod tests {
         )
         .unwrap();
         let tf = TransferFunction::preset("ct_soft_tissue").unwrap();
-        let probe = ToolPicture {
-            tip: [centre.x, centre.y - 30.0, centre.z],
-            tail: [centre.x, centre.y - 160.0, centre.z + 60.0],
-            radius: 8.0,
-            color: [0.3, 0.9, 0.3],
-        };
-        // A bend (nodes moved by a smooth field) is the deformation step.
-        let bent: Vec<Vector3<f64>> =
-            mesh.nodes().iter().map(|p| p + Vector3::new(0.0, 0.0, 12.0 * ((p.x - centre.x) / 60.0).sin())).collect();
+        let probe = probe(&centre);
+        let bent = bend(&mesh, &centre);
         let cases = [
             ("pre-integrated", TetRaycastParams::default(), &outside_view),
             (
@@ -413,6 +518,46 @@ mod tests {
             gpu.update(&bent).unwrap();
             compare(&cpu.render(camera).unwrap(), &gpu.render(camera).unwrap(), &format!("{what}, bent"), 0.1);
         }
+    }
+
+    #[test]
+    fn gpu_frames_of_the_source_through_the_mesh_match_the_cpu() {
+        use crate::render::raycast::{RaycastParams, Shading};
+        use crate::render::source_raycast::SourceSampling;
+        let Some(ctx) = crate::gpu::test_context() else { return };
+        let (volume, mesh, centre, outside_view, inside_view) = phantom_views(3000);
+        let volume = Arc::new(volume);
+        let tf = TransferFunction::preset("ct_soft_tissue").unwrap();
+        let probe = probe(&centre);
+        let bent = bend(&mesh, &centre);
+        let step = RaycastParams { step: 2.0, ..Default::default() };
+        let cases = [
+            ("pre-integrated, gradient", step.clone(), &outside_view),
+            (
+                "point-sampled, forward difference",
+                RaycastParams { preintegrated: false, shading: Shading::ForwardDifference, ..step.clone() },
+                &outside_view,
+            ),
+            ("tool", RaycastParams { tools: vec![probe], ..step.clone() }, &outside_view),
+            ("inside", step.clone(), &inside_view),
+        ];
+        for (what, params, camera) in cases {
+            let mut cpu =
+                TetRaycaster::with_source(&mesh, volume.clone(), &tf, &params, &SourceSampling::default()).unwrap();
+            let mut gpu = GpuTetRaycaster::new(ctx.clone(), &cpu, 1.0).unwrap();
+            let cpu_image = cpu.render(camera).unwrap();
+            let lit = cpu_image.rgba.chunks_exact(4).filter(|p| p[0] > 10).count();
+            assert!(lit > cpu_image.rgba.len() / 4 / 20, "{what}: the CPU image is nearly empty ({lit} pixels)");
+            compare(&cpu_image, &gpu.render(camera).unwrap(), what, 0.5);
+            cpu.update(&bent).unwrap();
+            gpu.update(&bent).unwrap();
+            compare(&cpu.render(camera).unwrap(), &gpu.render(camera).unwrap(), &format!("{what}, bent"), 0.5);
+        }
+        // What the GPU path does not do is refused by name (the CPU does it).
+        let tricubic = SourceSampling { sampling: crate::volume::Sampling::Tricubic, ..Default::default() };
+        let cpu = TetRaycaster::with_source(&mesh, volume.clone(), &tf, &step, &tricubic).unwrap();
+        let e = GpuTetRaycaster::new(ctx.clone(), &cpu, 1.0).err().unwrap().to_string();
+        assert!(e.contains("tricubic"), "{e}");
     }
 
     /// The bend placed from a device buffer of displacements in metres (the solver's units

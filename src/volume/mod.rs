@@ -1,6 +1,7 @@
 //! Voxel volumes: a regular grid with ITK's geometry (values at voxel centres,
 //! voxel (i,j,k) at `origin + direction · (i·sx, j·sy, k·sz)`), samples stored x-fastest as f32.
 
+pub mod bspline;
 pub mod phantom;
 
 use nalgebra::{Matrix3, Vector3};
@@ -235,6 +236,59 @@ pub fn trilinear<T: crate::math::Real>(data: &[f32], dims: [usize; 3], x: T, y: 
         strides,
         [x - T::of(i as f64), y - T::of(j as f64), z - T::of(k as f64)],
     ))
+}
+
+/// How a volume is read between voxel centres.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Sampling {
+    Trilinear,
+    /// Catmull-Rom cubic convolution, 4x4x4 taps: sharper, about 4-8x the cost.
+    Tricubic,
+}
+
+/// Sample points this far (in source voxels) outside the voxel-centre box are read on its
+/// edge rather than as background: round-off on a mesh built on the box must not punch
+/// holes in its boundary.
+pub const SAMPLE_TOLERANCE: f64 = 1e-6;
+
+/// Catmull-Rom weights for the 4 taps around t in [0, 1).
+#[inline]
+fn catmull_rom<T: crate::math::Real>(t: T) -> [T; 4] {
+    let (h, one, two, three) = (T::of(0.5), T::one(), T::of(2.0), T::of(3.0));
+    let t2 = t * t;
+    let t3 = t2 * t;
+    [
+        h * (-t3 + two * t2 - t),
+        h * (three * t3 - T::of(5.0) * t2 + two),
+        h * (-three * t3 + T::of(4.0) * t2 + t),
+        h * (t3 - t2),
+    ]
+    .map(|w| w * one)
+}
+
+/// Tricubic (Catmull-Rom) interpolation; taps beyond the edges repeat the edge voxel.
+pub fn tricubic<T: crate::math::Real>(data: &[f32], dims: [usize; 3], x: T, y: T, z: T) -> Option<T> {
+    let (x, y, z) = clamp_to_box(dims, x, y, z, T::of(SAMPLE_TOLERANCE))?;
+    let base = |c: T| c.to_f64().floor() as i64;
+    let (bi, bj, bk) = (base(x), base(y), base(z));
+    let (wx, wy, wz) =
+        (catmull_rom(x - T::of(bi as f64)), catmull_rom(y - T::of(bj as f64)), catmull_rom(z - T::of(bk as f64)));
+    let clamp = |v: i64, n: usize| v.clamp(0, n as i64 - 1) as usize;
+    let mut acc = T::zero();
+    for (c, wzc) in wz.iter().enumerate() {
+        let kk = clamp(bk + c as i64 - 1, dims[2]);
+        for (b, wyb) in wy.iter().enumerate() {
+            let jj = clamp(bj + b as i64 - 1, dims[1]);
+            let row = dims[0] * (jj + dims[1] * kk);
+            let mut line = T::zero();
+            for (a, wxa) in wx.iter().enumerate() {
+                line += *wxa * T::of(data[row + clamp(bi + a as i64 - 1, dims[0])] as f64);
+            }
+            acc += *wzc * *wyb * line;
+        }
+    }
+    Some(acc)
 }
 
 #[cfg(test)]

@@ -16,7 +16,7 @@
 //! Output slices are processed in parallel, each visiting the tets that overlap it in tet
 //! order, so a run is deterministic and a voxel on a shared face takes the later tet's value.
 
-pub mod bspline;
+pub use crate::volume::bspline;
 pub mod engine;
 #[cfg(feature = "gpu")]
 pub mod gpu;
@@ -27,6 +27,7 @@ use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
+pub use crate::volume::{tricubic, Sampling, SAMPLE_TOLERANCE};
 pub use bspline::DisplacementVolume;
 use bspline::{backward_all, CompiledDisplacement};
 
@@ -58,14 +59,6 @@ pub enum Scheme {
     Spans,
     Culling,
     Bbox,
-}
-
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Sampling {
-    Trilinear,
-    /// Catmull-Rom cubic convolution, 4x4x4 taps: sharper, about 4-8x the cost.
-    Tricubic,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -121,11 +114,6 @@ impl std::ops::AddAssign for WarpStats {
 /// a mesh boundary that coincides with the lattice (a mesh built on the volume's box) fall
 /// out by round-off; ε is far below a voxel (coordinates are in voxel units).
 pub const INSIDE_TOLERANCE: f64 = 1e-9;
-
-/// Sample points this far (in source voxels) outside the voxel-centre box are read on its
-/// edge rather than as background: round-off on a mesh built on the box must not punch
-/// holes in its boundary.
-pub const SAMPLE_TOLERANCE: f64 = 1e-6;
 
 /// One tet's maps in output index space.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -439,45 +427,6 @@ impl<'a> Sampler<'a> {
             Sampling::Tricubic => tricubic(self.data, self.dims, x, y, z).unwrap_or(T::of(self.background as f64)),
         }
     }
-}
-
-/// Catmull-Rom weights for the 4 taps around t in [0, 1).
-#[inline]
-fn catmull_rom<T: Real>(t: T) -> [T; 4] {
-    let (h, one, two, three) = (T::of(0.5), T::one(), T::of(2.0), T::of(3.0));
-    let t2 = t * t;
-    let t3 = t2 * t;
-    [
-        h * (-t3 + two * t2 - t),
-        h * (three * t3 - T::of(5.0) * t2 + two),
-        h * (-three * t3 + T::of(4.0) * t2 + t),
-        h * (t3 - t2),
-    ]
-    .map(|w| w * one)
-}
-
-/// Tricubic (Catmull-Rom) interpolation; taps beyond the edges repeat the edge voxel.
-pub fn tricubic<T: Real>(data: &[f32], dims: [usize; 3], x: T, y: T, z: T) -> Option<T> {
-    let (x, y, z) = crate::volume::clamp_to_box(dims, x, y, z, T::of(SAMPLE_TOLERANCE))?;
-    let base = |c: T| c.to_f64().floor() as i64;
-    let (bi, bj, bk) = (base(x), base(y), base(z));
-    let (wx, wy, wz) =
-        (catmull_rom(x - T::of(bi as f64)), catmull_rom(y - T::of(bj as f64)), catmull_rom(z - T::of(bk as f64)));
-    let clamp = |v: i64, n: usize| v.clamp(0, n as i64 - 1) as usize;
-    let mut acc = T::zero();
-    for (c, wzc) in wz.iter().enumerate() {
-        let kk = clamp(bk + c as i64 - 1, dims[2]);
-        for (b, wyb) in wy.iter().enumerate() {
-            let jj = clamp(bj + b as i64 - 1, dims[1]);
-            let row = dims[0] * (jj + dims[1] * kk);
-            let mut line = T::zero();
-            for (a, wxa) in wx.iter().enumerate() {
-                line += *wxa * T::of(data[row + clamp(bi + a as i64 - 1, dims[0])] as f64);
-            }
-            acc += *wzc * *wyb * line;
-        }
-    }
-    Some(acc)
 }
 
 /// Output grid and its initial contents.
@@ -794,8 +743,21 @@ impl IncrementalWarp {
     /// Takes new deformed positions: the box covering the old and new extents of every tet
     /// with a node that moved more than `tolerance` is what changed. Returns the new sequence.
     pub fn advance(&mut self, deformed: &[Vector3<f64>], tolerance: f64) -> Result<u64, WarpError> {
-        let maps = tet_maps(&self.rest, deformed, &self.source.grid(), &self.grid)?;
+        if deformed.len() != self.positions.len() {
+            return Err(WarpError::NodeCount { got: deformed.len(), expected: self.positions.len() });
+        }
         let moved: Vec<bool> = self.positions.iter().zip(deformed).map(|(a, b)| (a - b).norm() > tolerance).collect();
+        // A node that moved less keeps the place the warp last gave it, so that the tets
+        // around it keep their maps: what an earlier volume holds of them stays this warp's,
+        // and slow drift is caught once it adds up to the tolerance.
+        let applied: Vec<Vector3<f64>> = self
+            .positions
+            .iter()
+            .zip(deformed)
+            .zip(&moved)
+            .map(|((old, new), m)| if *m { *new } else { *old })
+            .collect();
+        let maps = tet_maps(&self.rest, &applied, &self.source.grid(), &self.grid)?;
         let mut region: Option<Region> = None;
         let mut grow = |lo_in: [usize; 3], hi_in: [usize; 3]| {
             let (lo, hi) = region.get_or_insert((lo_in, hi_in));
@@ -813,14 +775,14 @@ impl IncrementalWarp {
             }
             // Inverted tets have no map: cover their nodes' positions too.
             if self.maps[t].is_none() || maps[t].is_none() {
-                for p in tet.iter().flat_map(|n| [self.positions[*n as usize], deformed[*n as usize]]) {
+                for p in tet.iter().flat_map(|n| [self.positions[*n as usize], applied[*n as usize]]) {
                     let ijk = self.grid.index_from_world(p);
                     let c = [0, 1, 2].map(|a| ijk[a].clamp(0.0, (self.grid.dims[a] - 1) as f64));
                     grow(c.map(|v| v.floor() as usize), c.map(|v| v.ceil() as usize));
                 }
             }
         }
-        self.positions = deformed.to_vec();
+        self.positions = applied;
         self.maps = maps;
         self.sequence += 1;
         self.history.push_back((self.sequence, region));
