@@ -296,17 +296,7 @@ fn read_nodes_v4(c: &mut Cursor, binary: bool, mesh: &mut MeshFile, tags: &mut H
     let blocks = bounded(blocks, 4, c, "node blocks")?;
     bounded(total, if binary { 32 } else { 8 }, c, "nodes")?;
     for _ in 0..blocks {
-        let (parametric, in_block) = if binary {
-            c.int()?;
-            c.int()?;
-            let parametric = c.int()?;
-            (parametric, c.size()?)
-        } else {
-            c.number::<i64>("an entity dimension")?;
-            c.number::<i64>("an entity tag")?;
-            let parametric: i64 = c.number("the parametric flag")?;
-            (parametric, c.number("the nodes in a block")?)
-        };
+        let (parametric, in_block) = block_header(c, binary, "the parametric flag", "the nodes in a block")?;
         if parametric != 0 {
             return Err("parametric node coordinates are not supported".into());
         }
@@ -327,6 +317,22 @@ fn read_nodes_v4(c: &mut Cursor, binary: bool, mesh: &mut MeshFile, tags: &mut H
     c.skip_section("Nodes")
 }
 
+/// A 4.1 entity block's header: entity dimension and tag (skipped), then the field that
+/// differs between node and element blocks, and the block's count.
+fn block_header(c: &mut Cursor, binary: bool, field: &str, count: &str) -> Result<(i64, u64), Fault> {
+    if binary {
+        c.int()?;
+        c.int()?;
+        let value = c.int()?;
+        Ok((value, c.size()?))
+    } else {
+        c.number::<i64>("an entity dimension")?;
+        c.number::<i64>("an entity tag")?;
+        let value: i64 = c.number(field)?;
+        Ok((value, c.number(count)?))
+    }
+}
+
 fn read_elements_v4(c: &mut Cursor, binary: bool, mesh: &mut MeshFile, tags: &HashMap<u64, u32>) -> Result<(), Fault> {
     let blocks = if binary {
         c.end_line();
@@ -344,17 +350,7 @@ fn read_elements_v4(c: &mut Cursor, binary: bool, mesh: &mut MeshFile, tags: &Ha
     };
     let blocks = bounded(blocks, 4, c, "element blocks")?;
     for _ in 0..blocks {
-        let (ty, in_block) = if binary {
-            c.int()?;
-            c.int()?;
-            let ty = c.int()?;
-            (ty, c.size()?)
-        } else {
-            c.number::<i64>("an entity dimension")?;
-            c.number::<i64>("an entity tag")?;
-            let ty: i64 = c.number("an element type")?;
-            (ty, c.number("the elements in a block")?)
-        };
+        let (ty, in_block) = block_header(c, binary, "an element type", "the elements in a block")?;
         let ty = u32::try_from(ty).map_err(|_| format!("element type {ty} is negative"))?;
         let per = nodes_per_element(ty).ok_or_else(|| format!("element type {ty} is not known"))?;
         let in_block =

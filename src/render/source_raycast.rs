@@ -27,8 +27,8 @@ use super::tet_raycast::{linear_field, TetRaycastParams, TetRaycaster, V3};
 use super::transfer::{Tables, TransferFunction};
 use super::RenderError;
 use crate::mesh::TetMesh;
-use crate::volume::bspline::{backward_all, CompiledDisplacement, DisplacementVolume};
-use crate::volume::{tricubic, trilinear, Sampling, Volume, SAMPLE_TOLERANCE};
+use crate::volume::bspline::{backward_all, compile_all, CompiledDisplacement, DisplacementVolume};
+use crate::volume::{tricubic, trilinear, Grid, Sampling, Volume, SAMPLE_TOLERANCE};
 
 /// How the source is read at a sample's rest position.
 #[derive(Debug, Clone, PartialEq)]
@@ -56,6 +56,8 @@ pub(crate) type TetMap = [[f32; 4]; 3];
 /// What the tet raycaster needs to show the source.
 pub(crate) struct SourceLook {
     pub(crate) volume: Arc<Volume>,
+    /// The volume's grid, where the displacement volumes move samples.
+    grid: Grid,
     /// Per node: its rest position in the source's continuous index (w unused).
     pub(crate) rest_index: Vec<[f32; 4]>,
     /// Per tet, refreshed with the geometry.
@@ -106,21 +108,10 @@ impl TetRaycaster {
         }
         let tables = Tables::new(&tf.resolve(volume.range())?, volume.range(), params.step, params.preintegrated);
         super::raycast::check_params(&tables, params)?;
-        let displacements = sampling
-            .displacements
-            .iter()
-            .enumerate()
-            .map(|(i, d)| d.compile().map_err(|why| RenderError::Parameter(format!("displacement volume {i}: {why}"))))
-            .collect::<Result<Vec<_>, _>>()?;
+        let displacements = compile_all(&sampling.displacements)
+            .map_err(|(i, why)| RenderError::Parameter(format!("displacement volume {i}: {why}")))?;
         let grid = volume.grid();
-        let rest_index: Vec<[f32; 4]> = mesh
-            .nodes()
-            .iter()
-            .map(|p| {
-                let q = grid.index_from_world(*p);
-                [q.x as f32, q.y as f32, q.z as f32, 0.0]
-            })
-            .collect();
+        let rest_index = grid.indices_f32(mesh.nodes());
         if !rest_index.iter().all(|q| q.iter().all(|v| v.is_finite())) {
             return Err(RenderError::Parameter("the rest mesh's nodes must be finite".into()));
         }
@@ -140,6 +131,7 @@ impl TetRaycaster {
         };
         let look = SourceLook {
             volume,
+            grid,
             rest_index,
             maps: Vec::new(),
             visible,
@@ -255,9 +247,8 @@ impl SourceLook {
         let q = if self.displacements.is_empty() {
             *q
         } else {
-            let grid = self.volume.grid();
-            let world = grid.world_from_index(q.cast::<f64>());
-            grid.index_from_world(backward_all(&self.displacements, &world)).cast::<f32>()
+            let world = self.grid.world_from_index(q.cast::<f64>());
+            self.grid.index_from_world(backward_all(&self.displacements, &world)).cast::<f32>()
         };
         let (data, dims) = (self.volume.data(), self.volume.dims());
         let tol = EDGE_TOLERANCE;
@@ -439,8 +430,8 @@ pub fn reference(
         return Err(RenderError::Parameter(format!("step {step} must be finite and > 0")));
     }
     let tf = tf.resolve(volume.range())?;
-    let displacements =
-        displacements.iter().map(|d| d.compile().map_err(RenderError::Parameter)).collect::<Result<Vec<_>, _>>()?;
+    let displacements = compile_all(displacements)
+        .map_err(|(i, why)| RenderError::Parameter(format!("displacement volume {i}: {why}")))?;
     let grid = volume.grid();
     // Per tet: the f64 map from deformed world to rest world.
     let maps: Vec<Option<Matrix3x4<f64>>> = mesh

@@ -580,15 +580,19 @@ impl TetRaycaster {
             if stalled > MAX_STALL {
                 return t_out;
             }
-            let s_out = scalar(&g.gradient, t_out);
-            match (&self.source, &mut march) {
-                (Some(source), Some(march)) => source.cross(march, tet as usize, t_out, acc, depth),
+            let s_out = match (&self.source, &mut march) {
+                (Some(source), Some(march)) => {
+                    source.cross(march, tet as usize, t_out, acc, depth);
+                    s_in
+                }
                 _ => {
+                    let s_out = scalar(&g.gradient, t_out);
                     if s_in.max(s_out) > self.visible.0 && s_in.min(s_out) < self.visible.1 {
                         self.integrate(acc, depth, t_in, t_out, s_in, s_out);
                     }
+                    s_out
                 }
-            }
+            };
             if acc[3] >= termination {
                 return t_out;
             }

@@ -106,6 +106,11 @@ impl CompiledDisplacement {
     }
 }
 
+/// Compiles `volumes` in order; the first refusal with its index.
+pub fn compile_all(volumes: &[DisplacementVolume]) -> Result<Vec<CompiledDisplacement>, (usize, String)> {
+    volumes.iter().enumerate().map(|(index, d)| d.compile().map_err(|why| (index, why))).collect()
+}
+
 /// Backward map of a sequence of deformations applied in order.
 pub fn backward_all(volumes: &[CompiledDisplacement], p: &Vector3<f64>) -> Vector3<f64> {
     volumes.iter().rev().fold(*p, |q, v| v.backward(&q))

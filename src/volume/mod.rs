@@ -47,6 +47,16 @@ impl Grid {
     pub fn index_from_world(&self, p: Vector3<f64>) -> Vector3<f64> {
         (self.direction.transpose() * (p - Vector3::from(self.origin))).component_div(&Vector3::from(self.spacing))
     }
+    /// Continuous indices of `points` in f32, padded to four as the GPU reads them.
+    pub fn indices_f32(&self, points: &[Vector3<f64>]) -> Vec<[f32; 4]> {
+        points
+            .iter()
+            .map(|p| {
+                let q = self.index_from_world(*p);
+                [q.x as f32, q.y as f32, q.z as f32, 0.0]
+            })
+            .collect()
+    }
     /// The affine map from this grid's continuous index to `other`'s: (matrix, offset).
     pub fn index_map_to(&self, other: &Grid) -> (Matrix3<f64>, Vector3<f64>) {
         let world_from_index = self.direction * Matrix3::from_diagonal(&Vector3::from(self.spacing));

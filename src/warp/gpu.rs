@@ -100,14 +100,7 @@ impl GpuWarp {
             * grid.direction.transpose()
             * to_file;
         let nodes = Arc::new(DeviceNodes::new(ctx.clone(), base.collect(), linear)?);
-        let rest_src: Vec<[f32; 4]> = rest
-            .nodes()
-            .iter()
-            .map(|p| {
-                let q = source_grid.index_from_world(*p);
-                [q.x as f32, q.y as f32, q.z as f32, 0.0]
-            })
-            .collect();
+        let rest_src = source_grid.indices_f32(rest.nodes());
         let (m, c) = grid.index_map_to(&source_grid);
         let identity = [0, 1, 2].map(|r| [c[r] as f32, m[(r, 0)] as f32, m[(r, 1)] as f32, m[(r, 2)] as f32]);
         let tet_count = rest.tets().len() as u32;

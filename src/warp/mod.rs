@@ -309,12 +309,8 @@ pub struct Sampler<'a> {
 
 impl<'a> Sampler<'a> {
     pub fn new(source: &'a Volume, options: &WarpOptions) -> Result<Self, WarpError> {
-        let displacements = options
-            .displacements
-            .iter()
-            .enumerate()
-            .map(|(index, d)| d.compile().map_err(|why| WarpError::BadDisplacement { index, why }))
-            .collect::<Result<_, _>>()?;
+        let displacements = bspline::compile_all(&options.displacements)
+            .map_err(|(index, why)| WarpError::BadDisplacement { index, why })?;
         Ok(Self {
             data: source.data(),
             dims: source.dims(),
