@@ -10,7 +10,9 @@ use crate::backend::BackendChoice;
 use crate::io::{self, IoError};
 use crate::mesh::generate::{self, CellSplit};
 use crate::mesh::{MeshError, TetMesh};
-use crate::solver::{FixedNodes, MassSpringModel, Material, SolverError, SolverParams, Tool, ToolShape};
+use crate::solver::{
+    ContactModel, Coupling, FixedNodes, MassSpringModel, Material, SolverError, SolverParams, Tool, ToolShape,
+};
 use crate::volume::{phantom, Volume, VolumeError};
 
 pub const DEFAULT_SCENE: &str = include_str!("../config/default_scene.yaml");
@@ -84,6 +86,14 @@ pub struct ToolConfig {
     pub shape: ToolShape,
     pub contact_stiffness: f64,
     pub spread_radius: f64,
+    /// `surface` (default: faces, edges and nodes, for tools of any thickness) or `nodes`
+    /// (every node inside the shape; what the GPU solver does).
+    #[serde(default)]
+    pub contact: ContactModel,
+    /// A virtual coupling to the device: the simulated tool follows the pose through a
+    /// spring-damper and the device feels it (haptic rendering).
+    #[serde(default)]
+    pub coupling: Option<Coupling>,
     #[serde(default)]
     pub path: Option<ToolPath>,
     /// Input topics (relative to the node's namespace); `tool_pose` and `tool_wrench` for
@@ -259,6 +269,15 @@ fn default_frame() -> String {
 }
 
 impl ToolConfig {
+    /// The solver's tool of this configuration, at the origin.
+    pub fn tool(&self) -> Tool {
+        let mut tool = Tool::new(self.shape, self.contact_stiffness);
+        tool.spread_radius = self.spread_radius;
+        tool.contact = self.contact;
+        tool.coupling = self.coupling;
+        tool
+    }
+
     /// The pose topic of the tool at `index`.
     pub fn pose_topic(&self, index: usize) -> String {
         self.pose_topic.clone().unwrap_or_else(|| {
@@ -355,8 +374,7 @@ impl LoadedScene {
             .tools
             .iter()
             .map(|c| {
-                let mut tool = Tool::new(c.shape, c.contact_stiffness);
-                tool.spread_radius = c.spread_radius;
+                let mut tool = c.tool();
                 if let Some(path) = &c.path {
                     tool.world_from_tool =
                         Isometry3::translation(path.position(t).x, path.position(t).y, path.position(t).z);

@@ -1,5 +1,6 @@
-//! Tools against the mesh: contact pushes nodes out, the reaction balances it, and a
-//! commanded force moves the mesh by what its stiffness predicts.
+//! Tools against the mesh: contact pushes the surface out (between nodes too), the reaction
+//! balances it, a commanded force moves the mesh by what its stiffness predicts, and a
+//! coupled tool renders stiff contact passively.
 
 use defvol::mesh::generate::{self, CellSplit};
 use defvol::solver::{FixedNodes, MassSpringModel, Material, Simulation, SolverParams, Tool, ToolShape};
@@ -57,4 +58,208 @@ fn commanded_force_displaces_the_surface_and_is_felt_back() {
         .unwrap();
     assert!(top_centre < -1e-4, "pushed down: {top_centre}");
     assert!((report.reaction(0).force[2] - 1.0).abs() < 1e-9, "{report:?}");
+}
+
+/// A slab whose boundary spacing is 15-17 mm, fixed at the bottom, top at z = 0.
+fn coarse_slab() -> (defvol::mesh::TetMesh, MassSpringModel) {
+    let mesh =
+        generate::lattice(Vector3::new(0.0, 0.0, -0.06), Vector3::new(0.1, 0.1, 0.0), [6, 6, 4], CellSplit::Five)
+            .unwrap();
+    let fixed = FixedNodes::Plane { normal: [0.0, 0.0, 1.0], offset: -0.06 }.select(mesh.nodes()).unwrap();
+    let model =
+        MassSpringModel::new(&mesh, &Material::Uniform { stiffness: 300.0, damping: 2.0 }, 1000.0, &fixed, None)
+            .unwrap();
+    (mesh, model)
+}
+
+/// The settled state of a tool held at `world_from_tool`, continuing `sim`.
+fn settle(sim: &mut Simulation<f64>, world_from_tool: Isometry3<f64>) -> defvol::solver::StepReport {
+    sim.tool_mut(0).unwrap().world_from_tool = world_from_tool;
+    let mut report = sim.step().unwrap();
+    for _ in 0..600 {
+        report = sim.step().unwrap();
+        if report.kinetic_energy < 1e-14 {
+            break;
+        }
+    }
+    report
+}
+
+/// Reaction (+z) on a 2 mm probe pressed straight down at (x, y) to each depth below the
+/// rest surface, settled at each.
+fn press_curve(x: f64, y: f64, depths: &[f64]) -> Vec<f64> {
+    let (_, model) = coarse_slab();
+    let radius = 0.001;
+    let tool = Tool::new(ToolShape::Sphere { radius }, 20_000.0);
+    let params = SolverParams { gravity: [0.0; 3], dt: 0.01, cg_tolerance: 1e-9, ..Default::default() };
+    let mut sim = Simulation::<f64>::new(&model, params, vec![tool]).unwrap();
+    depths
+        .iter()
+        .map(|d| {
+            let report = settle(&mut sim, Isometry3::translation(x, y, radius - d));
+            // The probe never passed through: it pushes the surface down, its centre at most
+            // the penalty depth past it.
+            let contact = sim.contacts().first().copied().expect("the probe touches the surface");
+            assert!(contact.push.z < 0.0 && contact.depth < 1.5 * radius, "through at depth {d}: {contact:?}");
+            report.reaction(0).force[2]
+        })
+        .collect()
+}
+
+/// Between nodes, a probe far thinner than the spacing is held by the surface (the contact
+/// spreads it over the face by barycentric weights) and felt within 1.5x of a press on a
+/// node, up to a quarter of the spacing deep.
+#[test]
+fn thin_probe_between_nodes_is_felt_within_1_5x_of_a_press_on_a_node() {
+    let (mesh, _) = coarse_slab();
+    let top: Vec<_> = mesh
+        .boundary()
+        .iter()
+        .filter(|f| f.iter().all(|&i| mesh.nodes()[i as usize].z.abs() < 1e-12))
+        .map(|f| f.iter().map(|&i| mesh.nodes()[i as usize]).sum::<Vector3<f64>>() / 3.0)
+        .collect();
+    // A face near the middle, its centroid: as far from its nodes as a point of it gets.
+    let centroid = top
+        .iter()
+        .min_by(|a, b| {
+            (*a - Vector3::new(0.05, 0.05, 0.0)).norm().total_cmp(&(*b - Vector3::new(0.05, 0.05, 0.0)).norm())
+        })
+        .copied()
+        .unwrap();
+    let depths = [0.002, 0.003, 0.004];
+    let on_node = press_curve(0.05, 0.05, &depths);
+    let between = press_curve(centroid.x, centroid.y, &depths);
+    for ((d, n), b) in depths.iter().zip(&on_node).zip(&between) {
+        assert!(*n > 0.0, "pushed back at {d}: {n}");
+        let ratio = b / n;
+        assert!((0.9..1.5).contains(&ratio), "depth {d}: between nodes {b} N, on a node {n} N");
+    }
+}
+
+/// The mesh receives exactly the force the tool feels: the reaction against the contact
+/// forces summed over the nodes.
+#[test]
+fn thin_probe_reaction_equals_the_force_the_mesh_receives() {
+    let (_, model) = coarse_slab();
+    let tool = Tool::new(ToolShape::Sphere { radius: 0.001 }, 2000.0);
+    let params = SolverParams { gravity: [0.0; 3], dt: 0.01, cg_tolerance: 1e-9, ..Default::default() };
+    let mut sim = Simulation::<f64>::new(&model, params, vec![tool]).unwrap();
+    let report = settle(&mut sim, Isometry3::translation(0.043, 0.058, -0.004));
+    let received: Vector3<f64> = sim.contact_forces_on_nodes().iter().sum();
+    let felt = Vector3::from(report.reaction(0).force);
+    assert!(felt.z > 0.01, "{felt}");
+    assert!((received + felt).norm() < 1e-12 * felt.norm(), "mesh {received} vs tool {felt}");
+}
+
+/// A needle lying on the surface, pressed in and dragged across faces and edges: the
+/// surface follows without jumps (no node moves more between two steps than a bound set by
+/// the drag speed) and the needle stays in contact throughout.
+#[test]
+fn needle_dragged_across_the_surface_deforms_it_continuously() {
+    let (_, model) = coarse_slab();
+    let radius = 0.0008;
+    // Shaft along world +x: the tool's +z turned onto +x.
+    let lying = nalgebra::UnitQuaternion::from_axis_angle(&Vector3::y_axis(), std::f64::consts::FRAC_PI_2);
+    let tool = Tool::new(ToolShape::Capsule { radius, length: 0.04 }, 2000.0);
+    let dt = 0.005;
+    let params = SolverParams { gravity: [0.0; 3], dt, cg_tolerance: 1e-9, ..Default::default() };
+    let mut sim = Simulation::<f64>::new(&model, params, vec![tool]).unwrap();
+    let depth = 0.003;
+    let at = |y: f64| Isometry3::from_parts(nalgebra::Translation3::new(0.03, y, radius - depth), lying);
+    settle(&mut sim, at(0.02));
+    let speed = 0.02; // m/s: 0.1 mm a step
+    let mut previous = sim.positions_f64();
+    let mut reactions = Vec::new();
+    let mut worst = 0.0f64;
+    for k in 1..=500 {
+        sim.tool_mut(0).unwrap().world_from_tool = at(0.02 + speed * dt * k as f64);
+        let report = sim.step().unwrap();
+        let now = sim.positions_f64();
+        worst = worst.max(now.iter().zip(&previous).map(|(a, b)| (a - b).norm()).fold(0.0, f64::max));
+        previous = now;
+        reactions.push(report.reaction(0).force[2]);
+    }
+    // 50 mm of drag crosses three rows of cells (and their diagonals).
+    let step = speed * dt;
+    assert!(worst < 3.0 * step, "a node jumped {worst} m in one step (the needle moves {step} m)");
+    let low = reactions.iter().copied().fold(f64::INFINITY, f64::min);
+    let high = reactions.iter().copied().fold(0.0, f64::max);
+    assert!(low > 0.0, "the needle lost the surface");
+    let largest_change = reactions.windows(2).map(|w| (w[1] - w[0]).abs()).fold(0.0, f64::max);
+    assert!(largest_change < 0.15 * high, "the reaction jumped by {largest_change} N (range {low}..{high} N)");
+}
+
+/// The simulated tool follows its device through the virtual coupling, and over a stiff
+/// press and release the system never holds more energy than the device put in.
+#[test]
+fn coupled_stiff_press_and_release_is_passive() {
+    let (_, model) = coarse_slab();
+    let radius = 0.002;
+    let mut tool = Tool::new(ToolShape::Sphere { radius }, 50_000.0);
+    tool.coupling = Some(defvol::solver::Coupling { stiffness: 2000.0, damping: 5.0, mass: 0.02, max_force: 50.0 });
+    let dt = 0.001;
+    let params = SolverParams { gravity: [0.0; 3], dt, cg_tolerance: 1e-10, ..Default::default() };
+    let mut sim = Simulation::<f64>::new(&model, params, vec![tool]).unwrap();
+    let device = |t: f64| {
+        // 2 mm above, down to 8 mm into the surface over 0.3 s, held, back up, held.
+        let z = if t < 0.3 {
+            0.002 + radius - 0.01 * t / 0.3
+        } else if t < 0.5 {
+            radius - 0.008
+        } else if t < 0.8 {
+            radius - 0.008 + 0.01 * (t - 0.5) / 0.3
+        } else {
+            0.002 + radius
+        };
+        Vector3::new(0.043, 0.058, z)
+    };
+    sim.tool_mut(0).unwrap().world_from_tool = Isometry3::translation(0.043, 0.058, device(0.0).z);
+    let first = sim.step().unwrap();
+    let start = first.kinetic_energy + first.potential_energy;
+    let mut work = 0.0;
+    let mut pull = -Vector3::from(first.reaction(0).force);
+    let mut deepest = 0.0f64;
+    for k in 1..1200 {
+        let (before, after) = (device((k - 1) as f64 * dt), device(k as f64 * dt));
+        sim.tool_mut(0).unwrap().world_from_tool = Isometry3::translation(after.x, after.y, after.z);
+        let report = sim.step().unwrap();
+        let pull_now = -Vector3::from(report.reaction(0).force);
+        work += 0.5 * (pull + pull_now).dot(&(after - before));
+        pull = pull_now;
+        let energy = report.kinetic_energy + report.potential_energy;
+        assert!(energy - start <= work + 1e-9, "step {k}: energy {energy} J, start {start} J + work in {work} J");
+        deepest = deepest.max(pull.z.abs());
+    }
+    assert!(deepest > 1.0, "the press was felt: {deepest} N");
+    // Released: the tool follows the device back out and nothing touches.
+    let tip = sim.simulated_pose(0).unwrap().translation.vector;
+    assert!((tip - device(1.2)).norm() < 1e-4, "the simulated tool is back at the device: {tip}");
+}
+
+/// A device pose that jumps through the organ (a dropped packet, a teleport): the coupling
+/// pulls with its largest force at most, says so, and the tool stays on the surface.
+#[test]
+fn a_pose_jumping_through_the_organ_is_held_at_the_surface() {
+    let (_, model) = coarse_slab();
+    let radius = 0.001;
+    let mut tool = Tool::new(ToolShape::Sphere { radius }, 20_000.0);
+    let max_force = 5.0;
+    tool.coupling = Some(defvol::solver::Coupling { stiffness: 2000.0, damping: 5.0, mass: 0.02, max_force });
+    let params = SolverParams { gravity: [0.0; 3], dt: 0.002, cg_tolerance: 1e-9, ..Default::default() };
+    let mut sim = Simulation::<f64>::new(&model, params, vec![tool]).unwrap();
+    sim.tool_mut(0).unwrap().world_from_tool = Isometry3::translation(0.043, 0.058, 0.002);
+    sim.step().unwrap();
+    // Under the slab's bottom in one message.
+    sim.tool_mut(0).unwrap().world_from_tool = Isometry3::translation(0.043, 0.058, -0.2);
+    let mut saturated = 0;
+    for _ in 0..500 {
+        let report = sim.step().unwrap();
+        let felt = Vector3::from(report.reaction(0).force).norm();
+        assert!(felt <= max_force * (1.0 + 1e-9), "the device felt {felt} N");
+        saturated += usize::from(report.reaction(0).coupling_saturated);
+        let tip = sim.simulated_pose(0).unwrap().translation.vector;
+        // Held at the surface: no deeper than the penalty lets max_force push, plus the dent.
+        assert!(tip.z > -0.02, "the tool went through: {tip}");
+    }
+    assert!(saturated == 500, "every step reports the saturated coupling ({saturated})");
 }

@@ -197,8 +197,7 @@ impl Pipeline {
             .iter()
             .enumerate()
             .map(|(i, config)| {
-                let mut tool = crate::solver::Tool::new(config.shape, config.contact_stiffness);
-                tool.spread_radius = config.spread_radius;
+                let mut tool = config.tool();
                 if let Some(p) = config.path.as_ref().map(|path| path.position(0.0)) {
                     tool.world_from_tool = nalgebra::Isometry3::translation(p.x, p.y, p.z);
                 }

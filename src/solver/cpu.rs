@@ -5,9 +5,10 @@ use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
 
 use super::amg::{Amg, Csr};
+use super::contact::{Surface, SurfaceContact, ToolCore};
 use super::kernels::{self, ContactTool, SpringTerms};
 use super::model::MassSpringModel;
-use super::tool::{spread_weights, Tool};
+use super::tool::{spread_weights, ContactModel, Tool};
 use super::{Integrator, Preconditioner, Reaction, SolverError, SolverParams, StepReport};
 use crate::math::Real;
 
@@ -29,6 +30,44 @@ struct Snapshot<T: Real> {
     v: Vec<Vector3<T>>,
     history: Vec<Vector3<T>>,
     history_valid: bool,
+    proxies: Vec<Proxy>,
+}
+
+/// The simulated tool of a coupled tool: a body of the implicit system, pulled by the
+/// coupling towards the device and stopped by the contact.
+#[derive(Debug, Clone)]
+struct Proxy {
+    tool: usize,
+    /// Simulated tip position and velocity (world).
+    x: Vector3<f64>,
+    v: Vector3<f64>,
+    /// The device's tip at the last step, for its velocity.
+    device: Vector3<f64>,
+    device_velocity: Vector3<f64>,
+}
+
+/// A surface contact as the implicit system uses it: rows (nodes, then the proxy's) with
+/// their coefficients c in ∇φ = Σ c_r n, and h² k.
+#[derive(Debug, Clone, Copy)]
+struct ContactRows<T: Real> {
+    rows: [usize; 4],
+    coefficients: [T; 4],
+    push: Vector3<T>,
+    h2k: T,
+}
+
+/// The coupling force on the simulated tool and its stiffness and damping scaled down
+/// when the force saturates.
+fn coupling_force(tool: &Tool, proxy: &Proxy) -> (Vector3<f64>, f64, f64, bool) {
+    let Some(c) = tool.coupling else { return (Vector3::zeros(), 0.0, 0.0, false) };
+    let raw = (tool.tip() - proxy.x) * c.stiffness + (proxy.device_velocity - proxy.v) * c.damping;
+    let magnitude = raw.norm();
+    if magnitude > c.max_force {
+        let scale = c.max_force / magnitude;
+        (raw * scale, c.stiffness * scale, c.damping * scale, true)
+    } else {
+        (raw, c.stiffness, c.damping, false)
+    }
 }
 
 /// A running mass-spring simulation on the CPU in precision `T`.
@@ -56,6 +95,16 @@ pub struct Simulation<T: Real> {
     history_valid: bool,
     external: Vec<Vector3<T>>,
     tools: Vec<Tool>,
+    surface: Surface,
+    /// Surface contacts of the step being solved (the active set), and at the end of the last.
+    active_contacts: Vec<SurfaceContact>,
+    contacts: Vec<SurfaceContact>,
+    contact_rows: Vec<ContactRows<T>>,
+    /// Rows (rhs, block-Jacobi inverse) as they were before the contacts were added.
+    rows_before_contacts: Vec<(usize, Vector3<T>, Matrix3<T>)>,
+    proxies: Vec<Proxy>,
+    /// Diagonal blocks of the proxies' rows (after the nodes' in every solver vector).
+    proxy_diag: Vec<Matrix3<T>>,
     step: u64,
     time: f64,
     // Workspace of the implicit solve.
@@ -110,6 +159,13 @@ impl<T: Real> Simulation<T> {
             history_valid: false,
             external: vec![Vector3::zeros(); n],
             tools,
+            surface: Surface::new(&model.boundary, &model.rest),
+            active_contacts: Vec::new(),
+            contacts: Vec::new(),
+            contact_rows: Vec::new(),
+            rows_before_contacts: Vec::new(),
+            proxies: Vec::new(),
+            proxy_diag: Vec::new(),
             step: 0,
             time: 0.0,
             terms: vec![
@@ -178,6 +234,35 @@ impl<T: Real> Simulation<T> {
         self.v = v.iter().map(|p| p.map(T::of)).collect();
         self.history_valid = false;
         self.solves = 0;
+        self.proxies.clear();
+    }
+
+    /// Where tool `index` is in the simulation: the device's pose, or for a coupled tool
+    /// the simulated tool's (the device's orientation at the simulated tip).
+    pub fn simulated_pose(&self, index: usize) -> Option<nalgebra::Isometry3<f64>> {
+        let tool = self.tools.get(index)?;
+        let mut pose = tool.world_from_tool;
+        if let Some(p) = self.proxies.iter().find(|p| p.tool == index) {
+            pose.translation.vector = p.x;
+        }
+        Some(pose)
+    }
+
+    /// The surface contacts at the end of the last step.
+    pub fn contacts(&self) -> &[SurfaceContact] {
+        &self.contacts
+    }
+
+    /// The force each node receives from the surface contacts at the end of the last step
+    /// (what the mesh feels of the tools).
+    pub fn contact_forces_on_nodes(&self) -> Vec<Vector3<f64>> {
+        let mut forces = vec![Vector3::zeros(); self.u.len()];
+        for c in &self.contacts {
+            for k in 0..3 {
+                forces[c.nodes[k] as usize] += c.force() * c.weights[k];
+            }
+        }
+        forces
     }
 
     /// Back to the rest shape at t = 0.
@@ -189,17 +274,39 @@ impl<T: Real> Simulation<T> {
         self.history_valid = false;
         self.step = 0;
         self.time = 0.0;
+        self.proxies.clear();
     }
 
+    /// Checks every tool; returns those whose contact acts node by node (the kernels').
     fn contact_tools(&self) -> Result<Vec<ContactTool<T>>, SolverError> {
+        for (index, tool) in self.tools.iter().enumerate() {
+            let c = tool.contact_params();
+            if !(c.a.iter().chain(c.b.iter()).all(|v| v.is_finite())) {
+                return Err(SolverError::NonFiniteToolInput { index, what: "pose" });
+            }
+            if let Some(coupling) = &tool.coupling {
+                coupling.validate(index)?;
+                let why = if tool.contact != ContactModel::Surface {
+                    Some("a coupled tool needs surface contact")
+                } else if self.params.integrator != super::Integrator::ImplicitEuler {
+                    Some("a coupled tool needs the implicit_euler integrator")
+                } else {
+                    None
+                };
+                if let Some(why) = why {
+                    return Err(SolverError::BadParameter {
+                        name: format!("tools[{index}].coupling"),
+                        value: coupling.stiffness,
+                        why: why.into(),
+                    });
+                }
+            }
+        }
         self.tools
             .iter()
-            .enumerate()
-            .map(|(index, tool)| {
+            .filter(|tool| tool.contact == ContactModel::Nodes)
+            .map(|tool| {
                 let c = tool.contact_params();
-                if !(c.a.iter().chain(c.b.iter()).all(|v| v.is_finite())) {
-                    return Err(SolverError::NonFiniteToolInput { index, what: "pose" });
-                }
                 Ok(ContactTool {
                     a: c.a.map(T::of),
                     b: c.b.map(T::of),
@@ -238,14 +345,68 @@ impl<T: Real> Simulation<T> {
             Integrator::VelocityVerlet => self.velocity_verlet(&tools),
             Integrator::ImplicitEuler => self.implicit_euler(&tools),
         }
-        self.finish_step(&tools, saved)
+        self.finish_step(saved)
     }
 
     /// Validates tool inputs and spreads commanded forces; returns the contact tools.
     pub(crate) fn prepare_step(&mut self) -> Result<Vec<ContactTool<T>>, SolverError> {
         let tools = self.contact_tools()?;
         self.spread_external_forces()?;
+        self.follow_devices();
+        self.active_contacts = self.detect_contacts(true);
         Ok(tools)
+    }
+
+    /// One simulated tool per coupled tool (made at the device when it first appears), the
+    /// devices' velocities from their last poses, and the solver vectors sized to match.
+    fn follow_devices(&mut self) {
+        let coupled: Vec<usize> = (0..self.tools.len()).filter(|&i| self.tools[i].coupling.is_some()).collect();
+        if !self.proxies.iter().map(|p| p.tool).eq(coupled.iter().copied()) {
+            self.proxies = coupled
+                .iter()
+                .map(|&tool| {
+                    let tip = self.tools[tool].tip();
+                    Proxy { tool, x: tip, v: Vector3::zeros(), device: tip, device_velocity: Vector3::zeros() }
+                })
+                .collect();
+            let rows = self.u.len() + self.proxies.len();
+            self.rhs.resize(rows, Vector3::zeros());
+            self.precond.resize(rows, Matrix3::zeros());
+            for w in [&mut self.dv, &mut self.dv_previous, &mut self.r, &mut self.z, &mut self.p, &mut self.q] {
+                w.resize(rows, Vector3::zeros());
+            }
+            self.proxy_diag = vec![Matrix3::zeros(); self.proxies.len()];
+        }
+        let dt = self.params.dt;
+        for p in &mut self.proxies {
+            let tip = self.tools[p.tool].tip();
+            p.device_velocity = (tip - p.device) / dt;
+            p.device = tip;
+        }
+    }
+
+    /// The surface contacts of the surface-contact tools at the current positions; with
+    /// `speculative`, those about to begin too (within half the radius or spacing).
+    fn detect_contacts(&mut self, speculative: bool) -> Vec<SurfaceContact> {
+        let cores: Vec<ToolCore> = (self.tools.iter().enumerate())
+            .filter(|(_, tool)| tool.contact == ContactModel::Surface && tool.contact_stiffness > 0.0)
+            .map(|(index, tool)| {
+                let (mut a, mut b) = tool.segment();
+                if let Some(p) = self.proxies.iter().find(|p| p.tool == index) {
+                    let shift = p.x - a;
+                    (a, b) = (a + shift, b + shift);
+                }
+                ToolCore { tool: index, a, b, radius: tool.shape.radius(), stiffness: tool.contact_stiffness }
+            })
+            .collect();
+        if cores.is_empty() {
+            return Vec::new();
+        }
+        let x = self.positions_f64();
+        self.surface.refit(&x);
+        let radius = cores.iter().map(|c| c.radius).fold(f64::INFINITY, f64::min);
+        let margin = if speculative { 0.5 * radius.min(self.surface.spacing()) } else { 0.0 };
+        self.surface.detect(&cores, &x, margin)
     }
 
     #[cfg_attr(not(feature = "gpu"), allow(dead_code))]
@@ -259,6 +420,7 @@ impl<T: Real> Simulation<T> {
             v: self.v.clone(),
             history: self.history.clone(),
             history_valid: self.history_valid,
+            proxies: self.proxies.clone(),
         }
     }
 
@@ -267,7 +429,6 @@ impl<T: Real> Simulation<T> {
     #[cfg_attr(not(feature = "gpu"), allow(dead_code))]
     pub(crate) fn accept_step(
         &mut self,
-        tools: &[ContactTool<T>],
         u: Vec<Vector3<T>>,
         v: Vec<Vector3<T>>,
         cg: CgStats,
@@ -276,19 +437,21 @@ impl<T: Real> Simulation<T> {
         self.u = u;
         self.v = v;
         self.last_cg = cg;
-        self.finish_step(tools, saved)
+        self.finish_step(saved)
     }
 
-    fn finish_step(&mut self, tools: &[ContactTool<T>], saved: Snapshot<T>) -> Result<StepReport, SolverError> {
+    fn finish_step(&mut self, saved: Snapshot<T>) -> Result<StepReport, SolverError> {
         self.step += 1;
         self.time += self.params.dt;
-        let report = self.report(tools);
+        self.contacts = self.detect_contacts(false);
+        let report = self.report();
         if let Some(reason) = self.divergence(&report) {
             let failed = (self.step, self.time);
             self.u = saved.u;
             self.v = saved.v;
             self.history = saved.history;
             self.history_valid = saved.history_valid;
+            self.proxies = saved.proxies;
             self.step -= 1;
             self.time -= self.params.dt;
             return Err(SolverError::Diverged { step: failed.0, time: failed.1, reason });
@@ -359,7 +522,24 @@ impl<T: Real> Simulation<T> {
                 )
                 .force
             })
+            .collect::<Vec<_>>()
+            .into_iter()
+            .enumerate()
+            .map(|(i, f)| if self.fixed[i] { f } else { f + self.surface_forces_on(i) })
             .collect()
+    }
+
+    /// Node i's share of the surface contacts of this step (explicit schemes).
+    fn surface_forces_on(&self, i: usize) -> Vector3<T> {
+        let mut f = Vector3::zeros();
+        for c in self.active_contacts.iter().filter(|c| c.depth > 0.0) {
+            for k in 0..3 {
+                if c.nodes[k] as usize == i && c.weights[k] > 0.0 {
+                    f += (c.force() * c.weights[k]).map(T::of);
+                }
+            }
+        }
+        f
     }
 
     fn explicit_euler(&mut self, tools: &[ContactTool<T>]) {
@@ -470,6 +650,134 @@ impl<T: Real> Simulation<T> {
                 *diag = t.diag;
                 *precond = t.precond;
             });
+        self.assemble_tools();
+    }
+
+    /// The simulated tools' rows and the surface contacts' terms (few: sequential, so the
+    /// sums keep their order). A contact of depth φ along n has energy ½kφ², ∇φ = Σ_r c_r n
+    /// over its rows (c = -w on the face's nodes, +1 on a simulated tool), hence
+    /// b_r += -c_r h k (φ + h φ̇) n with φ̇ = n·Σ c v, and A += h² k (c cᵀ) ⊗ n nᵀ.
+    fn assemble_tools(&mut self) {
+        let n = self.u.len();
+        let h = self.params.dt;
+        for (k, proxy) in self.proxies.iter().enumerate() {
+            let tool = &self.tools[proxy.tool];
+            let Some(coupling) = tool.coupling else { continue };
+            let (force, stiffness, damping, _) = coupling_force(tool, proxy);
+            let diag = Matrix3::identity() * (coupling.mass + h * damping + h * h * stiffness);
+            self.proxy_diag[k] = diag.map(T::of);
+            self.rhs[n + k] = ((force - proxy.v * (h * stiffness)) * h).map(T::of);
+            self.precond[n + k] = diag.try_inverse().unwrap_or_else(Matrix3::zeros).map(T::of);
+        }
+        self.contact_rows.clear();
+        self.rows_before_contacts.clear();
+        self.add_contacts();
+    }
+
+    /// Adds the contacts' terms to the assembled rows, keeping each touched row as it was.
+    fn add_contacts(&mut self) {
+        let n = self.u.len();
+        let h = self.params.dt;
+        let mut blocks: Vec<(usize, Matrix3<f64>)> = Vec::new();
+        for c in &self.active_contacts {
+            let proxy = self.proxies.iter().position(|p| p.tool == c.tool);
+            let mut rows = [usize::MAX; 4];
+            let mut coefficients = [0.0; 4];
+            for k in 0..3 {
+                if c.weights[k] > 0.0 && !self.fixed[c.nodes[k] as usize] {
+                    rows[k] = c.nodes[k] as usize;
+                    coefficients[k] = -c.weights[k];
+                }
+            }
+            if let Some(k) = proxy {
+                rows[3] = n + k;
+                coefficients[3] = 1.0;
+            }
+            let mut normal_speed = 0.0;
+            for k in 0..3 {
+                normal_speed -= c.weights[k] * c.push.dot(&self.v[c.nodes[k] as usize].map(T::to_f64));
+            }
+            if let Some(k) = proxy {
+                normal_speed += c.push.dot(&self.proxies[k].v);
+            }
+            let g = h * c.stiffness * (c.depth + h * normal_speed);
+            let nn = c.push * c.push.transpose() * (h * h * c.stiffness);
+            for r in 0..4 {
+                if rows[r] != usize::MAX {
+                    if !self.rows_before_contacts.iter().any(|(row, _, _)| *row == rows[r]) {
+                        self.rows_before_contacts.push((rows[r], self.rhs[rows[r]], self.precond[rows[r]]));
+                    }
+                    self.rhs[rows[r]] -= (c.push * (coefficients[r] * g)).map(T::of);
+                    blocks.push((rows[r], nn * (coefficients[r] * coefficients[r])));
+                }
+            }
+            self.contact_rows.push(ContactRows {
+                rows,
+                coefficients: coefficients.map(T::of),
+                push: c.push.map(T::of),
+                h2k: T::of(h * h * c.stiffness),
+            });
+        }
+        // Block Jacobi sees each touched row's diagonal block with its contact part.
+        blocks.sort_by_key(|(row, _)| *row);
+        for group in blocks.chunk_by(|a, b| a.0 == b.0) {
+            let row = group[0].0;
+            let base = if row < n { self.diag[row] } else { self.proxy_diag[row - n] };
+            let sum = group.iter().fold(base.map(T::to_f64), |s, (_, b)| s + b);
+            self.precond[row] = sum.try_inverse().unwrap_or_else(Matrix3::zeros).map(T::of);
+        }
+    }
+
+    /// Backward Euler evaluates the contact at the step's end, linearised: a contact whose
+    /// end penetration φ + h φ̇ comes out ≤ 0 would pull the surface, so it leaves the active
+    /// set and the step is solved again from the rows as they were (a few rounds at most).
+    fn release_separating_contacts(&mut self) -> bool {
+        let n = self.u.len();
+        let h = T::of(self.params.dt);
+        let keep: Vec<bool> = (self.active_contacts.iter().zip(&self.contact_rows))
+            .map(|(c, rows)| {
+                let mut rate = T::zero();
+                for r in 0..4 {
+                    let row = rows.rows[r];
+                    if row == usize::MAX {
+                        continue;
+                    }
+                    let v = if row < n { self.v[row] } else { self.proxies[row - n].v.map(T::of) };
+                    rate += rows.coefficients[r] * rows.push.dot(&(v + self.dv[row]));
+                }
+                T::of(c.depth) + h * rate > T::zero()
+            })
+            .collect();
+        if keep.iter().all(|k| *k) {
+            return false;
+        }
+        for (row, rhs, precond) in self.rows_before_contacts.drain(..) {
+            self.rhs[row] = rhs;
+            self.precond[row] = precond;
+        }
+        let mut k = keep.iter();
+        self.active_contacts.retain(|_| k.next().copied().unwrap_or(false));
+        self.contact_rows.clear();
+        self.add_contacts();
+        true
+    }
+
+    /// out += the surface contacts' part of A p (rank one per contact).
+    fn contact_product(&self, p: &[Vector3<T>], out: &mut [Vector3<T>]) {
+        for c in &self.contact_rows {
+            let mut y = T::zero();
+            for r in 0..4 {
+                if c.rows[r] != usize::MAX {
+                    y += c.coefficients[r] * c.push.dot(&p[c.rows[r]]);
+                }
+            }
+            let s = c.h2k * y;
+            for r in 0..4 {
+                if c.rows[r] != usize::MAX {
+                    out[c.rows[r]] += c.push * (c.coefficients[r] * s);
+                }
+            }
+        }
     }
 
     fn implicit_euler(&mut self, tools: &[ContactTool<T>]) {
@@ -496,6 +804,14 @@ impl<T: Real> Simulation<T> {
                 state.stale = true;
             }
         }
+        for _ in 0..4 {
+            if !self.release_separating_contacts() {
+                break;
+            }
+            let first = self.last_cg.iterations;
+            self.last_cg = self.solve();
+            self.last_cg.iterations += first;
+        }
         self.dv_previous = last;
         self.solves += 1;
         let h = T::of(self.params.dt);
@@ -508,13 +824,23 @@ impl<T: Real> Simulation<T> {
             *v += dv[i];
             *x += *v * h;
         });
+        let n = self.u.len();
+        for (k, proxy) in self.proxies.iter_mut().enumerate() {
+            proxy.v += self.dv[n + k].map(T::to_f64);
+            proxy.x += proxy.v * self.params.dt;
+        }
     }
 
     fn spmv_into(&self, p: &[Vector3<T>], out: &mut [Vector3<T>]) {
-        out.par_iter_mut().with_min_len(CHUNK).enumerate().for_each(|(i, q)| {
+        let n = self.u.len();
+        out[..n].par_iter_mut().with_min_len(CHUNK).enumerate().for_each(|(i, q)| {
             let adj = &self.adjacency[self.offsets[i] as usize..self.offsets[i + 1] as usize];
             *q = kernels::spmv_row(i, adj, &self.terms, &self.diag[i], self.fixed[i], p);
         });
+        for (k, diag) in self.proxy_diag.iter().enumerate() {
+            out[n + k] = diag * p[n + k];
+        }
+        self.contact_product(p, out);
     }
 
     /// Preconditioned CG on the assembled system, warm-started from the previous Δv.
@@ -596,7 +922,9 @@ impl<T: Real> Simulation<T> {
     }
 
     /// Assembled A as f64 triplets; fixed nodes keep an identity row and no couplings.
-    fn system_triplets(&self) -> Vec<(usize, usize, f64)> {
+    /// With `tools`, the simulated tools' rows and the contacts' terms too (the whole
+    /// system); without, the mesh's springs alone (what the multigrid hierarchy is built on).
+    fn system_triplets(&self, tools: bool) -> Vec<(usize, usize, f64)> {
         let mut triplets = Vec::with_capacity(self.adjacency.len() * 9 + self.u.len() * 9);
         for i in 0..self.u.len() {
             if self.fixed[i] {
@@ -621,6 +949,29 @@ impl<T: Real> Simulation<T> {
                 }
             }
         }
+        if tools {
+            let n = self.u.len();
+            for (k, d) in self.proxy_diag.iter().enumerate() {
+                for r in 0..3 {
+                    for c in 0..3 {
+                        triplets.push((3 * (n + k) + r, 3 * (n + k) + c, d[(r, c)].to_f64()));
+                    }
+                }
+            }
+            for c in &self.contact_rows {
+                let nn = c.push.map(T::to_f64) * c.push.map(T::to_f64).transpose() * c.h2k.to_f64();
+                for (a, &ra) in c.rows.iter().enumerate().filter(|(_, r)| **r != usize::MAX) {
+                    for (b, &rb) in c.rows.iter().enumerate().filter(|(_, r)| **r != usize::MAX) {
+                        let block = nn * (c.coefficients[a] * c.coefficients[b]).to_f64();
+                        for r in 0..3 {
+                            for col in 0..3 {
+                                triplets.push((3 * ra + r, 3 * rb + col, block[(r, col)]));
+                            }
+                        }
+                    }
+                }
+            }
+        }
         triplets
     }
 
@@ -628,7 +979,7 @@ impl<T: Real> Simulation<T> {
     fn build_amg(&mut self) {
         let started = std::time::Instant::now();
         let n = self.u.len();
-        let a = Csr::from_triplets(3 * n, 3 * n, self.system_triplets());
+        let a = Csr::from_triplets(3 * n, 3 * n, self.system_triplets(false));
         let neighbours: Vec<Vec<u32>> = (0..n)
             .map(|i| {
                 self.adjacency[self.offsets[i] as usize..self.offsets[i + 1] as usize]
@@ -654,10 +1005,10 @@ impl<T: Real> Simulation<T> {
 
     /// Damping 4/(3 λmax) of the fine block-Jacobi smoother, λmax of D⁻¹A by power iteration.
     fn block_jacobi_omega(&self) -> f64 {
-        let n = self.u.len();
+        let n = self.rhs.len();
         let mut x: Vec<Vector3<T>> = (0..n)
             .map(|i| {
-                if self.fixed[i] {
+                if self.fixed.get(i).copied().unwrap_or(false) {
                     Vector3::zeros()
                 } else {
                     Vector3::repeat(T::one() + T::of(((i * 7919) % 13) as f64 / 13.0))
@@ -693,7 +1044,7 @@ impl<T: Real> Simulation<T> {
             r.par_iter().zip(self.precond.par_iter()).with_min_len(CHUNK).map(|(r, m)| m * r * omega).collect();
         let mut az = vec![Vector3::zeros(); n];
         self.spmv_into(&z, &mut az);
-        let residual: Vec<f64> = r
+        let residual: Vec<f64> = r[..self.u.len()]
             .iter()
             .zip(&az)
             .flat_map(|(r, a)| {
@@ -702,7 +1053,8 @@ impl<T: Real> Simulation<T> {
             })
             .collect();
         let e = state.amg.coarse_correction(&residual);
-        z.par_iter_mut()
+        z[..self.u.len()]
+            .par_iter_mut()
             .with_min_len(CHUNK)
             .enumerate()
             .for_each(|(i, zi)| *zi += Vector3::new(T::of(e[3 * i]), T::of(e[3 * i + 1]), T::of(e[3 * i + 2])));
@@ -724,26 +1076,51 @@ impl<T: Real> Simulation<T> {
         })
     }
 
-    fn report(&self, tools: &[ContactTool<T>]) -> StepReport {
+    fn report(&self) -> StepReport {
         let g = Vector3::from(self.params.gravity);
-        let kinetic = chunked_sum(self.u.len(), |i| 0.5 * self.mass[i].to_f64() * self.v[i].norm_squared().to_f64());
+        let mut kinetic =
+            chunked_sum(self.u.len(), |i| 0.5 * self.mass[i].to_f64() * self.v[i].norm_squared().to_f64());
         let gravity = chunked_sum(self.u.len(), |i| -self.mass[i].to_f64() * g.dot(&self.u[i].map(T::to_f64)));
         let mut contact_energy = 0.0;
-        let mut reactions = Vec::with_capacity(tools.len());
-        for (tool, commanded) in tools.iter().zip(&self.tools) {
+        let mut reactions = Vec::with_capacity(self.tools.len());
+        for (index, tool) in self.tools.iter().enumerate() {
             // The mesh pushes back the tool's own commanded force, and every contact force.
-            let mut force = -commanded.applied_force;
+            let mut force = -tool.applied_force;
             let mut torque = Vector3::zeros();
-            for i in 0..self.u.len() {
-                let p = &self.world(i);
-                if let Some((f, _)) = kernels::contact(p, &tool.a, &tool.b, tool.radius, tool.stiffness) {
-                    let f = f.map(T::to_f64);
-                    contact_energy += 0.5 * f.norm_squared() / tool.stiffness.to_f64();
-                    force -= f;
-                    torque -= (p.map(T::to_f64) - tool.a.map(T::to_f64)).cross(&f);
+            let tip = self.simulated_pose(index).map_or_else(|| tool.tip(), |pose| pose.translation.vector);
+            match tool.contact {
+                ContactModel::Nodes => {
+                    let c = tool.contact_params();
+                    let (a, b) = (c.a.map(T::of), c.b.map(T::of));
+                    let (radius, stiffness) = (T::of(c.radius), T::of(c.stiffness));
+                    for i in 0..self.u.len() {
+                        let p = &self.world(i);
+                        if let Some((f, _)) = kernels::contact(p, &a, &b, radius, stiffness) {
+                            let f = f.map(T::to_f64);
+                            contact_energy += 0.5 * f.norm_squared() / c.stiffness;
+                            force -= f;
+                            torque -= (p.map(T::to_f64) - tip).cross(&f);
+                        }
+                    }
+                }
+                ContactModel::Surface => {
+                    for c in self.contacts.iter().filter(|c| c.tool == index) {
+                        contact_energy += 0.5 * c.stiffness * c.depth * c.depth;
+                        force -= c.force();
+                        torque -= (c.at - tip).cross(&c.force());
+                    }
                 }
             }
-            reactions.push(Reaction { force: force.into(), torque: torque.into() });
+            let mut coupling_saturated = false;
+            if let (Some(proxy), Some(coupling)) = (self.proxies.iter().find(|p| p.tool == index), tool.coupling) {
+                // The device feels the coupling, not the contact: they agree once it settles.
+                let (pull, _, _, saturated) = coupling_force(tool, proxy);
+                force = -pull - tool.applied_force;
+                coupling_saturated = saturated;
+                kinetic += 0.5 * coupling.mass * proxy.v.norm_squared();
+                contact_energy += 0.5 * coupling.stiffness * (tool.tip() - proxy.x).norm_squared();
+            }
+            reactions.push(Reaction { force: force.into(), torque: torque.into(), coupling_saturated });
         }
         let max_displacement = self.u.iter().map(|u| u.norm().to_f64()).fold(0.0, f64::max);
         StepReport {
@@ -760,11 +1137,10 @@ impl<T: Real> Simulation<T> {
 
     /// The assembled system as f64 triplets (row, col, value), for checks against direct solvers.
     pub fn assembled_system(&mut self) -> Result<(Triplets, Vec<f64>), SolverError> {
-        let tools = self.contact_tools()?;
-        self.spread_external_forces()?;
+        let tools = self.prepare_step()?;
         self.assemble(&tools);
         let rhs = self.rhs.iter().flat_map(|v| [v.x.to_f64(), v.y.to_f64(), v.z.to_f64()]).collect();
-        Ok((self.system_triplets(), rhs))
+        Ok((self.system_triplets(true), rhs))
     }
 
     /// Prepares the configured preconditioner for the assembled system (tests).

@@ -31,6 +31,11 @@ pub enum GpuSolverError {
     Gpu(#[from] GpuError),
     #[error("{0} tools given; the GPU solver takes at most {MAX_TOOLS}")]
     TooManyTools(usize),
+    #[error(
+        "tool {0} touches the boundary surface or follows its device through a coupling; \
+         the GPU kernels push nodes only (contact: nodes, no coupling)"
+    )]
+    SurfaceContact(usize),
 }
 
 #[repr(C)]
@@ -178,6 +183,7 @@ impl GpuSimulation {
         if tools.len() > MAX_TOOLS {
             return Err(GpuSolverError::TooManyTools(tools.len()));
         }
+        check_tools(&tools)?;
         ctx.require_storage_buffers("the solver", STORAGE_BUFFERS)?;
         let mirror = Simulation::<f32>::new(model, params, tools)?;
         let n = model.node_count();
@@ -433,6 +439,7 @@ impl GpuSimulation {
 
     /// Advances one step on the GPU; reads positions and velocities back for the report.
     pub fn step(&mut self) -> Result<StepReport, GpuSolverError> {
+        check_tools(self.mirror.tools())?;
         let tools = self.mirror.prepare_step()?;
         self.upload_params(&tools);
         let (n, e) = (self.nodes, self.springs);
@@ -475,7 +482,7 @@ impl GpuSimulation {
         self.history_valid = true;
         let x = self.read_vec(&self.buffers.x)?;
         let v = self.read_vec(&self.buffers.v)?;
-        match self.mirror.accept_step(&tools, x, v, cg) {
+        match self.mirror.accept_step(x, v, cg) {
             Ok(report) => Ok(report),
             Err(err) => {
                 // Put the last stable state back on the GPU too.
@@ -489,6 +496,14 @@ impl GpuSimulation {
                 Err(err.into())
             }
         }
+    }
+}
+
+/// The GPU kernels push nodes one by one: surface contact and couplings run on the CPU.
+fn check_tools(tools: &[Tool]) -> Result<(), GpuSolverError> {
+    match tools.iter().position(|t| t.contact != super::ContactModel::Nodes || t.coupling.is_some()) {
+        Some(index) => Err(GpuSolverError::SurfaceContact(index)),
+        None => Ok(()),
     }
 }
 
@@ -518,6 +533,7 @@ mod tests {
             let params =
                 SolverParams { integrator, dt, cg_tolerance: 1e-6, cg_check_interval: 4, ..Default::default() };
             let mut tool = Tool::new(ToolShape::Sphere { radius: 0.01 }, 500.0);
+            tool.contact = crate::solver::ContactModel::Nodes;
             tool.world_from_tool = Isometry3::translation(0.1, 0.015, 0.038);
             tool.applied_force = Vector3::new(0.0, 0.0, -0.05);
             let mut cpu = Simulation::<f32>::new(&model, params.clone(), vec![tool.clone()]).unwrap();

@@ -4,6 +4,7 @@
 //! reference); `crate::gpu::solver` runs the same kernels in WGSL.
 
 pub mod amg;
+pub mod contact;
 pub mod cpu;
 pub mod engine;
 #[cfg(feature = "gpu")]
@@ -17,7 +18,7 @@ use serde::{Deserialize, Serialize};
 pub use cpu::Simulation;
 pub use engine::{SolverEngine, SolverEngineError};
 pub use model::{FixedNodes, MassSpringModel, Material, TissueRow};
-pub use tool::{Tool, ToolShape};
+pub use tool::{ContactModel, Coupling, Tool, ToolShape};
 
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
@@ -146,9 +147,13 @@ impl StepReport {
 }
 
 /// What the mesh does to one tool: the force (N) and the torque about the tool's tip (N·m),
-/// world frame. It includes the tool's own commanded force, pushed back.
+/// world frame. It includes the tool's own commanded force, pushed back. For a coupled
+/// tool the force is the coupling's pull on the device, which is what a haptic device renders.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]
 pub struct Reaction {
     pub force: [f64; 3],
     pub torque: [f64; 3],
+    /// The coupling held the device back with its largest force this step (the device's
+    /// pose ran away from the tool: a dropped packet, a teleport through the organ).
+    pub coupling_saturated: bool,
 }

@@ -163,6 +163,8 @@ pub struct MassSpringModel {
     /// (neighbour, spring) pairs; per-node gathers replace scattered atomics on both backends.
     pub offsets: Vec<u32>,
     pub adjacency: Vec<[u32; 2]>,
+    /// Boundary triangles, outward (what tools touch).
+    pub boundary: Vec<[u32; 3]>,
 }
 
 impl MassSpringModel {
@@ -256,6 +258,7 @@ impl MassSpringModel {
             damping,
             offsets,
             adjacency,
+            boundary: mesh.boundary().to_vec(),
         })
     }
 

@@ -1,6 +1,10 @@
-//! Rigid tools touching the mesh. Contact is a **penalty**: a node inside the shape is
-//! pushed out along the surface normal with force `k_c · depth`; the implicit solver takes
-//! its Jacobian `-k_c n nᵀ` into the system, so stiff contact stays stable at large steps.
+//! Rigid tools touching the mesh. Contact is a **penalty** `k_c · depth`, against the
+//! boundary surface (`contact.rs`, the default: tools thinner than the mesh spacing are
+//! felt) or against every node inside the shape (`ContactModel::Nodes`, what the GPU
+//! kernels do); the implicit solver takes its Jacobian into the system, so stiff contact
+//! stays stable at large steps. A tool may follow its device through a **virtual
+//! coupling** (a spring-damper, as haptics frameworks render stiff contact): the simulated
+//! tool is then a body of the implicit system and the device feels the coupling force.
 //! A commanded force (from a wrench topic) is spread over the nodes near the tool tip.
 
 use nalgebra::{Isometry3, Point3, Vector3};
@@ -30,6 +34,54 @@ impl ToolShape {
     }
 }
 
+/// What a tool's contact acts on.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ContactModel {
+    /// The boundary surface: faces, edges and nodes, by barycentric weights.
+    #[default]
+    Surface,
+    /// Every node inside the shape, one by one (tools wider than the mesh spacing).
+    Nodes,
+}
+
+/// A spring-damper between the device's commanded pose and the simulated tool, which the
+/// contact stops at the surface. The device feels the coupling force, never more than
+/// `max_force`: a pose that jumps through the organ pulls the tool with that force at most.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Coupling {
+    /// N/m.
+    pub stiffness: f64,
+    /// N·s/m.
+    pub damping: f64,
+    /// Mass of the simulated tool (kg).
+    pub mass: f64,
+    /// Largest coupling spring force (N).
+    pub max_force: f64,
+}
+
+impl Coupling {
+    pub fn validate(&self, index: usize) -> Result<(), super::SolverError> {
+        let checks = [
+            ("stiffness", self.stiffness, self.stiffness > 0.0),
+            ("damping", self.damping, self.damping >= 0.0),
+            ("mass", self.mass, self.mass > 0.0),
+            ("max_force", self.max_force, self.max_force > 0.0),
+        ];
+        for (name, value, ok) in checks {
+            if !(value.is_finite() && ok) {
+                return Err(super::SolverError::BadParameter {
+                    name: format!("tools[{index}].coupling.{name}"),
+                    value,
+                    why: "must be finite and positive (damping may be 0)".into(),
+                });
+            }
+        }
+        Ok(())
+    }
+}
+
 /// A tool's state for one step, in world coordinates.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Tool {
@@ -40,6 +92,10 @@ pub struct Tool {
     /// Radius of the neighbourhood over which `applied_force` is spread (m).
     pub spread_radius: f64,
     pub contact_stiffness: f64,
+    pub contact: ContactModel,
+    /// With a coupling, `world_from_tool` is the device's pose and the simulated tool
+    /// follows it; without one, the tool is where the device is.
+    pub coupling: Option<Coupling>,
 }
 
 impl Tool {
@@ -50,6 +106,8 @@ impl Tool {
             applied_force: Vector3::zeros(),
             spread_radius: shape.radius() * 2.0,
             contact_stiffness,
+            contact: ContactModel::Surface,
+            coupling: None,
         }
     }
 

@@ -1,0 +1,527 @@
+//! Tools against the mesh's **boundary surface**, so that instruments thinner than the mesh
+//! spacing (a 1-2 mm needle against 5-20 mm tets) are felt between nodes.
+//!
+//! The tool's collision model is the one surgical simulators (SOFA) use: spheres of the
+//! tool's radius sampled along its core, each finding the nearest point of the boundary
+//! surface. That point lies on a face, an edge or a node; the penalty force `k φ` goes to
+//! the feature's nodes by barycentric weights, and the tool feels the sum pushed back.
+//! Inside or outside is decided with angle-weighted pseudo-normals (Bærentzen & Aanæs), so
+//! a sample that went past the surface is pushed back out rather than through. Boundary
+//! nodes inside a wide tool (wider than the spacing) are pushed out one by one besides,
+//! so a large probe dents a patch rather than one point.
+//!
+//! The broad phase is a bounding-volume hierarchy over the boundary faces, built once on
+//! the rest shape and refitted to the deformed one: a query touches the few faces near the
+//! tool, whatever the mesh's size.
+
+use std::collections::HashMap;
+
+use nalgebra::Vector3;
+
+/// Faces per leaf of the hierarchy.
+const LEAF: usize = 4;
+/// Barycentric weights below this are zero: the closest point lies on an edge or a node.
+const ON_FEATURE: f64 = 1e-9;
+
+/// One contact of a tool sample with the surface. The surface is pushed along `push` with
+/// force `stiffness · depth`, spread over `nodes` by `weights`; the tool gets the opposite.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SurfaceContact {
+    pub tool: usize,
+    /// Feature nodes (a node contact repeats its node with zero weights).
+    pub nodes: [u32; 3],
+    pub weights: [f64; 3],
+    /// Unit direction in which the surface is pushed (into the body).
+    pub push: Vector3<f64>,
+    /// Penetration φ > 0 (m).
+    pub depth: f64,
+    pub stiffness: f64,
+    /// The contact point on the surface (world), for torques.
+    pub at: Vector3<f64>,
+}
+
+impl SurfaceContact {
+    /// The force on the surface (N); the tool gets its negative.
+    pub fn force(&self) -> Vector3<f64> {
+        self.push * (self.stiffness * self.depth)
+    }
+}
+
+/// What the detection needs of a tool, in world coordinates.
+#[derive(Debug, Clone, Copy)]
+pub struct ToolCore {
+    pub tool: usize,
+    pub a: Vector3<f64>,
+    pub b: Vector3<f64>,
+    pub radius: f64,
+    pub stiffness: f64,
+}
+
+#[derive(Debug, Clone, Copy)]
+struct BvhNode {
+    lo: Vector3<f64>,
+    hi: Vector3<f64>,
+    /// Leaf: faces `order[start..start + count]`; inner (count 0): left child is the next
+    /// node, right child is `start`.
+    start: u32,
+    count: u32,
+}
+
+/// The boundary surface with its broad phase and the adjacency pseudo-normals need.
+#[derive(Debug, Clone)]
+pub struct Surface {
+    faces: Vec<[u32; 3]>,
+    /// For node i, the faces around it: `node_faces[node_offsets[i]..node_offsets[i+1]]`.
+    node_offsets: Vec<u32>,
+    node_faces: Vec<u32>,
+    edge_faces: HashMap<[u32; 2], [u32; 2]>,
+    bvh: Vec<BvhNode>,
+    order: Vec<u32>,
+    spacing: f64,
+}
+
+impl Surface {
+    /// The surface of `faces` (outward-oriented boundary triangles) over `rest` positions.
+    pub fn new(faces: &[[u32; 3]], rest: &[Vector3<f64>]) -> Self {
+        let mut node_offsets = vec![0u32; rest.len() + 1];
+        for f in faces {
+            for &i in f {
+                node_offsets[i as usize + 1] += 1;
+            }
+        }
+        for i in 0..rest.len() {
+            node_offsets[i + 1] += node_offsets[i];
+        }
+        let mut cursor = node_offsets.clone();
+        let mut node_faces = vec![0u32; node_offsets[rest.len()] as usize];
+        let mut edge_faces: HashMap<[u32; 2], [u32; 2]> = HashMap::new();
+        let mut length = 0.0;
+        for (fi, f) in faces.iter().enumerate() {
+            for (k, &i) in f.iter().enumerate() {
+                node_faces[cursor[i as usize] as usize] = fi as u32;
+                cursor[i as usize] += 1;
+                let j = f[(k + 1) % 3];
+                let key = [i.min(j), i.max(j)];
+                edge_faces.entry(key).and_modify(|e| e[1] = fi as u32).or_insert([fi as u32; 2]);
+                length += (rest[j as usize] - rest[i as usize]).norm();
+            }
+        }
+        let spacing = if faces.is_empty() { 0.0 } else { length / (3 * faces.len()) as f64 };
+        let mut surface = Self {
+            faces: faces.to_vec(),
+            node_offsets,
+            node_faces,
+            edge_faces,
+            bvh: Vec::new(),
+            order: (0..faces.len() as u32).collect(),
+            spacing,
+        };
+        if !faces.is_empty() {
+            let centroids: Vec<Vector3<f64>> =
+                faces.iter().map(|f| f.iter().map(|&i| rest[i as usize]).sum::<Vector3<f64>>() / 3.0).collect();
+            let mut order = std::mem::take(&mut surface.order);
+            surface.build(&mut order, 0, &centroids);
+            surface.order = order;
+            surface.refit(rest);
+        }
+        surface
+    }
+
+    /// Mean boundary edge length (m).
+    pub fn spacing(&self) -> f64 {
+        self.spacing
+    }
+
+    /// Top-down median split on the longest axis of the centroids; pre-order layout.
+    fn build(&mut self, order: &mut [u32], start: usize, centroids: &[Vector3<f64>]) -> usize {
+        let index = self.bvh.len();
+        let zero = Vector3::zeros();
+        if order.len() <= LEAF {
+            self.bvh.push(BvhNode { lo: zero, hi: zero, start: start as u32, count: order.len() as u32 });
+            return index;
+        }
+        self.bvh.push(BvhNode { lo: zero, hi: zero, start: 0, count: 0 });
+        let (lo, hi) = crate::mesh::bounds(&order.iter().map(|&f| centroids[f as usize]).collect::<Vec<_>>());
+        let axis = (hi - lo).imax();
+        let mid = order.len() / 2;
+        order.select_nth_unstable_by(mid, |a, b| centroids[*a as usize][axis].total_cmp(&centroids[*b as usize][axis]));
+        let (left, right) = order.split_at_mut(mid);
+        self.build(left, start, centroids);
+        let right_index = self.build(right, start + mid, centroids);
+        self.bvh[index].start = right_index as u32;
+        index
+    }
+
+    /// Boxes around the faces at `positions` (children come after their parent).
+    pub fn refit(&mut self, positions: &[Vector3<f64>]) {
+        for n in (0..self.bvh.len()).rev() {
+            let node = self.bvh[n];
+            let (lo, hi) = if node.count > 0 {
+                let range = node.start as usize..(node.start + node.count) as usize;
+                let corners = self.order[range].iter().flat_map(|&f| self.faces[f as usize]);
+                let mut lo = Vector3::repeat(f64::INFINITY);
+                let mut hi = Vector3::repeat(f64::NEG_INFINITY);
+                for i in corners {
+                    lo = lo.inf(&positions[i as usize]);
+                    hi = hi.sup(&positions[i as usize]);
+                }
+                (lo, hi)
+            } else {
+                let (l, r) = (self.bvh[n + 1], self.bvh[node.start as usize]);
+                (l.lo.inf(&r.lo), l.hi.sup(&r.hi))
+            };
+            self.bvh[n].lo = lo;
+            self.bvh[n].hi = hi;
+        }
+    }
+
+    /// Calls `visit` for every face whose box comes within `reach` of the box [lo, hi].
+    fn faces_near(&self, lo: Vector3<f64>, hi: Vector3<f64>, mut visit: impl FnMut(u32)) {
+        if self.bvh.is_empty() {
+            return;
+        }
+        let mut stack = vec![0usize];
+        while let Some(n) = stack.pop() {
+            let node = &self.bvh[n];
+            if (0..3).any(|a| node.hi[a] < lo[a] || node.lo[a] > hi[a]) {
+                continue;
+            }
+            if node.count > 0 {
+                for &f in &self.order[node.start as usize..(node.start + node.count) as usize] {
+                    visit(f);
+                }
+            } else {
+                stack.push(node.start as usize);
+                stack.push(n + 1);
+            }
+        }
+    }
+
+    fn face_normal(&self, f: u32, x: &[Vector3<f64>]) -> Vector3<f64> {
+        let [a, b, c] = self.faces[f as usize].map(|i| x[i as usize]);
+        (b - a).cross(&(c - a)).try_normalize(0.0).unwrap_or_else(Vector3::zeros)
+    }
+
+    /// Angle-weighted normal of node i: the sign of (p - x_i)·N tells inside from outside
+    /// for points whose nearest surface point is the node.
+    fn node_normal(&self, i: u32, x: &[Vector3<f64>]) -> Vector3<f64> {
+        let range = self.node_offsets[i as usize] as usize..self.node_offsets[i as usize + 1] as usize;
+        let mut sum = Vector3::zeros();
+        for &f in &self.node_faces[range] {
+            let face = self.faces[f as usize];
+            let k = face.iter().position(|&n| n == i).unwrap_or(0);
+            let (p, q, r) = (x[face[k] as usize], x[face[(k + 1) % 3] as usize], x[face[(k + 2) % 3] as usize]);
+            let angle = (q - p).angle(&(r - p));
+            sum += self.face_normal(f, x) * angle;
+        }
+        sum.try_normalize(0.0).unwrap_or_else(Vector3::zeros)
+    }
+
+    /// The pseudo-normal of the nearest feature of face `f` at barycentric `w`.
+    fn feature_normal(&self, f: u32, w: &[f64; 3], x: &[Vector3<f64>]) -> Vector3<f64> {
+        let face = self.faces[f as usize];
+        let zero: Vec<usize> = (0..3).filter(|&k| w[k] <= ON_FEATURE).collect();
+        match zero.as_slice() {
+            [_, _] => {
+                let k = (0..3).find(|k| !zero.contains(k)).unwrap_or(0);
+                self.node_normal(face[k], x)
+            }
+            [k] => {
+                let (i, j) = (face[(k + 1) % 3], face[(k + 2) % 3]);
+                let pair = self.edge_faces.get(&[i.min(j), i.max(j)]).copied().unwrap_or([f, f]);
+                (self.face_normal(pair[0], x) + self.face_normal(pair[1], x))
+                    .try_normalize(0.0)
+                    .unwrap_or_else(|| self.face_normal(f, x))
+            }
+            _ => self.face_normal(f, x),
+        }
+    }
+
+    /// Contacts of `tools` with the surface at `positions` (the hierarchy must be refitted
+    /// to them), down to depth `-margin` (speculative: a contact about to begin is known to
+    /// the implicit step, which evaluates it at the step's end).
+    ///
+    /// A tool thinner than the spacing is sampled along its core at most half the spacing
+    /// apart; each sample touches the surface feature (face, edge, node) nearest to it. A
+    /// tool at least
+    /// as wide as the spacing always has nodes inside it before anything passes between
+    /// them: it pushes each boundary node inside it.
+    pub fn detect(&self, tools: &[ToolCore], positions: &[Vector3<f64>], margin: f64) -> Vec<SurfaceContact> {
+        let mut contacts = Vec::new();
+        // A sample up to one spacing past the surface still finds it and is pushed back.
+        let reach = self.spacing.max(f64::EPSILON);
+        for tool in tools {
+            if tool.radius >= self.spacing {
+                self.node_contacts(tool, positions, margin, &mut contacts);
+                continue;
+            }
+            let length = (tool.b - tool.a).norm();
+            let samples = if length > 0.0 { (2.0 * length / reach).ceil() as usize + 1 } else { 1 };
+            for s in 0..samples {
+                let t = if samples > 1 { s as f64 / (samples - 1) as f64 } else { 0.0 };
+                let centre = tool.a + (tool.b - tool.a) * t;
+                self.sample_contacts(tool, &centre, reach, margin, positions, &mut contacts);
+            }
+        }
+        contacts
+    }
+
+    fn node_contacts(&self, tool: &ToolCore, x: &[Vector3<f64>], margin: f64, out: &mut Vec<SurfaceContact>) {
+        let lo = tool.a.inf(&tool.b) - Vector3::repeat(tool.radius + margin);
+        let hi = tool.a.sup(&tool.b) + Vector3::repeat(tool.radius + margin);
+        let mut near = Vec::new();
+        self.faces_near(lo, hi, |f| near.extend(self.faces[f as usize]));
+        near.sort_unstable();
+        near.dedup();
+        for i in near {
+            let p = x[i as usize];
+            let d = p - closest_on_segment(&tool.a, &tool.b, &p);
+            let dist = d.norm();
+            if dist >= tool.radius + margin {
+                continue;
+            }
+            let push = if dist > 1e-12 { d / dist } else { -self.node_normal(i, x) };
+            out.push(SurfaceContact {
+                tool: tool.tool,
+                nodes: [i; 3],
+                weights: [1.0, 0.0, 0.0],
+                push,
+                depth: tool.radius - dist,
+                stiffness: tool.stiffness,
+                at: p,
+            });
+        }
+    }
+
+    /// The contact of one sphere: at the nearest feature whose Voronoi region holds the
+    /// centre (the faces around an edge or a node agree that it is their nearest point);
+    /// inside the body it is pushed on through.
+    fn sample_contacts(
+        &self,
+        tool: &ToolCore,
+        centre: &Vector3<f64>,
+        reach: f64,
+        margin: f64,
+        x: &[Vector3<f64>],
+        out: &mut Vec<SurfaceContact>,
+    ) {
+        let search = tool.radius + reach;
+        let mut nearest: Vec<(u32, Vector3<f64>, [f64; 3])> = Vec::new();
+        let r = Vector3::repeat(search);
+        self.faces_near(centre - r, centre + r, |f| {
+            let [a, b, c] = self.faces[f as usize].map(|i| x[i as usize]);
+            let (q, w) = closest_on_triangle(centre, &a, &b, &c);
+            if (centre - q).norm() <= search {
+                nearest.push((f, q, w));
+            }
+        });
+        nearest.sort_unstable_by_key(|(f, _, _)| *f);
+        let closest = |f: u32| -> (Vector3<f64>, [f64; 3]) {
+            match nearest.binary_search_by_key(&f, |(g, _, _)| *g) {
+                Ok(k) => (nearest[k].1, nearest[k].2),
+                Err(_) => {
+                    let [a, b, c] = self.faces[f as usize].map(|i| x[i as usize]);
+                    closest_on_triangle(centre, &a, &b, &c)
+                }
+            }
+        };
+        let mut seen: Vec<[u32; 3]> = Vec::new();
+        let mut candidates = Vec::new();
+        for &(f, q, w) in &nearest {
+            let face = self.faces[f as usize];
+            let zero: Vec<usize> = (0..3).filter(|&k| w[k] <= ON_FEATURE).collect();
+            // The feature, by its sorted nodes; valid when every face around it agrees.
+            let (key, valid) = match zero.as_slice() {
+                [] => ([face[0], face[1], face[2]], true),
+                [k] => {
+                    let (i, j) = (face[(k + 1) % 3], face[(k + 2) % 3]);
+                    let pair = self.edge_faces.get(&[i.min(j), i.max(j)]).copied().unwrap_or([f, f]);
+                    let other = if pair[0] == f { pair[1] } else { pair[0] };
+                    let (_, wo) = closest(other);
+                    let of = self.faces[other as usize];
+                    let on_edge = (0..3).all(|m| (of[m] == i || of[m] == j) || wo[m] <= ON_FEATURE);
+                    ([i.min(j), i.max(j), u32::MAX], on_edge)
+                }
+                _ => {
+                    let k = (0..3).find(|k| !zero.contains(k)).unwrap_or(0);
+                    let node = face[k];
+                    let range =
+                        self.node_offsets[node as usize] as usize..self.node_offsets[node as usize + 1] as usize;
+                    let valid = self.node_faces[range].iter().all(|&g| {
+                        let (_, wg) = closest(g);
+                        let gf = self.faces[g as usize];
+                        (0..3).all(|m| gf[m] == node || wg[m] <= ON_FEATURE)
+                    });
+                    ([node, u32::MAX, u32::MAX], valid)
+                }
+            };
+            if !valid || seen.contains(&key) {
+                continue;
+            }
+            seen.push(key);
+            let dist = (centre - q).norm();
+            let outward = self.feature_normal(f, &w, x);
+            let outside = (centre - q).dot(&outward) >= 0.0;
+            candidates.push((dist, outside, f, q, w, outward));
+        }
+        // One contact a sample, at its nearest feature: a sample's force stays continuous as
+        // it slides from feature to feature (several would each add a whole penalty force
+        // the moment their Voronoi regions start to overlap, in the groove a needle presses).
+        let nearest_feature = candidates.iter().min_by(|a, b| a.0.total_cmp(&b.0)).copied();
+        let chosen: Vec<_> = nearest_feature.filter(|c| !c.1 || c.0 < tool.radius + margin).into_iter().collect();
+        for (dist, outside, f, q, weights, outward) in chosen {
+            let push = match (dist > 1e-12, outside) {
+                (true, true) => (q - centre) / dist,
+                (true, false) => (centre - q) / dist,
+                (false, _) => -outward,
+            };
+            out.push(SurfaceContact {
+                tool: tool.tool,
+                nodes: self.faces[f as usize],
+                weights,
+                push,
+                depth: if outside { tool.radius - dist } else { tool.radius + dist },
+                stiffness: tool.stiffness,
+                at: q,
+            });
+        }
+    }
+}
+
+/// The point of segment [a, b] nearest to p.
+pub fn closest_on_segment(a: &Vector3<f64>, b: &Vector3<f64>, p: &Vector3<f64>) -> Vector3<f64> {
+    let ab = b - a;
+    let len2 = ab.norm_squared();
+    let t = if len2 > 0.0 { ((p - a).dot(&ab) / len2).clamp(0.0, 1.0) } else { 0.0 };
+    a + ab * t
+}
+
+/// The point of triangle (a, b, c) nearest to p, and its barycentric weights (Ericson,
+/// *Real-Time Collision Detection*, 5.1.5).
+pub fn closest_on_triangle(
+    p: &Vector3<f64>,
+    a: &Vector3<f64>,
+    b: &Vector3<f64>,
+    c: &Vector3<f64>,
+) -> (Vector3<f64>, [f64; 3]) {
+    let (ab, ac, ap) = (b - a, c - a, p - a);
+    let (d1, d2) = (ab.dot(&ap), ac.dot(&ap));
+    if d1 <= 0.0 && d2 <= 0.0 {
+        return (*a, [1.0, 0.0, 0.0]);
+    }
+    let bp = p - b;
+    let (d3, d4) = (ab.dot(&bp), ac.dot(&bp));
+    if d3 >= 0.0 && d4 <= d3 {
+        return (*b, [0.0, 1.0, 0.0]);
+    }
+    let vc = d1 * d4 - d3 * d2;
+    if vc <= 0.0 && d1 >= 0.0 && d3 <= 0.0 {
+        let v = d1 / (d1 - d3);
+        return (a + ab * v, [1.0 - v, v, 0.0]);
+    }
+    let cp = p - c;
+    let (d5, d6) = (ab.dot(&cp), ac.dot(&cp));
+    if d6 >= 0.0 && d5 <= d6 {
+        return (*c, [0.0, 0.0, 1.0]);
+    }
+    let vb = d5 * d2 - d1 * d6;
+    if vb <= 0.0 && d2 >= 0.0 && d6 <= 0.0 {
+        let w = d2 / (d2 - d6);
+        return (a + ac * w, [1.0 - w, 0.0, w]);
+    }
+    let va = d3 * d6 - d5 * d4;
+    if va <= 0.0 && (d4 - d3) >= 0.0 && (d5 - d6) >= 0.0 {
+        let w = (d4 - d3) / ((d4 - d3) + (d5 - d6));
+        return (b + (c - b) * w, [0.0, 1.0 - w, w]);
+    }
+    let denom = 1.0 / (va + vb + vc);
+    let (v, w) = (vb * denom, vc * denom);
+    (a + ab * v + ac * w, [1.0 - v - w, v, w])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::mesh::generate::{self, CellSplit};
+    use approx::assert_relative_eq;
+
+    /// The closest point is the minimiser of the distance: no point of a fine barycentric
+    /// grid over the triangle is nearer.
+    #[test]
+    fn closest_point_on_a_triangle_is_nearer_than_every_grid_point() {
+        let (a, b, c) = (Vector3::new(0.0, 0.0, 0.0), Vector3::new(1.0, 0.2, 0.0), Vector3::new(0.3, 0.9, 0.1));
+        let probes = [
+            Vector3::new(0.4, 0.3, 0.5),
+            Vector3::new(-0.5, -0.2, 0.1),
+            Vector3::new(1.5, 0.1, -0.3),
+            Vector3::new(0.2, 1.4, 0.0),
+            Vector3::new(0.8, 0.8, 0.2),
+            Vector3::new(0.5, -0.4, 0.0),
+        ];
+        for p in probes {
+            let (q, w) = closest_on_triangle(&p, &a, &b, &c);
+            assert_relative_eq!(q, a * w[0] + b * w[1] + c * w[2], epsilon = 1e-12);
+            assert_relative_eq!(w.iter().sum::<f64>(), 1.0, epsilon = 1e-12);
+            let best = (0..=200)
+                .flat_map(|i| (0..=200 - i).map(move |j| (i as f64 / 200.0, j as f64 / 200.0)))
+                .map(|(v, w)| (p - (a + (b - a) * v + (c - a) * w)).norm())
+                .fold(f64::INFINITY, f64::min);
+            let d = (p - q).norm();
+            assert!(d <= best + 1e-12 && d > best - 1e-2, "{p}: {d} vs grid {best}");
+        }
+    }
+
+    fn slab() -> (crate::mesh::TetMesh, Surface) {
+        let mesh =
+            generate::lattice(Vector3::new(0.0, 0.0, -0.06), Vector3::new(0.1, 0.1, 0.0), [6, 6, 4], CellSplit::Five)
+                .unwrap();
+        let surface = Surface::new(mesh.boundary(), mesh.nodes());
+        (mesh, surface)
+    }
+
+    /// The hierarchy finds what a scan of every face finds.
+    #[test]
+    fn nearest_face_through_the_hierarchy_matches_a_scan_of_all_faces() {
+        let (mesh, surface) = slab();
+        let x = mesh.nodes();
+        for (i, p) in
+            [[0.031, 0.047, 0.003], [0.05, 0.05, -0.004], [0.099, 0.02, -0.03], [0.0, 0.0, 0.0]].into_iter().enumerate()
+        {
+            let p = Vector3::from(p);
+            let tool = ToolCore { tool: i, a: p, b: p, radius: 0.006, stiffness: 1.0 };
+            let found = surface.detect(&[tool], x, 0.03);
+            let scan = mesh
+                .boundary()
+                .iter()
+                .map(|f| {
+                    let [a, b, c] = f.map(|n| x[n as usize]);
+                    (p - closest_on_triangle(&p, &a, &b, &c).0).norm()
+                })
+                .fold(f64::INFINITY, f64::min);
+            let nearest = found.iter().map(|c| (p - c.at).norm()).fold(f64::INFINITY, f64::min);
+            assert_relative_eq!(nearest, scan, epsilon = 1e-12);
+        }
+    }
+
+    /// A sample below the top face (inside the body) is pushed down past it, not up out of
+    /// the far side: the pseudo-normal tells inside from outside.
+    #[test]
+    fn a_sample_past_the_surface_is_pushed_on_through() {
+        let (mesh, surface) = slab();
+        let tool = |z: f64| ToolCore {
+            tool: 0,
+            a: Vector3::new(0.043, 0.051, z),
+            b: Vector3::new(0.043, 0.051, z),
+            radius: 0.001,
+            stiffness: 1.0,
+        };
+        let above = surface.detect(&[tool(0.0005)], mesh.nodes(), 0.0);
+        let below = surface.detect(&[tool(-0.002)], mesh.nodes(), 0.0);
+        assert_eq!((above.len(), below.len()), (1, 1));
+        assert_relative_eq!(above[0].push, Vector3::new(0.0, 0.0, -1.0), epsilon = 1e-12);
+        assert_relative_eq!(above[0].depth, 0.0005, epsilon = 1e-12);
+        assert_relative_eq!(below[0].push, Vector3::new(0.0, 0.0, -1.0), epsilon = 1e-12);
+        assert_relative_eq!(below[0].depth, 0.003, epsilon = 1e-12);
+        assert!(surface.detect(&[tool(0.0011)], mesh.nodes(), 0.0).is_empty());
+    }
+}
