@@ -18,6 +18,8 @@ use std::collections::HashMap;
 
 use nalgebra::Vector3;
 
+use super::tool::ContactParams;
+
 /// Faces per leaf of the hierarchy.
 const LEAF: usize = 4;
 /// Barycentric weights below this are zero: the closest point lies on an edge or a node.
@@ -47,14 +49,11 @@ impl SurfaceContact {
     }
 }
 
-/// What the detection needs of a tool, in world coordinates.
+/// A tool as the detection sees it: its index and its core, in world coordinates.
 #[derive(Debug, Clone, Copy)]
 pub struct ToolCore {
     pub tool: usize,
-    pub a: Vector3<f64>,
-    pub b: Vector3<f64>,
-    pub radius: f64,
-    pub stiffness: f64,
+    pub core: ContactParams,
 }
 
 #[derive(Debug, Clone, Copy)]
@@ -251,33 +250,35 @@ impl Surface {
         // A sample up to one spacing past the surface still finds it and is pushed back.
         let reach = self.spacing.max(f64::EPSILON);
         for tool in tools {
-            if tool.radius >= self.spacing {
+            if tool.core.radius >= self.spacing {
                 self.node_contacts(tool, positions, margin, &mut contacts);
                 continue;
             }
-            let length = (tool.b - tool.a).norm();
+            let (a, b) = (tool.core.a, tool.core.b);
+            let length = (b - a).norm();
             let samples = if length > 0.0 { (2.0 * length / reach).ceil() as usize + 1 } else { 1 };
             for s in 0..samples {
                 let t = if samples > 1 { s as f64 / (samples - 1) as f64 } else { 0.0 };
-                let centre = tool.a + (tool.b - tool.a) * t;
-                self.sample_contacts(tool, &centre, reach, margin, positions, &mut contacts);
+                let centre = a + (b - a) * t;
+                contacts.extend(self.sample_contact(tool, &centre, reach, margin, positions));
             }
         }
         contacts
     }
 
     fn node_contacts(&self, tool: &ToolCore, x: &[Vector3<f64>], margin: f64, out: &mut Vec<SurfaceContact>) {
-        let lo = tool.a.inf(&tool.b) - Vector3::repeat(tool.radius + margin);
-        let hi = tool.a.sup(&tool.b) + Vector3::repeat(tool.radius + margin);
+        let ContactParams { a, b, radius, stiffness } = tool.core;
+        let lo = a.inf(&b) - Vector3::repeat(radius + margin);
+        let hi = a.sup(&b) + Vector3::repeat(radius + margin);
         let mut near = Vec::new();
         self.faces_near(lo, hi, |f| near.extend(self.faces[f as usize]));
         near.sort_unstable();
         near.dedup();
         for i in near {
             let p = x[i as usize];
-            let d = p - closest_on_segment(&tool.a, &tool.b, &p);
+            let d = p - closest_on_segment(&a, &b, &p);
             let dist = d.norm();
-            if dist >= tool.radius + margin {
+            if dist >= radius + margin {
                 continue;
             }
             let push = if dist > 1e-12 { d / dist } else { -self.node_normal(i, x) };
@@ -286,105 +287,57 @@ impl Surface {
                 nodes: [i; 3],
                 weights: [1.0, 0.0, 0.0],
                 push,
-                depth: tool.radius - dist,
-                stiffness: tool.stiffness,
+                depth: radius - dist,
+                stiffness,
                 at: p,
             });
         }
     }
 
-    /// The contact of one sphere: at the nearest feature whose Voronoi region holds the
-    /// centre (the faces around an edge or a node agree that it is their nearest point);
-    /// inside the body it is pushed on through.
-    fn sample_contacts(
+    /// The contact of one sphere, at the surface point nearest to its centre (ties go to
+    /// the lowest face: deterministic). One contact a sample keeps its force continuous as
+    /// it slides from feature to feature; several (one per locally nearest feature) would
+    /// each add a whole penalty force the moment their Voronoi regions overlap, as they do
+    /// in the groove a needle presses. Inside the body the sample is pushed on through.
+    fn sample_contact(
         &self,
         tool: &ToolCore,
         centre: &Vector3<f64>,
         reach: f64,
         margin: f64,
         x: &[Vector3<f64>],
-        out: &mut Vec<SurfaceContact>,
-    ) {
-        let search = tool.radius + reach;
-        let mut nearest: Vec<(u32, Vector3<f64>, [f64; 3])> = Vec::new();
+    ) -> Option<SurfaceContact> {
+        let search = tool.core.radius + reach;
+        let mut best: Option<(f64, u32, Vector3<f64>, [f64; 3])> = None;
         let r = Vector3::repeat(search);
         self.faces_near(centre - r, centre + r, |f| {
             let [a, b, c] = self.faces[f as usize].map(|i| x[i as usize]);
             let (q, w) = closest_on_triangle(centre, &a, &b, &c);
-            if (centre - q).norm() <= search {
-                nearest.push((f, q, w));
+            let d = (centre - q).norm();
+            if best.is_none_or(|(bd, bf, _, _)| d < bd || (d == bd && f < bf)) {
+                best = Some((d, f, q, w));
             }
         });
-        nearest.sort_unstable_by_key(|(f, _, _)| *f);
-        let closest = |f: u32| -> (Vector3<f64>, [f64; 3]) {
-            match nearest.binary_search_by_key(&f, |(g, _, _)| *g) {
-                Ok(k) => (nearest[k].1, nearest[k].2),
-                Err(_) => {
-                    let [a, b, c] = self.faces[f as usize].map(|i| x[i as usize]);
-                    closest_on_triangle(centre, &a, &b, &c)
-                }
-            }
+        let (dist, f, q, weights) = best.filter(|b| b.0 <= search)?;
+        let outward = self.feature_normal(f, &weights, x);
+        let outside = (centre - q).dot(&outward) >= 0.0;
+        if outside && dist >= tool.core.radius + margin {
+            return None;
+        }
+        let push = match (dist > 1e-12, outside) {
+            (true, true) => (q - centre) / dist,
+            (true, false) => (centre - q) / dist,
+            (false, _) => -outward,
         };
-        let mut seen: Vec<[u32; 3]> = Vec::new();
-        let mut candidates = Vec::new();
-        for &(f, q, w) in &nearest {
-            let face = self.faces[f as usize];
-            let zero: Vec<usize> = (0..3).filter(|&k| w[k] <= ON_FEATURE).collect();
-            // The feature, by its sorted nodes; valid when every face around it agrees.
-            let (key, valid) = match zero.as_slice() {
-                [] => ([face[0], face[1], face[2]], true),
-                [k] => {
-                    let (i, j) = (face[(k + 1) % 3], face[(k + 2) % 3]);
-                    let pair = self.edge_faces.get(&[i.min(j), i.max(j)]).copied().unwrap_or([f, f]);
-                    let other = if pair[0] == f { pair[1] } else { pair[0] };
-                    let (_, wo) = closest(other);
-                    let of = self.faces[other as usize];
-                    let on_edge = (0..3).all(|m| (of[m] == i || of[m] == j) || wo[m] <= ON_FEATURE);
-                    ([i.min(j), i.max(j), u32::MAX], on_edge)
-                }
-                _ => {
-                    let k = (0..3).find(|k| !zero.contains(k)).unwrap_or(0);
-                    let node = face[k];
-                    let range =
-                        self.node_offsets[node as usize] as usize..self.node_offsets[node as usize + 1] as usize;
-                    let valid = self.node_faces[range].iter().all(|&g| {
-                        let (_, wg) = closest(g);
-                        let gf = self.faces[g as usize];
-                        (0..3).all(|m| gf[m] == node || wg[m] <= ON_FEATURE)
-                    });
-                    ([node, u32::MAX, u32::MAX], valid)
-                }
-            };
-            if !valid || seen.contains(&key) {
-                continue;
-            }
-            seen.push(key);
-            let dist = (centre - q).norm();
-            let outward = self.feature_normal(f, &w, x);
-            let outside = (centre - q).dot(&outward) >= 0.0;
-            candidates.push((dist, outside, f, q, w, outward));
-        }
-        // One contact a sample, at its nearest feature: a sample's force stays continuous as
-        // it slides from feature to feature (several would each add a whole penalty force
-        // the moment their Voronoi regions start to overlap, in the groove a needle presses).
-        let nearest_feature = candidates.iter().min_by(|a, b| a.0.total_cmp(&b.0)).copied();
-        let chosen: Vec<_> = nearest_feature.filter(|c| !c.1 || c.0 < tool.radius + margin).into_iter().collect();
-        for (dist, outside, f, q, weights, outward) in chosen {
-            let push = match (dist > 1e-12, outside) {
-                (true, true) => (q - centre) / dist,
-                (true, false) => (centre - q) / dist,
-                (false, _) => -outward,
-            };
-            out.push(SurfaceContact {
-                tool: tool.tool,
-                nodes: self.faces[f as usize],
-                weights,
-                push,
-                depth: if outside { tool.radius - dist } else { tool.radius + dist },
-                stiffness: tool.stiffness,
-                at: q,
-            });
-        }
+        Some(SurfaceContact {
+            tool: tool.tool,
+            nodes: self.faces[f as usize],
+            weights,
+            push,
+            depth: if outside { tool.core.radius - dist } else { tool.core.radius + dist },
+            stiffness: tool.core.stiffness,
+            at: q,
+        })
     }
 }
 
@@ -488,7 +441,7 @@ mod tests {
             [[0.031, 0.047, 0.003], [0.05, 0.05, -0.004], [0.099, 0.02, -0.03], [0.0, 0.0, 0.0]].into_iter().enumerate()
         {
             let p = Vector3::from(p);
-            let tool = ToolCore { tool: i, a: p, b: p, radius: 0.006, stiffness: 1.0 };
+            let tool = ToolCore { tool: i, core: ContactParams { a: p, b: p, radius: 0.006, stiffness: 1.0 } };
             let found = surface.detect(&[tool], x, 0.03);
             let scan = mesh
                 .boundary()
@@ -508,12 +461,9 @@ mod tests {
     #[test]
     fn a_sample_past_the_surface_is_pushed_on_through() {
         let (mesh, surface) = slab();
-        let tool = |z: f64| ToolCore {
-            tool: 0,
-            a: Vector3::new(0.043, 0.051, z),
-            b: Vector3::new(0.043, 0.051, z),
-            radius: 0.001,
-            stiffness: 1.0,
+        let tool = |z: f64| {
+            let p = Vector3::new(0.043, 0.051, z);
+            ToolCore { tool: 0, core: ContactParams { a: p, b: p, radius: 0.001, stiffness: 1.0 } }
         };
         let above = surface.detect(&[tool(0.0005)], mesh.nodes(), 0.0);
         let below = surface.detect(&[tool(-0.002)], mesh.nodes(), 0.0);

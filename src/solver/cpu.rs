@@ -257,11 +257,7 @@ impl<T: Real> Simulation<T> {
     /// (what the mesh feels of the tools).
     pub fn contact_forces_on_nodes(&self) -> Vec<Vector3<f64>> {
         let mut forces = vec![Vector3::zeros(); self.u.len()];
-        for c in &self.contacts {
-            for k in 0..3 {
-                forces[c.nodes[k] as usize] += c.force() * c.weights[k];
-            }
-        }
+        add_contact_forces(&self.contacts, &mut forces);
         forces
     }
 
@@ -391,12 +387,12 @@ impl<T: Real> Simulation<T> {
         let cores: Vec<ToolCore> = (self.tools.iter().enumerate())
             .filter(|(_, tool)| tool.contact == ContactModel::Surface && tool.contact_stiffness > 0.0)
             .map(|(index, tool)| {
-                let (mut a, mut b) = tool.segment();
+                let mut core = tool.contact_params();
                 if let Some(p) = self.proxies.iter().find(|p| p.tool == index) {
-                    let shift = p.x - a;
-                    (a, b) = (a + shift, b + shift);
+                    let shift = p.x - core.a;
+                    (core.a, core.b) = (core.a + shift, core.b + shift);
                 }
-                ToolCore { tool: index, a, b, radius: tool.shape.radius(), stiffness: tool.contact_stiffness }
+                ToolCore { tool: index, core }
             })
             .collect();
         if cores.is_empty() {
@@ -404,7 +400,7 @@ impl<T: Real> Simulation<T> {
         }
         let x = self.positions_f64();
         self.surface.refit(&x);
-        let radius = cores.iter().map(|c| c.radius).fold(f64::INFINITY, f64::min);
+        let radius = cores.iter().map(|c| c.core.radius).fold(f64::INFINITY, f64::min);
         let margin = if speculative { 0.5 * radius.min(self.surface.spacing()) } else { 0.0 };
         self.surface.detect(&cores, &x, margin)
     }
@@ -501,7 +497,7 @@ impl<T: Real> Simulation<T> {
             .into_iter()
             .map(|force| SpringTerms { force, kv: Vector3::zeros(), block: Matrix3::zeros() })
             .collect();
-        (0..self.u.len())
+        let mut forces = (0..self.u.len())
             .into_par_iter()
             .with_min_len(CHUNK)
             .map(|i| {
@@ -522,24 +518,10 @@ impl<T: Real> Simulation<T> {
                 )
                 .force
             })
-            .collect::<Vec<_>>()
-            .into_iter()
-            .enumerate()
-            .map(|(i, f)| if self.fixed[i] { f } else { f + self.surface_forces_on(i) })
-            .collect()
-    }
-
-    /// Node i's share of the surface contacts of this step (explicit schemes).
-    fn surface_forces_on(&self, i: usize) -> Vector3<T> {
-        let mut f = Vector3::zeros();
-        for c in self.active_contacts.iter().filter(|c| c.depth > 0.0) {
-            for k in 0..3 {
-                if c.nodes[k] as usize == i && c.weights[k] > 0.0 {
-                    f += (c.force() * c.weights[k]).map(T::of);
-                }
-            }
-        }
-        f
+            .collect::<Vec<_>>();
+        // Explicit updates hold fixed nodes whatever their force.
+        add_contact_forces(&self.active_contacts, &mut forces);
+        forces
     }
 
     fn explicit_euler(&mut self, tools: &[ContactTool<T>]) {
@@ -1157,6 +1139,15 @@ impl<T: Real> Simulation<T> {
         self.dv.iter_mut().for_each(|v| *v = Vector3::zeros());
         let stats = self.solve();
         (self.dv.iter().map(|v| v.map(T::to_f64)).collect(), stats)
+    }
+}
+
+/// Adds each penetrating contact's force to its feature's nodes, by their weights.
+fn add_contact_forces<T: Real>(contacts: &[SurfaceContact], forces: &mut [Vector3<T>]) {
+    for c in contacts.iter().filter(|c| c.depth > 0.0) {
+        for k in 0..3 {
+            forces[c.nodes[k] as usize] += (c.force() * c.weights[k]).map(T::of);
+        }
     }
 }
 

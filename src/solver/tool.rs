@@ -141,10 +141,7 @@ pub struct ContactParams {
 impl ContactParams {
     /// Penalty contact at `p`: (force, unit normal) when `p` is inside the shape.
     pub fn contact(&self, p: &Vector3<f64>) -> Option<(Vector3<f64>, Vector3<f64>)> {
-        let ab = self.b - self.a;
-        let len2 = ab.norm_squared();
-        let t = if len2 > 0.0 { ((p - self.a).dot(&ab) / len2).clamp(0.0, 1.0) } else { 0.0 };
-        let d = p - (self.a + ab * t);
+        let d = p - super::contact::closest_on_segment(&self.a, &self.b, p);
         let dist = d.norm();
         if dist >= self.radius {
             return None;
