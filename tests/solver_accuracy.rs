@@ -233,3 +233,33 @@ fn cpu_runs_repeat_bit_for_bit() {
         .zip(b.displacements())
         .all(|(x, y)| x.iter().zip(y.iter()).all(|(u, v)| u.to_bits() == v.to_bits())));
 }
+
+#[test]
+fn auto_preconditioner_runs_block_jacobi_while_cg_is_quick_and_multigrid_once_it_is_not() {
+    use defvol::solver::{Preconditioner, AUTO_AMG_ABOVE};
+    let model = cantilever(1500).unwrap();
+    let steps = |preconditioner, dt| {
+        let params = SolverParams { preconditioner, dt, cg_tolerance: 1e-8, ..Default::default() };
+        let mut sim = Simulation::<f64>::new(&model, params, Vec::new()).unwrap();
+        let iterations: Vec<u32> = (0..10).map(|_| sim.step().unwrap().cg_iterations).collect();
+        (iterations, sim.positions_f64())
+    };
+    // 1 ms steps are mass-dominated: block Jacobi converges quickly and Auto never leaves it.
+    let (auto, auto_x) = steps(Preconditioner::Auto, 1e-3);
+    let (jacobi, jacobi_x) = steps(Preconditioner::BlockJacobi, 1e-3);
+    assert!(jacobi.iter().all(|i| *i <= AUTO_AMG_ABOVE), "{jacobi:?}");
+    assert_eq!((auto, auto_x), (jacobi, jacobi_x));
+    // 10 ms steps of a clamped beam are stiff: the first step's Jacobi CG runs long, and
+    // from the next one Auto solves with multigrid, as few iterations as AMG from the start.
+    let (auto, auto_x) = steps(Preconditioner::Auto, 1e-2);
+    let (jacobi, _) = steps(Preconditioner::BlockJacobi, 1e-2);
+    let (amg, amg_x) = steps(Preconditioner::Amg, 1e-2);
+    assert_eq!(auto[0], jacobi[0]);
+    assert!(auto[0] > AUTO_AMG_ABOVE, "{auto:?}");
+    assert!(
+        auto[1..].iter().zip(&amg[1..]).all(|(a, m)| a.abs_diff(*m) <= 2 && a * 3 < jacobi[1]),
+        "Auto {auto:?}, AMG {amg:?}, Jacobi {jacobi:?}"
+    );
+    let err = relative_error(&model, &auto_x, &amg_x);
+    assert!(err < 1e-6, "Auto and AMG reach the same state: {err:e}");
+}

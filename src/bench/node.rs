@@ -152,7 +152,9 @@ pub fn run(opts: &NodeBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result<(
     Ok(())
 }
 
-/// Pose to feedback on a lattice of about `tets`, plain and recording.
+/// Pose to feedback on a lattice of about `tets`: through the node and DDS with the solver
+/// alone and with every stage beside it, each plain and recording; outside a private
+/// network namespace, in-process (no DDS) and said so.
 fn feedback_rows(
     backend: &Backend,
     device: &str,
@@ -161,6 +163,24 @@ fn feedback_rows(
     dir: &std::path::Path,
     emit: &mut impl FnMut(&BenchRow),
 ) -> Result<(), NodeBenchError> {
+    #[cfg(feature = "ros")]
+    if crate::ros::dds::private_network() {
+        let n = haptic_scene(tets)?.load().map_err(|e| NodeBenchError::Setup(e.to_string()))?.mesh.tets().len();
+        for everything in [false, true] {
+            let bag = dir.join(format!("bench_{tets}_{everything}.mcap"));
+            let plain = dds::feedback_through_node(tets, everything, None, backend, opts)?;
+            let recorded = dds::feedback_through_node(tets, everything, Some(&bag), backend, opts)?;
+            let beside = if everything { "all_stages" } else { "solver" };
+            for (run, case) in [
+                (plain, format!("pose_to_feedback_{n}tets_{beside}")),
+                (recorded, format!("recording_{n}tets_{beside}")),
+            ] {
+                emit(&run.row(case, backend.name(), device, n, everything));
+            }
+            let _ = std::fs::remove_file(&bag);
+        }
+        return Ok(());
+    }
     let (plain, name, n) = pose_to_feedback(haptic_scene(tets)?, backend, opts, None)?;
     let bag = dir.join(format!("bench_{tets}.mcap"));
     let (recorded, _, _) = pose_to_feedback(haptic_scene(tets)?, backend, opts, Some(&bag))?;
@@ -169,10 +189,10 @@ fn feedback_rows(
     let mean = plain.iter().sum::<f64>() / plain.len().max(1) as f64;
     emit(&BenchRow {
         stage: "node",
-        case: format!("pose_to_feedback_{n}tets"),
+        case: format!("in_process_step_{n}tets"),
         backend: name.clone(),
         device: device.to_owned(),
-        params: json!({"input_hz": 1000, "dt": 1e-3, "p99_ms": p99, "sustained_hz": 1e3 / mean, "note": format!("goal p99 < 2 ms; sustains {:.0} Hz", 1e3 / mean)}),
+        params: json!({"input_hz": 1000, "dt": 1e-3, "p99_ms": p99, "sustained_hz": 1e3 / mean, "note": format!("no DDS (outside a private network namespace); sustains {:.0} Hz", 1e3 / mean)}),
         runs: plain.len(),
         time_ms: time_stats(plain),
         error: None,
@@ -180,10 +200,10 @@ fn feedback_rows(
     });
     emit(&BenchRow {
         stage: "node",
-        case: format!("recording_{n}tets"),
+        case: format!("in_process_recording_{n}tets"),
         backend: name,
         device: device.to_owned(),
-        params: json!({"p99_ms": percentile(&recorded, 0.99), "overhead": overhead, "note": format!("MCAP recording adds {:.1} % to the median step (goal < 5 %)", overhead * 100.0)}),
+        params: json!({"p99_ms": percentile(&recorded, 0.99), "overhead": overhead, "note": format!("MCAP recording adds {:.1} % to the median step", overhead * 100.0)}),
         runs: recorded.len(),
         time_ms: time_stats(recorded),
         error: None,
@@ -191,6 +211,201 @@ fn feedback_rows(
     });
     let _ = std::fs::remove_file(&bag);
     Ok(())
+}
+
+/// The force loop as a device sees it: the node itself on a thread (its feedback thread,
+/// DDS, the stages the case enables, recording or not), and a device on a participant of
+/// its own publishing a pose every millisecond and taking `tool_feedback`. A feedback
+/// echoes the stamp of the pose it answers: the time runs from that stamp to the device
+/// holding the first answer to it.
+#[cfg(feature = "ros")]
+mod dds {
+    use std::collections::BTreeMap;
+    use std::sync::atomic::{AtomicBool, Ordering};
+    use std::sync::Arc;
+    use std::time::{Duration, Instant};
+
+    use mio::{Events, Interest, Poll, Token};
+    use ros2_client::{MessageTypeName, Name, NodeName, NodeOptions};
+    use serde_json::json;
+
+    use super::{percentile, time_stats, BenchRow, NodeBenchError, NodeBenchOptions};
+    use crate::backend::{Backend, BackendChoice};
+    use crate::msgs::{Header, Pose, PoseStamped, Time, WrenchStamped};
+    use crate::record::Qos;
+    use crate::ros::args::RosArgs;
+    use crate::ros::dds::{context, settings, Discovery};
+    use crate::ros::node::{qos, run, NodeSettings};
+    use crate::session::RecordOptions;
+
+    pub struct FeedbackRun {
+        /// Milliseconds from each answered pose's stamp to the device holding its answer.
+        latencies: Vec<f64>,
+        poses: usize,
+        /// Feedback messages the device took, and the seconds it listened.
+        feedback: usize,
+        seconds: f64,
+    }
+
+    impl FeedbackRun {
+        pub fn row(self, case: String, backend: &str, device: &str, tets: usize, everything: bool) -> BenchRow {
+            let rate = self.feedback as f64 / self.seconds.max(1e-9);
+            let note = format!(
+                "DDS loop, 1 kHz poses; feedback at {rate:.0} Hz, {} of {} poses answered{}; goal p99 < 1 ms",
+                self.latencies.len(),
+                self.poses,
+                if everything { "; warp, raycast and DPCM beside" } else { "" }
+            );
+            BenchRow {
+                stage: "node",
+                case,
+                backend: backend.into(),
+                device: device.into(),
+                params: json!({"input_hz": 1000, "dt": 1e-3, "p99_ms": percentile(&self.latencies, 0.99), "sustained_hz": rate, "answered": self.latencies.len(), "poses": self.poses, "note": note}),
+                runs: self.latencies.len(),
+                time_ms: time_stats(self.latencies),
+                error: None,
+                work: json!({"tets": tets, "stages_beside": everything}),
+            }
+        }
+    }
+
+    pub fn feedback_through_node(
+        tets: usize,
+        everything: bool,
+        record: Option<&std::path::Path>,
+        backend: &Backend,
+        opts: &NodeBenchOptions,
+    ) -> Result<FeedbackRun, NodeBenchError> {
+        let setup = |e: &dyn std::fmt::Debug| NodeBenchError::Setup(format!("DDS: {e:?}"));
+        let mut parameters = BTreeMap::new();
+        parameters.insert("mesh.target_tets".to_owned(), yaml(tets));
+        parameters.insert("solver.dt".to_owned(), yaml(1e-3));
+        for stage in ["warp", "raycast", "dpcm"] {
+            parameters.insert(format!("stages.{stage}"), yaml(everything));
+        }
+        let stop = Arc::new(AtomicBool::new(false));
+        let node_settings = NodeSettings {
+            ros: RosArgs {
+                node_name: "defvol".into(),
+                namespace: "/".into(),
+                parameters,
+                remaps: BTreeMap::new(),
+                rest: Vec::new(),
+            },
+            record: RecordOptions { mcap: record.map(Into::into), ..Default::default() },
+            backend: Some(if backend.name() == "gpu" { BackendChoice::Gpu } else { BackendChoice::Cpu }),
+            allow_software_gpu: opts.allow_software_gpu,
+            open_discovery: false,
+            run_for: Some(Duration::from_secs(900)),
+            stop: Some(stop.clone()),
+        };
+        let node = std::thread::spawn(move || run(node_settings).map_err(|e| e.to_string()));
+        let measured = device_side(opts, &setup);
+        stop.store(true, Ordering::SeqCst);
+        let ran = node.join().map_err(|_| NodeBenchError::Setup("the node panicked".into()))?;
+        ran.map_err(|e| NodeBenchError::Setup(format!("node: {e}")))?;
+        measured
+    }
+
+    fn device_side(
+        opts: &NodeBenchOptions,
+        setup: &dyn Fn(&dyn std::fmt::Debug) -> NodeBenchError,
+    ) -> Result<FeedbackRun, NodeBenchError> {
+        let (domain, _) = settings(|name| std::env::var(name).ok(), false).map_err(|e| setup(&e))?;
+        let ctx = context(domain, Discovery::Localhost).map_err(|e| setup(&e))?;
+        let mut device = ctx
+            .new_node(NodeName::new("/", "bench_device").map_err(|e| setup(&e))?, NodeOptions::new())
+            .map_err(|e| setup(&e))?;
+        let q = qos(Qos::SensorData);
+        let pose_topic = device
+            .create_topic(
+                &Name::parse("/tool_pose").map_err(|e| setup(&e))?,
+                MessageTypeName::new("geometry_msgs", "PoseStamped"),
+                &q,
+            )
+            .map_err(|e| setup(&e))?;
+        let feedback_topic = device
+            .create_topic(
+                &Name::parse("/tool_feedback").map_err(|e| setup(&e))?,
+                MessageTypeName::new("geometry_msgs", "WrenchStamped"),
+                &q,
+            )
+            .map_err(|e| setup(&e))?;
+        let poses = device.create_publisher::<PoseStamped>(&pose_topic, Some(q.clone())).map_err(|e| setup(&e))?;
+        let mut feedback =
+            device.create_subscription::<WrenchStamped>(&feedback_topic, Some(q)).map_err(|e| setup(&e))?;
+        let mut poll = Poll::new().map_err(|e| setup(&e))?;
+        mio::event::Source::register(&mut feedback, poll.registry(), Token(0), Interest::READABLE)
+            .map_err(|e| setup(&e))?;
+        let mut events = Events::with_capacity(16);
+        let pose = |stamp: Time, z: f64| {
+            let mut msg = PoseStamped { header: Header { stamp, frame_id: "world".into() }, pose: Pose::default() };
+            msg.pose.position.z = z;
+            msg
+        };
+        // The node is up, and hears the device, once a feedback echoes one of its poses.
+        let deadline = Instant::now() + Duration::from_secs(300);
+        let mut sent = std::collections::HashSet::new();
+        'wait: loop {
+            if Instant::now() > deadline {
+                return Err(NodeBenchError::Setup("the node never answered a pose within 300 s".into()));
+            }
+            let stamp = Time::now();
+            sent.insert(stamp.as_nanos());
+            let _ = poses.publish(pose(stamp, 0.1));
+            let _ = poll.poll(&mut events, Some(Duration::from_millis(10)));
+            while let Ok(Some((msg, _))) = feedback.take() {
+                if sent.contains(&msg.header.stamp.as_nanos()) {
+                    break 'wait;
+                }
+            }
+        }
+        let period = Duration::from_millis(1);
+        let total = opts.settle + opts.steps;
+        let (mut latencies, mut answered_up_to, mut taken, mut listened) = (Vec::new(), Time::from_nanos(0), 0, 0.0);
+        let mut next = Instant::now();
+        let mut timed_from = None;
+        for k in 0..total {
+            if k == opts.settle {
+                timed_from = Some(Instant::now());
+            }
+            // The probe comes down 10 mm over the first half second, then holds: contact throughout.
+            let t = k as f64 * 1e-3;
+            let sent = Time::now();
+            let _ = poses.publish(pose(sent, 0.07 - 0.01 * (t / 0.5).min(1.0)));
+            next += period;
+            loop {
+                let wait = next.saturating_duration_since(Instant::now());
+                if wait.is_zero() {
+                    break;
+                }
+                let _ = poll.poll(&mut events, Some(wait));
+                while let Ok(Some((msg, _))) = feedback.take() {
+                    let arrived = Time::now();
+                    if k >= opts.settle {
+                        taken += 1;
+                    }
+                    // The first answer to a pose; later ones repeat it (a step without a new pose).
+                    if msg.header.stamp > answered_up_to {
+                        answered_up_to = msg.header.stamp;
+                        if k >= opts.settle {
+                            latencies.push((arrived.as_secs() - msg.header.stamp.as_secs()) * 1e3);
+                        }
+                    }
+                }
+            }
+        }
+        if let Some(from) = timed_from {
+            listened = from.elapsed().as_secs_f64();
+        }
+        Ok(FeedbackRun { latencies, poses: opts.steps, feedback: taken, seconds: listened })
+    }
+
+    /// A plain value as a YAML parameter.
+    fn yaml(value: impl serde::Serialize) -> serde_yaml_ng::Value {
+        serde_yaml_ng::to_value(value).unwrap_or(serde_yaml_ng::Value::Null)
+    }
 }
 
 /// Pose in to warped volume received: a probe pressing the default scene (solver and warp

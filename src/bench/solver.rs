@@ -145,6 +145,7 @@ fn preconditioner_name(backend: &str, params: &SolverParams) -> &'static str {
         (Integrator::ImplicitEuler, _) if backend == "gpu" => "block_jacobi",
         (Integrator::ImplicitEuler, Preconditioner::BlockJacobi) => "block_jacobi",
         (Integrator::ImplicitEuler, Preconditioner::Amg) => "amg",
+        (Integrator::ImplicitEuler, Preconditioner::Auto) => "auto",
         _ => "none",
     }
 }

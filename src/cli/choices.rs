@@ -44,6 +44,8 @@ choice!(CliPreconditioner => Preconditioner {
     BlockJacobi,
     /// Smoothed-aggregation multigrid (CPU).
     Amg,
+    /// Block Jacobi while CG converges quickly, then multigrid.
+    Auto,
 });
 choice!(CliScheme => Scheme { Spans, Culling, Bbox });
 choice!(CliSampling => Sampling {

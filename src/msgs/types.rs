@@ -18,6 +18,11 @@ impl Time {
         let sec = t.floor();
         Self { sec: sec as i32, nanosec: (((t - sec) * 1e9).round() as u32).min(999_999_999) }
     }
+    /// The wall clock (what a live node stamps with).
+    pub fn now() -> Self {
+        let since_epoch = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap_or_default();
+        Self::from_nanos(since_epoch.as_nanos() as u64)
+    }
     pub fn from_nanos(ns: u64) -> Self {
         Self { sec: (ns / 1_000_000_000) as i32, nanosec: (ns % 1_000_000_000) as u32 }
     }

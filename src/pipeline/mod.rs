@@ -2,10 +2,12 @@
 //! outputs someone wants (the deformed mesh, the warped volume, the DPCM surface, raycast
 //! images, diagnostics), as messages. The node, `demo` and `replay` all drive this.
 
+mod feedback;
 mod frames;
 pub mod inputs;
 mod outputs;
 
+pub use feedback::{FeedbackLoop, LoopState, Stepped};
 pub use frames::{FrameMode, VolumeSink, WarpedVolume, WriteVolume};
 
 use std::sync::Arc;
@@ -31,7 +33,7 @@ use crate::solver::{SolverEngine, SolverEngineError, SolverError, StepReport};
 use crate::volume::{Grid, Volume, VolumeError};
 use crate::warp::engine::{WarpEngine, WarpEngineError};
 use crate::warp::{WarpError, WarpOptions};
-use inputs::{Checker, InputCounters, InputLimits, Rejection};
+use inputs::{InputCounters, InputLimits, Rejection};
 
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
@@ -122,16 +124,6 @@ pub struct StageTimes {
     pub raycast: f64,
 }
 
-struct ToolState {
-    pose_topic: String,
-    wrench_topic: String,
-    feedback_topic: String,
-    last_pose: Option<Time>,
-    last_wrench: Option<Time>,
-    /// The tool as the stages see it (the solver holds a copy).
-    tool: crate::solver::Tool,
-}
-
 struct DpcmStage {
     engine: DpcmEngine,
     config: DpcmConfig,
@@ -147,36 +139,33 @@ struct DpcmStage {
 
 /// Seconds of simulated time between surface markers.
 const MARKER_PERIOD: f64 = 0.1;
-/// Mesh kinetic energy (J) under which, with no tool touching or pushing, the solver sleeps.
-const SLEEP_ENERGY: f64 = 1e-9;
-/// Steps the mesh must stay that quiet first.
-const SLEEP_AFTER: u32 = 20;
 
 pub struct Pipeline {
     scene: Scene,
     volume: Arc<Volume>,
     mesh: TetMesh,
-    /// `None` when the scene disables the solver.
-    engine: Option<SolverEngine>,
+    /// The solver and the tools' inputs; in the node, a follower of the loop on its own thread.
+    feedback: FeedbackLoop,
+    /// A step of the detached loop the next tick makes outputs of.
+    followed: Option<Stepped>,
+    /// The detached GPU solver's displacements, which the GPU stages read where they are.
+    #[cfg(feature = "gpu")]
+    device_displacements: Option<wgpu::Buffer>,
     /// The run's backend, chosen once: every stage is built on it, and a reloaded scene
     /// keeps it.
     backend: Backend,
-    tools: Vec<ToolState>,
     /// Where warped volumes are published (the node's shared memory), when set.
     sink: Option<Arc<dyn VolumeSink>>,
     limits: InputLimits,
-    counters: InputCounters,
     /// Warp and raycast, when the scene has either.
     frames: Option<frames::Frames>,
     /// The warped volume's grid (known before the first warp: the publisher needs it).
     warp_grid: Option<Grid>,
     mode: FrameMode,
     dpcm: Option<DpcmStage>,
-    paused: bool,
-    quiet_steps: u32,
-    asleep: bool,
-    last_report: Option<StepReport>,
     last_diagnostics: f64,
+    /// Each tool's saturated coupling steps at the last `diagnostics`.
+    saturated_at_diagnostics: Vec<u64>,
     last_marker: f64,
     times: StageTimes,
     /// Positions after the last step, world units.
@@ -192,32 +181,13 @@ impl Pipeline {
             ));
         }
         let LoadedScene { scene, volume, mesh, model } = scene.load()?;
-        let tools: Vec<ToolState> = scene
-            .tools
-            .iter()
-            .enumerate()
-            .map(|(i, config)| {
-                let mut tool = config.tool();
-                if let Some(p) = config.path.as_ref().map(|path| path.position(0.0)) {
-                    tool.world_from_tool = nalgebra::Isometry3::translation(p.x, p.y, p.z);
-                }
-                ToolState {
-                    pose_topic: config.pose_topic(i),
-                    wrench_topic: config.wrench_topic(i),
-                    feedback_topic: config.feedback_topic(i),
-                    last_pose: None,
-                    last_wrench: None,
-                    tool,
-                }
-            })
-            .collect();
         let engine = match scene.stages.solver {
             true => {
                 let engine = SolverEngine::new(
                     backend,
                     &model,
                     scene.solver.clone(),
-                    tools.iter().map(|t| t.tool.clone()).collect(),
+                    scene.tools.iter().map(crate::scene::ToolConfig::tool).collect(),
                 )?;
                 tracing::info!("solver: {} ({} nodes, {} tets)", engine.name(), mesh.nodes().len(), mesh.tets().len());
                 Some(engine)
@@ -225,26 +195,25 @@ impl Pipeline {
             false => None,
         };
         let positions = engine.as_ref().map_or_else(|| mesh.nodes().to_vec(), SolverEngine::positions);
+        let feedback = FeedbackLoop::new(&scene, engine, mesh.nodes().len(), limits.clone());
         let volume = Arc::new(volume);
         let mut pipeline = Self {
             scene,
             volume,
             mesh,
-            engine,
+            feedback,
+            followed: None,
+            #[cfg(feature = "gpu")]
+            device_displacements: None,
             backend: backend.clone(),
-            tools,
             sink: None,
             limits,
-            counters: InputCounters::default(),
             frames: None,
             warp_grid: None,
             mode,
             dpcm: None,
-            paused: false,
-            quiet_steps: 0,
-            asleep: false,
-            last_report: None,
             last_diagnostics: f64::NEG_INFINITY,
+            saturated_at_diagnostics: Vec::new(),
             last_marker: f64::NEG_INFINITY,
             times: StageTimes::default(),
             positions,
@@ -443,17 +412,17 @@ impl Pipeline {
         &self.positions
     }
     pub fn asleep(&self) -> bool {
-        self.asleep
+        self.feedback.asleep()
     }
     pub fn paused(&self) -> bool {
-        self.paused
+        self.feedback.paused()
     }
     pub fn counters(&self) -> &InputCounters {
-        &self.counters
+        self.feedback.counters()
     }
     /// The solver's path and device, for logs.
     pub fn backend_name(&self) -> String {
-        self.engine.as_ref().map_or_else(|| "off".into(), SolverEngine::name)
+        self.feedback.engine_name().to_owned()
     }
     /// The run's backend.
     pub fn backend(&self) -> &Backend {
@@ -462,8 +431,8 @@ impl Pipeline {
     /// Where each enabled stage runs ("cpu" or "gpu"), as `diagnostics` reports it.
     pub fn stage_backends(&self) -> Vec<(&'static str, &'static str)> {
         let mut stages = Vec::new();
-        if let Some(e) = &self.engine {
-            stages.push(("solver", e.backend()));
+        if let Some(backend) = self.feedback.engine_backend() {
+            stages.push(("solver", backend));
         }
         if let Some(backend) = self.frames.as_ref().and_then(|f| f.warp_backend) {
             stages.push(("warp", backend));
@@ -477,25 +446,30 @@ impl Pipeline {
         stages
     }
     pub fn last_report(&self) -> Option<&StepReport> {
-        self.last_report.as_ref()
+        self.feedback.last_report()
     }
     pub fn times(&self) -> StageTimes {
-        self.times
+        StageTimes { solver: self.feedback.solver_ms(), ..self.times }
     }
     /// The tool on `pose_topic`: its name and `world_from_tool`, as the stages see it.
     pub fn tool_on(&self, pose_topic: &str) -> Option<(&str, nalgebra::Isometry3<f64>)> {
-        let index = self.tools.iter().position(|t| t.pose_topic == pose_topic)?;
-        Some((self.scene.tools[index].name.as_str(), self.tools[index].tool.world_from_tool))
+        let (index, pose) = self.feedback.tool_on(pose_topic)?;
+        Some((self.scene.tools[index].name.as_str(), pose))
     }
 
     /// The pose and wrench topics of each tool.
     pub fn tool_topics(&self) -> Vec<(String, String)> {
-        self.tools.iter().map(|t| (t.pose_topic.clone(), t.wrench_topic.clone())).collect()
+        self.feedback.tool_topics()
     }
 
     /// The feedback topic of each tool, in the order of [`Outputs::tool_feedback`].
     pub fn feedback_topics(&self) -> Vec<String> {
-        self.tools.iter().map(|t| t.feedback_topic.clone()).collect()
+        self.feedback.feedback_topics()
+    }
+
+    /// Steps in which each tool's coupling held its device back with its largest force.
+    pub fn saturated_steps(&self) -> &[u64] {
+        self.feedback.saturated_steps()
     }
 
     /// The latest warped volume (grid in file units, sequence, work), once one is made.
@@ -521,24 +495,29 @@ impl Pipeline {
         self.warp_grid.as_ref()
     }
 
+    /// Pauses the solver (here: a detached loop is told by its owner).
     pub fn pause(&mut self) {
-        self.paused = true;
+        self.feedback.pause();
     }
     pub fn resume(&mut self) {
-        self.paused = false;
+        self.feedback.resume();
     }
 
     /// Back to the rest state: the mesh, the DPCM surface and the tools' input history.
+    /// The solver comes back attached: the node detaches it again.
     pub fn reset(&mut self) -> Result<(), PipelineError> {
         let model_scene = self.scene.clone();
         let mut replacement = Self::new(model_scene, &self.backend, self.limits.clone(), self.mode)?;
-        replacement.paused = self.paused;
+        if self.paused() {
+            replacement.pause();
+        }
         replacement.sink = self.sink.take();
         *self = replacement;
         Ok(())
     }
 
-    /// Replaces the scene; on error the running one is kept.
+    /// Replaces the scene; on error the running one is kept. The solver comes back
+    /// attached: the node detaches it again.
     pub fn load_scene(&mut self, scene: Scene) -> Result<(), PipelineError> {
         let mut replacement = Self::new(scene, &self.backend, self.limits.clone(), self.mode)?;
         replacement.sink = self.sink.take();
@@ -546,92 +525,67 @@ impl Pipeline {
         Ok(())
     }
 
-    /// Applies a tool pose; refused ones are counted and leave the tool where it was.
-    pub fn apply_pose(&mut self, topic: &str, msg: &PoseStamped, now: Time) -> Result<(), Rejection> {
-        let outcome = self.pose_outcome(topic, msg, now);
-        self.counters.record(&outcome);
-        outcome
+    /// Hands the solver and the tools' inputs to a loop of their own (the node's feedback
+    /// thread); from then on [`Pipeline::follow`] brings its steps here.
+    pub fn detach_feedback(&mut self) -> FeedbackLoop {
+        #[cfg(feature = "gpu")]
+        {
+            self.device_displacements = self.feedback.engine().and_then(SolverEngine::device_displacements).cloned();
+        }
+        self.feedback.detach()
     }
 
-    fn pose_outcome(&mut self, topic: &str, msg: &PoseStamped, now: Time) -> Result<(), Rejection> {
-        let Some(index) = self.tools.iter().position(|t| t.pose_topic == topic) else {
-            return Err(Rejection::UnknownTopic { topic: topic.into() });
-        };
-        let checker = Checker { limits: &self.limits, world_frame: &self.scene.frame_id, now };
-        let world_from_tool = checker.pose(topic, msg, self.tools[index].last_pose)?;
-        let state = &mut self.tools[index];
-        state.last_pose = Some(msg.header.stamp);
-        if state.tool.world_from_tool != world_from_tool {
-            state.tool.world_from_tool = world_from_tool;
-            self.wake();
+    /// Takes the state of the detached loop: its tools, counters and latest step.
+    pub fn follow(&mut self, state: LoopState) {
+        if self.feedback.follow(&state) {
+            self.wake_frames();
+        }
+        if let Some(stepped) = state.stepped {
+            self.followed = Some(stepped);
+        }
+    }
+
+    /// Applies a tool pose; refused ones are counted and leave the tool where it was.
+    pub fn apply_pose(&mut self, topic: &str, msg: &PoseStamped, now: Time) -> Result<(), Rejection> {
+        if self.feedback.apply_pose(topic, msg, now)? {
+            self.wake_frames();
         }
         Ok(())
     }
 
     /// Applies a commanded tool force.
     pub fn apply_wrench(&mut self, topic: &str, msg: &WrenchStamped, now: Time) -> Result<(), Rejection> {
-        let outcome = self.wrench_outcome(topic, msg, now);
-        self.counters.record(&outcome);
-        outcome
-    }
-
-    fn wrench_outcome(&mut self, topic: &str, msg: &WrenchStamped, now: Time) -> Result<(), Rejection> {
-        let Some(index) = self.tools.iter().position(|t| t.wrench_topic == topic) else {
-            return Err(Rejection::UnknownTopic { topic: topic.into() });
-        };
-        let checker = Checker { limits: &self.limits, world_frame: &self.scene.frame_id, now };
-        let force = checker.wrench(topic, msg, self.tools[index].last_wrench)?;
-        let state = &mut self.tools[index];
-        state.last_wrench = Some(msg.header.stamp);
-        if state.tool.applied_force != force {
-            state.tool.applied_force = force;
-            self.wake();
-        }
-        Ok(())
+        self.feedback.apply_wrench(topic, msg, now)
     }
 
     /// Moves scripted tools along their paths (the demo); tools without a path stay.
     pub fn follow_scripts(&mut self, t: f64) {
-        let mut moved = false;
-        for (state, config) in self.tools.iter_mut().zip(&self.scene.tools) {
-            let Some(p) = config.path.as_ref().map(|path| path.position(t)) else { continue };
-            let iso = nalgebra::Isometry3::translation(p.x, p.y, p.z);
-            moved |= state.tool.world_from_tool != iso;
-            state.tool.world_from_tool = iso;
-        }
-        if moved {
-            self.wake();
+        if self.feedback.follow_scripts(t) {
+            self.wake_frames();
         }
     }
 
-    fn wake(&mut self) {
-        self.asleep = false;
-        self.quiet_steps = 0;
+    fn wake_frames(&mut self) {
         if let Some(f) = &mut self.frames {
             f.raycast_stale = true;
         }
     }
 
-    /// One solver step (unless paused or asleep), then every wanted output that changed.
-    /// `stamp` stamps the outputs.
+    /// One solver step (unless paused or asleep, or the solver runs detached: then the step
+    /// [`Pipeline::follow`] brought), then every wanted output that changed. `stamp` stamps
+    /// the outputs.
     pub fn tick(&mut self, stamp: Time, demand: &Demand) -> Result<Outputs, PipelineError> {
         let mut out = Outputs::default();
-        if let (Some(engine), false, false) = (&mut self.engine, self.paused, self.asleep) {
-            for (index, state) in self.tools.iter().enumerate() {
-                let tool = engine.tool_mut(index)?;
-                tool.world_from_tool = state.tool.world_from_tool;
-                tool.applied_force = state.tool.applied_force;
-            }
-            let start = Instant::now();
-            let report = engine.step()?;
-            self.times.solver = start.elapsed().as_secs_f64() * 1e3;
-            self.positions = engine.positions();
-            let touching = report.reactions.iter().any(|r| r.force.iter().any(|f| *f != 0.0))
-                || self.tools.iter().any(|t| t.tool.applied_force != Vector3::zeros());
-            self.quiet_steps = if report.kinetic_energy < SLEEP_ENERGY && !touching { self.quiet_steps + 1 } else { 0 };
-            self.asleep = self.quiet_steps >= SLEEP_AFTER;
-            self.last_report = Some(report);
+        let stepped = match self.followed.take() {
+            Some(stepped) => Some(stepped),
+            None => self.feedback.step(stamp)?,
+        };
+        if let Some(stepped) = stepped {
+            self.positions = stepped.positions;
             out.stepped = true;
+            if demand.tool_feedback {
+                out.tool_feedback = stepped.feedback;
+            }
             if let Some(f) = &mut self.frames {
                 (f.warp_stale, f.raycast_stale) = (true, true);
             }
@@ -639,16 +593,11 @@ impl Pipeline {
         // Output rates run on the stamps' clock (bag time in replays, wall time live), which
         // goes on while the solver sleeps.
         let clock = stamp.as_secs();
-        if let (Some(report), true) = (&self.last_report, demand.tool_feedback && out.stepped) {
-            out.tool_feedback = (0..self.tools.len())
-                .map(|index| outputs::feedback(report, index, stamp, &self.scene.frame_id))
-                .collect();
-        }
         if out.stepped && demand.deformed_mesh {
             out.deformed_mesh = Some(outputs::deformed_mesh(
                 &self.mesh,
                 &self.positions,
-                self.last_report.as_ref().map_or(0, |r| r.step),
+                self.last_report().map_or(0, |r| r.step),
                 stamp,
                 &self.scene.frame_id,
             ));
@@ -661,12 +610,17 @@ impl Pipeline {
         }
         let to_file = 1.0 / self.scene.file_to_world;
         if let Some(frames) = &mut self.frames {
-            let (positions, rest, tools, scene) = (&self.positions, self.mesh.nodes(), &self.tools, &self.scene);
+            let (positions, rest, tools, scene) =
+                (&self.positions, self.mesh.nodes(), self.feedback.tool_states(), &self.scene);
             let host = || -> Vec<Vector3<f64>> { positions.iter().zip(rest).map(|(p, r)| p - r).collect() };
             let deformation = frames::Deformation {
                 host: &host,
                 #[cfg(feature = "gpu")]
-                device: self.engine.as_ref().and_then(SolverEngine::device_displacements),
+                device: self
+                    .feedback
+                    .engine()
+                    .and_then(SolverEngine::device_displacements)
+                    .or(self.device_displacements.as_ref()),
             };
             let done = frames.tick(
                 clock,
@@ -703,7 +657,11 @@ impl Pipeline {
         }
         if demand.diagnostics && clock - self.last_diagnostics >= 1.0 - 1e-9 {
             self.last_diagnostics = clock;
-            out.diagnostics = Some(outputs::diagnostics(self, stamp));
+            let since: Vec<u64> = (self.saturated_steps().iter().enumerate())
+                .map(|(i, now)| now - self.saturated_at_diagnostics.get(i).copied().unwrap_or(0))
+                .collect();
+            out.diagnostics = Some(outputs::diagnostics(self, stamp, &since));
+            self.saturated_at_diagnostics = self.saturated_steps().to_vec();
         }
         Ok(out)
     }
@@ -715,12 +673,12 @@ impl Pipeline {
         demand: &Demand,
     ) -> Result<(Option<Image>, Option<Image>), PipelineError> {
         let Some(d) = &mut self.dpcm else { return Ok((None, None)) };
-        if self.paused {
+        if self.feedback.paused() {
             return Ok((None, None));
         }
         // Markers out of reach of the grid are left out (their footprint misses it).
         let reach = d.config.marker.threshold / d.config.spacing;
-        let markers: Vec<_> = (self.tools.iter().enumerate())
+        let markers: Vec<_> = (self.feedback.tool_states().iter().enumerate())
             .map(|(i, t)| d.calibration.marker(i as u32, Point3::from(t.tool.tip())))
             .filter(|m| {
                 m.col >= -reach
@@ -768,6 +726,7 @@ impl Pipeline {
 
 #[cfg(test)]
 mod tests {
+    use super::feedback::SLEEP_AFTER;
     use super::*;
     use crate::msgs::{Header, Pose};
 
@@ -859,7 +818,71 @@ mod tests {
         assert!(p.apply_pose("tool_pose", &pose(1.0, f64::NAN), Time::from_secs(1.0)).is_err());
         assert!(p.apply_pose("elsewhere", &pose(1.0, 0.0), Time::from_secs(1.0)).is_err());
         assert_eq!(p.counters().total_rejected(), 2);
-        assert_eq!(p.tools[0].tool.tip().z, top.z + 0.02);
+        assert_eq!(p.tool_on("tool_pose").unwrap().1.translation.z, top.z + 0.02);
+    }
+
+    /// The node's arrangement: the loop detached and stepped on its own, the pipeline
+    /// following its states, against the same run in lockstep.
+    #[test]
+    fn a_detached_loop_followed_gives_the_lockstep_run_and_echoes_each_pose_stamp() {
+        let mut s = scene(crate::scene::Stages::default());
+        s.tools[0].path = None;
+        let mut lockstep = pipeline(s.clone());
+        let mut follower = pipeline(s);
+        let mut detached = follower.detach_feedback();
+        for k in 1..=40 {
+            let stamp = Time::from_secs(k as f64 * 0.01);
+            let msg = pose(k as f64 * 0.01 - 0.005, 0.1 - 0.001 * k as f64);
+            lockstep.apply_pose("tool_pose", &msg, stamp).unwrap();
+            let expected = lockstep.tick(stamp, &Demand::ALL).unwrap();
+            detached.apply_pose("tool_pose", &msg, stamp).unwrap();
+            let mut stepped = detached.step(stamp).unwrap().unwrap();
+            let feedback = std::mem::take(&mut stepped.feedback);
+            follower.follow(LoopState { stepped: Some(stepped), ..detached.state() });
+            let got = follower.tick(stamp, &Demand::ALL).unwrap();
+            assert_eq!(feedback, expected.tool_feedback, "step {k}");
+            assert_eq!(feedback[0].header.stamp, msg.header.stamp, "the feedback answers pose {k}");
+            assert!(got.tool_feedback.is_empty(), "the loop published it");
+            assert_eq!(got.deformed_mesh, expected.deformed_mesh, "step {k}");
+        }
+        assert!(lockstep.last_report().unwrap().reaction(0).force[2] > 0.1, "the probe pressed the mesh");
+        assert_eq!(follower.last_report(), lockstep.last_report());
+        assert_eq!(follower.counters(), lockstep.counters());
+        assert_eq!(follower.tool_on("tool_pose"), lockstep.tool_on("tool_pose"));
+    }
+
+    #[test]
+    fn a_teleported_coupled_tool_is_held_back_and_diagnostics_say_so() {
+        let mut s = scene(crate::scene::Stages::default());
+        s.tools[0].path = None;
+        s.tools[0].contact = crate::solver::ContactModel::Surface;
+        s.tools[0].coupling =
+            Some(crate::solver::Coupling { stiffness: 2000.0, damping: 5.0, mass: 0.02, max_force: 5.0 });
+        let mut p = pipeline(s);
+        let status = |out: &Outputs| {
+            let d = out.diagnostics.clone().unwrap();
+            d.status.into_iter().find(|s| s.name == "defvol: solver").unwrap()
+        };
+        p.apply_pose("tool_pose", &pose(0.0, 0.2), Time::from_secs(0.0)).unwrap();
+        let first = status(&p.tick(Time::from_secs(0.01), &Demand::ALL).unwrap());
+        assert_eq!(first.level, crate::msgs::DiagnosticStatus::OK, "{first:?}");
+        // The device jumps through the organ to 0.2 m below it in one message.
+        p.apply_pose("tool_pose", &pose(0.02, -0.2), Time::from_secs(0.02)).unwrap();
+        let mut last = None;
+        for k in 2..=101 {
+            let out = p.tick(Time::from_secs(k as f64 * 0.01), &Demand::ALL).unwrap();
+            let force = p.last_report().unwrap().reaction(0).force;
+            assert!(Vector3::from(force).norm() <= 5.0 + 1e-9, "step {k}: {force:?}");
+            if out.diagnostics.is_some() {
+                last = Some(status(&out));
+            }
+        }
+        let last = last.unwrap();
+        assert_eq!(last.level, crate::msgs::DiagnosticStatus::WARN, "{last:?}");
+        assert!(last.message.contains("coupling saturated") && last.message.contains("probe"), "{}", last.message);
+        let held = last.values.iter().find(|v| v.key == "coupling_saturated_steps.probe").unwrap();
+        assert_eq!(held.value, p.saturated_steps()[0].to_string());
+        assert!(p.saturated_steps()[0] >= 90, "held back every step since the jump: {:?}", p.saturated_steps());
     }
 
     #[test]

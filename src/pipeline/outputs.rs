@@ -116,7 +116,9 @@ fn kv(key: &str, value: impl ToString) -> KeyValue {
 }
 
 /// One status per stage plus the inputs': times, CG figures, stability, refusals.
-pub(super) fn diagnostics(p: &Pipeline, stamp: Time) -> DiagnosticArray {
+/// `saturated_since` counts, per tool, the steps since the last report in which its
+/// coupling held the device back with its largest force.
+pub(super) fn diagnostics(p: &Pipeline, stamp: Time, saturated_since: &[u64]) -> DiagnosticArray {
     let times = p.times();
     let stage_backends = p.stage_backends();
     let backend_of =
@@ -129,7 +131,7 @@ pub(super) fn diagnostics(p: &Pipeline, stamp: Time) -> DiagnosticArray {
         hardware_id: p.backend().describe(),
         values: stage_backends.iter().map(|(stage, backend)| kv(&format!("backend.{stage}"), backend)).collect(),
     }];
-    let solver = match (p.engine.as_ref(), p.last_report()) {
+    let solver = match (p.feedback.engine_backend(), p.last_report()) {
         (None, _) => DiagnosticStatus {
             level: DiagnosticStatus::OK,
             name: "defvol: solver".into(),
@@ -139,11 +141,22 @@ pub(super) fn diagnostics(p: &Pipeline, stamp: Time) -> DiagnosticArray {
         (Some(_), report) => {
             let converged =
                 report.is_none_or(|r| r.residual <= p.scene().solver.cg_tolerance * 10.0 || r.cg_iterations == 0);
-            let (level, message) = match (p.paused(), p.asleep(), converged) {
-                (true, _, _) => (DiagnosticStatus::OK, "paused"),
-                (_, _, false) => (DiagnosticStatus::WARN, "CG did not reach its tolerance"),
-                (_, true, _) => (DiagnosticStatus::OK, "asleep: the mesh is at rest and untouched"),
-                _ => (DiagnosticStatus::OK, "running"),
+            let saturated: Vec<String> = (p.scene().tools.iter().zip(saturated_since))
+                .filter(|(_, n)| **n > 0)
+                .map(|(tool, n)| format!("tool `{}` held back in {n} steps", tool.name))
+                .collect();
+            let (level, message) = match (p.paused(), p.asleep(), converged, saturated.is_empty()) {
+                (true, ..) => (DiagnosticStatus::OK, "paused".to_owned()),
+                (_, _, _, false) => (
+                    DiagnosticStatus::WARN,
+                    format!(
+                        "coupling saturated, the device pose ran away from the tool (a dropped packet, a teleport?): {}",
+                        saturated.join(", ")
+                    ),
+                ),
+                (_, _, false, _) => (DiagnosticStatus::WARN, "CG did not reach its tolerance".to_owned()),
+                (_, true, ..) => (DiagnosticStatus::OK, "asleep: the mesh is at rest and untouched".to_owned()),
+                _ => (DiagnosticStatus::OK, "running".to_owned()),
             };
             let mut values = vec![kv("backend", p.backend_name()), kv("step_ms", format!("{:.3}", times.solver))];
             if let Some(r) = report {
@@ -156,13 +169,12 @@ pub(super) fn diagnostics(p: &Pipeline, stamp: Time) -> DiagnosticArray {
                     kv("max_displacement_m", format!("{:.4e}", r.max_displacement)),
                 ]);
             }
-            DiagnosticStatus {
-                level,
-                name: "defvol: solver".into(),
-                message: message.into(),
-                hardware_id: p.backend_name(),
-                values,
+            for (tool, total) in p.scene().tools.iter().zip(p.saturated_steps()) {
+                if tool.coupling.is_some() {
+                    values.push(kv(&format!("coupling_saturated_steps.{}", tool.name), total));
+                }
             }
+            DiagnosticStatus { level, name: "defvol: solver".into(), message, hardware_id: p.backend_name(), values }
         }
     };
     status.push(solver);

@@ -6,4 +6,6 @@ pub mod args;
 #[cfg(feature = "ros")]
 pub mod dds;
 #[cfg(feature = "ros")]
+mod feedback_thread;
+#[cfg(feature = "ros")]
 pub mod node;

@@ -15,13 +15,14 @@ use serde_yaml_ng::Value;
 
 use super::args::{self, RosArgs};
 use super::dds::{self, Discovery};
+use super::feedback_thread::{Command, Event, FeedbackIo, FeedbackThread, ToolSubscriptions};
 use crate::backend::BackendChoice;
 use crate::msgs::{
     DeformedMesh, DiagnosticArray, Image, LoadSceneRequest, Marker, Message, PoseStamped, Time, TriggerRequest,
     TriggerResponse, WarpedVolumeInfo, WrenchStamped,
 };
 use crate::pipeline::inputs::InputLimits;
-use crate::pipeline::{Demand, FrameMode, Pipeline, PipelineError};
+use crate::pipeline::{Demand, FrameMode, Outputs, Pipeline, PipelineError};
 use crate::record::Qos;
 use crate::scene::Scene;
 use crate::session::{qualified, topics, RecordOptions, Session, SessionError};
@@ -76,6 +77,9 @@ pub struct NodeSettings {
     pub open_discovery: bool,
     /// Stop after this long (tests, benchmarks); run until Ctrl-C when `None`.
     pub run_for: Option<Duration>,
+    /// Stops the node when set (benchmarks and tests that run it in-process); without it
+    /// Ctrl-C does.
+    pub stop: Option<Arc<AtomicBool>>,
 }
 
 fn type_name<T: Message>() -> MessageTypeName {
@@ -164,13 +168,6 @@ struct Publishers {
     dpcm_image: (String, Publisher<Image>),
     warped_info: (String, Publisher<WarpedVolumeInfo>),
     diagnostics: (String, Publisher<DiagnosticArray>),
-}
-
-struct ToolSubscriptions {
-    pose_topic: String,
-    wrench_topic: String,
-    pose: Subscription<PoseStamped>,
-    wrench: Subscription<WrenchStamped>,
 }
 
 /// A parameter as YAML (how the scene reads it).
@@ -285,8 +282,12 @@ pub fn run(settings: NodeSettings) -> Result<(), NodeError> {
         warped_info: topics.publisher(&mut node, topics::WARPED_VOLUME_INFO, Qos::Latched)?,
         diagnostics: topics.publisher(&mut node, topics::DIAGNOSTICS, Qos::Reliable)?,
     };
-    let mut tools = subscribe_tools(&topics, &mut node, &pipeline)?;
-    let mut feedback = feedback_publishers(&topics, &mut node, &pipeline)?;
+    let io = FeedbackIo {
+        tools: subscribe_tools(&topics, &mut node, &pipeline)?,
+        feedback: feedback_publishers(&topics, &mut node, &pipeline)?,
+    };
+    let period = Duration::from_secs_f64(pipeline.scene().solver.dt);
+    let mut feedback = FeedbackThread::spawn(pipeline.detach_feedback(), io, period)?;
     let reset: Server<TriggerRequest, TriggerResponse> = topics.server(&mut node, "reset", "std_srvs", "Trigger")?;
     let pause: Server<TriggerRequest, TriggerResponse> = topics.server(&mut node, "pause", "std_srvs", "Trigger")?;
     let resume: Server<TriggerRequest, TriggerResponse> = topics.server(&mut node, "resume", "std_srvs", "Trigger")?;
@@ -296,52 +297,74 @@ pub fn run(settings: NodeSettings) -> Result<(), NodeError> {
     #[cfg(feature = "shm")]
     let mut shm = shm_publisher(&mut pipeline);
     let mut session = Session::open(&settings.ros.namespace, &settings.record, &pipeline)?;
-    let stop = Arc::new(AtomicBool::new(false));
-    let stop_flag = stop.clone();
-    if let Err(e) = ctrlc::set_handler(move || stop_flag.store(true, Ordering::SeqCst)) {
-        tracing::warn!("no Ctrl-C handler ({e}); stop the node with SIGTERM");
-    }
+    let stop = match &settings.stop {
+        Some(stop) => stop.clone(),
+        None => {
+            let stop = Arc::new(AtomicBool::new(false));
+            let stop_flag = stop.clone();
+            if let Err(e) = ctrlc::set_handler(move || stop_flag.store(true, Ordering::SeqCst)) {
+                tracing::warn!("no Ctrl-C handler ({e}); stop the node with SIGTERM");
+            }
+            stop
+        }
+    };
     tracing::info!(
         "node {} up: tools on {:?}",
         node.fully_qualified_name(),
-        tools.iter().map(|t| &t.pose_topic).collect::<Vec<_>>()
+        pipeline.tool_topics().iter().map(|(pose, _)| pose.clone()).collect::<Vec<_>>()
     );
 
     let started = Instant::now();
-    let period = Duration::from_secs_f64(pipeline.scene().solver.dt);
     let mut next_tick = Instant::now();
     let mut demand = Demand::NONE;
     let mut ticks: u64 = 0;
     while !stop.load(Ordering::SeqCst) && settings.run_for.is_none_or(|limit| started.elapsed() < limit) {
-        let now = node_now();
+        // The feedback thread's inputs and feedback are recorded here, off its path.
         let mut inputs = 0;
-        for tool in &tools {
-            inputs += drain(&tool.pose, |msg| {
-                if pipeline.apply_pose(&tool.pose_topic, &msg, now).is_ok() {
-                    session.record_pose(
-                        &qualified(&settings.ros.namespace, &tool.pose_topic),
-                        &msg,
-                        pipeline.tool_on(&tool.pose_topic),
-                    );
+        while let Ok(event) = feedback.events.try_recv() {
+            match event {
+                Event::Pose { topic, msg, tool } => {
+                    inputs += 1;
+                    let tool = tool
+                        .and_then(|(index, pose)| pipeline.scene().tools.get(index).map(|t| (t.name.as_str(), pose)));
+                    session.record_pose(&qualified(&settings.ros.namespace, &topic), &msg, tool);
                 }
-            });
-            inputs += drain(&tool.wrench, |msg| {
-                if pipeline.apply_wrench(&tool.wrench_topic, &msg, now).is_ok() {
-                    session.record_wrench(&qualified(&settings.ros.namespace, &tool.wrench_topic), &msg);
+                Event::Wrench { topic, msg } => {
+                    inputs += 1;
+                    session.record_wrench(&qualified(&settings.ros.namespace, &topic), &msg);
                 }
-            });
+                Event::Feedback { stamp, msgs } => {
+                    session.record_outputs(&Outputs { tool_feedback: msgs, ..Default::default() }, &pipeline, stamp);
+                }
+                Event::Failed(e) => tracing::error!("step failed: {e}; paused (call reset or load_scene)"),
+            }
         }
+        if let Some(state) = feedback.latest() {
+            pipeline.follow(state);
+        }
+        let mut was_reset = false;
         serve(&reset, |_| {
-            result(pipeline.reset().map(|()| "reset to the rest state".into()).map_err(|e| e.to_string()))
+            let outcome = pipeline.reset();
+            was_reset = outcome.is_ok();
+            result(outcome.map(|()| "reset to the rest state".into()).map_err(|e| e.to_string()))
         });
+        if was_reset {
+            feedback.send(Command::Replace { feedback: Box::new(pipeline.detach_feedback()), io: None });
+        }
+        let mut told = Vec::new();
         serve(&pause, |_| {
             pipeline.pause();
+            told.push(Command::Pause);
             result(Ok("paused".into()))
         });
         serve(&resume, |_| {
             pipeline.resume();
+            told.push(Command::Resume);
             result(Ok("running".into()))
         });
+        for command in told {
+            feedback.send(command);
+        }
         let mut reloaded = false;
         serve(&load, |request| {
             let loaded =
@@ -369,8 +392,11 @@ pub fn run(settings: NodeSettings) -> Result<(), NodeError> {
             }
         }
         if reloaded {
-            tools = subscribe_tools(&topics, &mut node, &pipeline)?;
-            feedback = feedback_publishers(&topics, &mut node, &pipeline)?;
+            let io = FeedbackIo {
+                tools: subscribe_tools(&topics, &mut node, &pipeline)?,
+                feedback: feedback_publishers(&topics, &mut node, &pipeline)?,
+            };
+            feedback.send(Command::Replace { feedback: Box::new(pipeline.detach_feedback()), io: Some(io) });
             #[cfg(feature = "shm")]
             {
                 // The old publisher goes first: the service allows one.
@@ -388,7 +414,8 @@ pub fn run(settings: NodeSettings) -> Result<(), NodeError> {
             #[cfg(not(feature = "shm"))]
             let shm_listens = false;
             demand = Demand {
-                tool_feedback: recorded || feedback.iter().any(|p| listened(&node, p)),
+                // Published by the feedback thread.
+                tool_feedback: false,
                 deformed_mesh: recorded || listened(&node, &publishers.mesh),
                 surface_marker: recorded || listened(&node, &publishers.marker),
                 raycast: recorded || listened(&node, &publishers.raycast),
@@ -399,14 +426,11 @@ pub fn run(settings: NodeSettings) -> Result<(), NodeError> {
             };
         }
         ticks += 1;
-        let stamp = node_now();
+        let stamp = Time::now();
         match pipeline.tick(stamp, &demand) {
             Ok(out) => {
                 session.record_outputs(&out, &pipeline, stamp);
                 let info = out.warped_volume.then(|| crate::session::warped_info(&pipeline, stamp)).flatten();
-                for (publisher, msg) in feedback.iter().zip(out.tool_feedback) {
-                    publish(publisher, Some(msg));
-                }
                 publish(&publishers.mesh, out.deformed_mesh);
                 publish(&publishers.marker, out.surface_marker);
                 publish(&publishers.raycast, out.raycast);
@@ -420,6 +444,7 @@ pub fn run(settings: NodeSettings) -> Result<(), NodeError> {
             Err(e) => {
                 tracing::error!("step failed: {e}; pausing (call reset or load_scene)");
                 pipeline.pause();
+                feedback.send(Command::Pause);
             }
         }
         // Real time: one tick per solver step; asleep with nothing coming in, poll gently.
@@ -431,7 +456,8 @@ pub fn run(settings: NodeSettings) -> Result<(), NodeError> {
             next_tick = now;
         }
     }
-    // Dropping the node stops its spinner.
+    // The feedback thread stops first; dropping the node stops its spinner.
+    drop(feedback);
     drop(node);
     session.finish()?;
     Ok(())
@@ -484,29 +510,6 @@ fn subscribe_tools(
 
 fn listened<T: serde::Serialize>(node: &Node, publisher: &(String, Publisher<T>)) -> bool {
     node.subscription_count(&publisher.0) > 0
-}
-
-fn node_now() -> Time {
-    let since_epoch = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap_or_default();
-    Time::from_nanos(since_epoch.as_nanos() as u64)
-}
-
-/// Takes every waiting sample; undecodable ones are logged and skipped.
-fn drain<T: serde::de::DeserializeOwned + 'static>(subscription: &Subscription<T>, mut apply: impl FnMut(T)) -> usize {
-    let mut n = 0;
-    loop {
-        match subscription.take() {
-            Ok(Some((msg, _))) => {
-                apply(msg);
-                n += 1;
-            }
-            Ok(None) => return n,
-            Err(e) => {
-                tracing::warn!("a tool sample could not be read: {e:?}");
-                return n;
-            }
-        }
-    }
 }
 
 fn result(outcome: Result<String, String>) -> TriggerResponse {
@@ -603,6 +606,7 @@ pub fn settings_from_args(args: &[String]) -> Result<NodeSettings, NodeError> {
         allow_software_gpu: cli.allow_software_gpu,
         open_discovery: cli.open_discovery || flag("dds.open_discovery"),
         run_for,
+        stop: None,
         ros,
     })
 }

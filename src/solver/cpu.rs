@@ -122,6 +122,9 @@ pub struct Simulation<T: Real> {
     q: Vec<Vector3<T>>,
     last_cg: CgStats,
     amg: Option<AmgState>,
+    /// CG runs with the multigrid preconditioner (from the start with `Amg`; with `Auto`
+    /// once block Jacobi needs too many iterations).
+    multigrid: bool,
 }
 
 /// A multigrid hierarchy built at some step, reused while it keeps CG fast.
@@ -141,6 +144,7 @@ impl<T: Real> Simulation<T> {
         let rest_edge =
             model.springs.iter().map(|[a, b]| (model.rest[*b as usize] - model.rest[*a as usize]).map(T::of)).collect();
         let (lo, hi) = crate::mesh::bounds(&model.rest);
+        let multigrid = params.preconditioner == Preconditioner::Amg;
         Ok(Self {
             params,
             springs: model.springs.clone(),
@@ -184,6 +188,7 @@ impl<T: Real> Simulation<T> {
             q: vec![Vector3::zeros(); n],
             last_cg: CgStats { iterations: 0, relative_residual: 0.0 },
             amg: None,
+            multigrid,
             rest: model.rest.clone(),
             rest_edge,
         })
@@ -775,10 +780,13 @@ impl<T: Real> Simulation<T> {
                 .with_min_len(CHUNK)
                 .for_each(|(dv, prev)| *dv = *dv * two - prev);
         }
-        if self.params.preconditioner == Preconditioner::Amg && self.amg.as_ref().is_none_or(|a| a.stale) {
+        if self.multigrid && self.amg.as_ref().is_none_or(|a| a.stale) {
             self.build_amg();
         }
         self.last_cg = self.solve();
+        if self.params.preconditioner == Preconditioner::Auto && self.last_cg.iterations > super::AUTO_AMG_ABOVE {
+            self.multigrid = true;
+        }
         if let Some(state) = &mut self.amg {
             if state.iterations_at_build == 0 {
                 state.iterations_at_build = self.last_cg.iterations.max(1);
@@ -1125,9 +1133,9 @@ impl<T: Real> Simulation<T> {
         Ok((self.system_triplets(true), rhs))
     }
 
-    /// Prepares the configured preconditioner for the assembled system (tests).
+    /// Prepares the preconditioner in use for the assembled system (tests).
     pub fn prepare_preconditioner(&mut self) {
-        if self.params.preconditioner == Preconditioner::Amg {
+        if self.multigrid {
             self.build_amg();
         } else {
             self.amg = None;

@@ -1,0 +1,340 @@
+//! The solver and the tools' inputs, apart from the slow stages: poses and wrenches in, one
+//! step, each tool's reaction out. The node runs it on a thread of its own at the solver's
+//! rate, so that the warp, the raycaster, the DPCM surface, recording and the other topics
+//! never delay the force loop; lockstep runs (the demo, replays, tests) step it inside
+//! [`super::Pipeline::tick`].
+
+use std::time::Instant;
+
+use nalgebra::{Isometry3, Vector3};
+
+use super::inputs::{Checker, InputCounters, InputLimits, Rejection};
+use super::{outputs, PipelineError};
+use crate::msgs::{PoseStamped, Time, WrenchStamped};
+use crate::scene::{Scene, ToolPath};
+use crate::solver::{SolverEngine, StepReport, Tool};
+
+/// Mesh kinetic energy (J) under which, with no tool touching or pushing, the solver sleeps.
+const SLEEP_ENERGY: f64 = 1e-9;
+/// Steps the mesh must stay that quiet first.
+pub(super) const SLEEP_AFTER: u32 = 20;
+/// Below this many nodes a step runs on one thread: handing a few microseconds of work to
+/// another core costs more than it saves. On the 2-core EPYC VM a 1,280-node step took 0.96 ms
+/// on one thread and 1.03 ms on two; a 4,800-node one 4.7 ms and 3.2 ms.
+const SERIAL_BELOW_NODES: usize = 2500;
+
+pub(super) struct ToolState {
+    pub pose_topic: String,
+    pub wrench_topic: String,
+    pub feedback_topic: String,
+    pub last_pose: Option<Time>,
+    pub last_wrench: Option<Time>,
+    /// The tool as the stages see it (the solver holds a copy).
+    pub tool: Tool,
+    /// The demo's scripted motion, if any.
+    pub path: Option<ToolPath>,
+}
+
+/// One step's results, for the slow stages.
+#[derive(Debug, Clone)]
+pub struct Stepped {
+    pub report: StepReport,
+    /// Node positions after the step, world units.
+    pub positions: Vec<Vector3<f64>>,
+    /// Each tool's reaction, in the scene's order, stamped with the stamp of the tool's
+    /// latest pose the step used (the step's own stamp before any pose): a device knows
+    /// which command a force answers, and the round trip is measured from it.
+    pub feedback: Vec<WrenchStamped>,
+    /// Milliseconds the step took.
+    pub solver_ms: f64,
+}
+
+/// What the slow stages follow of a loop running on another thread.
+#[derive(Debug, Clone)]
+pub struct LoopState {
+    /// The latest step since the state was last taken, if any.
+    pub stepped: Option<Stepped>,
+    pub tools: Vec<Tool>,
+    pub counters: InputCounters,
+    pub paused: bool,
+    pub asleep: bool,
+    pub saturated_steps: Vec<u64>,
+}
+
+/// The solver and its tools.
+pub struct FeedbackLoop {
+    /// `None` when the scene disables the solver, or in the copy a detached loop leaves.
+    engine: Option<SolverEngine>,
+    engine_name: String,
+    /// "cpu" or "gpu", `None` without a solver; kept by a follower.
+    engine_backend: Option<&'static str>,
+    nodes: usize,
+    tools: Vec<ToolState>,
+    frame_id: String,
+    limits: InputLimits,
+    counters: InputCounters,
+    paused: bool,
+    quiet_steps: u32,
+    asleep: bool,
+    last_report: Option<StepReport>,
+    solver_ms: f64,
+    /// Steps in which each tool's coupling held its device back with its largest force.
+    saturated_steps: Vec<u64>,
+}
+
+impl FeedbackLoop {
+    pub(super) fn new(scene: &Scene, engine: Option<SolverEngine>, nodes: usize, limits: InputLimits) -> Self {
+        let tools: Vec<ToolState> = (scene.tools.iter().enumerate())
+            .map(|(i, config)| {
+                let mut tool = config.tool();
+                if let Some(p) = config.path.as_ref().map(|path| path.position(0.0)) {
+                    tool.world_from_tool = Isometry3::translation(p.x, p.y, p.z);
+                }
+                ToolState {
+                    pose_topic: config.pose_topic(i),
+                    wrench_topic: config.wrench_topic(i),
+                    feedback_topic: config.feedback_topic(i),
+                    last_pose: None,
+                    last_wrench: None,
+                    tool,
+                    path: config.path.clone(),
+                }
+            })
+            .collect();
+        Self {
+            engine_name: engine.as_ref().map_or_else(|| "off".into(), SolverEngine::name),
+            engine_backend: engine.as_ref().map(SolverEngine::backend),
+            engine,
+            nodes,
+            saturated_steps: vec![0; tools.len()],
+            tools,
+            frame_id: scene.frame_id.clone(),
+            limits,
+            counters: InputCounters::default(),
+            paused: false,
+            quiet_steps: 0,
+            asleep: false,
+            last_report: None,
+            solver_ms: 0.0,
+        }
+    }
+
+    /// Hands the solver to a loop of its own; this one keeps the tools and follows it.
+    pub(super) fn detach(&mut self) -> FeedbackLoop {
+        let follower = FeedbackLoop {
+            engine: None,
+            engine_name: self.engine_name.clone(),
+            engine_backend: self.engine_backend,
+            nodes: self.nodes,
+            tools: (self.tools.iter())
+                .map(|t| ToolState {
+                    pose_topic: t.pose_topic.clone(),
+                    wrench_topic: t.wrench_topic.clone(),
+                    feedback_topic: t.feedback_topic.clone(),
+                    last_pose: t.last_pose,
+                    last_wrench: t.last_wrench,
+                    tool: t.tool.clone(),
+                    path: t.path.clone(),
+                })
+                .collect(),
+            frame_id: self.frame_id.clone(),
+            limits: self.limits.clone(),
+            counters: self.counters.clone(),
+            paused: self.paused,
+            quiet_steps: self.quiet_steps,
+            asleep: self.asleep,
+            last_report: self.last_report.clone(),
+            solver_ms: self.solver_ms,
+            saturated_steps: self.saturated_steps.clone(),
+        };
+        std::mem::replace(self, follower)
+    }
+
+    /// Takes what a detached loop reports; true when a tool moved.
+    pub(super) fn follow(&mut self, state: &LoopState) -> bool {
+        let mut moved = false;
+        for (mine, theirs) in self.tools.iter_mut().zip(&state.tools) {
+            moved |= mine.tool.world_from_tool != theirs.world_from_tool;
+            mine.tool.clone_from(theirs);
+        }
+        self.counters.clone_from(&state.counters);
+        (self.paused, self.asleep) = (state.paused, state.asleep);
+        self.saturated_steps.clone_from(&state.saturated_steps);
+        if let Some(s) = &state.stepped {
+            self.last_report = Some(s.report.clone());
+            self.solver_ms = s.solver_ms;
+        }
+        moved
+    }
+
+    /// What a follower needs, without a step.
+    pub fn state(&self) -> LoopState {
+        LoopState {
+            stepped: None,
+            tools: self.tools.iter().map(|t| t.tool.clone()).collect(),
+            counters: self.counters.clone(),
+            paused: self.paused,
+            asleep: self.asleep,
+            saturated_steps: self.saturated_steps.clone(),
+        }
+    }
+
+    /// Threads a step is worth: one below 2,500 nodes, where handing work to another core
+    /// costs more than it saves; the node runs the loop on a pool of that many, so that a
+    /// small step never hands work across threads.
+    pub fn threads(&self) -> usize {
+        match self.nodes < SERIAL_BELOW_NODES {
+            true => 1,
+            false => std::thread::available_parallelism().map_or(1, usize::from),
+        }
+    }
+
+    /// Where the solver runs ("cpu" or "gpu"), `None` when the scene disables it.
+    pub fn engine_backend(&self) -> Option<&'static str> {
+        self.engine_backend
+    }
+    pub(super) fn engine(&self) -> Option<&SolverEngine> {
+        self.engine.as_ref()
+    }
+    /// The solver's path and device, for logs.
+    pub fn engine_name(&self) -> &str {
+        &self.engine_name
+    }
+    pub(super) fn tool_states(&self) -> &[ToolState] {
+        &self.tools
+    }
+    pub fn asleep(&self) -> bool {
+        self.asleep
+    }
+    pub fn paused(&self) -> bool {
+        self.paused
+    }
+    pub fn pause(&mut self) {
+        self.paused = true;
+    }
+    pub fn resume(&mut self) {
+        self.paused = false;
+    }
+    pub fn counters(&self) -> &InputCounters {
+        &self.counters
+    }
+    pub fn last_report(&self) -> Option<&StepReport> {
+        self.last_report.as_ref()
+    }
+    pub fn solver_ms(&self) -> f64 {
+        self.solver_ms
+    }
+    pub fn saturated_steps(&self) -> &[u64] {
+        &self.saturated_steps
+    }
+
+    /// The tool on `pose_topic`: its name (index) and `world_from_tool`.
+    pub fn tool_on(&self, pose_topic: &str) -> Option<(usize, Isometry3<f64>)> {
+        let index = self.tools.iter().position(|t| t.pose_topic == pose_topic)?;
+        Some((index, self.tools[index].tool.world_from_tool))
+    }
+
+    /// The pose and wrench topics of each tool.
+    pub fn tool_topics(&self) -> Vec<(String, String)> {
+        self.tools.iter().map(|t| (t.pose_topic.clone(), t.wrench_topic.clone())).collect()
+    }
+
+    /// The feedback topic of each tool, in the order of [`Stepped::feedback`].
+    pub fn feedback_topics(&self) -> Vec<String> {
+        self.tools.iter().map(|t| t.feedback_topic.clone()).collect()
+    }
+
+    /// Applies a tool pose; refused ones are counted and leave the tool where it was.
+    /// Returns whether the tool moved.
+    pub fn apply_pose(&mut self, topic: &str, msg: &PoseStamped, now: Time) -> Result<bool, Rejection> {
+        let outcome = self.pose_outcome(topic, msg, now);
+        self.counters.record(&outcome.as_ref().map(drop).map_err(Clone::clone));
+        outcome
+    }
+
+    fn pose_outcome(&mut self, topic: &str, msg: &PoseStamped, now: Time) -> Result<bool, Rejection> {
+        let Some(index) = self.tools.iter().position(|t| t.pose_topic == topic) else {
+            return Err(Rejection::UnknownTopic { topic: topic.into() });
+        };
+        let checker = Checker { limits: &self.limits, world_frame: &self.frame_id, now };
+        let world_from_tool = checker.pose(topic, msg, self.tools[index].last_pose)?;
+        let state = &mut self.tools[index];
+        state.last_pose = Some(msg.header.stamp);
+        let moved = state.tool.world_from_tool != world_from_tool;
+        if moved {
+            state.tool.world_from_tool = world_from_tool;
+            self.wake();
+        }
+        Ok(moved)
+    }
+
+    /// Applies a commanded tool force.
+    pub fn apply_wrench(&mut self, topic: &str, msg: &WrenchStamped, now: Time) -> Result<(), Rejection> {
+        let outcome = self.wrench_outcome(topic, msg, now);
+        self.counters.record(&outcome);
+        outcome
+    }
+
+    fn wrench_outcome(&mut self, topic: &str, msg: &WrenchStamped, now: Time) -> Result<(), Rejection> {
+        let Some(index) = self.tools.iter().position(|t| t.wrench_topic == topic) else {
+            return Err(Rejection::UnknownTopic { topic: topic.into() });
+        };
+        let checker = Checker { limits: &self.limits, world_frame: &self.frame_id, now };
+        let force = checker.wrench(topic, msg, self.tools[index].last_wrench)?;
+        let state = &mut self.tools[index];
+        state.last_wrench = Some(msg.header.stamp);
+        if state.tool.applied_force != force {
+            state.tool.applied_force = force;
+            self.wake();
+        }
+        Ok(())
+    }
+
+    /// Moves scripted tools along their paths (the demo); true when one moved.
+    pub(super) fn follow_scripts(&mut self, t: f64) -> bool {
+        let mut moved = false;
+        for state in &mut self.tools {
+            let Some(p) = state.path.as_ref().map(|path| path.position(t)) else { continue };
+            let iso = Isometry3::translation(p.x, p.y, p.z);
+            moved |= state.tool.world_from_tool != iso;
+            state.tool.world_from_tool = iso;
+        }
+        if moved {
+            self.wake();
+        }
+        moved
+    }
+
+    fn wake(&mut self) {
+        self.asleep = false;
+        self.quiet_steps = 0;
+    }
+
+    /// One solver step, unless there is no solver here, or it is paused or asleep.
+    pub fn step(&mut self, stamp: Time) -> Result<Option<Stepped>, PipelineError> {
+        let Some(engine) = self.engine.as_mut().filter(|_| !self.paused && !self.asleep) else {
+            return Ok(None);
+        };
+        for (index, state) in self.tools.iter().enumerate() {
+            let tool = engine.tool_mut(index)?;
+            tool.world_from_tool = state.tool.world_from_tool;
+            tool.applied_force = state.tool.applied_force;
+        }
+        let start = Instant::now();
+        let report = engine.step()?;
+        let positions = engine.positions();
+        self.solver_ms = start.elapsed().as_secs_f64() * 1e3;
+        let touching = report.reactions.iter().any(|r| r.force.iter().any(|f| *f != 0.0))
+            || self.tools.iter().any(|t| t.tool.applied_force != Vector3::zeros());
+        self.quiet_steps = if report.kinetic_energy < SLEEP_ENERGY && !touching { self.quiet_steps + 1 } else { 0 };
+        self.asleep = self.quiet_steps >= SLEEP_AFTER;
+        for (count, reaction) in self.saturated_steps.iter_mut().zip(&report.reactions) {
+            *count += u64::from(reaction.coupling_saturated);
+        }
+        let feedback = (self.tools.iter().enumerate())
+            .map(|(index, t)| outputs::feedback(&report, index, t.last_pose.unwrap_or(stamp), &self.frame_id))
+            .collect();
+        self.last_report = Some(report.clone());
+        Ok(Some(Stepped { report, positions, feedback, solver_ms: self.solver_ms }))
+    }
+}

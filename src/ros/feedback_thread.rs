@@ -1,0 +1,312 @@
+//! The force loop's own thread: it waits on the tool subscriptions, steps the solver as
+//! soon as a pose comes (never more than half a step early: the average rate stays 1/dt)
+//! or when a step is due, and publishes each tool's feedback at once. The node's main
+//! thread, with the warp, the raycaster, DPCM, recording and the other topics, only
+//! follows it: it gets the accepted inputs and the feedback to record, and the latest
+//! state for the slow stages, and never holds it up.
+//!
+//! The thread runs inside a rayon pool of its own, sized by [`FeedbackLoop::threads`]:
+//! the solver's parallel loops start from a pool worker, so a small step never hands work
+//! to another thread.
+
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{mpsc, Arc, Mutex};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+
+use mio::{Events, Interest, Poll, Token, Waker};
+use ros2_client::{Publisher, Subscription};
+
+use super::node::NodeError;
+use crate::msgs::{PoseStamped, Time, WrenchStamped};
+use crate::pipeline::{FeedbackLoop, LoopState};
+
+/// A tool's input subscriptions.
+pub(super) struct ToolSubscriptions {
+    pub pose_topic: String,
+    pub wrench_topic: String,
+    pub pose: Subscription<PoseStamped>,
+    pub wrench: Subscription<WrenchStamped>,
+}
+
+/// What the loop reads and writes on DDS: each tool's inputs and feedback publisher.
+pub(super) struct FeedbackIo {
+    pub tools: Vec<ToolSubscriptions>,
+    pub feedback: Vec<(String, Publisher<WrenchStamped>)>,
+}
+
+/// Told to the loop by the main thread.
+pub(super) enum Command {
+    Pause,
+    Resume,
+    /// A new loop (after a reset or a new scene), with new topics when they changed.
+    Replace {
+        feedback: Box<FeedbackLoop>,
+        io: Option<FeedbackIo>,
+    },
+}
+
+/// Sent to the main thread: what it records, and the loop's failures.
+pub(super) enum Event {
+    /// An accepted pose, with the tool's name index and the pose as applied.
+    Pose {
+        topic: String,
+        msg: PoseStamped,
+        tool: Option<(usize, nalgebra::Isometry3<f64>)>,
+    },
+    Wrench {
+        topic: String,
+        msg: WrenchStamped,
+    },
+    /// The feedback of one step, as published, at `stamp`.
+    Feedback {
+        stamp: Time,
+        msgs: Vec<WrenchStamped>,
+    },
+    /// A step failed: the loop paused itself.
+    Failed(String),
+}
+
+const WAKER: Token = Token(usize::MAX);
+/// How long the loop waits when nothing is due (asleep or paused) before it looks again.
+const IDLE_WAIT: Duration = Duration::from_millis(50);
+
+/// The running loop, as the main thread holds it.
+pub(super) struct FeedbackThread {
+    commands: mpsc::Sender<Command>,
+    pub events: mpsc::Receiver<Event>,
+    /// The latest state, tagged with the generation of the loop that made it.
+    latest: Arc<Mutex<Option<(u64, LoopState)>>>,
+    /// Loops replaced so far: a state from an older one is dropped.
+    generation: u64,
+    waker: Arc<Waker>,
+    stop: Arc<AtomicBool>,
+    handle: Option<JoinHandle<()>>,
+}
+
+impl FeedbackThread {
+    /// Starts the loop: `period` is the solver's time step.
+    pub fn spawn(feedback: FeedbackLoop, io: FeedbackIo, period: Duration) -> Result<Self, NodeError> {
+        let poll = Poll::new().map_err(|e| NodeError::Ros(format!("feedback thread: {e}")))?;
+        let waker =
+            Arc::new(Waker::new(poll.registry(), WAKER).map_err(|e| NodeError::Ros(format!("feedback thread: {e}")))?);
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(feedback.threads())
+            .thread_name(|i| format!("defvol-feedback-{i}"))
+            .build()
+            .map_err(|e| NodeError::Ros(format!("feedback thread pool: {e}")))?;
+        let (commands, command_rx) = mpsc::channel();
+        let (event_tx, events) = mpsc::channel();
+        let latest = Arc::new(Mutex::new(None));
+        let stop = Arc::new(AtomicBool::new(false));
+        let mut worker = Worker {
+            feedback,
+            io,
+            poll,
+            commands: command_rx,
+            events: event_tx,
+            latest: latest.clone(),
+            generation: 0,
+            stop: stop.clone(),
+            period,
+        };
+        let handle = std::thread::Builder::new()
+            .name("defvol-feedback".into())
+            .spawn(move || pool.install(|| worker.run()))
+            .map_err(|e| NodeError::Ros(format!("feedback thread: {e}")))?;
+        Ok(Self { commands, events, latest, generation: 0, waker, stop, handle: Some(handle) })
+    }
+
+    pub fn send(&mut self, command: Command) {
+        if let Command::Replace { .. } = command {
+            self.generation += 1;
+        }
+        if self.commands.send(command).is_err() {
+            tracing::error!("the feedback thread has stopped");
+        }
+        if let Err(e) = self.waker.wake() {
+            tracing::warn!("feedback thread not woken: {e}");
+        }
+    }
+
+    /// The loop's state since the last call, if it changed (and the loop is the latest).
+    pub fn latest(&self) -> Option<LoopState> {
+        let (generation, state) = self.latest.lock().ok().and_then(|mut slot| slot.take())?;
+        (generation == self.generation).then_some(state)
+    }
+}
+
+impl Drop for FeedbackThread {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::SeqCst);
+        let _ = self.waker.wake();
+        if let Some(handle) = self.handle.take() {
+            if handle.join().is_err() {
+                tracing::error!("the feedback thread panicked");
+            }
+        }
+    }
+}
+
+struct Worker {
+    feedback: FeedbackLoop,
+    io: FeedbackIo,
+    poll: Poll,
+    commands: mpsc::Receiver<Command>,
+    events: mpsc::Sender<Event>,
+    latest: Arc<Mutex<Option<(u64, LoopState)>>>,
+    generation: u64,
+    stop: Arc<AtomicBool>,
+    period: Duration,
+}
+
+impl Worker {
+    fn run(&mut self) {
+        self.register(true);
+        let mut events = Events::with_capacity(64);
+        let mut next_step = Instant::now();
+        while !self.stop.load(Ordering::SeqCst) {
+            let idle = self.feedback.paused() || self.feedback.asleep();
+            let wait = if idle { IDLE_WAIT } else { next_step.saturating_duration_since(Instant::now()) };
+            if let Err(e) = self.poll.poll(&mut events, Some(wait)) {
+                if e.kind() != std::io::ErrorKind::Interrupted {
+                    tracing::error!("feedback thread: waiting on the tool topics failed: {e}");
+                    std::thread::sleep(self.period);
+                }
+            }
+            let (posed, changed) = self.take_inputs();
+            let commanded = self.take_commands();
+            if commanded {
+                next_step = Instant::now();
+            }
+            let now = Instant::now();
+            // A step goes as soon as a pose comes, at most half a step early, so that the
+            // feedback follows the device's own clock at 1/dt on average.
+            let due = now >= next_step || (posed && now + self.period / 2 >= next_step);
+            let mut stepped = None;
+            if due && !self.feedback.paused() && !self.feedback.asleep() {
+                match self.feedback.step(Time::now()) {
+                    Ok(Some(mut s)) => {
+                        for (publisher, msg) in self.io.feedback.iter().zip(&s.feedback) {
+                            if let Err(e) = publisher.1.publish(msg.clone()) {
+                                tracing::debug!("{}: not sent ({e:?})", publisher.0);
+                            }
+                        }
+                        let msgs = std::mem::take(&mut s.feedback);
+                        let _ = self.events.send(Event::Feedback { stamp: Time::now(), msgs });
+                        stepped = Some(s);
+                    }
+                    Ok(None) => {}
+                    Err(e) => {
+                        self.feedback.pause();
+                        let _ = self.events.send(Event::Failed(e.to_string()));
+                    }
+                }
+                next_step += self.period;
+                // Behind by more than a few steps (a stall, or waking from sleep): start afresh.
+                if next_step + self.period * 5 < now {
+                    next_step = now + self.period;
+                }
+            } else if idle {
+                next_step = now;
+            }
+            if stepped.is_some() || changed || commanded {
+                self.publish_state(stepped);
+            }
+        }
+    }
+
+    /// Waits on every tool subscription (`true`) or stops waiting on them.
+    fn register(&mut self, on: bool) {
+        let registry = self.poll.registry();
+        for (i, tool) in self.io.tools.iter_mut().enumerate() {
+            let outcome = if on {
+                mio::event::Source::register(&mut tool.pose, registry, Token(2 * i), Interest::READABLE).and_then(
+                    |()| mio::event::Source::register(&mut tool.wrench, registry, Token(2 * i + 1), Interest::READABLE),
+                )
+            } else {
+                mio::event::Source::deregister(&mut tool.pose, registry)
+                    .and_then(|()| mio::event::Source::deregister(&mut tool.wrench, registry))
+            };
+            // Unregistered, the loop still reads the topic each step; it only reacts later.
+            if let Err(e) = outcome {
+                tracing::warn!("feedback thread: {}: {e}", tool.pose_topic);
+            }
+        }
+    }
+
+    /// Applies every waiting input; (a pose came, anything came).
+    fn take_inputs(&mut self) -> (bool, bool) {
+        let (mut posed, mut changed) = (false, false);
+        let now = Time::now();
+        for tool in &self.io.tools {
+            drain(&tool.pose, |msg| {
+                changed = true;
+                if self.feedback.apply_pose(&tool.pose_topic, &msg, now).is_ok() {
+                    posed = true;
+                    let pose = self.feedback.tool_on(&tool.pose_topic);
+                    let _ = self.events.send(Event::Pose { topic: tool.pose_topic.clone(), msg, tool: pose });
+                }
+            });
+            drain(&tool.wrench, |msg| {
+                changed = true;
+                if self.feedback.apply_wrench(&tool.wrench_topic, &msg, now).is_ok() {
+                    let _ = self.events.send(Event::Wrench { topic: tool.wrench_topic.clone(), msg });
+                }
+            });
+        }
+        (posed, changed)
+    }
+
+    /// Obeys the main thread; true when anything was told.
+    fn take_commands(&mut self) -> bool {
+        let mut any = false;
+        while let Ok(command) = self.commands.try_recv() {
+            any = true;
+            match command {
+                Command::Pause => self.feedback.pause(),
+                Command::Resume => self.feedback.resume(),
+                Command::Replace { feedback, io } => {
+                    self.feedback = *feedback;
+                    self.generation += 1;
+                    if let Some(io) = io {
+                        self.register(false);
+                        self.io = io;
+                        self.register(true);
+                    }
+                }
+            }
+        }
+        any
+    }
+
+    /// Hands the state to the main thread; a step it has not taken yet is kept unless a
+    /// newer one replaces it.
+    fn publish_state(&self, stepped: Option<crate::pipeline::Stepped>) {
+        let Ok(mut slot) = self.latest.lock() else { return };
+        let unread = slot.take().filter(|(generation, _)| *generation == self.generation);
+        let stepped = stepped.or_else(|| unread.and_then(|(_, s)| s.stepped));
+        *slot = Some((self.generation, LoopState { stepped, ..self.feedback.state() }));
+    }
+}
+
+/// Takes every waiting sample; undecodable ones are logged and skipped.
+pub(super) fn drain<T: serde::de::DeserializeOwned + 'static>(
+    subscription: &Subscription<T>,
+    mut apply: impl FnMut(T),
+) -> usize {
+    let mut n = 0;
+    loop {
+        match subscription.take() {
+            Ok(Some((msg, _))) => {
+                apply(msg);
+                n += 1;
+            }
+            Ok(None) => return n,
+            Err(e) => {
+                tracing::warn!("a tool sample could not be read: {e:?}");
+                return n;
+            }
+        }
+    }
+}
