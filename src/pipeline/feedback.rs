@@ -23,6 +23,7 @@ pub(super) const SLEEP_AFTER: u32 = 20;
 /// on one thread and 1.03 ms on two; a 4,800-node one 4.7 ms and 3.2 ms.
 const SERIAL_BELOW_NODES: usize = 2500;
 
+#[derive(Clone)]
 pub(super) struct ToolState {
     pub pose_topic: String,
     pub wrench_topic: String,
@@ -126,17 +127,7 @@ impl FeedbackLoop {
             engine_name: self.engine_name.clone(),
             engine_backend: self.engine_backend,
             nodes: self.nodes,
-            tools: (self.tools.iter())
-                .map(|t| ToolState {
-                    pose_topic: t.pose_topic.clone(),
-                    wrench_topic: t.wrench_topic.clone(),
-                    feedback_topic: t.feedback_topic.clone(),
-                    last_pose: t.last_pose,
-                    last_wrench: t.last_wrench,
-                    tool: t.tool.clone(),
-                    path: t.path.clone(),
-                })
-                .collect(),
+            tools: self.tools.clone(),
             frame_id: self.frame_id.clone(),
             limits: self.limits.clone(),
             counters: self.counters.clone(),
