@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # The whole test suite on a fresh Debian machine: installs what the tests need, then runs them.
-# Usage: tests/run.sh   (from anywhere; extra arguments go to `cargo test`)
+# Usage: tests/run.sh   (from anywhere; extra arguments go to `cargo nextest run`, or to
+# `cargo test` where nextest is missing)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -24,19 +25,41 @@ if ! command -v unshare >/dev/null 2>&1 || ! command -v ip >/dev/null 2>&1; then
     as_root env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq util-linux iproute2 >/dev/null
 fi
 
-# Independent peers and readers for the interop tests, in a virtual environment beside the
-# build: Foxglove's ROS 2 MCAP reader, rerun's CLI, Eclipse Cyclone DDS, iceoryx2's Python
-# binding, and the field's file tools (meshio, VTK, Gmsh, SimpleITK, nibabel, pynrrd).
-# Versions are pinned to what the Rust side speaks.
-venv="${CARGO_TARGET_DIR:-target}/interop-venv"
+# The build and the interop venv live outside the work tree, so a later clone on this machine
+# reuses them: $CARGO_TARGET_DIR, else ~/.cache/defvol/target (DEFVOL_CACHE moves the whole
+# cache). Cargo's fingerprints make a build cut short by a kill rebuild what it did not finish.
+cache="${DEFVOL_CACHE:-${XDG_CACHE_HOME:-$HOME/.cache}/defvol}"
+export CARGO_TARGET_DIR="${CARGO_TARGET_DIR:-$cache/target}"
+mkdir -p "$cache" "$CARGO_TARGET_DIR"
+# A cache past its cap is emptied before the build rather than left to fill the disk.
+cap_gb="${DEFVOL_CACHE_CAP_GB:-20}"
+used_gb=$(( $(du -sk "$CARGO_TARGET_DIR" | cut -f1) / 1048576 ))
+if [ "$used_gb" -ge "$cap_gb" ]; then
+    echo "tests/run.sh: $CARGO_TARGET_DIR holds ${used_gb} GB (cap ${cap_gb} GB, DEFVOL_CACHE_CAP_GB): emptying it"
+    rm -rf "$CARGO_TARGET_DIR" && mkdir -p "$CARGO_TARGET_DIR"
+fi
+# A cold build needs about 10 GB; a full disk is named here, not left to crash the linker.
+free_gb=$(( $(df -Pk "$CARGO_TARGET_DIR" | awk 'NR == 2 { print $4 }') / 1048576 ))
+if [ "$free_gb" -lt 10 ]; then
+    echo "tests/run.sh: only ${free_gb} GB free on the disk of $CARGO_TARGET_DIR; a build needs about 10 GB" >&2
+    echo "tests/run.sh: free space there, or point CARGO_TARGET_DIR at a disk with room" >&2
+    exit 1
+fi
+
+# Independent peers and readers for the interop tests: Foxglove's ROS 2 MCAP reader, rerun's
+# CLI, Eclipse Cyclone DDS, iceoryx2's Python binding, and the field's file tools (meshio,
+# VTK, Gmsh, SimpleITK, nibabel, pynrrd). Versions are pinned to what the Rust side speaks;
+# the venv is named by their hash and marked complete only once every package installed, so
+# a venv half-written by a killed run is made anew.
 requirements="mcap==1.6.0 mcap-ros2-support==0.6.0 rerun-sdk==0.36.3 cyclonedds==11.0.1 iceoryx2==0.10.0 SimpleITK==2.5.3 numpy==2.4.6 meshio==5.3.5 vtk==9.7.2 gmsh==4.15.2 nibabel==5.4.2 pynrrd==1.1.3"
+venv="$cache/interop-venv-$(echo "$requirements" | sha256sum | cut -c1-12)"
 if [ "$(cat "$venv/.requirements" 2>/dev/null)" != "$requirements" ]; then
     if ! python3 -m venv --help >/dev/null 2>&1 || ! python3 -c 'import ensurepip' >/dev/null 2>&1; then
         as_root apt-get update -qq
         as_root env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq python3-venv >/dev/null
     fi
     echo "tests/run.sh: installing the interop peers into $venv"
-    rm -rf "$venv"
+    rm -rf "$cache"/interop-venv-*
     python3 -m venv "$venv"
     "$venv/bin/pip" install -q $requirements
     echo "$requirements" > "$venv/.requirements"
@@ -54,4 +77,11 @@ export DEFVOL_REQUIRE_GPU=1
 cargo fmt --check
 cargo clippy --locked --all-targets -- -D warnings
 RUSTDOCFLAGS="-D warnings" cargo doc --locked --no-deps
-cargo test --locked "$@"
+# Each test in its own process under cargo-nextest where it is installed, else libtest's
+# threads (the tests are safe either way). Extra arguments go to the runner.
+if cargo nextest --version >/dev/null 2>&1; then
+    cargo nextest run --locked --no-fail-fast "$@"
+else
+    echo "tests/run.sh: cargo-nextest not found (cargo install --locked cargo-nextest): running cargo test"
+    cargo test --locked --no-fail-fast "$@"
+fi

@@ -2,8 +2,6 @@
 //! by Foxglove's independent ROS 2 MCAP reader), the rerun log verifies with rerun's own
 //! CLI, and a CPU replay is deterministic to the bit.
 
-#![cfg(feature = "mcap")]
-
 use std::path::{Path, PathBuf};
 use std::process::Command;
 

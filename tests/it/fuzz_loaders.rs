@@ -100,6 +100,31 @@ fn mutate(seed: &[u8], rng: &mut Rng) -> Vec<u8> {
     out
 }
 
+thread_local! {
+    /// Set while this thread fuzzes: its panics are kept here instead of printed.
+    static CAUGHT: std::cell::RefCell<Option<String>> = const { std::cell::RefCell::new(None) };
+}
+
+/// Runs `f`, keeping quiet about a panic on this thread and returning its message and place.
+/// The panic hook is process-wide and tests run side by side, so it is installed once and
+/// speaks for every other thread exactly as the hook before it did.
+fn quiet_catch(f: impl FnOnce()) -> Result<(), String> {
+    static INSTALL: std::sync::Once = std::sync::Once::new();
+    INSTALL.call_once(|| {
+        let previous = std::panic::take_hook();
+        std::panic::set_hook(Box::new(move |info| {
+            let quiet = CAUGHT.with(|caught| caught.borrow_mut().as_mut().map(|last| *last = info.to_string()));
+            if quiet.is_none() {
+                previous(info);
+            }
+        }));
+    });
+    CAUGHT.with(|caught| *caught.borrow_mut() = Some(String::new()));
+    let result = catch_unwind(AssertUnwindSafe(f));
+    let why = CAUGHT.with(|caught| caught.borrow_mut().take()).unwrap_or_default();
+    result.map_err(|_| why)
+}
+
 /// Runs `load` on `iterations` mutations of the seeds; a panic fails with the input.
 fn fuzz(what: &str, seeds: &[(String, Vec<u8>)], iterations: usize, mut load: impl FnMut(&str, &[u8])) {
     // DEFVOL_FUZZ_SEED explores other mutations than the suite's fixed ones.
@@ -110,28 +135,18 @@ fn fuzz(what: &str, seeds: &[(String, Vec<u8>)], iterations: usize, mut load: im
     for (name, seed) in seeds {
         load(name, seed);
     }
-    // Quiet while fuzzing, but the panic's message and place are kept for the report.
-    static LAST_PANIC: std::sync::Mutex<String> = std::sync::Mutex::new(String::new());
-    let previous = std::panic::take_hook();
-    std::panic::set_hook(Box::new(|info| {
-        if let Ok(mut last) = LAST_PANIC.lock() {
-            *last = info.to_string();
-        }
-    }));
     let mut failure = None;
     for iteration in 0..iterations {
         let (name, seed) = &seeds[rng.below(seeds.len())];
         let input = mutate(seed, &mut rng);
-        if catch_unwind(AssertUnwindSafe(|| load(name, &input))).is_err() {
-            failure = Some((iteration, name.clone(), input));
+        if let Err(why) = quiet_catch(|| load(name, &input)) {
+            failure = Some((iteration, name.clone(), input, why));
             break;
         }
     }
-    std::panic::set_hook(previous);
-    if let Some((iteration, name, input)) = failure {
+    if let Some((iteration, name, input, why)) = failure {
         let head: String =
             input.iter().take(400).map(|b| if b.is_ascii_graphic() || *b == b' ' { *b as char } else { '.' }).collect();
-        let why = LAST_PANIC.lock().map(|m| m.clone()).unwrap_or_default();
         panic!("{what}: input {iteration} (from {name}, {} bytes) panicked ({why}): `{head}`", input.len());
     }
 }

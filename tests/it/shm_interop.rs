@@ -1,7 +1,6 @@
 //! The warped volume reaches a subscriber in another language: iceoryx2's Python binding
 //! reads the header and the samples the pipeline's warp wrote into shared memory, and an
 //! oblique volume ITK wrote arrives where ITK puts it.
-#![cfg(feature = "shm")]
 
 use std::path::Path;
 use std::process::{Command, Output};
