@@ -75,13 +75,13 @@ export DEFVOL_REQUIRE_GPU=1
 # The code's shape, lints and API docs first: a change out of rustfmt shape, with a clippy
 # warning or a broken doc link fails the suite.
 cargo fmt --check
-cargo clippy --locked --all-targets -- -D warnings
-RUSTDOCFLAGS="-D warnings" cargo doc --locked --no-deps
+cargo clippy --locked --workspace --all-targets -- -D warnings
+RUSTDOCFLAGS="-D warnings" cargo doc --locked --workspace --no-deps
 # Each test in its own process under cargo-nextest where it is installed, else libtest's
 # threads (the tests are safe either way). Extra arguments go to the runner.
 if cargo nextest --version >/dev/null 2>&1; then
-    cargo nextest run --locked --no-fail-fast "$@"
+    cargo nextest run --locked --workspace --no-fail-fast "$@"
 else
     echo "tests/run.sh: cargo-nextest not found (cargo install --locked cargo-nextest): running cargo test"
-    cargo test --locked --no-fail-fast "$@"
+    cargo test --locked --workspace --no-fail-fast "$@"
 fi
