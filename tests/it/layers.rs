@@ -128,21 +128,22 @@ fn the_ground_floor_and_the_messages_stand_alone() {
 fn every_shader_sits_beside_its_host_code() {
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
     assert!(!root.join("shaders").exists(), "shaders live in their stage's folder, not in shaders/");
-    let src = root.join("src");
     let mut shaders = Vec::new();
-    let mut stack = vec![src.clone()];
-    while let Some(dir) = stack.pop() {
-        for entry in std::fs::read_dir(dir).unwrap() {
-            let path = entry.unwrap().path();
-            if path.is_dir() {
-                stack.push(path);
-            } else if path.extension().is_some_and(|e| e == "wgsl") {
-                shaders.push(path);
+    for src in source_roots() {
+        let mut stack = vec![src.clone()];
+        while let Some(dir) = stack.pop() {
+            for entry in std::fs::read_dir(dir).unwrap() {
+                let path = entry.unwrap().path();
+                if path.is_dir() {
+                    stack.push(path);
+                } else if path.extension().is_some_and(|e| e == "wgsl") {
+                    shaders.push((src.clone(), path));
+                }
             }
         }
     }
     assert!(shaders.len() >= 7, "{shaders:?}");
-    for shader in shaders {
+    for (src, shader) in shaders {
         let module = module_of(&src, &shader);
         assert!(
             STAGES.contains(&module.as_str()) || module == "gpu",

@@ -292,10 +292,10 @@ impl std::fmt::Debug for GpuContext {
     }
 }
 
-/// The GPU tests' context: any adapter, software included; `None` (the test skips) when
-/// there is none, unless DEFVOL_REQUIRE_GPU is set (tests/run.sh sets it).
-#[cfg(test)]
-pub(crate) fn test_context() -> Option<std::sync::Arc<GpuContext>> {
+/// The GPU tests' context, for every crate's agreement tests: any adapter, software
+/// included; `None` (the test skips) when there is none, unless DEFVOL_REQUIRE_GPU is set
+/// (tests/run.sh sets it), when it panics saying why.
+pub fn test_context() -> Option<std::sync::Arc<GpuContext>> {
     match GpuContext::open(AdapterPolicy::AllowSoftware) {
         Ok(ctx) => Some(std::sync::Arc::new(ctx)),
         Err(e) if std::env::var_os("DEFVOL_REQUIRE_GPU").is_some() => {
