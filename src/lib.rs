@@ -17,6 +17,7 @@ pub use defvol_core::{io, math, mesh, volume};
 pub use defvol_gpu::backend;
 #[cfg(feature = "gpu")]
 pub use defvol_gpu::gpu;
+pub use defvol_warp as warp;
 
 pub mod bench;
 pub mod dpcm;
@@ -30,4 +31,3 @@ pub mod session;
 #[cfg(feature = "shm")]
 pub mod shm;
 pub mod solver;
-pub mod warp;

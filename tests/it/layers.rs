@@ -29,30 +29,37 @@ fn module_of(src: &Path, file: &Path) -> String {
     first.trim_end_matches(".rs").to_owned()
 }
 
-/// The crate modules a file names (`crate::x`), outside comments.
+/// The workspace modules a file names (`crate::x`, `defvol_core::x`, `defvol_gpu::x`), outside
+/// comments. A stage crate's own `crate::` paths name its files, which are the stage itself.
 fn dependencies(text: &str) -> BTreeSet<String> {
     let mut found = BTreeSet::new();
     for line in text.lines() {
         let code = line.split("//").next().unwrap_or_default();
-        let mut rest = code;
-        while let Some(at) = rest.find("crate::") {
-            let after = &rest[at + "crate::".len()..];
-            let name: String = after.chars().take_while(|c| c.is_ascii_alphanumeric() || *c == '_').collect();
-            if !name.is_empty() {
-                found.insert(name);
+        for prefix in ["crate::", "defvol_core::", "defvol_gpu::"] {
+            let mut rest = code;
+            while let Some(at) = rest.find(prefix) {
+                let after = &rest[at + prefix.len()..];
+                let name: String = after.chars().take_while(|c| c.is_ascii_alphanumeric() || *c == '_').collect();
+                if !name.is_empty() {
+                    found.insert(name);
+                }
+                rest = after;
             }
-            rest = after;
         }
     }
     found
 }
 
-/// The source folders of the workspace: this crate's `src/` and each `crates/*/src/`.
-fn source_roots() -> Vec<PathBuf> {
+/// The source folders of the workspace: this crate's `src/` and each `crates/*/src/`, with
+/// the module a stage crate's files all belong to (`crates/defvol-warp/src` → `warp`).
+fn source_roots() -> Vec<(PathBuf, Option<String>)> {
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let mut roots = vec![root.join("src")];
+    let mut roots = vec![(root.join("src"), None)];
     for entry in std::fs::read_dir(root.join("crates")).unwrap() {
-        roots.push(entry.unwrap().path().join("src"));
+        let folder = entry.unwrap().path();
+        let name = folder.file_name().unwrap().to_string_lossy().trim_start_matches("defvol-").to_owned();
+        let stage = STAGES.contains(&name.as_str()).then_some(name);
+        roots.push((folder.join("src"), stage));
     }
     roots
 }
@@ -60,14 +67,14 @@ fn source_roots() -> Vec<PathBuf> {
 /// Every (module, dependency, file) in the workspace's libraries.
 fn edges() -> Vec<(String, String, PathBuf)> {
     let mut files = Vec::new();
-    for src in source_roots() {
+    for (src, stage) in source_roots() {
         let mut found = Vec::new();
         rust_files(&src, &mut found);
-        files.extend(found.into_iter().map(|file| (src.clone(), file)));
+        files.extend(found.into_iter().map(|file| (src.clone(), stage.clone(), file)));
     }
     let mut out = Vec::new();
-    for (src, file) in files {
-        let module = module_of(&src, &file);
+    for (src, stage, file) in files {
+        let module = stage.unwrap_or_else(|| module_of(&src, &file));
         if ["main", "lib", "cli", "bin"].contains(&module.as_str()) {
             continue;
         }
@@ -129,7 +136,7 @@ fn every_shader_sits_beside_its_host_code() {
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
     assert!(!root.join("shaders").exists(), "shaders live in their stage's folder, not in shaders/");
     let mut shaders = Vec::new();
-    for src in source_roots() {
+    for (src, stage) in source_roots() {
         let mut stack = vec![src.clone()];
         while let Some(dir) = stack.pop() {
             for entry in std::fs::read_dir(dir).unwrap() {
@@ -137,14 +144,14 @@ fn every_shader_sits_beside_its_host_code() {
                 if path.is_dir() {
                     stack.push(path);
                 } else if path.extension().is_some_and(|e| e == "wgsl") {
-                    shaders.push((src.clone(), path));
+                    shaders.push((src.clone(), stage.clone(), path));
                 }
             }
         }
     }
     assert!(shaders.len() >= 7, "{shaders:?}");
-    for (src, shader) in shaders {
-        let module = module_of(&src, &shader);
+    for (src, stage, shader) in shaders {
+        let module = stage.unwrap_or_else(|| module_of(&src, &shader));
         assert!(
             STAGES.contains(&module.as_str()) || module == "gpu",
             "{}: a shader outside the stages and gpu/",

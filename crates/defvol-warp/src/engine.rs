@@ -8,9 +8,9 @@ use std::sync::Arc;
 use nalgebra::Vector3;
 
 use super::{IncrementalWarp, WarpError, WarpOptions, WarpStats};
-use crate::backend::{Backend, BackendError};
-use crate::mesh::TetMesh;
-use crate::volume::{Grid, Volume};
+use defvol_core::mesh::TetMesh;
+use defvol_core::volume::{Grid, Volume};
+use defvol_gpu::backend::{Backend, BackendError};
 
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
@@ -95,7 +95,7 @@ impl WarpEngine {
     /// On the GPU: where another stage places the deformed nodes (then [`Self::advance`]
     /// with no host positions).
     #[cfg(feature = "gpu")]
-    pub fn device_nodes(&self) -> Option<&Arc<crate::gpu::DeviceNodes>> {
+    pub fn device_nodes(&self) -> Option<&Arc<defvol_gpu::gpu::DeviceNodes>> {
         match self {
             Self::Gpu { warp, .. } => Some(warp.nodes()),
             Self::Cpu { .. } => None,

@@ -16,7 +16,10 @@
 //! Output slices are processed in parallel, each visiting the tets that overlap it in tet
 //! order, so a run is deterministic and a voxel on a shared face takes the later tet's value.
 
-pub use crate::volume::bspline;
+// Errors are returned, not unwrapped (tests may unwrap).
+#![cfg_attr(not(test), deny(clippy::unwrap_used, clippy::expect_used))]
+
+pub use defvol_core::volume::bspline;
 pub mod engine;
 #[cfg(feature = "gpu")]
 pub mod gpu;
@@ -27,14 +30,14 @@ use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-pub use crate::volume::{tricubic, Sampling, SAMPLE_TOLERANCE};
 pub use bspline::DisplacementVolume;
 use bspline::{backward_all, CompiledDisplacement};
+pub use defvol_core::volume::{tricubic, Sampling, SAMPLE_TOLERANCE};
 
-use crate::math::Real;
-use crate::mesh::TetMesh;
-pub use crate::volume::trilinear;
-use crate::volume::{Grid, Volume, VolumeError};
+use defvol_core::math::Real;
+use defvol_core::mesh::TetMesh;
+pub use defvol_core::volume::trilinear;
+use defvol_core::volume::{Grid, Volume, VolumeError};
 
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
@@ -366,7 +369,7 @@ impl<'a> Sampler<'a> {
             let b = (i + nx * j + nxy * k) as usize;
             // One bounds check for the whole cell instead of one per corner.
             let cell = &data[b..=b + sx + sy + sz];
-            *slot = crate::volume::lerp_cube(
+            *slot = defvol_core::volume::lerp_cube(
                 |o| T::of_f32(cell[o]),
                 [sx, sy, sz],
                 [x - T::of_i32(i), y - T::of_i32(j), z - T::of_i32(k)],
@@ -862,8 +865,8 @@ impl IncrementalWarp {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::mesh::generate::{self, CellSplit};
-    use crate::volume::phantom;
+    use defvol_core::mesh::generate::{self, CellSplit};
+    use defvol_core::volume::phantom;
 
     /// Three buffers taking turns, as shared-memory samples do: each is brought from the
     /// warp it last held to the current one, and always equals a full warp.

@@ -17,9 +17,9 @@ use bytemuck::{Pod, Zeroable};
 use nalgebra::{Matrix3, Vector3};
 
 use super::{Sampling, WarpError, WarpOptions, WarpStats};
-use crate::gpu::{self, DeviceNodes, GpuContext, GpuError, Kernels};
-use crate::mesh::TetMesh;
-use crate::volume::{Grid, Volume};
+use defvol_core::mesh::TetMesh;
+use defvol_core::volume::{Grid, Volume};
+use defvol_gpu::gpu::{self, DeviceNodes, GpuContext, GpuError, Kernels};
 
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
@@ -120,7 +120,7 @@ impl GpuWarp {
             identity,
             groups: [fill.0, maps.0, warp.0, 0],
         };
-        use crate::gpu::Binding::{Read, ReadWrite, Uniform};
+        use defvol_gpu::gpu::Binding::{Read, ReadWrite, Uniform};
         let kernels = ctx.kernels(
             "warp.wgsl",
             include_str!("warp.wgsl"),
@@ -243,16 +243,16 @@ impl GpuWarp {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::mesh::generate::{self, CellSplit};
-    use crate::volume::phantom;
-    use crate::warp;
+    use crate as warp;
+    use defvol_core::mesh::generate::{self, CellSplit};
+    use defvol_core::volume::phantom;
     use nalgebra::Rotation3;
 
     /// GPU and CPU warps of the phantom through an upright, a rotated and bent mesh, and
     /// with the uncovered voxels kept: the same inside decisions and values.
     #[test]
     fn gpu_warp_matches_cpu() {
-        let Some(ctx) = crate::gpu::test_context() else { return };
+        let Some(ctx) = defvol_gpu::gpu::test_context() else { return };
         let source = phantom::phantom([64, 40, 31], 4.0).unwrap();
         let (lo, hi) = source.bounds();
         let mesh = generate::lattice_for_box(lo, hi, 700, CellSplit::Five).unwrap();
@@ -296,7 +296,7 @@ mod tests {
     /// over a millimetre volume) give the warp the host's positions give.
     #[test]
     fn displacements_on_the_device_warp_as_host_positions_do() {
-        let Some(ctx) = crate::gpu::test_context() else { return };
+        let Some(ctx) = defvol_gpu::gpu::test_context() else { return };
         let source = phantom::phantom([48, 30, 24], 5.0).unwrap();
         let (lo, hi) = source.bounds();
         let mesh = generate::lattice_for_box(lo, hi, 400, CellSplit::Five).unwrap();
