@@ -14,13 +14,13 @@
 #![cfg_attr(not(test), deny(clippy::unwrap_used, clippy::expect_used))]
 
 pub use defvol_core::{io, math, mesh, volume};
+pub use defvol_dpcm as dpcm;
 pub use defvol_gpu::backend;
 #[cfg(feature = "gpu")]
 pub use defvol_gpu::gpu;
 pub use defvol_warp as warp;
 
 pub mod bench;
-pub mod dpcm;
 pub mod msgs;
 pub mod pipeline;
 pub mod record;

@@ -9,8 +9,8 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::{DpcmError, ParamTexture};
-use crate::io;
-use crate::volume::Volume;
+use defvol_core::io;
+use defvol_core::volume::Volume;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]

@@ -2,7 +2,7 @@
 //! grid fits the adapter), else the CPU surface; one interface for both.
 
 use super::{DpcmConfig, DpcmError, Marker, StepStats, Surface};
-use crate::backend::Backend;
+use defvol_gpu::backend::Backend;
 
 pub enum DpcmEngine {
     Cpu(Surface),

@@ -4,8 +4,11 @@
 //!
 //! Heights Z are the distance from a phyxel's fixed point to its mass (metres), Z = rest
 //! height at rest; the state is kept as u = Z - rest height, exactly 0 at rest. [`Surface`] runs the CPU path (rayon over bands of rows); the GPU twin is
-//! `dpcm/gpu.rs` with `dpcm/dpcm.wgsl`, and [`engine`] runs either. Markers are binned into [`kernel::TILE`]² tiles, so a step costs the grid
+//! `gpu.rs` with `dpcm.wgsl`, and [`engine`] runs either. Markers are binned into [`kernel::TILE`]² tiles, so a step costs the grid
 //! plus each marker's footprint, never grid × markers.
+
+// Errors are returned, not unwrapped (tests may unwrap).
+#![cfg_attr(not(test), deny(clippy::unwrap_used, clippy::expect_used))]
 
 pub mod engine;
 #[cfg(feature = "gpu")]
@@ -24,11 +27,11 @@ use kernel::{Coeffs, FixedRest, KernelMarker, PlasticRest, Rows, UniformRest, TI
 
 /// The presets in `config/dpcm/`, compiled in: (name, YAML).
 pub const PRESETS: [(&str, &str); 5] = [
-    ("water", include_str!("../../config/dpcm/water.yaml")),
-    ("loose_soil", include_str!("../../config/dpcm/loose_soil.yaml")),
-    ("sand", include_str!("../../config/dpcm/sand.yaml")),
-    ("oil_painting", include_str!("../../config/dpcm/oil_painting.yaml")),
-    ("fossil", include_str!("../../config/dpcm/fossil.yaml")),
+    ("water", include_str!("../../../config/dpcm/water.yaml")),
+    ("loose_soil", include_str!("../../../config/dpcm/loose_soil.yaml")),
+    ("sand", include_str!("../../../config/dpcm/sand.yaml")),
+    ("oil_painting", include_str!("../../../config/dpcm/oil_painting.yaml")),
+    ("fossil", include_str!("../../../config/dpcm/fossil.yaml")),
 ];
 
 #[derive(Debug, thiserror::Error)]

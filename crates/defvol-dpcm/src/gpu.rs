@@ -11,7 +11,7 @@ use bytemuck::{Pod, Zeroable};
 
 use super::kernel::{Coeffs, KernelMarker, TILE};
 use super::{to_kernel_markers, DpcmConfig, DpcmError, Marker, MarkerBins, StepStats, Surface};
-use crate::gpu::{GpuContext, GpuError, Kernels};
+use defvol_gpu::gpu::{GpuContext, GpuError, Kernels};
 
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
@@ -76,7 +76,7 @@ impl GpuSurface {
         let config = surface.config().clone();
         let phyxels = config.width * config.height;
         ctx.require_binding_size("the DPCM grid", phyxels as u64 * 4)?;
-        use crate::gpu::Binding::{Read, ReadWrite, Uniform};
+        use defvol_gpu::gpu::Binding::{Read, ReadWrite, Uniform};
         let Kernels { layout, pipelines: [pipeline] } = ctx.kernels(
             "dpcm.wgsl",
             include_str!("dpcm.wgsl"),
@@ -233,14 +233,14 @@ fn uniform_block(config: &DpcmConfig, coeffs: Coeffs, tiles_x: usize, flags: u32
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::dpcm::markers::{Pattern, Script};
-    use crate::dpcm::{Interaction, Topology};
+    use crate::markers::{Pattern, Script};
+    use crate::{Interaction, Topology};
 
     /// The GPU step against the CPU step, over every topology and ground kind, with
     /// markers moving: same state within f32 round-off (the GPU may fuse multiply-adds).
     #[test]
     fn gpu_steps_match_the_cpu_surface() {
-        let Some(ctx) = crate::gpu::test_context() else { return };
+        let Some(ctx) = defvol_gpu::gpu::test_context() else { return };
         let cases = [
             (Topology::Eight, 1.0, Interaction::DampedSpring { stiffness: 0.5, damping: 5e-4 }),
             (Topology::Four, 1.0, Interaction::Plastic { stiffness: 20.0, damping: 0.02, threshold: 3e-4 }),
@@ -278,7 +278,7 @@ mod tests {
 
     #[test]
     fn a_gpu_grid_at_rest_stays_bit_exact() {
-        let Some(ctx) = crate::gpu::test_context() else { return };
+        let Some(ctx) = defvol_gpu::gpu::test_context() else { return };
         let mut c = DpcmConfig::preset("fossil").unwrap();
         (c.width, c.height) = (40, 33);
         c.rest_height = 0.0037;
