@@ -18,6 +18,7 @@ pub use defvol_dpcm as dpcm;
 pub use defvol_gpu::backend;
 #[cfg(feature = "gpu")]
 pub use defvol_gpu::gpu;
+pub use defvol_solver as solver;
 pub use defvol_warp as warp;
 
 pub mod bench;
@@ -30,4 +31,3 @@ pub mod scene;
 pub mod session;
 #[cfg(feature = "shm")]
 pub mod shm;
-pub mod solver;

@@ -5,7 +5,7 @@ use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 
 use super::SolverError;
-use crate::mesh::TetMesh;
+use defvol_core::mesh::TetMesh;
 
 /// One row of a tissue table: springs whose sampled intensity is `intensity` get these values;
 /// intensities between rows are interpolated linearly, beyond the ends clamped.
@@ -281,7 +281,7 @@ impl MassSpringModel {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::mesh::generate;
+    use defvol_core::mesh::generate;
 
     #[test]
     fn lumped_mass_sums_to_body_mass() {

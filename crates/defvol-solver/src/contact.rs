@@ -140,7 +140,7 @@ impl Surface {
             return index;
         }
         self.bvh.push(BvhNode { lo: zero, hi: zero, start: 0, count: 0 });
-        let (lo, hi) = crate::mesh::bounds(&order.iter().map(|&f| centroids[f as usize]).collect::<Vec<_>>());
+        let (lo, hi) = defvol_core::mesh::bounds(&order.iter().map(|&f| centroids[f as usize]).collect::<Vec<_>>());
         let axis = (hi - lo).imax();
         let mid = order.len() / 2;
         order.select_nth_unstable_by(mid, |a, b| centroids[*a as usize][axis].total_cmp(&centroids[*b as usize][axis]));
@@ -395,8 +395,8 @@ pub fn closest_on_triangle(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::mesh::generate::{self, CellSplit};
     use approx::assert_relative_eq;
+    use defvol_core::mesh::generate::{self, CellSplit};
 
     /// The closest point is the minimiser of the distance: no point of a fine barycentric
     /// grid over the triangle is nearer.
@@ -424,7 +424,7 @@ mod tests {
         }
     }
 
-    fn slab() -> (crate::mesh::TetMesh, Surface) {
+    fn slab() -> (defvol_core::mesh::TetMesh, Surface) {
         let mesh =
             generate::lattice(Vector3::new(0.0, 0.0, -0.06), Vector3::new(0.1, 0.1, 0.0), [6, 6, 4], CellSplit::Five)
                 .unwrap();

@@ -14,7 +14,7 @@ use nalgebra::Vector3;
 use super::cpu::CgStats;
 use super::kernels::ContactTool;
 use super::{Integrator, MassSpringModel, Simulation, SolverError, SolverParams, StepReport, Tool};
-use crate::gpu::{GpuContext, GpuError};
+use defvol_gpu::gpu::{GpuContext, GpuError};
 
 /// Storage buffers the solver shader binds at once.
 const STORAGE_BUFFERS: u32 = 25;
@@ -510,8 +510,8 @@ fn check_tools(tools: &[Tool]) -> Result<(), GpuSolverError> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::mesh::generate;
-    use crate::solver::{FixedNodes, Material, ToolShape};
+    use crate::{FixedNodes, Material, ToolShape};
+    use defvol_core::mesh::generate;
     use nalgebra::Isometry3;
 
     fn cantilever() -> MassSpringModel {
@@ -526,14 +526,14 @@ mod tests {
     /// Every integrator, with a tool pressing in: GPU and CPU (f32) agree after 100 steps.
     #[test]
     fn gpu_matches_cpu_for_every_integrator() {
-        let Some(ctx) = crate::gpu::test_context() else { return };
+        let Some(ctx) = defvol_gpu::gpu::test_context() else { return };
         let model = cantilever();
         for integrator in Integrator::ALL {
             let dt = if integrator == Integrator::ImplicitEuler { 0.005 } else { 2e-4 };
             let params =
                 SolverParams { integrator, dt, cg_tolerance: 1e-6, cg_check_interval: 4, ..Default::default() };
             let mut tool = Tool::new(ToolShape::Sphere { radius: 0.01 }, 500.0);
-            tool.contact = crate::solver::ContactModel::Nodes;
+            tool.contact = crate::ContactModel::Nodes;
             tool.world_from_tool = Isometry3::translation(0.1, 0.015, 0.038);
             tool.applied_force = Vector3::new(0.0, 0.0, -0.05);
             let mut cpu = Simulation::<f32>::new(&model, params.clone(), vec![tool.clone()]).unwrap();

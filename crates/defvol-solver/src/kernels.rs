@@ -13,7 +13,7 @@
 
 use nalgebra::{Matrix3, Vector3};
 
-use crate::math::Real;
+use defvol_core::math::Real;
 
 /// Per-spring quantities of one implicit step.
 #[derive(Debug, Clone, Copy, PartialEq)]

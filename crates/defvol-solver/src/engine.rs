@@ -4,7 +4,7 @@
 use nalgebra::Vector3;
 
 use super::{MassSpringModel, Simulation, SolverError, SolverParams, StepReport, Tool};
-use crate::backend::{Backend, BackendError};
+use defvol_gpu::backend::{Backend, BackendError};
 
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]

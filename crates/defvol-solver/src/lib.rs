@@ -1,7 +1,10 @@
 //! Mass-spring dynamics on tetrahedral meshes (seed 000, sections 3-4): explicit Euler,
 //! Verlet, velocity Verlet, and implicit Euler in the Baraff-Witkin form solved by
 //! preconditioned conjugate gradient. [`cpu::Simulation`] is the CPU path (f32, or f64 as the
-//! reference); `crate::gpu::solver` runs the same kernels in WGSL.
+//! reference); `gpu.rs` (feature `gpu`) runs the same kernels in WGSL (`solver.wgsl`).
+
+// Errors are returned, not unwrapped (tests may unwrap).
+#![cfg_attr(not(test), deny(clippy::unwrap_used, clippy::expect_used))]
 
 pub mod amg;
 pub mod contact;

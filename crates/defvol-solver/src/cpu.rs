@@ -10,7 +10,7 @@ use super::kernels::{self, ContactTool, SpringTerms};
 use super::model::MassSpringModel;
 use super::tool::{spread_weights, ContactModel, Tool};
 use super::{Integrator, Preconditioner, Reaction, SolverError, SolverParams, StepReport};
-use crate::math::Real;
+use defvol_core::math::Real;
 
 /// Nodes per parallel chunk; also the unit of the deterministic reductions.
 const CHUNK: usize = 1024;
@@ -143,7 +143,7 @@ impl<T: Real> Simulation<T> {
         let conv = |v: &[f64]| v.iter().map(|x| T::of(*x)).collect::<Vec<T>>();
         let rest_edge =
             model.springs.iter().map(|[a, b]| (model.rest[*b as usize] - model.rest[*a as usize]).map(T::of)).collect();
-        let (lo, hi) = crate::mesh::bounds(&model.rest);
+        let (lo, hi) = defvol_core::mesh::bounds(&model.rest);
         let multigrid = params.preconditioner == Preconditioner::Amg;
         Ok(Self {
             params,
