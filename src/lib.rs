@@ -18,6 +18,7 @@ pub use defvol_dpcm as dpcm;
 pub use defvol_gpu::backend;
 #[cfg(feature = "gpu")]
 pub use defvol_gpu::gpu;
+pub use defvol_render as render;
 pub use defvol_solver as solver;
 pub use defvol_warp as warp;
 
@@ -25,7 +26,6 @@ pub mod bench;
 pub mod msgs;
 pub mod pipeline;
 pub mod record;
-pub mod render;
 pub mod ros;
 pub mod scene;
 pub mod session;

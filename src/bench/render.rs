@@ -415,7 +415,7 @@ fn volume_gpu_row(
     };
     let (image, samples) =
         gpu_frames(opts.runs, || raycaster.render(camera)).map_err(|e| RenderBenchError::Gpu(e.to_string()))?;
-    let params = &prepared.params;
+    let params = prepared.params();
     emit(&BenchRow {
         stage: "render",
         case: case.to_owned(),
@@ -425,7 +425,7 @@ fn volume_gpu_row(
         runs: samples.len(),
         time_ms: time_stats(samples),
         error: Some(ErrorMeasure { metric: "psnr_db", value: image.psnr(reference), reference: "f64 point sampling" }),
-        work: json!({"rays": camera.width * camera.height, "voxels": prepared.volume.len()}),
+        work: json!({"rays": camera.width * camera.height, "voxels": prepared.volume().len()}),
     });
     Ok(())
 }

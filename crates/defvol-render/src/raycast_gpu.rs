@@ -18,8 +18,8 @@ use super::raycast::{
 };
 use super::transfer::Tables;
 use super::{RenderError, Rendered};
-use crate::gpu::{self, GpuContext, GpuError, Kernels};
-use crate::volume::Grid;
+use defvol_core::volume::Grid;
+use defvol_gpu::gpu::{self, GpuContext, GpuError, Kernels};
 
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
@@ -131,7 +131,7 @@ impl GpuVolumeRaycaster {
         params: &RaycastParams,
         gradient_scale: f32,
     ) -> Result<Self, GpuRenderError> {
-        use crate::gpu::Binding::{Read, ReadWrite, Uniform};
+        use defvol_gpu::gpu::Binding::{Read, ReadWrite, Uniform};
         let kernels = ctx.kernels(
             "raycast.wgsl",
             concat!(include_str!("camera_tools.wgsl"), include_str!("raycast.wgsl")),
@@ -283,14 +283,14 @@ impl GpuVolumeRaycaster {
 #[cfg(test)]
 pub(crate) mod tests {
     use super::*;
-    use crate::render::raycast::RaycastParams;
-    use crate::render::transfer::TransferFunction;
+    use crate::raycast::RaycastParams;
+    use crate::transfer::TransferFunction;
     use nalgebra::{Point3, Vector3};
 
     #[test]
     fn gpu_frames_match_the_cpu_raycaster() {
-        let Some(ctx) = crate::gpu::test_context() else { return };
-        let volume = crate::volume::phantom::phantom([96, 60, 46], 8.0 / 3.0).unwrap();
+        let Some(ctx) = defvol_gpu::gpu::test_context() else { return };
+        let volume = defvol_core::volume::phantom::phantom([96, 60, 46], 8.0 / 3.0).unwrap();
         let (lo, hi) = volume.bounds();
         let centre = Point3::from((lo + hi) / 2.0);
         let camera = Camera::look_at(
@@ -373,8 +373,8 @@ pub(crate) mod tests {
     /// another stage rewrote shows the new contents.
     #[test]
     fn device_macro_cells_cover_the_cpu_ones_and_follow_the_volume() {
-        let Some(ctx) = crate::gpu::test_context() else { return };
-        let volume = crate::volume::phantom::phantom([80, 50, 40], 3.2).unwrap();
+        let Some(ctx) = defvol_gpu::gpu::test_context() else { return };
+        let volume = defvol_core::volume::phantom::phantom([80, 50, 40], 3.2).unwrap();
         let soft = TransferFunction::preset("ct_soft_tissue").unwrap();
         let params = RaycastParams { shading: Shading::None, ..Default::default() };
         let prepared = VolumeRaycaster::new(&volume, &soft, &params).unwrap();
@@ -417,7 +417,7 @@ pub(crate) mod tests {
             .collect();
         ctx.queue.write_buffer(&buffer, 0, bytemuck::cast_slice(&flipped));
         gpu.volume_changed();
-        let flipped_volume = crate::volume::Volume::from_grid(&volume.grid(), flipped, "flipped").unwrap();
+        let flipped_volume = defvol_core::volume::Volume::from_grid(&volume.grid(), flipped, "flipped").unwrap();
         let cpu = VolumeRaycaster::with_tables(&flipped_volume, prepared.tables.clone(), &params)
             .unwrap()
             .render(&camera)

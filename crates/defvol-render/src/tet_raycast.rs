@@ -24,7 +24,7 @@ use super::raycast::{nearest_tool, ToolPicture, MAX_TOOLS};
 use super::source_raycast::SourceLook;
 use super::transfer::{SegmentTable, Tables, TransferFunction};
 use super::{RenderError, Rendered};
-use crate::mesh::{TetMesh, TET_FACES};
+use defvol_core::mesh::{TetMesh, TET_FACES};
 
 #[derive(Debug, Clone, PartialEq)]
 pub struct TetRaycastParams {

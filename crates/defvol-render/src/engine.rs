@@ -11,8 +11,8 @@ use super::raycast::{RaycastParams, ToolPicture, VolumeRaycaster};
 use super::tet_raycast::TetRaycaster;
 use super::transfer::Tables;
 use super::{RenderError, Rendered};
-use crate::backend::{Backend, BackendError};
-use crate::volume::Volume;
+use defvol_core::volume::Volume;
+use defvol_gpu::backend::{Backend, BackendError};
 
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
@@ -69,7 +69,7 @@ impl VolumeRenderer {
     /// another stage rewrites (the GPU warp's output); the tables' range is `volume`'s.
     #[cfg(feature = "gpu")]
     pub fn on_device(
-        ctx: Arc<crate::gpu::GpuContext>,
+        ctx: Arc<defvol_gpu::gpu::GpuContext>,
         samples: wgpu::Buffer,
         volume: &Volume,
         tables: &Tables,
@@ -158,7 +158,7 @@ impl MeshRenderer {
 
     /// On the GPU: where another stage places the deformed nodes (then [`Self::refresh`]).
     #[cfg(feature = "gpu")]
-    pub fn device_nodes(&self) -> Option<&Arc<crate::gpu::DeviceNodes>> {
+    pub fn device_nodes(&self) -> Option<&Arc<defvol_gpu::gpu::DeviceNodes>> {
         match self {
             Self::Gpu(g) => Some(g.nodes()),
             Self::Cpu(_) => None,

@@ -13,7 +13,7 @@ use serde::{Deserialize, Serialize};
 use super::camera::Camera;
 use super::transfer::{Tables, TransferFunction};
 use super::{RenderError, Rendered};
-use crate::volume::{trilinear, Grid, Volume};
+use defvol_core::volume::{trilinear, Grid, Volume};
 
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -265,6 +265,16 @@ pub struct VolumeRaycaster<'a> {
 }
 
 impl<'a> VolumeRaycaster<'a> {
+    /// The parameters it was prepared with (the benches name them in their rows).
+    pub fn params(&self) -> &RaycastParams {
+        &self.params
+    }
+
+    /// The volume it casts through.
+    pub fn volume(&self) -> &'a Volume {
+        self.volume
+    }
+
     pub fn new(volume: &'a Volume, tf: &TransferFunction, params: &RaycastParams) -> Result<Self, RenderError> {
         let tables = Self::tables_for(volume.range(), tf, params)?;
         Self::with_tables(volume, Arc::new(tables), params)
@@ -403,7 +413,7 @@ pub(crate) fn sample_clamped(data: &[f32], [nx, ny, nz]: [usize; 3], p: &Vector3
     let ((i, fx), (j, fy), (k, fz)) = (axis(p.x, nx), axis(p.y, ny), axis(p.z, nz));
     let (sx, sy, sz) = (usize::from(nx > 1), if ny > 1 { nx } else { 0 }, if nz > 1 { nx * ny } else { 0 });
     let base = i + nx * (j + ny * k);
-    crate::volume::lerp_cube(|o| data[base + o], [sx, sy, sz], [fx, fy, fz])
+    defvol_core::volume::lerp_cube(|o| data[base + o], [sx, sy, sz], [fx, fy, fz])
 }
 
 struct Caster<'a> {

@@ -4,6 +4,9 @@
 //! which also shows the source volume through the deformed mesh (`source_raycast.rs`);
 //! both shaders share `camera_tools.wgsl`. [`engine`] runs either on the run's backend.
 
+// Errors are returned, not unwrapped (tests may unwrap).
+#![cfg_attr(not(test), deny(clippy::unwrap_used, clippy::expect_used))]
+
 pub mod camera;
 pub mod engine;
 pub mod raycast;

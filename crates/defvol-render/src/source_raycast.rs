@@ -26,9 +26,9 @@ use super::raycast::{cell_ranges, gradient_scale, Mode, RaycastParams, Shading, 
 use super::tet_raycast::{linear_field, TetRaycastParams, TetRaycaster, V3};
 use super::transfer::{Tables, TransferFunction};
 use super::RenderError;
-use crate::mesh::TetMesh;
-use crate::volume::bspline::{backward_all, compile_all, CompiledDisplacement, DisplacementVolume};
-use crate::volume::{tricubic, trilinear, Grid, Sampling, Volume, SAMPLE_TOLERANCE};
+use defvol_core::mesh::TetMesh;
+use defvol_core::volume::bspline::{backward_all, compile_all, CompiledDisplacement, DisplacementVolume};
+use defvol_core::volume::{tricubic, trilinear, Grid, Sampling, Volume, SAMPLE_TOLERANCE};
 
 /// How the source is read at a sample's rest position.
 #[derive(Debug, Clone, PartialEq)]
@@ -165,7 +165,7 @@ fn check_overlap(mesh: &TetMesh, volume: &Volume) -> Result<(), RenderError> {
             grid.world_from_index(ijk)
         })
         .collect();
-    let (vlo, vhi) = crate::mesh::bounds(&corners);
+    let (vlo, vhi) = defvol_core::mesh::bounds(&corners);
     let (mlo, mhi) = mesh.bounds();
     let apart = (0..3).any(|a| mhi[a] < vlo[a] || mlo[a] > vhi[a]);
     if apart {

@@ -20,8 +20,8 @@ use super::raycast_gpu::{camera_block, GpuRenderError};
 use super::source_raycast::{SourceLook, TetMap, EDGE_TOLERANCE};
 use super::tet_raycast::{TetGeometry, TetRaycaster, TILE};
 use super::{RenderError, Rendered};
-use crate::gpu::{self, DeviceNodes, GpuContext, Kernels};
-use crate::volume::Sampling;
+use defvol_core::volume::Sampling;
+use defvol_gpu::gpu::{self, DeviceNodes, GpuContext, Kernels};
 
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable)]
@@ -94,7 +94,7 @@ impl GpuTetRaycaster {
             return Err(RenderError::Parameter(format!("unit scale {to_file} must be finite and > 0")).into());
         }
         ctx.require_storage_buffers("the mesh raycaster", 11)?;
-        use crate::gpu::Binding::{Read, ReadWrite, Uniform};
+        use defvol_gpu::gpu::Binding::{Read, ReadWrite, Uniform};
         let kernels = ctx.kernels(
             "tet_raycast.wgsl",
             concat!(include_str!("camera_tools.wgsl"), include_str!("tet_raycast.wgsl")),
@@ -426,19 +426,19 @@ fn fill_tools(block: &mut [[f32; 4]; 3 * MAX_TOOLS], tools: &[ToolPicture], anch
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::mesh::generate::{self, CellSplit};
-    use crate::mesh::TetMesh;
-    use crate::render::camera::Projection;
-    use crate::render::raycast_gpu::tests::compare;
-    use crate::render::tet_raycast::TetRaycastParams;
-    use crate::render::transfer::TransferFunction;
-    use crate::volume::Volume;
+    use crate::camera::Projection;
+    use crate::raycast_gpu::tests::compare;
+    use crate::tet_raycast::TetRaycastParams;
+    use crate::transfer::TransferFunction;
+    use defvol_core::mesh::generate::{self, CellSplit};
+    use defvol_core::mesh::TetMesh;
+    use defvol_core::volume::Volume;
     use nalgebra::Point3;
 
     /// The coarse phantom, a lattice of about `tets` over it, its centre, and two views:
     /// from outside, and with the eye in the organ looking along it.
     fn phantom_views(tets: usize) -> (Volume, TetMesh, Point3<f64>, Camera, Camera) {
-        let volume = crate::volume::phantom::phantom([64, 40, 31], 4.0).unwrap();
+        let volume = defvol_core::volume::phantom::phantom([64, 40, 31], 4.0).unwrap();
         let (lo, hi) = volume.bounds();
         let mesh = generate::lattice_for_box(lo, hi, tets, CellSplit::Five).unwrap();
         let centre = Point3::from((lo + hi) / 2.0);
@@ -480,7 +480,7 @@ mod tests {
 
     #[test]
     fn gpu_frames_match_the_cpu_tet_raycaster() {
-        let Some(ctx) = crate::gpu::test_context() else { return };
+        let Some(ctx) = defvol_gpu::gpu::test_context() else { return };
         let (volume, mesh, centre, outside_view, inside_view) = phantom_views(6000);
         let outside = volume.range().0;
         let scalars: Vec<f32> = mesh.nodes().iter().map(|p| volume.sample_world(*p).unwrap_or(outside)).collect();
@@ -522,9 +522,9 @@ mod tests {
 
     #[test]
     fn gpu_frames_of_the_source_through_the_mesh_match_the_cpu() {
-        use crate::render::raycast::{RaycastParams, Shading};
-        use crate::render::source_raycast::SourceSampling;
-        let Some(ctx) = crate::gpu::test_context() else { return };
+        use crate::raycast::{RaycastParams, Shading};
+        use crate::source_raycast::SourceSampling;
+        let Some(ctx) = defvol_gpu::gpu::test_context() else { return };
         let (volume, mesh, centre, outside_view, inside_view) = phantom_views(3000);
         let volume = Arc::new(volume);
         let tf = TransferFunction::preset("ct_soft_tissue").unwrap();
@@ -554,7 +554,7 @@ mod tests {
             compare(&cpu.render(camera).unwrap(), &gpu.render(camera).unwrap(), &format!("{what}, bent"), 0.5);
         }
         // What the GPU path does not do is refused by name (the CPU does it).
-        let tricubic = SourceSampling { sampling: crate::volume::Sampling::Tricubic, ..Default::default() };
+        let tricubic = SourceSampling { sampling: defvol_core::volume::Sampling::Tricubic, ..Default::default() };
         let cpu = TetRaycaster::with_source(&mesh, volume.clone(), &tf, &step, &tricubic).unwrap();
         let e = GpuTetRaycaster::new(ctx.clone(), &cpu, 1.0).err().unwrap().to_string();
         assert!(e.contains("tricubic"), "{e}");
@@ -565,8 +565,8 @@ mod tests {
     /// start too small grow and give the same frame.
     #[test]
     fn displacements_on_the_device_render_as_host_positions_do() {
-        let Some(ctx) = crate::gpu::test_context() else { return };
-        let volume = crate::volume::phantom::phantom([64, 40, 31], 4.0).unwrap();
+        let Some(ctx) = defvol_gpu::gpu::test_context() else { return };
+        let volume = defvol_core::volume::phantom::phantom([64, 40, 31], 4.0).unwrap();
         let (lo, hi) = volume.bounds();
         let mesh = generate::lattice_for_box(lo, hi, 3000, CellSplit::Five).unwrap();
         let outside = volume.range().0;
