@@ -1,5 +1,5 @@
 //! The phyxel update, shared by every CPU path and mirrored line by line in
-//! `shaders/dpcm.wgsl`.
+//! `dpcm.wgsl`.
 //!
 //! Z(n+1) = 2·Z(n) - Z(n-1) + F·h²/m (the seed's Verlet form), with every force already
 //! scaled by h²/m (stiffness) or h/m (damping; velocities are per step, Z(n) - Z(n-1)).

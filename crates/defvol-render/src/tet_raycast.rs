@@ -1,5 +1,5 @@
 //! The tetrahedral-mesh raycaster (seed 000, section 5), CPU path, line by line the twin of
-//! `shaders/tet_raycast.wgsl`:
+//! `tet_raycast.wgsl` beside it:
 //! - boundary faces are binned into 8x8-pixel tiles (`bin_boundary`); a ray's entry is
 //!   the nearest front-facing boundary face of its tile;
 //! - the walk leaves each tet through the face with the smallest ray parameter ahead and

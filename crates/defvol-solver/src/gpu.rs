@@ -67,7 +67,7 @@ struct CgScalars {
     done: u32,
 }
 
-/// The entry points of `shaders/solver.wgsl`; the discriminant indexes the pipelines.
+/// The entry points of `solver.wgsl`; the discriminant indexes the pipelines.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Kernel {
     SpringTerms,

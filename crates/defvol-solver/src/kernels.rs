@@ -1,5 +1,5 @@
 //! Per-element kernels of the solver, written once for the CPU and kept line-by-line
-//! comparable with `shaders/solver.wgsl` (same names, same order of operations).
+//! comparable with `solver.wgsl` (same names, same order of operations).
 //!
 //! Sign conventions: spring e joins (a, b); `force` is the force on a (the force on b is
 //! its negative); `kv` is K_e (v_b - v_a). The system (seed eq. 9, Baraff-Witkin) is

@@ -445,7 +445,7 @@ fn initial_value<T: Real>(
 }
 
 /// Rasterizes `maps` into the output slice k (x-fastest rows), restricted to the inclusive
-/// box `[lo, hi]` in (i, j). The CPU twin of `shaders/warp.wgsl`.
+/// box `[lo, hi]` in (i, j). The CPU twin of `warp.wgsl`.
 #[allow(clippy::too_many_arguments)]
 fn rasterize_slice<T: Real>(
     slice: &mut [T],
