@@ -30,7 +30,7 @@ fn solver(c: &mut Criterion) {
                 if !settled {
                     continue;
                 }
-                let label = format!("{}/{}", integrator.name(), engine.backend());
+                let label = format!("{}/{}", integrator.name(), engine.runs_on());
                 group.bench_with_input(BenchmarkId::new(label, size), &size, |b, _| b.iter(|| engine.step()));
             }
         }

@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 use nalgebra::{Isometry3, Vector3};
 use serde::{Deserialize, Serialize};
 
-use crate::backend::BackendChoice;
+use crate::backend::{Backend, BackendChoice, BackendError};
 use crate::io::{self, IoError};
 use crate::mesh::generate::{self, CellSplit};
 use crate::mesh::{MeshError, TetMesh};
@@ -181,14 +181,36 @@ pub enum CameraShows {
 }
 
 impl Scene {
-    /// The run's backend: `choice` (a command line's) over the scene's own, resolved once.
-    pub fn backend(
-        &self,
-        choice: Option<BackendChoice>,
-        allow_software_gpu: bool,
-    ) -> Result<crate::backend::Backend, crate::backend::BackendError> {
-        crate::backend::Backend::choose(choice.unwrap_or(self.backend), allow_software_gpu || self.allow_software_gpu)
+    /// The run's backend: the command line's over the scene's own, resolved once.
+    pub fn backend(&self, args: &BackendArgs) -> Result<Backend, BackendError> {
+        Backend::choose(args.backend.unwrap_or(self.backend), args.allow_software_gpu || self.allow_software_gpu)
     }
+}
+
+/// The command line's backend options, flattened into every command that runs a stage.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, clap::Args)]
+pub struct BackendArgs {
+    /// Where the stages run: auto (the GPU when a hardware adapter exists, else the CPU),
+    /// cpu, or gpu (an error without a usable adapter). Default: the scene's `backend`;
+    /// auto for a command without a scene; cpu for `replay`, where it is deterministic.
+    #[arg(long, value_parser = backend_choice_parser())]
+    pub backend: Option<BackendChoice>,
+    /// Let a software adapter (lavapipe, llvmpipe) count as a GPU: correctness, not speed.
+    #[arg(long)]
+    pub allow_software_gpu: bool,
+}
+
+impl BackendArgs {
+    /// The backend of a command without a scene: `--backend`, else `default`.
+    pub fn choose_or(&self, default: BackendChoice) -> Result<Backend, BackendError> {
+        Backend::choose(self.backend.unwrap_or(default), self.allow_software_gpu)
+    }
+}
+
+/// `auto | cpu | gpu`, listed by `--help`.
+fn backend_choice_parser() -> impl clap::builder::TypedValueParser<Value = BackendChoice> {
+    use clap::builder::TypedValueParser as _;
+    clap::builder::PossibleValuesParser::new(["auto", "cpu", "gpu"]).try_map(|name| name.parse::<BackendChoice>())
 }
 
 /// The raycast camera and what it shows.

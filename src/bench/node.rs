@@ -8,7 +8,7 @@ use std::time::Instant;
 use serde_json::json;
 
 use super::{cpu_description, time_stats, BenchRow};
-use crate::backend::{Backend, BackendChoice};
+use crate::backend::{Backend, BackendChoice, RunsOn};
 use crate::msgs::{Header, Pose, PoseStamped, Time};
 use crate::pipeline::inputs::InputLimits;
 use crate::pipeline::{Demand, FrameMode, Pipeline, PipelineError};
@@ -119,7 +119,7 @@ fn pose_to_feedback(
         }
     }
     session.finish()?;
-    Ok((samples, backend.name().to_owned(), tets))
+    Ok((samples, backend.runs_on().name().to_owned(), tets))
 }
 
 pub fn run(opts: &NodeBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result<(), NodeBenchError> {
@@ -128,9 +128,9 @@ pub fn run(opts: &NodeBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result<(
     let backends =
         opts.backends.iter().map(|b| Backend::choose(*b, opts.allow_software_gpu)).collect::<Result<Vec<_>, _>>()?;
     for backend in &backends {
-        let device = match backend.name() {
-            "gpu" => backend.describe(),
-            _ => cpu.clone(),
+        let device = match backend.runs_on() {
+            RunsOn::Gpu => backend.describe(),
+            RunsOn::Cpu => cpu.clone(),
         };
         for &tets in &opts.tets {
             feedback_rows(backend, &device, tets, opts, &dir, &mut emit)?;
@@ -175,7 +175,7 @@ fn feedback_rows(
                 (plain, format!("pose_to_feedback_{n}tets_{beside}")),
                 (recorded, format!("recording_{n}tets_{beside}")),
             ] {
-                emit(&run.row(case, backend.name(), device, n, everything));
+                emit(&run.row(case, backend.runs_on().name(), device, n, everything));
             }
             let _ = std::fs::remove_file(&bag);
         }
@@ -230,12 +230,13 @@ mod dds {
     use serde_json::json;
 
     use super::{percentile, time_stats, BenchRow, NodeBenchError, NodeBenchOptions};
-    use crate::backend::{Backend, BackendChoice};
+    use crate::backend::{Backend, BackendChoice, RunsOn};
     use crate::msgs::{Header, Pose, PoseStamped, Time, WrenchStamped};
     use crate::record::Qos;
     use crate::ros::args::RosArgs;
     use crate::ros::dds::{context, settings, Discovery};
     use crate::ros::node::{qos, run, NodeSettings};
+    use crate::scene::BackendArgs;
     use crate::session::RecordOptions;
 
     pub struct FeedbackRun {
@@ -294,8 +295,13 @@ mod dds {
                 rest: Vec::new(),
             },
             record: RecordOptions { mcap: record.map(Into::into), ..Default::default() },
-            backend: Some(if backend.name() == "gpu" { BackendChoice::Gpu } else { BackendChoice::Cpu }),
-            allow_software_gpu: opts.allow_software_gpu,
+            backend: BackendArgs {
+                backend: Some(match backend.runs_on() {
+                    RunsOn::Gpu => BackendChoice::Gpu,
+                    RunsOn::Cpu => BackendChoice::Cpu,
+                }),
+                allow_software_gpu: opts.allow_software_gpu,
+            },
             open_discovery: false,
             run_for: Some(Duration::from_secs(900)),
             stop: Some(stop.clone()),
@@ -427,7 +433,7 @@ fn pose_to_volume(backend: &Backend, device: &str, frames: usize) -> Result<Benc
     let mut pipeline =
         Pipeline::new(scene, backend, InputLimits { max_age: None, ..Default::default() }, FrameMode::Lockstep)?;
     let grid = pipeline.warped_grid().cloned().ok_or_else(|| NodeBenchError::Setup("no warp stage".into()))?;
-    let service = format!("defvol/bench_volume_{}_{}", std::process::id(), backend.name());
+    let service = format!("defvol/bench_volume_{}_{}", std::process::id(), backend.runs_on().name());
     let publisher =
         Arc::new(WarpedVolumePublisher::new(&service, &grid).map_err(|e| NodeBenchError::Setup(e.to_string()))?);
     pipeline.set_volume_sink(Some(publisher.clone()));
@@ -501,7 +507,7 @@ fn pose_to_volume(backend: &Backend, device: &str, frames: usize) -> Result<Benc
     Ok(BenchRow {
         stage: "node",
         case: format!("pose_to_warped_volume_{}tets", pipeline.mesh().tets().len()),
-        backend: backend.name().into(),
+        backend: backend.runs_on().name().into(),
         device: device.into(),
         params: json!({"p99_ms": percentile(&samples, 0.99), "note": format!("pose to subscriber, {:?} voxels through iceoryx2", grid.dims)}),
         runs: samples.len(),

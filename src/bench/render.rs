@@ -10,6 +10,7 @@ use nalgebra::{Point3, Vector3};
 use serde_json::json;
 
 use super::{cpu_description, time_stats, BenchRow, ErrorMeasure, WarpCase};
+use crate::backend::RunsOn;
 use crate::mesh::generate::{self, CellSplit};
 use crate::render::camera::{Camera, Projection};
 use crate::render::raycast::{self, RaycastParams, Shading, VolumeRaycaster};
@@ -261,7 +262,7 @@ fn source_rows(
                     mesh.render(&[], &camera).map_err(|e| setup(&e))
                 };
                 let (image, samples) = timed(opts.runs, &mut frame)?;
-                let on = mesh.backend();
+                let on = mesh.runs_on();
                 emit(&source_row(&case(size), on, device, "source_through_mesh", step, samples, &image, &reference));
                 // Warp + volume raycast: onto the source's spacing (what the node does),
                 // and onto half of it (what it takes to come near the source's accuracy).
@@ -278,7 +279,7 @@ fn source_rows(
                     let mut warp = match warp {
                         Ok(warp) => warp,
                         // A grid over the adapter's buffer limit: no row, as for the others.
-                        Err(e) if backend.name() == "gpu" => {
+                        Err(e) if backend.runs_on() == RunsOn::Gpu => {
                             tracing::warn!("no {mode} row on {device}: {e}");
                             continue;
                         }
@@ -306,7 +307,7 @@ fn source_rows(
                     let mut frame = |k: usize| -> Result<crate::render::Rendered, RenderBenchError> {
                         let u: Vec<Vector3<f64>> = frames[k % 2].iter().zip(rest.nodes()).map(|(p, r)| p - r).collect();
                         warp.advance(Some(&u)).map_err(|e| setup(&e))?;
-                        if volume.backend() == "gpu" {
+                        if volume.runs_on() == RunsOn::Gpu {
                             volume.volume_changed();
                             volume.render(Shown::Device, &[], &camera).map_err(|e| setup(&e))
                         } else {
@@ -315,7 +316,7 @@ fn source_rows(
                         }
                     };
                     let (image, samples) = timed(opts.runs, &mut frame)?;
-                    let on = warp.backend();
+                    let on = warp.runs_on();
                     emit(&source_row(&case(size), on, device, mode, step, samples, &image, &reference));
                 }
             }
@@ -346,7 +347,7 @@ fn timed(
 #[allow(clippy::too_many_arguments)]
 fn source_row(
     case: &str,
-    backend: &str,
+    backend: RunsOn,
     device: &str,
     mode: &str,
     step: f64,
@@ -364,7 +365,7 @@ fn source_row(
                 _ => "warp½+cast",
             }
         ),
-        backend: backend.into(),
+        backend: backend.name().into(),
         device: device.into(),
         params: json!({"mode": mode, "step_mm": step, "preintegrated": true, "shading": "none", "tf": "ct_soft_tissue", "includes_readback": true, "every_frame_moves_the_mesh": true}),
         runs: samples.len(),

@@ -7,7 +7,7 @@ use nalgebra::Vector3;
 use serde_json::json;
 
 use super::{cantilever, cpu_description, relative_error, time_stats, BenchRow, ErrorMeasure};
-use crate::backend::{Backend, BackendChoice};
+use crate::backend::{Backend, BackendChoice, RunsOn};
 use crate::solver::{Integrator, MassSpringModel, Preconditioner, SolverEngine, SolverEngineError, SolverParams};
 
 pub struct SolverBenchOptions {
@@ -29,7 +29,7 @@ struct Run {
     positions: Vec<Vector3<f64>>,
     step_ms: Vec<f64>,
     cg_iterations: f64,
-    backend: &'static str,
+    backend: RunsOn,
     device: String,
 }
 
@@ -58,7 +58,7 @@ fn run(
         positions: engine.positions(),
         step_ms,
         cg_iterations: iterations as f64 / (steps.max(2) - 1) as f64,
-        backend: engine.backend(),
+        backend: engine.runs_on(),
         device: engine.name(),
     })
 }
@@ -116,11 +116,11 @@ pub fn solver(opts: &SolverBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Res
                     }
                     Err(e) => return Err(e),
                 };
-                let device_name = if result.backend == "gpu" { result.device.clone() } else { device.clone() };
+                let device_name = if result.backend == RunsOn::Gpu { result.device.clone() } else { device.clone() };
                 emit(&BenchRow {
                     stage: "solver",
                     case: case.clone(),
-                    backend: result.backend.into(),
+                    backend: result.backend.name().into(),
                     device: device_name,
                     params: json!({"integrator": params.integrator.name(), "dt": params.dt, "cg_tolerance": params.cg_tolerance, "steps": opts.steps, "preconditioner": preconditioner_name(result.backend, &params)}),
                     runs: result.step_ms.len(),
@@ -140,9 +140,9 @@ pub fn solver(opts: &SolverBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Res
 
 /// The preconditioner a run really used: the GPU path has block Jacobi only; explicit
 /// schemes solve nothing.
-fn preconditioner_name(backend: &str, params: &SolverParams) -> &'static str {
+fn preconditioner_name(backend: RunsOn, params: &SolverParams) -> &'static str {
     match (params.integrator, params.preconditioner) {
-        (Integrator::ImplicitEuler, _) if backend == "gpu" => "block_jacobi",
+        (Integrator::ImplicitEuler, _) if backend == RunsOn::Gpu => "block_jacobi",
         (Integrator::ImplicitEuler, Preconditioner::BlockJacobi) => "block_jacobi",
         (Integrator::ImplicitEuler, Preconditioner::Amg) => "amg",
         (Integrator::ImplicitEuler, Preconditioner::Auto) => "auto",

@@ -23,12 +23,8 @@ pub enum BenchStage {
         settle: usize,
         #[arg(long, value_delimiter = ',', default_value = "1,64")]
         volume_mib: Vec<usize>,
-        /// Backends timed side by side in this run, e.g. `cpu,gpu`.
-        #[arg(long, value_enum, value_delimiter = ',', default_value = "cpu")]
-        backend: Vec<CliBackend>,
-        /// Let a software adapter (llvmpipe) run the GPU rows (correctness, not speed).
-        #[arg(long)]
-        allow_software_gpu: bool,
+        #[command(flatten)]
+        backends: BenchBackends,
         /// Warped volumes timed from pose to subscriber, per backend.
         #[arg(long, default_value_t = 30)]
         volume_frames: usize,
@@ -57,12 +53,8 @@ pub enum BenchStage {
         /// beside warp + volume raycast of the same bend; none when given without values.
         #[arg(long, value_delimiter = ',', num_args = 0.., default_value = "5000")]
         source_meshes: Vec<usize>,
-        /// Also time the GPU raycasters (volume and mesh), read-back included.
-        #[arg(long)]
-        gpu: bool,
-        /// Let a software adapter (llvmpipe) run the GPU rows.
-        #[arg(long)]
-        allow_software_gpu: bool,
+        #[command(flatten)]
+        gpu: GpuRows,
         #[arg(long)]
         json: bool,
     },
@@ -84,11 +76,8 @@ pub enum BenchStage {
         /// Skip the accuracy sweep.
         #[arg(long)]
         no_sweep: bool,
-        /// Also run the GPU path.
-        #[arg(long)]
-        gpu: bool,
-        #[arg(long)]
-        allow_software_gpu: bool,
+        #[command(flatten)]
+        gpu: GpuRows,
         #[arg(long)]
         json: bool,
     },
@@ -110,12 +99,8 @@ pub enum BenchStage {
         /// Also time an incremental update after a local press.
         #[arg(long)]
         incremental: bool,
-        /// Also run the GPU path.
-        #[arg(long)]
-        gpu: bool,
-        /// Let a software adapter (llvmpipe) run the GPU path.
-        #[arg(long)]
-        allow_software_gpu: bool,
+        #[command(flatten)]
+        gpu: GpuRows,
         #[arg(long)]
         json: bool,
     },
@@ -126,12 +111,8 @@ pub enum BenchStage {
         sizes: Option<Vec<usize>>,
         #[arg(long, default_value_t = 20)]
         steps: usize,
-        /// Backends timed side by side, e.g. `cpu,gpu` (`gpu` with no usable adapter is an
-        /// error).
-        #[arg(long, value_enum, value_delimiter = ',', default_value = "cpu")]
-        backends: Vec<CliBackend>,
-        #[arg(long)]
-        allow_software_gpu: bool,
+        #[command(flatten)]
+        backends: BenchBackends,
         #[arg(long, value_delimiter = ',', default_value = "1e-2,1e-3,1e-4,1e-5")]
         tolerances: Vec<f64>,
         #[arg(long, value_delimiter = ',', default_value = "0.01")]
@@ -164,40 +145,54 @@ fn row_printer(json: bool, header: &str, table_row: fn(&bench::BenchRow) -> Stri
     }
 }
 
-/// The GPU for `--gpu` rows: asked for explicitly, so no usable adapter is an error.
-fn gpu_rows(gpu: bool, allow_software_gpu: bool) -> Result<Option<Backend>> {
-    Ok(match gpu {
-        true => Some(Backend::choose(BackendChoice::Gpu, allow_software_gpu)?),
-        false => None,
-    })
+/// The backends a benchmark times side by side in one run.
+#[derive(clap::Args)]
+pub struct BenchBackends {
+    /// Backends timed side by side, e.g. `cpu,gpu` (`gpu` with no usable adapter is an
+    /// error).
+    #[arg(long = "backends", alias = "backend", value_enum, value_delimiter = ',', default_value = "cpu")]
+    backends: Vec<CliBackend>,
+    /// Let a software adapter (lavapipe, llvmpipe) run the GPU rows: correctness, not speed.
+    #[arg(long)]
+    allow_software_gpu: bool,
+}
+
+/// GPU rows beside a stage's CPU rows.
+#[derive(clap::Args)]
+pub struct GpuRows {
+    /// Also time the GPU path, read-back included (no usable adapter is an error).
+    #[arg(long)]
+    gpu: bool,
+    /// Let a software adapter (lavapipe, llvmpipe) run the GPU rows: correctness, not speed.
+    #[arg(long)]
+    allow_software_gpu: bool,
+}
+
+impl GpuRows {
+    /// The GPU for `--gpu` rows: asked for explicitly, so no usable adapter is an error.
+    fn backend(&self) -> Result<Option<Backend>> {
+        Ok(match self.gpu {
+            true => Some(Backend::choose(BackendChoice::Gpu, self.allow_software_gpu)?),
+            false => None,
+        })
+    }
 }
 
 pub fn run(stage: BenchStage) -> Result<()> {
     match stage {
-        BenchStage::Node { tets, steps, settle, volume_mib, backend, allow_software_gpu, volume_frames, json } => {
+        BenchStage::Node { tets, steps, settle, volume_mib, backends, volume_frames, json } => {
             let opts = bench::node::NodeBenchOptions {
                 tets,
                 steps,
                 settle,
                 volume_mib,
-                backends: choices::all(&backend),
-                allow_software_gpu,
+                backends: choices::all(&backends.backends),
+                allow_software_gpu: backends.allow_software_gpu,
                 volume_frames,
             };
             bench::node::run(&opts, row_printer(json, bench::node::TABLE_HEADER, bench::node::table_row))?;
         }
-        BenchStage::Render {
-            sizes,
-            steps,
-            runs,
-            reference_step,
-            no_warped,
-            meshes,
-            source_meshes,
-            gpu,
-            allow_software_gpu,
-            json,
-        } => {
+        BenchStage::Render { sizes, steps, runs, reference_step, no_warped, meshes, source_meshes, gpu, json } => {
             let opts = bench::render::RenderBenchOptions {
                 sizes,
                 steps,
@@ -206,22 +201,11 @@ pub fn run(stage: BenchStage) -> Result<()> {
                 warped: !no_warped,
                 meshes,
                 source_meshes,
-                gpu: gpu_rows(gpu, allow_software_gpu)?,
+                gpu: gpu.backend()?,
             };
             bench::render::run(&opts, row_printer(json, bench::render::TABLE_HEADER, bench::render::table_row))?;
         }
-        BenchStage::Dpcm {
-            size,
-            markers,
-            topologies,
-            physics,
-            steps,
-            dts,
-            no_sweep,
-            gpu,
-            allow_software_gpu,
-            json,
-        } => {
+        BenchStage::Dpcm { size, markers, topologies, physics, steps, dts, no_sweep, gpu, json } => {
             let [w, h] = size[..] else { bail!("--size takes two sizes") };
             let dts = if no_sweep { Vec::new() } else { dts };
             let opts = bench::dpcm::DpcmBenchOptions {
@@ -231,22 +215,11 @@ pub fn run(stage: BenchStage) -> Result<()> {
                 physics: choices::all(&physics),
                 steps,
                 dts,
-                gpu: gpu_rows(gpu, allow_software_gpu)?,
+                gpu: gpu.backend()?,
             };
             bench::dpcm::run(&opts, row_printer(json, bench::dpcm::TABLE_HEADER, bench::dpcm::table_row))?;
         }
-        BenchStage::Warp {
-            tets,
-            cases,
-            schemes,
-            samplings,
-            dims,
-            runs,
-            incremental,
-            gpu,
-            allow_software_gpu,
-            json,
-        } => {
+        BenchStage::Warp { tets, cases, schemes, samplings, dims, runs, incremental, gpu, json } => {
             let cases = cases
                 .iter()
                 .map(|c| {
@@ -265,26 +238,16 @@ pub fn run(stage: BenchStage) -> Result<()> {
                 dims: [x, y, z],
                 runs,
                 incremental,
-                gpu: gpu_rows(gpu, allow_software_gpu)?,
+                gpu: gpu.backend()?,
             };
             bench::warp(&opts, row_printer(json, bench::WARP_TABLE_HEADER, bench::warp_table_row))?;
         }
-        BenchStage::Solver {
-            sizes,
-            steps,
-            backends,
-            allow_software_gpu,
-            tolerances,
-            dts,
-            explicit_dt,
-            preconditioners,
-            json,
-        } => {
+        BenchStage::Solver { sizes, steps, backends, tolerances, dts, explicit_dt, preconditioners, json } => {
             let opts = bench::SolverBenchOptions {
                 sizes: sizes.unwrap_or(bench::SEED_SIZES.to_vec()),
                 steps,
-                backends: choices::all(&backends),
-                allow_software_gpu,
+                backends: choices::all(&backends.backends),
+                allow_software_gpu: backends.allow_software_gpu,
                 tolerances,
                 dts,
                 explicit_dt,

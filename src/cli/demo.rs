@@ -9,10 +9,8 @@ use indicatif::{ProgressBar, ProgressStyle};
 use defvol::msgs::{Header, Pose, PoseStamped, Time};
 use defvol::pipeline::inputs::InputLimits;
 use defvol::pipeline::{Demand, FrameMode, Pipeline};
-use defvol::scene::Scene;
+use defvol::scene::{BackendArgs, Scene};
 use defvol::session::{qualified, RecordOptions, Session};
-
-use super::choices::CliBackend;
 
 #[derive(clap::Args)]
 pub struct DemoArgs {
@@ -25,11 +23,8 @@ pub struct DemoArgs {
     /// Scene file (YAML); the embedded default scene when absent.
     #[arg(long)]
     scene: Option<PathBuf>,
-    /// Where the stages run (the scene's `backend` when absent).
-    #[arg(long, value_enum)]
-    backend: Option<CliBackend>,
-    #[arg(long)]
-    allow_software_gpu: bool,
+    #[command(flatten)]
+    backend: BackendArgs,
     /// Leave out the rerun log (demo.rrd).
     #[arg(long)]
     no_rerun: bool,
@@ -60,7 +55,7 @@ pub fn run(args: DemoArgs) -> Result<()> {
         bail!("--seconds {} must be positive", args.seconds);
     }
     let scene = load_scene(&args.scene)?;
-    let backend = scene.backend(args.backend.map(Into::into), args.allow_software_gpu)?;
+    let backend = scene.backend(&args.backend)?;
     let mut pipeline =
         Pipeline::new(scene, &backend, replay_limits(), FrameMode::Lockstep).context("starting the pipeline")?;
     std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;

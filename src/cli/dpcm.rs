@@ -9,12 +9,14 @@ use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use nalgebra::Isometry3;
 
+use defvol::backend::BackendChoice;
 use defvol::dpcm::engine::DpcmEngine;
 use defvol::dpcm::markers::{Calibration, MotionFile, UdpSource};
 use defvol::dpcm::render;
 use defvol::dpcm::{DpcmConfig, Marker, StepStats};
+use defvol::scene::BackendArgs;
 
-use super::choices::{CliBackend, CliColorMap};
+use super::choices::CliColorMap;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum Output {
@@ -75,11 +77,8 @@ pub struct DpcmArgs {
     mesh_stride: usize,
     #[arg(long, default_value = "out/dpcm")]
     out: PathBuf,
-    #[arg(long, value_enum, default_value = "auto")]
-    backend: CliBackend,
-    /// Let a software adapter (llvmpipe) run the GPU path.
-    #[arg(long)]
-    allow_software_gpu: bool,
+    #[command(flatten)]
+    backend: BackendArgs,
 }
 
 /// `PORT` → 127.0.0.1:PORT; anything else must be ADDR:PORT.
@@ -134,7 +133,7 @@ pub fn run(args: DpcmArgs) -> Result<()> {
     } else {
         Source::Script
     };
-    let mut engine = DpcmEngine::new(&config, &super::backend_of(args.backend, args.allow_software_gpu)?)?;
+    let mut engine = DpcmEngine::new(&config, &args.backend.choose_or(BackendChoice::Auto)?)?;
     tracing::info!("DPCM {}x{} on {}", config.width, config.height, engine.name());
     std::fs::create_dir_all(&args.out).with_context(|| format!("cannot create {}", args.out.display()))?;
     let progress = ProgressBar::new(args.steps).with_style(

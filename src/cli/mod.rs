@@ -74,8 +74,3 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Bench { stage } => bench::run(stage),
     }
 }
-
-/// The backend of a command without a scene: `--backend` and `--allow-software-gpu`.
-fn backend_of(choice: choices::CliBackend, allow_software_gpu: bool) -> Result<defvol::backend::Backend> {
-    Ok(defvol::backend::Backend::choose(choice.into(), allow_software_gpu)?)
-}

@@ -5,15 +5,17 @@ use std::path::PathBuf;
 use anyhow::{bail, Context, Result};
 use nalgebra::{Point3, Vector3};
 
+use defvol::backend::BackendChoice;
 use defvol::render::camera::{Camera, Projection};
 use defvol::render::engine::{MeshRenderer, Shown, VolumeRenderer};
 use defvol::render::raycast::{self, RaycastParams, VolumeRaycaster};
 use defvol::render::source_raycast::SourceSampling;
 use defvol::render::tet_raycast::{TetRaycastParams, TetRaycaster};
 use defvol::render::transfer::TransferFunction;
+use defvol::scene::BackendArgs;
 use defvol::volume::{phantom, Volume};
 
-use super::choices::{CliBackend, CliMode, CliSampling, CliShading};
+use super::choices::{CliMode, CliSampling, CliShading};
 
 #[derive(clap::Args)]
 pub struct RenderArgs {
@@ -88,11 +90,8 @@ pub struct RenderArgs {
     tool: Vec<String>,
     #[arg(long, default_value = "render.png")]
     out: PathBuf,
-    #[arg(long, value_enum, default_value = "auto")]
-    backend: CliBackend,
-    /// Let a software adapter (llvmpipe) run the GPU path.
-    #[arg(long)]
-    allow_software_gpu: bool,
+    #[command(flatten)]
+    backend: BackendArgs,
     /// Also write the depth along each ray (world units; 0 where nothing was hit) as a
     /// float image (.mha, .nrrd, .nii).
     #[arg(long)]
@@ -170,7 +169,7 @@ pub fn run(args: RenderArgs) -> Result<()> {
         tools: tools.clone(),
         ..Default::default()
     };
-    let backend = super::backend_of(args.backend, args.allow_software_gpu)?;
+    let backend = args.backend.choose_or(BackendChoice::Auto)?;
     let started = std::time::Instant::now();
     let (image, on) = match &args.mesh {
         Some(path) => {
@@ -210,7 +209,7 @@ pub fn run(args: RenderArgs) -> Result<()> {
                 let mut renderer = MeshRenderer::new(&backend, raycaster, 1.0)?;
                 let image = renderer.render(&tools, &camera)?;
                 let on =
-                    format!("the source through {tets} deformed tets, {} ({})", renderer.backend(), backend.describe());
+                    format!("the source through {tets} deformed tets, {} ({})", renderer.runs_on(), backend.describe());
                 return finish(&args, image, &on, started, (w, h));
             }
             let scalars: Vec<f32> = match (&args.scalars, mesh.scalars(), &args.volume) {
@@ -234,13 +233,13 @@ pub fn run(args: RenderArgs) -> Result<()> {
             let raycaster = TetRaycaster::new(&mesh, &scalars, &tf, &tet_params)?;
             let mut renderer = MeshRenderer::new(&backend, raycaster, 1.0)?;
             let image = renderer.render(&tools, &camera)?;
-            (image, format!("{} ({}), {} tets", renderer.backend(), backend.describe(), mesh.tets().len()))
+            (image, format!("{} ({}), {} tets", renderer.runs_on(), backend.describe(), mesh.tets().len()))
         }
         None => {
             let tables = std::sync::Arc::new(VolumeRaycaster::tables_for(volume.range(), &tf, &params)?);
             let mut renderer = VolumeRenderer::new(&backend, &volume, tables, &params)?;
             let image = renderer.render(Shown::Host(&volume), &tools, &camera)?;
-            (image, format!("{} ({})", renderer.backend(), backend.describe()))
+            (image, format!("{} ({})", renderer.runs_on(), backend.describe()))
         }
     };
     finish(&args, image, &on, started, (w, h))

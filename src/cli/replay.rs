@@ -6,12 +6,13 @@ use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context, Result};
 
+use defvol::backend::BackendChoice;
 use defvol::msgs::{self, PoseStamped, Time, WrenchStamped};
 use defvol::pipeline::{Demand, FrameMode, Pipeline};
 use defvol::record::bag;
+use defvol::scene::BackendArgs;
 use defvol::session::{qualified, RecordOptions, Session};
 
-use super::choices::CliBackend;
 use super::demo::{load_scene, progress, replay_limits};
 
 #[derive(clap::Args)]
@@ -33,11 +34,9 @@ pub struct ReplayArgs {
     /// Pace the replay at the bag's rate instead of as fast as possible.
     #[arg(long)]
     realtime: bool,
-    /// Solver backend; the CPU path is deterministic (the same bag, the same outputs).
-    #[arg(long, value_enum, default_value = "cpu")]
-    backend: CliBackend,
-    #[arg(long)]
-    allow_software_gpu: bool,
+    /// The CPU path is deterministic (the same bag, the same outputs), so it is the default.
+    #[command(flatten)]
+    backend: BackendArgs,
 }
 
 /// A recorded tool input.
@@ -48,7 +47,8 @@ enum Input {
 
 pub fn run(args: ReplayArgs) -> Result<()> {
     let scene = load_scene(&args.scene)?;
-    let backend = scene.backend(Some(args.backend.into()), args.allow_software_gpu)?;
+    let backend = scene
+        .backend(&BackendArgs { backend: Some(args.backend.backend.unwrap_or(BackendChoice::Cpu)), ..args.backend })?;
     let mut pipeline =
         Pipeline::new(scene, &backend, replay_limits(), FrameMode::Lockstep).context("starting the pipeline")?;
     let topics = pipeline.tool_topics();

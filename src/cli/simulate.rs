@@ -6,11 +6,11 @@ use std::path::PathBuf;
 use anyhow::{bail, Context, Result};
 
 use defvol::io;
-use defvol::scene::{MeshSource, Scene};
+use defvol::scene::{BackendArgs, MeshSource, Scene};
 use defvol::solver::{SolverEngine, StepReport};
 use defvol::warp::WarpOptions;
 
-use super::choices::{CliBackend, CliIntegrator, CliPreconditioner};
+use super::choices::{CliIntegrator, CliPreconditioner};
 
 #[derive(clap::Args)]
 pub struct SimulateArgs {
@@ -34,14 +34,10 @@ pub struct SimulateArgs {
     preconditioner: Option<CliPreconditioner>,
     #[arg(long, default_value_t = 100)]
     steps: u64,
-    /// Where the solver runs (the scene's `backend` when absent).
-    #[arg(long, value_enum, conflicts_with = "f64")]
-    backend: Option<CliBackend>,
-    /// Let a software adapter (llvmpipe) run the GPU path.
-    #[arg(long)]
-    allow_software_gpu: bool,
+    #[command(flatten)]
+    backend: BackendArgs,
     /// The f64 reference path (CPU) instead of the f32 one.
-    #[arg(long)]
+    #[arg(long, conflicts_with = "backend")]
     f64: bool,
     /// Output folder: final.vtu and steps.csv.
     #[arg(long, default_value = "out")]
@@ -112,7 +108,7 @@ pub fn run(args: SimulateArgs) -> Result<()> {
     if let Some(p) = args.preconditioner {
         scene.solver.preconditioner = p.into();
     }
-    let backend = scene.backend(args.backend.map(Into::into), args.allow_software_gpu)?;
+    let backend = scene.backend(&args.backend)?;
     let loaded = scene.load().context("loading the scene")?;
     tracing::info!(
         "mesh: {} nodes, {} tets, {} springs",

@@ -6,12 +6,14 @@ use std::path::PathBuf;
 use anyhow::{bail, Context, Result};
 
 use defvol::backend::Backend;
+use defvol::backend::BackendChoice;
 use defvol::io;
 use defvol::mesh::TetMesh;
+use defvol::scene::BackendArgs;
 use defvol::volume::{Grid, Volume};
 use defvol::warp::{DisplacementVolume, WarpOptions};
 
-use super::choices::{CliBackend, CliSampling, CliScheme};
+use super::choices::{CliSampling, CliScheme};
 
 #[derive(clap::Args)]
 pub struct WarpArgs {
@@ -39,12 +41,10 @@ pub struct WarpArgs {
     /// Voxels outside the mesh keep the source's value.
     #[arg(long)]
     keep_uncovered: bool,
-    /// `auto`: the GPU when a hardware adapter exists and the options allow (trilinear, no
-    /// displacement volumes), else the CPU.
-    #[arg(long, value_enum, default_value = "auto")]
-    backend: CliBackend,
-    #[arg(long)]
-    allow_software_gpu: bool,
+    /// `auto` runs on the GPU only where the options allow (trilinear, no displacement
+    /// volumes).
+    #[command(flatten)]
+    backend: BackendArgs,
 }
 
 pub(super) fn parse_displacement(text: &str) -> Result<DisplacementVolume> {
@@ -126,7 +126,7 @@ fn warp_on_backend(
     grid: Grid,
     options: &WarpOptions,
 ) -> Result<Volume> {
-    let backend: Backend = super::backend_of(args.backend, args.allow_software_gpu)?;
+    let backend: Backend = args.backend.choose_or(BackendChoice::Auto)?;
     #[cfg(feature = "gpu")]
     if let Some(gpu) = backend
         .try_gpu("warp", |ctx| defvol::warp::gpu::GpuWarp::new(ctx.clone(), source, rest, grid.clone(), options, 1.0))?

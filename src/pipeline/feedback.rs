@@ -10,6 +10,7 @@ use nalgebra::{Isometry3, Vector3};
 
 use super::inputs::{Checker, InputCounters, InputLimits, Rejection};
 use super::{outputs, PipelineError};
+use crate::backend::RunsOn;
 use crate::msgs::{PoseStamped, Time, WrenchStamped};
 use crate::scene::{Scene, ToolPath};
 use crate::solver::{SolverEngine, StepReport, Tool};
@@ -67,8 +68,8 @@ pub struct FeedbackLoop {
     /// `None` when the scene disables the solver, or in the copy a detached loop leaves.
     engine: Option<SolverEngine>,
     engine_name: String,
-    /// "cpu" or "gpu", `None` without a solver; kept by a follower.
-    engine_backend: Option<&'static str>,
+    /// `None` without a solver; kept by a follower.
+    engine_backend: Option<RunsOn>,
     nodes: usize,
     tools: Vec<ToolState>,
     frame_id: String,
@@ -104,7 +105,7 @@ impl FeedbackLoop {
             .collect();
         Self {
             engine_name: engine.as_ref().map_or_else(|| "off".into(), SolverEngine::name),
-            engine_backend: engine.as_ref().map(SolverEngine::backend),
+            engine_backend: engine.as_ref().map(SolverEngine::runs_on),
             engine,
             nodes,
             saturated_steps: vec![0; tools.len()],
@@ -180,8 +181,8 @@ impl FeedbackLoop {
         }
     }
 
-    /// Where the solver runs ("cpu" or "gpu"), `None` when the scene disables it.
-    pub fn engine_backend(&self) -> Option<&'static str> {
+    /// Where the solver runs, `None` when the scene disables it.
+    pub fn engine_backend(&self) -> Option<RunsOn> {
         self.engine_backend
     }
     pub(super) fn engine(&self) -> Option<&SolverEngine> {

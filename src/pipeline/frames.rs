@@ -17,6 +17,7 @@ use std::time::Instant;
 use nalgebra::Vector3;
 
 use super::{outputs, PipelineError};
+use crate::backend::RunsOn;
 use crate::mesh::TetMesh;
 use crate::msgs::{Image, Time};
 use crate::render::camera::Camera;
@@ -127,7 +128,7 @@ impl FrameWorker {
         let picture_reads_host = self.picture_reads_host();
         if let (true, Some(w)) = (job.warp, &mut self.warp) {
             let start = Instant::now();
-            let host_positions = if w.engine.backend() == "cpu" { job.displacements.as_deref() } else { None };
+            let host_positions = if w.engine.runs_on() == RunsOn::Cpu { job.displacements.as_deref() } else { None };
             let sequence = w.engine.advance(host_positions)?;
             let mut published = false;
             let mut written: Option<WarpStats> = None;
@@ -172,23 +173,23 @@ impl FrameWorker {
             let start = Instant::now();
             let rendered = match &mut r.picture {
                 Picture::Mesh(mesh) => {
-                    match (mesh.backend(), &job.displacements) {
-                        ("cpu", Some(u)) => {
+                    match (mesh.runs_on(), &job.displacements) {
+                        (RunsOn::Cpu, Some(u)) => {
                             let positions: Vec<Vector3<f64>> =
                                 self.rest.nodes().iter().zip(u).map(|(r, u)| r + u * self.to_file).collect();
                             mesh.update(&positions)?;
                         }
-                        ("cpu", None) => {}
+                        (RunsOn::Cpu, None) => {}
                         _ => mesh.refresh(),
                     }
                     mesh.render(&tools, &r.camera)?
                 }
                 Picture::Volume(volume) => {
                     let shown = match &self.warp {
-                        Some(WarpSetup { host: Some((warped, _)), .. }) if volume.backend() == "cpu" => {
+                        Some(WarpSetup { host: Some((warped, _)), .. }) if volume.runs_on() == RunsOn::Cpu => {
                             Shown::Host(warped)
                         }
-                        Some(_) if volume.backend() == "gpu" => {
+                        Some(_) if volume.runs_on() == RunsOn::Gpu => {
                             if self.warped_since_picture {
                                 volume.volume_changed();
                             }
@@ -245,18 +246,18 @@ pub(super) struct Frames {
     pub raycast_stale: bool,
     pub latest: Option<WarpedVolume>,
     /// The stage backends, for diagnostics.
-    pub warp_backend: Option<&'static str>,
-    pub raycast_backend: Option<&'static str>,
+    pub warp_backend: Option<RunsOn>,
+    pub raycast_backend: Option<RunsOn>,
 }
 
 impl Frames {
     pub fn new(worker: FrameWorker, mode: FrameMode, warp_rate: f64, raycast_rate: f64) -> Result<Self, PipelineError> {
         let (has_warp, has_raycast) = (worker.warp.is_some(), worker.raycast.is_some());
         let renders_mesh = worker.raycast.as_ref().is_some_and(|r| matches!(r.picture, Picture::Mesh(_)));
-        let warp_backend = worker.warp.as_ref().map(|w| w.engine.backend());
+        let warp_backend = worker.warp.as_ref().map(|w| w.engine.runs_on());
         let raycast_backend = worker.raycast.as_ref().map(|r| match &r.picture {
-            Picture::Volume(v) => v.backend(),
-            Picture::Mesh(m) => m.backend(),
+            Picture::Volume(v) => v.runs_on(),
+            Picture::Mesh(m) => m.runs_on(),
         });
         #[cfg(feature = "gpu")]
         let warp_nodes = worker.warp.as_ref().and_then(|w| w.engine.device_nodes().cloned());
@@ -296,8 +297,8 @@ impl Frames {
             has_warp,
             has_raycast,
             renders_mesh,
-            warp_on_host: warp_backend == Some("cpu"),
-            mesh_on_host: renders_mesh && raycast_backend == Some("cpu"),
+            warp_on_host: warp_backend == Some(RunsOn::Cpu),
+            mesh_on_host: renders_mesh && raycast_backend == Some(RunsOn::Cpu),
             #[cfg(feature = "gpu")]
             warp_nodes,
             #[cfg(feature = "gpu")]

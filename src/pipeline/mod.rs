@@ -15,7 +15,7 @@ use std::time::Instant;
 
 use nalgebra::{Point3, Vector3};
 
-use crate::backend::{Backend, BackendError};
+use crate::backend::{Backend, BackendError, RunsOn};
 use crate::dpcm::engine::DpcmEngine;
 use crate::dpcm::markers::Calibration;
 use crate::dpcm::{DpcmConfig, DpcmError};
@@ -259,7 +259,7 @@ impl Pipeline {
                 )?;
                 self.times.warp = start.elapsed().as_secs_f64() * 1e3;
                 self.warp_grid = Some(engine.grid().clone());
-                tracing::info!("warp: {} ({:?} voxels)", engine.backend(), engine.grid().dims);
+                tracing::info!("warp: {} ({:?} voxels)", engine.runs_on(), engine.grid().dims);
                 Some(frames::WarpSetup { engine, host: None })
             }
         };
@@ -382,9 +382,9 @@ impl Pipeline {
             ..Default::default()
         };
         let tables = Arc::new(VolumeRaycaster::tables_for(self.volume.range(), tf, &params)?);
-        match warp.map(|w| w.engine.backend()) {
+        match warp.map(|w| w.engine.runs_on()) {
             #[cfg(feature = "gpu")]
-            Some("gpu") => {
+            Some(RunsOn::Gpu) => {
                 let on_device = warp.and_then(|w| w.engine.device_output()).zip(self.backend.context());
                 if let Some((samples, ctx)) = on_device {
                     return Ok(VolumeRenderer::on_device(
@@ -428,8 +428,8 @@ impl Pipeline {
     pub fn backend(&self) -> &Backend {
         &self.backend
     }
-    /// Where each enabled stage runs ("cpu" or "gpu"), as `diagnostics` reports it.
-    pub fn stage_backends(&self) -> Vec<(&'static str, &'static str)> {
+    /// Where each enabled stage runs, as `diagnostics` reports it.
+    pub fn stage_backends(&self) -> Vec<(&'static str, RunsOn)> {
         let mut stages = Vec::new();
         if let Some(backend) = self.feedback.engine_backend() {
             stages.push(("solver", backend));
@@ -438,7 +438,7 @@ impl Pipeline {
             stages.push(("warp", backend));
         }
         if let Some(d) = &self.dpcm {
-            stages.push(("dpcm", d.engine.backend()));
+            stages.push(("dpcm", d.engine.runs_on()));
         }
         if let Some(backend) = self.frames.as_ref().and_then(|f| f.raycast_backend) {
             stages.push(("raycast", backend));
@@ -1189,7 +1189,7 @@ mod tests {
             let limits = InputLimits { max_age: None, ..Default::default() };
             let mut cpu = Pipeline::new(s.clone(), &Backend::cpu(), limits.clone(), FrameMode::Lockstep).unwrap();
             let mut gpu = Pipeline::new(s, &Backend::gpu(ctx.clone()), limits, FrameMode::Lockstep).unwrap();
-            assert!(gpu.stage_backends().iter().all(|(_, b)| *b == "gpu"), "{:?}", gpu.stage_backends());
+            assert!(gpu.stage_backends().iter().all(|(_, b)| *b == RunsOn::Gpu), "{:?}", gpu.stage_backends());
             let top = cpu
                 .mesh()
                 .nodes()

@@ -122,7 +122,7 @@ pub(super) fn diagnostics(p: &Pipeline, stamp: Time, saturated_since: &[u64]) ->
     let times = p.times();
     let stage_backends = p.stage_backends();
     let backend_of =
-        |stage: &str| stage_backends.iter().find(|(s, _)| *s == stage).map_or("off", |(_, b)| *b).to_owned();
+        |stage: &str| stage_backends.iter().find(|(s, _)| *s == stage).map_or("off", |(_, b)| b.name()).to_owned();
     // Where each stage runs, under keys `backend.<stage>`.
     let mut status = vec![DiagnosticStatus {
         level: DiagnosticStatus::OK,

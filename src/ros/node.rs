@@ -16,7 +16,6 @@ use serde_yaml_ng::Value;
 use super::args::{self, RosArgs};
 use super::dds::{self, Discovery};
 use super::feedback_thread::{Command, Event, FeedbackIo, FeedbackThread, ToolSubscriptions};
-use crate::backend::BackendChoice;
 use crate::msgs::{
     DeformedMesh, DiagnosticArray, Image, LoadSceneRequest, Marker, Message, PoseStamped, Time, TriggerRequest,
     TriggerResponse, WarpedVolumeInfo, WrenchStamped,
@@ -24,6 +23,7 @@ use crate::msgs::{
 use crate::pipeline::inputs::InputLimits;
 use crate::pipeline::{Demand, FrameMode, Outputs, Pipeline, PipelineError};
 use crate::record::Qos;
+use crate::scene::BackendArgs;
 use crate::scene::Scene;
 use crate::session::{qualified, topics, RecordOptions, Session, SessionError};
 
@@ -72,8 +72,7 @@ pub struct NodeSettings {
     pub ros: RosArgs,
     pub record: RecordOptions,
     /// The command line's backend, over the scene's `backend` parameter.
-    pub backend: Option<BackendChoice>,
-    pub allow_software_gpu: bool,
+    pub backend: BackendArgs,
     pub open_discovery: bool,
     /// Stop after this long (tests, benchmarks); run until Ctrl-C when `None`.
     pub run_for: Option<Duration>,
@@ -215,7 +214,7 @@ pub fn run(settings: NodeSettings) -> Result<(), NodeError> {
     let scene = args::scene_from_parameters(&settings.ros.parameters)?;
     let limits = InputLimits::default();
     // Chosen once per run: a reloaded scene keeps it.
-    let backend = scene.backend(settings.backend, settings.allow_software_gpu)?;
+    let backend = scene.backend(&settings.backend)?;
     let mut pipeline = Pipeline::new(scene, &backend, limits, FrameMode::Background)?;
 
     let (domain, discovery) = dds::settings(|name| std::env::var(name).ok(), settings.open_discovery)?;
@@ -233,10 +232,10 @@ pub fn run(settings: NodeSettings) -> Result<(), NodeError> {
     let mut declared = args::scene_parameters(pipeline.scene());
     declared.extend(settings.ros.parameters.clone());
     // The command line's choices are the ones in force.
-    if let Some(choice) = settings.backend {
+    if let Some(choice) = settings.backend.backend {
         declared.insert("backend".into(), Value::String(choice.name().into()));
     }
-    if settings.allow_software_gpu {
+    if settings.backend.allow_software_gpu {
         declared.insert("allow_software_gpu".into(), Value::Bool(true));
     }
     for (name, value) in &declared {
@@ -565,11 +564,8 @@ struct NodeCli {
     /// Stream the session to a running rerun viewer (e.g. rerun+http://127.0.0.1:9876/proxy).
     #[arg(long)]
     rerun_connect: Option<String>,
-    /// auto, cpu or gpu (over the scene's `backend` parameter).
-    #[arg(long)]
-    backend: Option<BackendChoice>,
-    #[arg(long)]
-    allow_software_gpu: bool,
+    #[command(flatten)]
+    backend: BackendArgs,
     /// Let DDS discovery reach other hosts (as ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET does).
     #[arg(long)]
     open_discovery: bool,
@@ -603,7 +599,6 @@ pub fn settings_from_args(args: &[String]) -> Result<NodeSettings, NodeError> {
             rerun_connect: cli.rerun_connect,
         },
         backend: cli.backend,
-        allow_software_gpu: cli.allow_software_gpu,
         open_discovery: cli.open_discovery || flag("dds.open_discovery"),
         run_for,
         stop: None,

@@ -2,7 +2,7 @@
 //! grid fits the adapter), else the CPU surface; one interface for both.
 
 use super::{DpcmConfig, DpcmError, Marker, StepStats, Surface};
-use defvol_gpu::backend::Backend;
+use defvol_gpu::backend::{Backend, RunsOn};
 
 pub enum DpcmEngine {
     Cpu(Surface),
@@ -35,12 +35,12 @@ impl DpcmEngine {
         Ok(Self::Cpu(surface))
     }
 
-    /// "cpu" or "gpu".
-    pub fn backend(&self) -> &'static str {
+    /// Where this stage runs.
+    pub fn runs_on(&self) -> RunsOn {
         match self {
-            Self::Cpu(_) => "cpu",
+            Self::Cpu(_) => RunsOn::Cpu,
             #[cfg(feature = "gpu")]
-            Self::Gpu { .. } => "gpu",
+            Self::Gpu { .. } => RunsOn::Gpu,
         }
     }
 

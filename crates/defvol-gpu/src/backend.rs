@@ -46,6 +46,31 @@ impl std::str::FromStr for BackendChoice {
     }
 }
 
+/// Where a stage runs once the backend is resolved: what engines, diagnostics and
+/// benchmark rows report, compared as a value rather than as a string.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum RunsOn {
+    Cpu,
+    Gpu,
+}
+
+impl RunsOn {
+    /// "cpu" or "gpu", as diagnostics and benchmark rows spell it.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Cpu => "cpu",
+            Self::Gpu => "gpu",
+        }
+    }
+}
+
+impl fmt::Display for RunsOn {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
 pub enum BackendError {
@@ -124,12 +149,12 @@ impl Backend {
         Ok(Self::cpu())
     }
 
-    /// "cpu" or "gpu", as `diagnostics` reports it.
-    pub fn name(&self) -> &'static str {
+    /// Where the stages run, unless one of them fell back ([`Self::try_gpu`]).
+    pub fn runs_on(&self) -> RunsOn {
         match self.kind {
-            Kind::Cpu => "cpu",
+            Kind::Cpu => RunsOn::Cpu,
             #[cfg(feature = "gpu")]
-            Kind::Gpu { .. } => "gpu",
+            Kind::Gpu { .. } => RunsOn::Gpu,
         }
     }
 
@@ -188,7 +213,7 @@ mod tests {
     fn gpu_without_a_usable_adapter_is_an_error_and_auto_falls_back() {
         // A hardware adapter is what `gpu` needs; the suite's machine has only lavapipe.
         match Backend::choose(BackendChoice::Gpu, false) {
-            Ok(backend) => assert_eq!(backend.name(), "gpu", "a hardware adapter was found"),
+            Ok(backend) => assert_eq!(backend.runs_on(), RunsOn::Gpu, "a hardware adapter was found"),
             Err(e) => {
                 let message = e.to_string();
                 assert!(
@@ -196,7 +221,7 @@ mod tests {
                     "{message}"
                 );
                 let auto = Backend::choose(BackendChoice::Auto, false).unwrap();
-                assert_eq!(auto.name(), "cpu");
+                assert_eq!(auto.runs_on(), RunsOn::Cpu);
             }
         }
     }

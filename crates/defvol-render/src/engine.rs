@@ -12,7 +12,7 @@ use super::tet_raycast::TetRaycaster;
 use super::transfer::Tables;
 use super::{RenderError, Rendered};
 use defvol_core::volume::Volume;
-use defvol_gpu::backend::{Backend, BackendError};
+use defvol_gpu::backend::{Backend, BackendError, RunsOn};
 
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
@@ -86,12 +86,12 @@ impl VolumeRenderer {
         Ok(Self::Gpu(Box::new(gpu)))
     }
 
-    /// "cpu" or "gpu".
-    pub fn backend(&self) -> &'static str {
+    /// Where this stage runs.
+    pub fn runs_on(&self) -> RunsOn {
         match self {
-            Self::Cpu { .. } => "cpu",
+            Self::Cpu { .. } => RunsOn::Cpu,
             #[cfg(feature = "gpu")]
-            Self::Gpu(_) => "gpu",
+            Self::Gpu(_) => RunsOn::Gpu,
         }
     }
 
@@ -147,12 +147,12 @@ impl MeshRenderer {
         Ok(Self::Cpu(Box::new(prepared)))
     }
 
-    /// "cpu" or "gpu".
-    pub fn backend(&self) -> &'static str {
+    /// Where this stage runs.
+    pub fn runs_on(&self) -> RunsOn {
         match self {
-            Self::Cpu(_) => "cpu",
+            Self::Cpu(_) => RunsOn::Cpu,
             #[cfg(feature = "gpu")]
-            Self::Gpu(_) => "gpu",
+            Self::Gpu(_) => RunsOn::Gpu,
         }
     }
 

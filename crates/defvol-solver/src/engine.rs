@@ -4,7 +4,7 @@
 use nalgebra::Vector3;
 
 use super::{MassSpringModel, Simulation, SolverError, SolverParams, StepReport, Tool};
-use defvol_gpu::backend::{Backend, BackendError};
+use defvol_gpu::backend::{Backend, BackendError, RunsOn};
 
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
@@ -54,12 +54,12 @@ impl SolverEngine {
         Ok(Self::CpuF64(Simulation::new(model, params, tools)?))
     }
 
-    /// "cpu" or "gpu".
-    pub fn backend(&self) -> &'static str {
+    /// Where this stage runs.
+    pub fn runs_on(&self) -> RunsOn {
         match self {
-            Self::Cpu(_) | Self::CpuF64(_) => "cpu",
+            Self::Cpu(_) | Self::CpuF64(_) => RunsOn::Cpu,
             #[cfg(feature = "gpu")]
-            Self::Gpu(_) => "gpu",
+            Self::Gpu(_) => RunsOn::Gpu,
         }
     }
 

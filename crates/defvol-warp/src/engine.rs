@@ -10,7 +10,7 @@ use nalgebra::Vector3;
 use super::{IncrementalWarp, WarpError, WarpOptions, WarpStats};
 use defvol_core::mesh::TetMesh;
 use defvol_core::volume::{Grid, Volume};
-use defvol_gpu::backend::{Backend, BackendError};
+use defvol_gpu::backend::{Backend, BackendError, RunsOn};
 
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
@@ -66,12 +66,12 @@ impl WarpEngine {
         Ok(Self::Cpu { warp: Box::new(warp), rest, to_file, tolerance })
     }
 
-    /// "cpu" or "gpu".
-    pub fn backend(&self) -> &'static str {
+    /// Where this stage runs.
+    pub fn runs_on(&self) -> RunsOn {
         match self {
-            Self::Cpu { .. } => "cpu",
+            Self::Cpu { .. } => RunsOn::Cpu,
             #[cfg(feature = "gpu")]
-            Self::Gpu { .. } => "gpu",
+            Self::Gpu { .. } => RunsOn::Gpu,
         }
     }
 
