@@ -6,8 +6,8 @@ use std::time::Instant;
 use serde_json::json;
 
 use super::{cpu_description, time_stats, BenchRow, ErrorMeasure};
-use crate::dpcm::markers::{Pattern, Script};
 use crate::dpcm::{DpcmConfig, DpcmError, Interaction, Surface, Topology};
+use crate::dpcm::{Pattern, Script};
 
 /// The seed's Table 1: (markers, Hz) on a GeForce 8800 GTX, 1100 x 1100 phyxels.
 pub const SEED_TABLE_1: [(usize, f64); 5] = [(1, 690.0), (20, 220.0), (50, 104.0), (100, 55.0), (300, 23.0)];

@@ -13,9 +13,9 @@ use super::{cpu_description, time_stats, BenchRow, ErrorMeasure, WarpCase};
 use crate::backend::RunsOn;
 use crate::mesh::generate::{self, CellSplit};
 use crate::render::camera::{Camera, Projection};
-use crate::render::raycast::{self, RaycastParams, Shading, VolumeRaycaster};
-use crate::render::tet_raycast::{self, TetRaycastParams, TetRaycaster};
+use crate::render::mesh::{self, TetRaycastParams, TetRaycaster};
 use crate::render::transfer::TransferFunction;
+use crate::render::volume::{self, RaycastParams, Shading, VolumeRaycaster};
 use crate::render::RenderError;
 use crate::volume::{phantom, Volume};
 
@@ -80,7 +80,7 @@ pub fn run(opts: &RenderBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result
         for &size in &opts.sizes {
             let camera = phantom_camera(volume, size)?;
             let background = [0.0, 0.0, 0.0, 1.0];
-            let reference = raycast::reference(volume, &camera, &tf, opts.reference_step, background)?;
+            let reference = volume::reference(volume, &camera, &tf, opts.reference_step, background)?;
             for &step in &opts.steps {
                 for (preintegrated, shading) in
                     [(true, Shading::None), (false, Shading::None), (true, Shading::Gradient)]
@@ -144,7 +144,7 @@ pub fn run(opts: &RenderBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result
             // The f64 walk with the exact transfer function; no finer than 0.25 mm, which
             // is already below a level of error at these tet sizes.
             let reference_step = opts.reference_step.max(0.25);
-            let reference = tet_raycast::reference(
+            let reference = mesh::reference(
                 &mesh,
                 mesh.nodes(),
                 &scalars,
@@ -212,7 +212,7 @@ fn source_rows(
 ) -> Result<(), RenderBenchError> {
     use crate::backend::Backend;
     use crate::render::engine::{MeshRenderer, Shown, VolumeRenderer};
-    use crate::render::source_raycast::{self, SourceSampling};
+    use crate::render::mesh::source::{self, SourceSampling};
     use crate::warp::engine::WarpEngine;
     use std::sync::Arc;
 
@@ -239,7 +239,7 @@ fn source_rows(
         let camera = phantom_camera(source, size)?;
         let background = [0.0, 0.0, 0.0, 1.0];
         let reference_step = opts.reference_step.max(0.25);
-        let reference = source_raycast::reference(
+        let reference = source::reference(
             &rest,
             &bent,
             source,
@@ -383,8 +383,8 @@ fn source_row(
 #[cfg(feature = "gpu")]
 fn gpu_frames(
     runs: usize,
-    mut frame: impl FnMut() -> Result<crate::render::Rendered, crate::render::raycast_gpu::GpuRenderError>,
-) -> Result<(crate::render::Rendered, Vec<f64>), crate::render::raycast_gpu::GpuRenderError> {
+    mut frame: impl FnMut() -> Result<crate::render::Rendered, crate::render::volume::gpu::GpuRenderError>,
+) -> Result<(crate::render::Rendered, Vec<f64>), crate::render::volume::gpu::GpuRenderError> {
     let mut image = frame()?;
     let mut samples = Vec::with_capacity(runs);
     for _ in 0..runs {
@@ -406,7 +406,7 @@ fn volume_gpu_row(
     opts: &RenderBenchOptions,
     emit: &mut impl FnMut(&BenchRow),
 ) -> Result<(), RenderBenchError> {
-    use crate::render::raycast_gpu::GpuVolumeRaycaster;
+    use crate::render::volume::gpu::GpuVolumeRaycaster;
     let raycaster = match GpuVolumeRaycaster::new(ctx.clone(), prepared) {
         Ok(r) => r,
         Err(e) => {
@@ -442,8 +442,8 @@ fn mesh_gpu_row(
     case: &str,
     emit: &mut impl FnMut(&BenchRow),
 ) -> Result<(), RenderBenchError> {
-    use crate::render::tet_raycast_gpu::GpuTetRaycaster;
-    let gpu_err = |e: crate::render::raycast_gpu::GpuRenderError| RenderBenchError::Gpu(e.to_string());
+    use crate::render::mesh::gpu::GpuTetRaycaster;
+    let gpu_err = |e: crate::render::volume::gpu::GpuRenderError| RenderBenchError::Gpu(e.to_string());
     let mut raycaster = match GpuTetRaycaster::new(ctx.clone(), prepared, 1.0) {
         Ok(r) => r,
         Err(e) => {

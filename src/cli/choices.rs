@@ -5,7 +5,7 @@ use defvol::backend::BackendChoice;
 use defvol::bench::dpcm::Physics;
 use defvol::dpcm::render::ColorMap;
 use defvol::dpcm::Topology;
-use defvol::render::raycast::{Mode, Shading};
+use defvol::render::volume::{Mode, Shading};
 use defvol::solver::{Integrator, Preconditioner};
 use defvol::warp::{Sampling, Scheme};
 

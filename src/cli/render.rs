@@ -8,10 +8,10 @@ use nalgebra::{Point3, Vector3};
 use defvol::backend::BackendChoice;
 use defvol::render::camera::{Camera, Projection};
 use defvol::render::engine::{MeshRenderer, Shown, VolumeRenderer};
-use defvol::render::raycast::{self, RaycastParams, VolumeRaycaster};
-use defvol::render::source_raycast::SourceSampling;
-use defvol::render::tet_raycast::{TetRaycastParams, TetRaycaster};
+use defvol::render::mesh::source::SourceSampling;
+use defvol::render::mesh::{TetRaycastParams, TetRaycaster};
 use defvol::render::transfer::TransferFunction;
+use defvol::render::volume::{self, RaycastParams, VolumeRaycaster};
 use defvol::scene::BackendArgs;
 use defvol::volume::{phantom, Volume};
 
@@ -98,11 +98,11 @@ pub struct RenderArgs {
     depth_out: Option<PathBuf>,
 }
 
-fn tool(text: &str) -> Result<raycast::ToolPicture> {
+fn tool(text: &str) -> Result<volume::ToolPicture> {
     let parts: Vec<&str> = text.split(':').collect();
     let [tip, tail, radius] = parts[..] else { bail!("--tool `{text}`: expected TIP:TAIL:RADIUS as x,y,z:x,y,z:r") };
     let radius: f64 = radius.trim().parse().with_context(|| format!("--tool `{text}`: bad radius"))?;
-    Ok(raycast::ToolPicture {
+    Ok(volume::ToolPicture {
         tip: point(tip)?.coords.into(),
         tail: point(tail)?.coords.into(),
         radius,

@@ -8,8 +8,9 @@ use std::time::Instant;
 
 use nalgebra::{Isometry3, Vector3};
 
+use super::error::PipelineError;
 use super::inputs::{Checker, InputCounters, InputLimits, Rejection};
-use super::{outputs, PipelineError};
+use super::outputs;
 use crate::backend::RunsOn;
 use crate::msgs::{PoseStamped, Time, WrenchStamped};
 use crate::scene::{Scene, ToolPath};

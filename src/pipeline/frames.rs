@@ -16,13 +16,14 @@ use std::time::Instant;
 
 use nalgebra::Vector3;
 
-use super::{outputs, PipelineError};
+use super::error::PipelineError;
+use super::outputs;
 use crate::backend::RunsOn;
 use crate::mesh::TetMesh;
 use crate::msgs::{Image, Time};
 use crate::render::camera::Camera;
 use crate::render::engine::{MeshRenderer, Shown, VolumeRenderer};
-use crate::render::raycast::ToolPicture;
+use crate::render::volume::ToolPicture;
 use crate::volume::{Grid, Volume};
 use crate::warp::engine::WarpEngine;
 use crate::warp::WarpStats;

@@ -2,11 +2,14 @@
 //! outputs someone wants (the deformed mesh, the warped volume, the DPCM surface, raycast
 //! images, diagnostics), as messages. The node, `demo` and `replay` all drive this.
 
+mod diagnostics;
+mod error;
 mod feedback;
 mod frames;
 pub mod inputs;
 mod outputs;
 
+pub use error::PipelineError;
 pub use feedback::{FeedbackLoop, LoopState, Stepped};
 pub use frames::{FrameMode, VolumeSink, WarpedVolume, WriteVolume};
 
@@ -15,52 +18,24 @@ use std::time::Instant;
 
 use nalgebra::{Point3, Vector3};
 
-use crate::backend::{Backend, BackendError, RunsOn};
+use crate::backend::{Backend, RunsOn};
 use crate::dpcm::engine::DpcmEngine;
 use crate::dpcm::markers::Calibration;
-use crate::dpcm::{DpcmConfig, DpcmError};
+use crate::dpcm::DpcmConfig;
 use crate::mesh::TetMesh;
 use crate::msgs::{DeformedMesh, DiagnosticArray, Image, Marker, PoseStamped, Time, WrenchStamped};
 use crate::render::camera::{Camera, Projection};
-use crate::render::engine::{MeshRenderer, RenderEngineError, VolumeRenderer};
-use crate::render::raycast::{RaycastParams, ToolPicture, VolumeRaycaster};
-use crate::render::source_raycast::SourceSampling;
-use crate::render::tet_raycast::{TetRaycastParams, TetRaycaster};
+use crate::render::engine::{MeshRenderer, VolumeRenderer};
+use crate::render::mesh::source::SourceSampling;
+use crate::render::mesh::{TetRaycastParams, TetRaycaster};
 use crate::render::transfer::TransferFunction;
-use crate::render::RenderError;
-use crate::scene::{CameraShows, LoadedScene, Scene, SceneError};
-use crate::solver::{SolverEngine, SolverEngineError, SolverError, StepReport};
-use crate::volume::{Grid, Volume, VolumeError};
-use crate::warp::engine::{WarpEngine, WarpEngineError};
-use crate::warp::{WarpError, WarpOptions};
+use crate::render::volume::{RaycastParams, ToolPicture, VolumeRaycaster};
+use crate::scene::{CameraShows, LoadedScene, Scene};
+use crate::solver::{SolverEngine, StepReport};
+use crate::volume::{Grid, Volume};
+use crate::warp::engine::WarpEngine;
+use crate::warp::WarpOptions;
 use inputs::{InputCounters, InputLimits, Rejection};
-
-#[derive(Debug, thiserror::Error)]
-#[non_exhaustive]
-pub enum PipelineError {
-    #[error(transparent)]
-    Scene(#[from] SceneError),
-    #[error("solver: {0}")]
-    Engine(#[from] SolverEngineError),
-    #[error(transparent)]
-    Backend(#[from] BackendError),
-    #[error("warp: {0}")]
-    WarpEngine(#[from] WarpEngineError),
-    #[error("raycast: {0}")]
-    RenderEngine(#[from] RenderEngineError),
-    #[error("solver: {0}")]
-    Solver(#[from] SolverError),
-    #[error("warp: {0}")]
-    Warp(#[from] WarpError),
-    #[error("DPCM: {0}")]
-    Dpcm(#[from] DpcmError),
-    #[error("raycast: {0}")]
-    Render(#[from] RenderError),
-    #[error("volume: {0}")]
-    Volume(#[from] VolumeError),
-    #[error("scene: {0}")]
-    Invalid(String),
-}
 
 /// Which outputs have a consumer (a subscriber or a recorder): the rest are not computed.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -633,7 +608,7 @@ impl Pipeline {
                     tools
                         .iter()
                         .zip(&scene.tools)
-                        .take(crate::render::raycast::MAX_TOOLS)
+                        .take(crate::render::volume::MAX_TOOLS)
                         .map(|(t, c)| {
                             let (a, b) = t.tool.segment();
                             ToolPicture {
@@ -660,7 +635,7 @@ impl Pipeline {
             let since: Vec<u64> = (self.saturated_steps().iter().enumerate())
                 .map(|(i, now)| now - self.saturated_at_diagnostics.get(i).copied().unwrap_or(0))
                 .collect();
-            out.diagnostics = Some(outputs::diagnostics(self, stamp, &since));
+            out.diagnostics = Some(self.diagnostics(stamp, &since));
             self.saturated_at_diagnostics = self.saturated_steps().to_vec();
         }
         Ok(out)
@@ -982,7 +957,7 @@ mod tests {
         )
         .unwrap();
         let tf = TransferFunction::preset(&c.transfer_function).unwrap();
-        let reference = crate::render::tet_raycast::reference(
+        let reference = crate::render::mesh::reference(
             &rest,
             &deformed,
             &scalars,
@@ -997,7 +972,7 @@ mod tests {
         let (mean, max) = rendered.errors(&reference);
         assert!(mean < 0.5 && max < 8.0, "against the f64 reference: mean {mean:.2}, max {max:.1} levels");
         // The organ has sagged visibly: the same reference at rest is further off.
-        let at_rest = crate::render::tet_raycast::reference(
+        let at_rest = crate::render::mesh::reference(
             &rest,
             rest.nodes(),
             &scalars,

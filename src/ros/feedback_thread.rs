@@ -17,7 +17,7 @@ use std::time::{Duration, Instant};
 use mio::{Events, Interest, Poll, Token, Waker};
 use ros2_client::{Publisher, Subscription};
 
-use super::node::NodeError;
+use super::error::NodeError;
 use crate::msgs::{PoseStamped, Time, WrenchStamped};
 use crate::pipeline::{FeedbackLoop, LoopState};
 

@@ -6,6 +6,13 @@ pub mod args;
 #[cfg(feature = "ros")]
 pub mod dds;
 #[cfg(feature = "ros")]
+mod error;
+#[cfg(feature = "ros")]
 mod feedback_thread;
 #[cfg(feature = "ros")]
 pub mod node;
+#[cfg(feature = "ros")]
+mod parameters;
+
+#[cfg(feature = "ros")]
+pub use error::NodeError;

@@ -4,49 +4,29 @@
 
 use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{mpsc, Arc, Mutex};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use ros2_client::{
-    MessageTypeName, Name, Node, NodeName, ParameterValue, Publisher, QosProfile, Server, ServiceMapping,
-    ServiceTypeName, Subscription,
+    MessageTypeName, Name, Node, NodeName, Publisher, QosProfile, Server, ServiceMapping, ServiceTypeName, Subscription,
 };
 use serde_yaml_ng::Value;
 
 use super::args::{self, RosArgs};
 use super::dds::{self, Discovery};
+use super::error::{ros_err, NodeError};
 use super::feedback_thread::{Command, Event, FeedbackIo, FeedbackThread, ToolSubscriptions};
+use super::parameters::Parameters;
 use crate::msgs::{
     DeformedMesh, DiagnosticArray, Image, LoadSceneRequest, Marker, Message, PoseStamped, Time, TriggerRequest,
     TriggerResponse, WarpedVolumeInfo, WrenchStamped,
 };
 use crate::pipeline::inputs::InputLimits;
-use crate::pipeline::{Demand, FrameMode, Outputs, Pipeline, PipelineError};
+use crate::pipeline::{Demand, FrameMode, Outputs, Pipeline};
 use crate::record::Qos;
 use crate::scene::BackendArgs;
 use crate::scene::Scene;
-use crate::session::{qualified, topics, RecordOptions, Session, SessionError};
-
-#[derive(Debug, thiserror::Error)]
-#[non_exhaustive]
-pub enum NodeError {
-    #[error(transparent)]
-    Args(#[from] args::ArgsError),
-    #[error(transparent)]
-    Dds(#[from] dds::DdsError),
-    #[error("ROS 2: {0}")]
-    Ros(String),
-    #[error(transparent)]
-    Pipeline(#[from] PipelineError),
-    #[error(transparent)]
-    Backend(#[from] crate::backend::BackendError),
-    #[error(transparent)]
-    Session(#[from] SessionError),
-}
-
-fn ros_err(what: &str) -> impl Fn(ros2_client::CreateError) -> NodeError + '_ {
-    move |e| NodeError::Ros(format!("{what}: {e:?}"))
-}
+use crate::session::{qualified, topics, RecordOptions, Session};
 
 macro_rules! ros_messages {
     ($($ty:ty),*) => {
@@ -169,285 +149,32 @@ struct Publishers {
     diagnostics: (String, Publisher<DiagnosticArray>),
 }
 
-/// A parameter as YAML (how the scene reads it).
-fn yaml_of(value: &ParameterValue) -> Value {
-    match value {
-        ParameterValue::NotSet => Value::Null,
-        ParameterValue::Boolean(b) => Value::Bool(*b),
-        ParameterValue::Integer(i) => Value::from(*i),
-        ParameterValue::Double(d) => Value::from(*d),
-        ParameterValue::String(s) => Value::String(s.clone()),
-        ParameterValue::ByteArray(v) => Value::Sequence(v.iter().map(|b| Value::from(*b)).collect()),
-        ParameterValue::BooleanArray(v) => Value::Sequence(v.iter().map(|b| Value::Bool(*b)).collect()),
-        ParameterValue::IntegerArray(v) => Value::Sequence(v.iter().map(|i| Value::from(*i)).collect()),
-        ParameterValue::DoubleArray(v) => Value::Sequence(v.iter().map(|d| Value::from(*d)).collect()),
-        ParameterValue::StringArray(v) => Value::Sequence(v.iter().map(|s| Value::String(s.clone())).collect()),
-    }
-}
-
-/// A YAML value as a ROS parameter (integers stay integers, lists become arrays).
-fn parameter_of(value: &Value) -> ParameterValue {
-    match value {
-        Value::Bool(b) => ParameterValue::Boolean(*b),
-        Value::Number(n) if n.is_i64() => ParameterValue::Integer(n.as_i64().unwrap_or_default()),
-        Value::Number(n) => ParameterValue::Double(n.as_f64().unwrap_or_default()),
-        Value::String(s) => ParameterValue::String(s.clone()),
-        Value::Sequence(items) if items.iter().all(Value::is_bool) => {
-            ParameterValue::BooleanArray(items.iter().filter_map(Value::as_bool).collect())
-        }
-        Value::Sequence(items) if items.iter().all(|v| v.as_i64().is_some()) => {
-            ParameterValue::IntegerArray(items.iter().filter_map(Value::as_i64).collect())
-        }
-        Value::Sequence(items) if items.iter().all(Value::is_number) => {
-            ParameterValue::DoubleArray(items.iter().filter_map(Value::as_f64).collect())
-        }
-        Value::Sequence(items) => ParameterValue::StringArray(
-            items.iter().map(|v| serde_yaml_ng::to_string(v).unwrap_or_default().trim().to_owned()).collect(),
-        ),
-        Value::Null => ParameterValue::NotSet,
-        other => ParameterValue::String(serde_yaml_ng::to_string(other).unwrap_or_default().trim().to_owned()),
-    }
-}
-
 /// Runs the node until Ctrl-C (or `run_for`); the recording is closed properly either way.
 pub fn run(settings: NodeSettings) -> Result<(), NodeError> {
-    let scene = args::scene_from_parameters(&settings.ros.parameters)?;
-    let limits = InputLimits::default();
-    // Chosen once per run: a reloaded scene keeps it.
-    let backend = scene.backend(&settings.backend)?;
-    let mut pipeline = Pipeline::new(scene, &backend, limits, FrameMode::Background)?;
-
-    let (domain, discovery) = dds::settings(|name| std::env::var(name).ok(), settings.open_discovery)?;
-    let context = dds::context(domain, discovery)?;
-    tracing::info!(
-        "DDS domain {domain}, discovery {}",
-        if discovery == Discovery::Localhost { "on 127.0.0.1 only" } else { "open to the subnet" }
-    );
-    let node_name = NodeName::new(&settings.ros.namespace, &settings.ros.node_name)
-        .map_err(|e| NodeError::Ros(format!("node name: {e:?}")))?;
-
-    // Every scene field is a declared parameter; a change is checked, then reloads the scene.
-    let (changes, changed) = mpsc::channel::<(String, Value)>();
-    let mut options = ros2_client::NodeOptions::new().enable_rosout(true).start_parameter_services(true);
-    let mut declared = args::scene_parameters(pipeline.scene());
-    declared.extend(settings.ros.parameters.clone());
-    // The command line's choices are the ones in force.
-    if let Some(choice) = settings.backend.backend {
-        declared.insert("backend".into(), Value::String(choice.name().into()));
-    }
-    if settings.backend.allow_software_gpu {
-        declared.insert("allow_software_gpu".into(), Value::Bool(true));
-    }
-    for (name, value) in &declared {
-        options = options.declare_parameter(name, parameter_of(value));
-    }
-    // The values in force: a set action repeating one of them (declaring does) changes nothing.
-    let parameters = Arc::new(Mutex::new(declared));
-    let validator_parameters = parameters.clone();
-    options = options.parameter_validator(Box::new(move |name, value| {
-        let Ok(mut candidate) = validator_parameters.lock().map(|p| p.clone()) else {
-            return Err("parameter store poisoned".into());
-        };
-        let in_force = candidate.get(name).map_or(ParameterValue::NotSet, parameter_of);
-        if args::RUN_PARAMETERS.contains(&name) && in_force != *value {
-            return Err(format!("`{name}` is chosen once per run: restart the node to change it"));
-        }
-        candidate.insert(name.to_owned(), yaml_of(value));
-        args::check_scene(&candidate).map(drop)
-    }));
-    let changes = Mutex::new(changes);
-    options = options.parameter_set_action(Box::new(move |name, value| {
-        let sent = changes
-            .lock()
-            .map_err(|_| "parameter channel poisoned".to_owned())?
-            .send((name.to_owned(), yaml_of(value)));
-        sent.map_err(|_| "the node is stopping".to_owned())
-    }));
-    let mut node = context.new_node(node_name, options).map_err(|e| NodeError::Ros(format!("node: {e:?}")))?;
-    let spinner = node.spinner().map_err(ros_err("spinner"))?;
-    std::thread::spawn(move || {
-        if let Err(e) = futures::executor::block_on(spinner.spin()) {
-            tracing::error!("ROS 2 spinner stopped: {e:?}");
-        }
-    });
-
     let topics = Topics { namespace: &settings.ros.namespace, remaps: &settings.ros.remaps };
-    let publishers = Publishers {
-        mesh: topics.publisher(&mut node, topics::DEFORMED_MESH, Qos::Reliable)?,
-        marker: topics.publisher(&mut node, topics::SURFACE_MARKER, Qos::Reliable)?,
-        raycast: topics.publisher(&mut node, topics::RAYCAST_IMAGE, Qos::SensorData)?,
-        dpcm_height: topics.publisher(&mut node, topics::DPCM_HEIGHT, Qos::SensorData)?,
-        dpcm_image: topics.publisher(&mut node, topics::DPCM_IMAGE, Qos::SensorData)?,
-        warped_info: topics.publisher(&mut node, topics::WARPED_VOLUME_INFO, Qos::Latched)?,
-        diagnostics: topics.publisher(&mut node, topics::DIAGNOSTICS, Qos::Reliable)?,
-    };
-    let io = FeedbackIo {
-        tools: subscribe_tools(&topics, &mut node, &pipeline)?,
-        feedback: feedback_publishers(&topics, &mut node, &pipeline)?,
-    };
-    let period = Duration::from_secs_f64(pipeline.scene().solver.dt);
-    let mut feedback = FeedbackThread::spawn(pipeline.detach_feedback(), io, period)?;
-    let reset: Server<TriggerRequest, TriggerResponse> = topics.server(&mut node, "reset", "std_srvs", "Trigger")?;
-    let pause: Server<TriggerRequest, TriggerResponse> = topics.server(&mut node, "pause", "std_srvs", "Trigger")?;
-    let resume: Server<TriggerRequest, TriggerResponse> = topics.server(&mut node, "resume", "std_srvs", "Trigger")?;
-    let load: Server<LoadSceneRequest, TriggerResponse> =
-        topics.server(&mut node, "load_scene", "defvol", "LoadScene")?;
-
-    #[cfg(feature = "shm")]
-    let mut shm = shm_publisher(&mut pipeline);
-    let mut session = Session::open(&settings.ros.namespace, &settings.record, &pipeline)?;
-    let stop = match &settings.stop {
-        Some(stop) => stop.clone(),
-        None => {
-            let stop = Arc::new(AtomicBool::new(false));
-            let stop_flag = stop.clone();
-            if let Err(e) = ctrlc::set_handler(move || stop_flag.store(true, Ordering::SeqCst)) {
-                tracing::warn!("no Ctrl-C handler ({e}); stop the node with SIGTERM");
-            }
-            stop
-        }
-    };
-    tracing::info!(
-        "node {} up: tools on {:?}",
-        node.fully_qualified_name(),
-        pipeline.tool_topics().iter().map(|(pose, _)| pose.clone()).collect::<Vec<_>>()
-    );
-
+    let mut node = DefvolNode::open(&settings, &topics)?;
+    let stop = stop_flag(&settings);
+    let period = Duration::from_secs_f64(node.pipeline.scene().solver.dt);
     let started = Instant::now();
     let mut next_tick = Instant::now();
     let mut demand = Demand::NONE;
     let mut ticks: u64 = 0;
     while !stop.load(Ordering::SeqCst) && settings.run_for.is_none_or(|limit| started.elapsed() < limit) {
-        // The feedback thread's inputs and feedback are recorded here, off its path.
-        let mut inputs = 0;
-        while let Ok(event) = feedback.events.try_recv() {
-            match event {
-                Event::Pose { topic, msg, tool } => {
-                    inputs += 1;
-                    let tool = tool
-                        .and_then(|(index, pose)| pipeline.scene().tools.get(index).map(|t| (t.name.as_str(), pose)));
-                    session.record_pose(&qualified(&settings.ros.namespace, &topic), &msg, tool);
-                }
-                Event::Wrench { topic, msg } => {
-                    inputs += 1;
-                    session.record_wrench(&qualified(&settings.ros.namespace, &topic), &msg);
-                }
-                Event::Feedback { stamp, msgs } => {
-                    session.record_outputs(&Outputs { tool_feedback: msgs, ..Default::default() }, &pipeline, stamp);
-                }
-                Event::Failed(e) => tracing::error!("step failed: {e}; paused (call reset or load_scene)"),
-            }
+        let inputs = node.record_events(&settings.ros.namespace);
+        if let Some(state) = node.feedback.latest() {
+            node.pipeline.follow(state);
         }
-        if let Some(state) = feedback.latest() {
-            pipeline.follow(state);
+        if node.serve() {
+            node.rewire(&topics)?;
         }
-        let mut was_reset = false;
-        serve(&reset, |_| {
-            let outcome = pipeline.reset();
-            was_reset = outcome.is_ok();
-            result(outcome.map(|()| "reset to the rest state".into()).map_err(|e| e.to_string()))
-        });
-        if was_reset {
-            feedback.send(Command::Replace { feedback: Box::new(pipeline.detach_feedback()), io: None });
-        }
-        let mut told = Vec::new();
-        serve(&pause, |_| {
-            pipeline.pause();
-            told.push(Command::Pause);
-            result(Ok("paused".into()))
-        });
-        serve(&resume, |_| {
-            pipeline.resume();
-            told.push(Command::Resume);
-            result(Ok("running".into()))
-        });
-        for command in told {
-            feedback.send(command);
-        }
-        let mut reloaded = false;
-        serve(&load, |request| {
-            let loaded =
-                scene_of(&request.scene).and_then(|scene| pipeline.load_scene(scene).map_err(|e| e.to_string()));
-            reloaded = loaded.is_ok();
-            result(loaded.map(|()| "scene loaded".into()).map_err(|e| format!("kept the running scene: {e}")))
-        });
-        while let Ok((name, value)) = changed.try_recv() {
-            let Ok(mut store) = parameters.lock() else { break };
-            if store.get(&name) == Some(&value)
-                || (parameter_of(&value) == parameter_of(store.get(&name).unwrap_or(&Value::Null)))
-            {
-                continue;
-            }
-            store.insert(name.clone(), value);
-            match args::scene_from_parameters(&store)
-                .map_err(|e| e.to_string())
-                .and_then(|scene| pipeline.load_scene(scene).map_err(|e| e.to_string()))
-            {
-                Ok(()) => {
-                    tracing::info!("parameter {name} set: scene reloaded");
-                    reloaded = true;
-                }
-                Err(e) => tracing::error!("parameter {name}: {e}; kept the running scene"),
-            }
-        }
-        if reloaded {
-            let io = FeedbackIo {
-                tools: subscribe_tools(&topics, &mut node, &pipeline)?,
-                feedback: feedback_publishers(&topics, &mut node, &pipeline)?,
-            };
-            feedback.send(Command::Replace { feedback: Box::new(pipeline.detach_feedback()), io: Some(io) });
-            #[cfg(feature = "shm")]
-            {
-                // The old publisher goes first: the service allows one.
-                pipeline.set_volume_sink(None);
-                drop(shm.take());
-                shm = shm_publisher(&mut pipeline);
-            }
-        }
-
         // Who listens decides what runs (checked at 10 Hz: discovery changes slowly).
         if ticks.is_multiple_of(10) {
-            let recorded = session.recording();
-            #[cfg(feature = "shm")]
-            let shm_listens = shm.as_ref().is_some_and(|s| crate::pipeline::VolumeSink::has_subscribers(s.as_ref()));
-            #[cfg(not(feature = "shm"))]
-            let shm_listens = false;
-            demand = Demand {
-                // Published by the feedback thread.
-                tool_feedback: false,
-                deformed_mesh: recorded || listened(&node, &publishers.mesh),
-                surface_marker: recorded || listened(&node, &publishers.marker),
-                raycast: recorded || listened(&node, &publishers.raycast),
-                dpcm_height: recorded || listened(&node, &publishers.dpcm_height),
-                dpcm_image: recorded || listened(&node, &publishers.dpcm_image),
-                warped_volume: recorded || shm_listens || listened(&node, &publishers.warped_info),
-                diagnostics: true,
-            };
+            demand = node.demand();
         }
         ticks += 1;
-        let stamp = Time::now();
-        match pipeline.tick(stamp, &demand) {
-            Ok(out) => {
-                session.record_outputs(&out, &pipeline, stamp);
-                let info = out.warped_volume.then(|| crate::session::warped_info(&pipeline, stamp)).flatten();
-                publish(&publishers.mesh, out.deformed_mesh);
-                publish(&publishers.marker, out.surface_marker);
-                publish(&publishers.raycast, out.raycast);
-                publish(&publishers.dpcm_height, out.dpcm_height);
-                publish(&publishers.dpcm_image, out.dpcm_image);
-                publish(&publishers.warped_info, info);
-                publish(&publishers.diagnostics, out.diagnostics);
-            }
-            // A failed step (a diverging solver, say) is reported; the node stays up and
-            // can be reset or given another scene.
-            Err(e) => {
-                tracing::error!("step failed: {e}; pausing (call reset or load_scene)");
-                pipeline.pause();
-                feedback.send(Command::Pause);
-            }
-        }
+        node.publish(&demand);
         // Real time: one tick per solver step; asleep with nothing coming in, poll gently.
-        next_tick += if pipeline.asleep() && inputs == 0 { period.max(Duration::from_millis(20)) } else { period };
+        next_tick += if node.pipeline.asleep() && inputs == 0 { period.max(Duration::from_millis(20)) } else { period };
         let now = Instant::now();
         if next_tick > now {
             std::thread::sleep(next_tick - now);
@@ -455,11 +182,259 @@ pub fn run(settings: NodeSettings) -> Result<(), NodeError> {
             next_tick = now;
         }
     }
-    // The feedback thread stops first; dropping the node stops its spinner.
-    drop(feedback);
-    drop(node);
-    session.finish()?;
-    Ok(())
+    node.close()
+}
+
+/// Set by Ctrl-C, or the caller's own flag.
+fn stop_flag(settings: &NodeSettings) -> Arc<AtomicBool> {
+    if let Some(stop) = &settings.stop {
+        return stop.clone();
+    }
+    let stop = Arc::new(AtomicBool::new(false));
+    let stop_flag = stop.clone();
+    if let Err(e) = ctrlc::set_handler(move || stop_flag.store(true, Ordering::SeqCst)) {
+        tracing::warn!("no Ctrl-C handler ({e}); stop the node with SIGTERM");
+    }
+    stop
+}
+
+struct Services {
+    reset: Server<TriggerRequest, TriggerResponse>,
+    pause: Server<TriggerRequest, TriggerResponse>,
+    resume: Server<TriggerRequest, TriggerResponse>,
+    load: Server<LoadSceneRequest, TriggerResponse>,
+}
+
+/// The running node: the pipeline, its ROS 2 entities, the feedback thread and the session.
+struct DefvolNode {
+    pipeline: Pipeline,
+    node: Node,
+    publishers: Publishers,
+    services: Services,
+    parameters: Parameters,
+    feedback: FeedbackThread,
+    session: Session,
+    #[cfg(feature = "shm")]
+    shm: Option<Arc<crate::shm::WarpedVolumePublisher>>,
+}
+
+impl DefvolNode {
+    /// The scene from the parameters, the pipeline on the run's backend, the DDS node with
+    /// its parameters, topics and services, the feedback thread and the recording.
+    fn open(settings: &NodeSettings, topics: &Topics<'_>) -> Result<Self, NodeError> {
+        let scene = args::scene_from_parameters(&settings.ros.parameters)?;
+        // Chosen once per run: a reloaded scene keeps it.
+        let backend = scene.backend(&settings.backend)?;
+        let mut pipeline = Pipeline::new(scene, &backend, InputLimits::default(), FrameMode::Background)?;
+
+        let (domain, discovery) = dds::settings(|name| std::env::var(name).ok(), settings.open_discovery)?;
+        let context = dds::context(domain, discovery)?;
+        tracing::info!(
+            "DDS domain {domain}, discovery {}",
+            if discovery == Discovery::Localhost { "on 127.0.0.1 only" } else { "open to the subnet" }
+        );
+        let node_name = NodeName::new(&settings.ros.namespace, &settings.ros.node_name)
+            .map_err(|e| NodeError::Ros(format!("node name: {e:?}")))?;
+
+        // Every scene field is a declared parameter; a change is checked, then reloads the scene.
+        let mut declared = args::scene_parameters(pipeline.scene());
+        declared.extend(settings.ros.parameters.clone());
+        // The command line's choices are the ones in force.
+        if let Some(choice) = settings.backend.backend {
+            declared.insert("backend".into(), Value::String(choice.name().into()));
+        }
+        if settings.backend.allow_software_gpu {
+            declared.insert("allow_software_gpu".into(), Value::Bool(true));
+        }
+        let options = ros2_client::NodeOptions::new().enable_rosout(true).start_parameter_services(true);
+        let (options, parameters) = Parameters::declare(options, declared);
+        let mut node = context.new_node(node_name, options).map_err(|e| NodeError::Ros(format!("node: {e:?}")))?;
+        let spinner = node.spinner().map_err(ros_err("spinner"))?;
+        std::thread::spawn(move || {
+            if let Err(e) = futures::executor::block_on(spinner.spin()) {
+                tracing::error!("ROS 2 spinner stopped: {e:?}");
+            }
+        });
+
+        let publishers = Publishers {
+            mesh: topics.publisher(&mut node, topics::DEFORMED_MESH, Qos::Reliable)?,
+            marker: topics.publisher(&mut node, topics::SURFACE_MARKER, Qos::Reliable)?,
+            raycast: topics.publisher(&mut node, topics::RAYCAST_IMAGE, Qos::SensorData)?,
+            dpcm_height: topics.publisher(&mut node, topics::DPCM_HEIGHT, Qos::SensorData)?,
+            dpcm_image: topics.publisher(&mut node, topics::DPCM_IMAGE, Qos::SensorData)?,
+            warped_info: topics.publisher(&mut node, topics::WARPED_VOLUME_INFO, Qos::Latched)?,
+            diagnostics: topics.publisher(&mut node, topics::DIAGNOSTICS, Qos::Reliable)?,
+        };
+        let io = FeedbackIo {
+            tools: subscribe_tools(topics, &mut node, &pipeline)?,
+            feedback: feedback_publishers(topics, &mut node, &pipeline)?,
+        };
+        let period = Duration::from_secs_f64(pipeline.scene().solver.dt);
+        let feedback = FeedbackThread::spawn(pipeline.detach_feedback(), io, period)?;
+        let services = Services {
+            reset: topics.server(&mut node, "reset", "std_srvs", "Trigger")?,
+            pause: topics.server(&mut node, "pause", "std_srvs", "Trigger")?,
+            resume: topics.server(&mut node, "resume", "std_srvs", "Trigger")?,
+            load: topics.server(&mut node, "load_scene", "defvol", "LoadScene")?,
+        };
+
+        #[cfg(feature = "shm")]
+        let shm = shm_publisher(&mut pipeline);
+        let session = Session::open(&settings.ros.namespace, &settings.record, &pipeline)?;
+        tracing::info!(
+            "node {} up: tools on {:?}",
+            node.fully_qualified_name(),
+            pipeline.tool_topics().iter().map(|(pose, _)| pose.clone()).collect::<Vec<_>>()
+        );
+        Ok(Self {
+            pipeline,
+            node,
+            publishers,
+            services,
+            parameters,
+            feedback,
+            session,
+            #[cfg(feature = "shm")]
+            shm,
+        })
+    }
+
+    /// Records the feedback thread's inputs and feedback, off its path; the inputs' count.
+    fn record_events(&mut self, namespace: &str) -> usize {
+        let mut inputs = 0;
+        while let Ok(event) = self.feedback.events.try_recv() {
+            match event {
+                Event::Pose { topic, msg, tool } => {
+                    inputs += 1;
+                    let tool = tool.and_then(|(index, pose)| {
+                        self.pipeline.scene().tools.get(index).map(|t| (t.name.as_str(), pose))
+                    });
+                    self.session.record_pose(&qualified(namespace, &topic), &msg, tool);
+                }
+                Event::Wrench { topic, msg } => {
+                    inputs += 1;
+                    self.session.record_wrench(&qualified(namespace, &topic), &msg);
+                }
+                Event::Feedback { stamp, msgs } => {
+                    let out = Outputs { tool_feedback: msgs, ..Default::default() };
+                    self.session.record_outputs(&out, &self.pipeline, stamp);
+                }
+                Event::Failed(e) => tracing::error!("step failed: {e}; paused (call reset or load_scene)"),
+            }
+        }
+        inputs
+    }
+
+    /// Answers the services and applies parameter changes; true when the scene was reloaded.
+    fn serve(&mut self) -> bool {
+        let pipeline = &mut self.pipeline;
+        let mut was_reset = false;
+        serve(&self.services.reset, |_| {
+            let outcome = pipeline.reset();
+            was_reset = outcome.is_ok();
+            result(outcome.map(|()| "reset to the rest state".into()).map_err(|e| e.to_string()))
+        });
+        if was_reset {
+            self.feedback.send(Command::Replace { feedback: Box::new(pipeline.detach_feedback()), io: None });
+        }
+        let mut told = Vec::new();
+        serve(&self.services.pause, |_| {
+            pipeline.pause();
+            told.push(Command::Pause);
+            result(Ok("paused".into()))
+        });
+        serve(&self.services.resume, |_| {
+            pipeline.resume();
+            told.push(Command::Resume);
+            result(Ok("running".into()))
+        });
+        for command in told {
+            self.feedback.send(command);
+        }
+        let mut reloaded = false;
+        serve(&self.services.load, |request| {
+            let loaded =
+                scene_of(&request.scene).and_then(|scene| pipeline.load_scene(scene).map_err(|e| e.to_string()));
+            reloaded = loaded.is_ok();
+            result(loaded.map(|()| "scene loaded".into()).map_err(|e| format!("kept the running scene: {e}")))
+        });
+        let changed = self.parameters.apply(pipeline);
+        reloaded || changed
+    }
+
+    /// After a reload: the new scene's tool topics, a new feedback loop, a new volume sink.
+    fn rewire(&mut self, topics: &Topics<'_>) -> Result<(), NodeError> {
+        let io = FeedbackIo {
+            tools: subscribe_tools(topics, &mut self.node, &self.pipeline)?,
+            feedback: feedback_publishers(topics, &mut self.node, &self.pipeline)?,
+        };
+        self.feedback.send(Command::Replace { feedback: Box::new(self.pipeline.detach_feedback()), io: Some(io) });
+        #[cfg(feature = "shm")]
+        {
+            // The old publisher goes first: the service allows one.
+            self.pipeline.set_volume_sink(None);
+            drop(self.shm.take());
+            self.shm = shm_publisher(&mut self.pipeline);
+        }
+        Ok(())
+    }
+
+    /// The outputs someone listens to (a subscriber or the recording).
+    fn demand(&self) -> Demand {
+        let recorded = self.session.recording();
+        #[cfg(feature = "shm")]
+        let shm_listens = self.shm.as_ref().is_some_and(|s| crate::pipeline::VolumeSink::has_subscribers(s.as_ref()));
+        #[cfg(not(feature = "shm"))]
+        let shm_listens = false;
+        let (node, p) = (&self.node, &self.publishers);
+        Demand {
+            // Published by the feedback thread.
+            tool_feedback: false,
+            deformed_mesh: recorded || listened(node, &p.mesh),
+            surface_marker: recorded || listened(node, &p.marker),
+            raycast: recorded || listened(node, &p.raycast),
+            dpcm_height: recorded || listened(node, &p.dpcm_height),
+            dpcm_image: recorded || listened(node, &p.dpcm_image),
+            warped_volume: recorded || shm_listens || listened(node, &p.warped_info),
+            diagnostics: true,
+        }
+    }
+
+    /// One tick of the pipeline, its outputs recorded and published.
+    fn publish(&mut self, demand: &Demand) {
+        let stamp = Time::now();
+        match self.pipeline.tick(stamp, demand) {
+            Ok(out) => {
+                self.session.record_outputs(&out, &self.pipeline, stamp);
+                let info = out.warped_volume.then(|| crate::session::warped_info(&self.pipeline, stamp)).flatten();
+                let p = &self.publishers;
+                publish(&p.mesh, out.deformed_mesh);
+                publish(&p.marker, out.surface_marker);
+                publish(&p.raycast, out.raycast);
+                publish(&p.dpcm_height, out.dpcm_height);
+                publish(&p.dpcm_image, out.dpcm_image);
+                publish(&p.warped_info, info);
+                publish(&p.diagnostics, out.diagnostics);
+            }
+            // A failed step (a diverging solver, say) is reported; the node stays up and
+            // can be reset or given another scene.
+            Err(e) => {
+                tracing::error!("step failed: {e}; pausing (call reset or load_scene)");
+                self.pipeline.pause();
+                self.feedback.send(Command::Pause);
+            }
+        }
+    }
+
+    /// The feedback thread stops first; dropping the node stops its spinner; the
+    /// recording is closed.
+    fn close(self) -> Result<(), NodeError> {
+        let Self { feedback, node, session, .. } = self;
+        drop(feedback);
+        drop(node);
+        session.finish()?;
+        Ok(())
+    }
 }
 
 /// The warped-volume publisher, handed to the pipeline as its volume sink (the warp writes

@@ -1,8 +1,8 @@
 //! DPCM accuracy: exact rest, wave speed against the discrete wave equation, plasticity,
 //! energy, the fast path against the general form, and an independent f64 reference.
 
-use defvol::dpcm::kernel::{self, TILE};
-use defvol::dpcm::markers::Script;
+use defvol::dpcm::kernels::{self, TILE};
+use defvol::dpcm::Script;
 use defvol::dpcm::{DpcmConfig, DpcmError, Interaction, Links, Marker, MarkerParams, Surface, Topology};
 
 /// 1 mm phyxels, 1 ms steps, 0.1 g: h²/m = 0.01, h/m = 10.
@@ -123,7 +123,7 @@ fn a_plastic_ground_keeps_the_track_and_an_elastic_one_returns_to_rest() {
         c.marker = MarkerParams { stiffness: 100.0, damping: 5e-3, threshold: 0.005, flattening: 0.3 };
         c.script = Script {
             markers: 1,
-            pattern: defvol::dpcm::markers::Pattern::Lines,
+            pattern: defvol::dpcm::Pattern::Lines,
             speed: 0.05,
             depth: 0.002,
             leave_after: Some(0.6),
@@ -215,13 +215,8 @@ fn busy_config(probability: f64) -> DpcmConfig {
     c.links.diagonal = Some(Interaction::DampedSpring { stiffness: 8.0, damping: 1e-4 });
     c.links.probability = probability;
     c.links.seed = 3;
-    c.script = Script {
-        markers: 4,
-        pattern: defvol::dpcm::markers::Pattern::Wander,
-        speed: 0.08,
-        depth: 0.0015,
-        leave_after: None,
-    };
+    c.script =
+        Script { markers: 4, pattern: defvol::dpcm::Pattern::Wander, speed: 0.08, depth: 0.0015, leave_after: None };
     c
 }
 
@@ -248,13 +243,13 @@ fn fast_rows_match_the_general_form(probability: f64) {
         let expected: Vec<f32> = (0..w * h)
             .map(|i| {
                 let (x, y) = (i % w, i / w);
-                rest[i] = kernel::plastic_rest(&coeffs, rest[i], z[i]);
+                rest[i] = kernels::plastic_rest(&coeffs, rest[i], z[i]);
                 let (ga, gb) = surface.ground_coeffs(i);
-                let base = kernel::phyxel_update(&coeffs, ga, gb, rest[i], &z, &zp, w, h, x, y);
+                let base = kernels::phyxel_update(&coeffs, ga, gb, rest[i], &z, &zp, w, h, x, y);
                 let tile = bins.tile(x / TILE, y / TILE);
                 let mut push = 0.0f32;
                 for &m in tile {
-                    push += kernel::marker_term(&bins.markers[m as usize], x as f32, y as f32, z[i], z[i] - zp[i]);
+                    push += kernels::marker_term(&bins.markers[m as usize], x as f32, y as f32, z[i], z[i] - zp[i]);
                 }
                 base + push
             })
@@ -275,7 +270,7 @@ struct Reference {
 }
 
 impl Reference {
-    fn step(&mut self, c: &DpcmConfig, coeffs: &kernel::Coeffs, markers: &[(Marker, f64)]) {
+    fn step(&mut self, c: &DpcmConfig, coeffs: &kernels::Coeffs, markers: &[(Marker, f64)]) {
         let (h, m, s) = (c.dt, c.mass, c.spacing);
         let Interaction::Plastic { stiffness: kg, damping: cg, threshold } = c.ground else { panic!() };
         let (
@@ -309,7 +304,7 @@ impl Reference {
                         (-1, 1) => (i, 3),
                         _ => (j, 3),
                     };
-                    if !kernel::link_kept(coeffs, owner as u32, dir) {
+                    if !kernels::link_kept(coeffs, owner as u32, dir) {
                         continue;
                     }
                     let (k, cv) = if dx == 0 || dy == 0 { (ka, ca) } else { (kd, cd) };
@@ -395,7 +390,7 @@ fn markers_are_binned_into_exactly_the_tiles_they_reach() {
                 // Every phyxel the marker can push is in a tile that lists it.
                 for y in ty * TILE..((ty + 1) * TILE).min(c.height) {
                     for x in tx * TILE..((tx + 1) * TILE).min(c.width) {
-                        let pushed = kernel::marker_term(m, x as f32, y as f32, 0.0, 0.0) != 0.0;
+                        let pushed = kernels::marker_term(m, x as f32, y as f32, 0.0, 0.0) != 0.0;
                         assert!(
                             !pushed || listed,
                             "marker {index} pushes ({x}, {y}) but tile ({tx}, {ty}) does not list it"
@@ -473,7 +468,7 @@ fn every_preset_loads_and_runs_stably() {
 #[test]
 fn waves_dying_out_leave_no_subnormal_heights() {
     // Regression: far-field waves decayed into f32 subnormals, and every step over them ran
-    // ~2x slower on x86. They are flushed to 0 below kernel::FLUSH_BELOW.
+    // ~2x slower on x86. They are flushed to 0 below kernels::FLUSH_BELOW.
     let mut c = DpcmConfig::preset("water").unwrap();
     (c.width, c.height) = (48, 48);
     c.ground = Interaction::DampedSpring { stiffness: 5.0, damping: 0.02 };

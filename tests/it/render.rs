@@ -3,8 +3,8 @@
 use nalgebra::{Matrix3, Point3, Vector3};
 
 use defvol::render::camera::{Camera, Projection};
-use defvol::render::raycast::{self, Mode, RaycastParams, Shading};
 use defvol::render::transfer::{TfPoint, TransferFunction};
+use defvol::render::volume::{self, Mode, RaycastParams, Shading};
 use defvol::render::RenderError;
 use defvol::volume::{phantom, Volume};
 
@@ -45,7 +45,7 @@ fn a_uniform_slab_absorbs_as_beer_lambert_says() {
             background: [0.0, 0.0, 0.0, 1.0],
             ..Default::default()
         };
-        let image = raycast::raycast(&volume, &camera, &tf, &params).unwrap();
+        let image = volume::raycast(&volume, &camera, &tf, &params).unwrap();
         let px = &image.rgba[(4 * 8 + 4) * 4..(4 * 8 + 4) * 4 + 4];
         for (c, want) in [0.2, 0.6, 1.0].iter().enumerate() {
             let want = (want * alpha * 255.0).round();
@@ -63,7 +63,7 @@ fn a_uniform_slab_absorbs_as_beer_lambert_says() {
             image.depth[4 * 8 + 4]
         );
     }
-    let reference = raycast::reference(&volume, &camera, &tf, 0.01, [0.0, 0.0, 0.0, 1.0]).unwrap();
+    let reference = volume::reference(&volume, &camera, &tf, 0.01, [0.0, 0.0, 0.0, 1.0]).unwrap();
     assert!((reference[4 * 8 + 4][1] - 0.6 * alpha).abs() < 1e-9, "f64 reference green {}", reference[4 * 8 + 4][1]);
 }
 
@@ -81,10 +81,10 @@ fn phantom_view(size: usize) -> (Volume, Camera) {
 fn the_phantom_matches_the_f64_reference_and_pre_integration_beats_point_sampling_at_a_coarse_step() {
     let (volume, camera) = phantom_view(96);
     let tf = TransferFunction::preset("ct_soft_tissue").unwrap();
-    let reference = raycast::reference(&volume, &camera, &tf, 0.05, [0.0, 0.0, 0.0, 1.0]).unwrap();
+    let reference = volume::reference(&volume, &camera, &tf, 0.05, [0.0, 0.0, 0.0, 1.0]).unwrap();
     let render = |step: f64, preintegrated: bool| {
         let params = RaycastParams { step, preintegrated, shading: Shading::None, ..Default::default() };
-        raycast::raycast(&volume, &camera, &tf, &params).unwrap()
+        volume::raycast(&volume, &camera, &tf, &params).unwrap()
     };
     let fine = render(0.25, true);
     let psnr = fine.psnr(&reference);
@@ -103,9 +103,9 @@ fn the_phantom_matches_the_f64_reference_and_pre_integration_beats_point_samplin
         ],
         relative: false,
     };
-    let band_reference = raycast::reference(&volume, &camera, &band, 0.005, [0.0, 0.0, 0.0, 1.0]).unwrap();
+    let band_reference = volume::reference(&volume, &camera, &band, 0.005, [0.0, 0.0, 0.0, 1.0]).unwrap();
     let render_band = |step: f64, preintegrated: bool| {
-        raycast::raycast(
+        volume::raycast(
             &volume,
             &camera,
             &band,
@@ -118,7 +118,7 @@ fn the_phantom_matches_the_f64_reference_and_pre_integration_beats_point_samplin
     // Measured: 27.6 against 20.8 dB.
     assert!(coarse_pre > coarse_point + 5.0, "pre-integrated {coarse_pre:.1} dB vs point-sampled {coarse_point:.1} dB");
     // Skipping and early termination change nothing visible.
-    let plain = raycast::raycast(
+    let plain = volume::raycast(
         &volume,
         &camera,
         &tf,
@@ -159,7 +159,7 @@ fn iso_surfaces_are_hit_where_the_field_crosses_and_mip_finds_the_peak() {
     .unwrap();
     let tf = TransferFunction::preset("ct_bone").unwrap();
     let params = RaycastParams { mode: Mode::Iso, iso_value: 80.0, step: 0.5, ..Default::default() };
-    let image = raycast::raycast(&volume, &camera, &tf, &params).unwrap();
+    let image = volume::raycast(&volume, &camera, &tf, &params).unwrap();
     // The centre pixels' rays pass within a pixel of the centre: the sphere is 60 mm away.
     let (ray_origin, ray_dir) = camera.ray(16, 16);
     let miss = (centre - ray_origin).cross(&ray_dir).norm();
@@ -171,7 +171,7 @@ fn iso_surfaces_are_hit_where_the_field_crosses_and_mip_finds_the_peak() {
     );
     assert!(image.depth[0].is_infinite(), "a corner ray misses the sphere");
     // MIP through the centre sees the peak (100, minus trilinear's dip near the peak).
-    let mip = raycast::raycast(
+    let mip = volume::raycast(
         &volume,
         &camera,
         &TransferFunction {
@@ -192,7 +192,7 @@ fn shading_lights_surfaces_facing_the_light() {
     let (volume, camera) = phantom_view(48);
     let tf = TransferFunction::preset("ct_bone").unwrap();
     let shaded = |shading| {
-        raycast::raycast(&volume, &camera, &tf, &RaycastParams { shading, step: 1.0, ..Default::default() }).unwrap()
+        volume::raycast(&volume, &camera, &tf, &RaycastParams { shading, step: 1.0, ..Default::default() }).unwrap()
     };
     let none = shaded(Shading::None);
     for shading in [Shading::Gradient, Shading::ForwardDifference] {
@@ -209,7 +209,7 @@ fn bad_cameras_and_transfer_functions_are_refused_or_rendered_validly() {
     let tf = TransferFunction::preset("ct_soft_tissue").unwrap();
     let empty = TransferFunction { points: vec![], relative: false };
     assert!(matches!(
-        raycast::raycast(&volume, &camera, &empty, &RaycastParams::default()),
+        volume::raycast(&volume, &camera, &empty, &RaycastParams::default()),
         Err(RenderError::TransferFunction(_))
     ));
     assert!(matches!(TransferFunction::preset("pet"), Err(RenderError::UnknownPreset(_))));
@@ -248,7 +248,7 @@ fn bad_cameras_and_transfer_functions_are_refused_or_rendered_validly() {
         16,
     )
     .unwrap();
-    let image = raycast::raycast(&volume, &inside, &tf, &RaycastParams::default()).unwrap();
+    let image = volume::raycast(&volume, &inside, &tf, &RaycastParams::default()).unwrap();
     assert!(image.rgba.chunks_exact(4).any(|p| p[0] > 0), "nothing seen from inside");
     let away = Camera::look_at(
         centre - Vector3::x() * 1000.0,
@@ -259,15 +259,15 @@ fn bad_cameras_and_transfer_functions_are_refused_or_rendered_validly() {
         16,
     )
     .unwrap();
-    let image = raycast::raycast(&volume, &away, &tf, &RaycastParams::default()).unwrap();
+    let image = volume::raycast(&volume, &away, &tf, &RaycastParams::default()).unwrap();
     assert!(image.rgba.chunks_exact(4).all(|p| p == [0, 0, 0, 255]) && image.depth.iter().all(|d| d.is_infinite()));
     let zero_step = RaycastParams { step: 0.0, ..Default::default() };
-    assert!(matches!(raycast::raycast(&volume, &camera, &tf, &zero_step), Err(RenderError::Parameter(_))));
+    assert!(matches!(volume::raycast(&volume, &camera, &tf, &zero_step), Err(RenderError::Parameter(_))));
 }
 
 #[test]
 fn a_tool_is_drawn_at_its_depth_behind_or_in_front_of_tissue() {
-    use defvol::render::raycast::ToolPicture;
+    use defvol::render::volume::ToolPicture;
     let volume = Volume::new([20, 10, 10], [1.0; 3], [0.0; 3], Matrix3::identity(), vec![100.0; 2000], "slab").unwrap();
     let camera = along_x(&volume, 8);
     let tf = flat([0.2, 0.6, 1.0], 0.05);
@@ -288,7 +288,7 @@ fn a_tool_is_drawn_at_its_depth_behind_or_in_front_of_tissue() {
     };
     // Behind the slab: seen through it. The centre pixel's ray meets the sphere head-on,
     // so the headlight gives full diffuse light.
-    let behind = raycast::raycast(&volume, &camera, &tf, &params(vec![sphere(40.0)])).unwrap();
+    let behind = volume::raycast(&volume, &camera, &tf, &params(vec![sphere(40.0)])).unwrap();
     let px = &behind.rgba[(4 * 8 + 4) * 4..(4 * 8 + 4) * 4 + 4];
     for (c, (tissue, tool)) in [(0.2, 1.0), (0.6, 0.5), (1.0, 0.0)].iter().enumerate() {
         let want = ((tissue * alpha + (1.0 - alpha) * tool) * 255.0).round();
@@ -296,7 +296,7 @@ fn a_tool_is_drawn_at_its_depth_behind_or_in_front_of_tissue() {
     }
     // In front of the slab: the tool alone, at its distance (pixel centres are ±0.25 off
     // the axis, so the surface is within 0.02 mm of the head-on distance).
-    let front = raycast::raycast(&volume, &camera, &tf, &params(vec![sphere(-20.0)])).unwrap();
+    let front = volume::raycast(&volume, &camera, &tf, &params(vec![sphere(-20.0)])).unwrap();
     let px = &front.rgba[(4 * 8 + 4) * 4..(4 * 8 + 4) * 4 + 4];
     for (c, want) in [255.0, 127.5, 0.0].iter().enumerate() {
         assert!((f64::from(px[c]) - want).abs() <= 1.5, "front: channel {c} = {}, want {want}", px[c]);
@@ -306,15 +306,15 @@ fn a_tool_is_drawn_at_its_depth_behind_or_in_front_of_tissue() {
     // A bad tool is refused.
     let mut bad = sphere(0.0);
     bad.radius = f64::NAN;
-    assert!(matches!(raycast::raycast(&volume, &camera, &tf, &params(vec![bad])), Err(RenderError::Parameter(_))));
+    assert!(matches!(volume::raycast(&volume, &camera, &tf, &params(vec![bad])), Err(RenderError::Parameter(_))));
 }
 
 mod tet_mesh {
     use super::*;
     use defvol::mesh::generate::{self, CellSplit};
     use defvol::mesh::TetMesh;
-    use defvol::render::raycast::ToolPicture;
-    use defvol::render::tet_raycast::{self, TetRaycastParams, TetRaycaster};
+    use defvol::render::mesh::{self, TetRaycastParams, TetRaycaster};
+    use defvol::render::volume::ToolPicture;
 
     /// A lattice mesh on the voxel centres of an n³ grid at 1 mm, and the volume of `f`.
     fn grid_and_mesh(n: usize, f: impl Fn(&Vector3<f64>) -> f64) -> (Volume, TetMesh, Vec<f32>) {
@@ -364,7 +364,7 @@ mod tet_mesh {
         .unwrap()
         .render(&camera)
         .unwrap();
-        let voxels = raycast::raycast(
+        let voxels = volume::raycast(
             &volume,
             &camera,
             &ramp(),
@@ -499,7 +499,7 @@ mod tet_mesh {
                     camera.projection
                 );
             }
-            let reference = tet_raycast::reference(
+            let reference = mesh::reference(
                 &mesh,
                 mesh.nodes(),
                 &scalars,
@@ -552,7 +552,7 @@ mod tet_mesh {
     #[test]
     fn the_tet_raycaster_matches_the_f64_reference_and_pre_integration_beats_point_sampling() {
         let (mesh, bent, scalars, tf, camera) = bent_scene();
-        let reference = tet_raycast::reference(
+        let reference = mesh::reference(
             &mesh,
             &bent,
             &scalars,
@@ -611,7 +611,7 @@ mod tet_mesh {
         .unwrap();
         let params = TetRaycastParams { tools: vec![probe], early_termination: 1.0, ..Default::default() };
         let image = TetRaycaster::new(&mesh, &scalars, &tf, &params).unwrap().render(&camera).unwrap();
-        let reference = tet_raycast::reference(
+        let reference = mesh::reference(
             &mesh,
             mesh.nodes(),
             &scalars,
@@ -698,8 +698,8 @@ mod source_through_mesh {
     use super::*;
     use defvol::mesh::generate::{self, CellSplit};
     use defvol::mesh::TetMesh;
-    use defvol::render::source_raycast::{self, SourceSampling};
-    use defvol::render::tet_raycast::TetRaycaster;
+    use defvol::render::mesh::source::{self, SourceSampling};
+    use defvol::render::mesh::TetRaycaster;
     use defvol::warp::{self, WarpOptions};
     use std::sync::Arc;
 
@@ -772,7 +772,7 @@ mod source_through_mesh {
             RaycastParams { step: 0.5, shading: Shading::None, empty_space_skipping: false, ..Default::default() },
         ] {
             let image = through(&mesh, &volume, mesh.nodes(), &params, &camera);
-            let voxels = raycast::raycast(&volume, &camera, &tf(), &params).unwrap();
+            let voxels = volume::raycast(&volume, &camera, &tf(), &params).unwrap();
             assert!(
                 voxels.rgba.chunks_exact(4).filter(|p| p[0] > 20).count() > 64 * 64 / 6,
                 "the view is nearly empty"
@@ -797,7 +797,7 @@ mod source_through_mesh {
         let bent: Vec<Vector3<f64>> = mesh.nodes().iter().map(bend(n)).collect();
         // A fine step on both paths: what is left is the map (and the warp's resampling).
         let plain = RaycastParams { step: 0.1, shading: Shading::None, early_termination: 1.0, ..Default::default() };
-        let reference = source_raycast::reference(
+        let reference = source::reference(
             &mesh,
             &bent,
             &volume,
@@ -819,7 +819,7 @@ mod source_through_mesh {
             direction: coarse.direction,
         };
         let (warped, _) = warp::warp(&volume, &mesh, &bent, &fine, &WarpOptions::default()).unwrap();
-        let warp_image = raycast::raycast(&warped, &camera, &tf(), &plain).unwrap();
+        let warp_image = volume::raycast(&warped, &camera, &tf(), &plain).unwrap();
         let (warp_mean, warp_max) = warp_image.errors(&reference);
         eprintln!("against the f64 map (levels, mean/max): source through the mesh {source_mean:.3}/{source_max:.1}, warp at 0.25 mm then raycast {warp_mean:.3}/{warp_max:.1}");
         assert!(source_mean < 0.5 && source_max < 2.0, "source: mean {source_mean:.3}, max {source_max:.1} levels");

@@ -47,7 +47,7 @@ struct Marker {
 }
 
 const TILE: u32 = 16u;
-// kernel::FLUSH_BELOW: subnormal-free, as on the CPU.
+// kernels::FLUSH_BELOW: subnormal-free, as on the CPU.
 const FLUSH_BELOW: f32 = 1e-20;
 
 @group(0) @binding(0) var<uniform> p: Params;

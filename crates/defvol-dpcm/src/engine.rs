@@ -1,14 +1,14 @@
 //! The DPCM surface on the run's backend: the GPU twin when the backend is a GPU (and the
 //! grid fits the adapter), else the CPU surface; one interface for both.
 
-use super::{DpcmConfig, DpcmError, Marker, StepStats, Surface};
+use crate::{DpcmConfig, DpcmError, Marker, StepStats, Surface};
 use defvol_gpu::backend::{Backend, RunsOn};
 
 pub enum DpcmEngine {
     Cpu(Surface),
     #[cfg(feature = "gpu")]
     Gpu {
-        surface: super::gpu::GpuSurface,
+        surface: crate::gpu::GpuSurface,
         name: String,
         /// The initial rest heights, for the displacement.
         initial: Vec<f32>,
@@ -23,7 +23,7 @@ impl DpcmEngine {
         {
             let gpu = backend
                 .try_gpu("dpcm", |ctx| {
-                    super::gpu::GpuSurface::from_surface(ctx.clone(), &surface).map(|gpu| (gpu, ctx.describe()))
+                    crate::gpu::GpuSurface::from_surface(ctx.clone(), &surface).map(|gpu| (gpu, ctx.describe()))
                 })
                 .map_err(|e| DpcmError::Gpu(e.to_string()))?;
             if let Some((gpu, name)) = gpu {

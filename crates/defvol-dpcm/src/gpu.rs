@@ -9,8 +9,8 @@ use std::sync::Arc;
 
 use bytemuck::{Pod, Zeroable};
 
-use super::kernel::{Coeffs, KernelMarker, TILE};
-use super::{to_kernel_markers, DpcmConfig, DpcmError, Marker, MarkerBins, StepStats, Surface};
+use crate::kernels::{Coeffs, KernelMarker, TILE};
+use crate::{to_kernel_markers, DpcmConfig, DpcmError, Marker, MarkerBins, StepStats, Surface};
 use defvol_gpu::gpu::{GpuContext, GpuError, Kernels};
 
 #[derive(Debug, thiserror::Error)]
@@ -233,8 +233,8 @@ fn uniform_block(config: &DpcmConfig, coeffs: Coeffs, tiles_x: usize, flags: u32
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::markers::{Pattern, Script};
     use crate::{Interaction, Topology};
+    use crate::{Pattern, Script};
 
     /// The GPU step against the CPU step, over every topology and ground kind, with
     /// markers moving: same state within f32 round-off (the GPU may fuse multiply-adds).

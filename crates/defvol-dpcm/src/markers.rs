@@ -7,9 +7,9 @@ use std::net::{SocketAddr, UdpSocket};
 use std::path::{Path, PathBuf};
 
 use nalgebra::{Isometry3, Point3};
-use serde::{Deserialize, Serialize};
+use serde::Deserialize;
 
-use super::{DpcmConfig, Marker};
+use crate::config::{DpcmConfig, Marker};
 
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
@@ -45,80 +45,6 @@ impl Calibration {
     pub fn marker(&self, id: u32, world_tip: Point3<f64>) -> Marker {
         let p = self.world_from_grid.inverse_transform_point(&world_tip);
         Marker { id, col: p.x / self.spacing, row: p.y / self.spacing, height: p.z, params: None }
-    }
-}
-
-/// Scripted marker paths, for demos, pictures and benchmarks.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct Script {
-    pub markers: usize,
-    pub pattern: Pattern,
-    /// Metres per second along the path.
-    pub speed: f64,
-    /// How far the marker's lowest point goes below the rest height (metres).
-    pub depth: f64,
-    /// Markers leave (lift off the surface) after this many seconds.
-    pub leave_after: Option<f64>,
-}
-
-impl Default for Script {
-    fn default() -> Self {
-        Self { markers: 1, pattern: Pattern::Lines, speed: 0.05, depth: 0.001, leave_after: None }
-    }
-}
-
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Pattern {
-    /// Markers on evenly spaced rows crossing the grid from left to right (tracks, boats).
-    Lines,
-    /// Markers evenly spaced on a circle, going round it.
-    Circle,
-    /// Each marker on its own Lissajous path over the whole grid (many markers at once).
-    Wander,
-}
-
-impl Script {
-    /// The height of a marker centre that reaches `depth` below the rest height.
-    pub fn pressing_height(&self, config: &DpcmConfig) -> f64 {
-        config.rest_height + config.marker.threshold * (1.0 - config.marker.flattening) - self.depth
-    }
-
-    /// The markers at time `t` (seconds).
-    pub fn markers_at(&self, config: &DpcmConfig, t: f64) -> Vec<Marker> {
-        if self.leave_after.is_some_and(|leave| t >= leave) {
-            return Vec::new();
-        }
-        let (w, h) = ((config.width - 1) as f64, (config.height - 1) as f64);
-        let height = self.pressing_height(config);
-        let travelled = self.speed * t / config.spacing;
-        let k = self.markers.max(1);
-        (0..k)
-            .map(|i| {
-                let f = (i as f64 + 0.5) / k as f64;
-                let (col, row) = match self.pattern {
-                    Pattern::Lines => {
-                        let margin = 0.1 * w;
-                        (margin + travelled % (w - 2.0 * margin).max(1.0), 0.15 * h + 0.7 * h * f)
-                    }
-                    Pattern::Circle => {
-                        let radius = 0.3 * w.min(h);
-                        let angle = std::f64::consts::TAU * f + travelled / radius;
-                        (0.5 * w + radius * angle.cos(), 0.5 * h + radius * angle.sin())
-                    }
-                    Pattern::Wander => {
-                        let phase = 2.399_963 * i as f64; // golden angle: spread without pattern
-                        let s = travelled / (w + h);
-                        (
-                            0.5 * w + 0.45 * w * (s * 1.3 + phase).sin(),
-                            0.5 * h + 0.45 * h * (s * 1.7 + 1.3 * phase).cos(),
-                        )
-                    }
-                };
-                Marker { id: i as u32, col, row, height, params: None }
-            })
-            .collect()
     }
 }
 

@@ -8,7 +8,7 @@ use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::{DpcmError, ParamTexture};
+use crate::DpcmError;
 use defvol_core::io;
 use defvol_core::volume::Volume;
 
@@ -190,62 +190,4 @@ pub fn write_height(path: &Path, values: &[f32], width: usize, height: usize, sp
     )
     .map_err(|e| DpcmError::Texture { path: path.to_owned(), message: e.to_string() })?;
     io::write_volume(path, &volume).map_err(|e| DpcmError::Texture { path: path.to_owned(), message: e.to_string() })
-}
-
-/// A texture's values on a `width` x `height` grid (nearest sample when sizes differ),
-/// mapped onto its range.
-pub fn load_texture(texture: &ParamTexture, width: usize, height: usize) -> Result<Vec<f32>, DpcmError> {
-    let path = &texture.file;
-    let bad = |message: String| DpcmError::Texture { path: path.clone(), message };
-    let is_png = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("png"));
-    let (w, h, values): (usize, usize, Vec<f64>) = if is_png {
-        let file = std::fs::File::open(path).map_err(|e| bad(e.to_string()))?;
-        let mut decoder = png::Decoder::new(std::io::BufReader::new(file));
-        decoder.set_transformations(png::Transformations::EXPAND | png::Transformations::STRIP_16);
-        let mut reader = decoder.read_info().map_err(|e| bad(format!("not a readable PNG: {e}")))?;
-        let Some(size) = reader.output_buffer_size() else { return Err(bad("PNG too large".into())) };
-        let mut buf = vec![0; size];
-        let info = reader.next_frame(&mut buf).map_err(|e| bad(format!("not a readable PNG: {e}")))?;
-        let channels = info.color_type.samples();
-        let (w, h) = (info.width as usize, info.height as usize);
-        // Luminance of the first (up to) three channels; alpha ignored.
-        let used = channels.min(3);
-        let values = (0..w * h)
-            .map(|p| {
-                let px = &buf[p * channels..p * channels + used];
-                px.iter().map(|&c| f64::from(c)).sum::<f64>() / (255.0 * used as f64)
-            })
-            .collect();
-        (w, h, values)
-    } else {
-        let volume = io::read_volume(path).map_err(|e| bad(e.to_string()))?;
-        let [w, h, d] = volume.dims();
-        if d != 1 {
-            return Err(bad(format!("a parameter texture is one slice; this volume has {d}")));
-        }
-        (w, h, volume.data().iter().map(|&v| f64::from(v)).collect())
-    };
-    if w == 0 || h == 0 {
-        return Err(bad("empty image".into()));
-    }
-    let [lo, hi] = texture.range;
-    if !(lo.is_finite() && hi.is_finite()) {
-        return Err(bad(format!("range [{lo}, {hi}] is not finite")));
-    }
-    let mapped: Vec<f32> = (0..width * height)
-        .map(|i| {
-            let (x, y) = (i % width, i / width);
-            let (sx, sy) = ((x * w) / width, (y * h) / height);
-            (lo + (hi - lo) * values[sy * w + sx]) as f32
-        })
-        .collect();
-    if let Some(i) = mapped.iter().position(|v| !v.is_finite()) {
-        return Err(bad(format!("phyxel {i} gets a non-finite value")));
-    }
-    if texture.parameter != super::TexturedParameter::RestHeight {
-        if let Some(i) = mapped.iter().position(|v| *v < 0.0) {
-            return Err(bad(format!("phyxel {i} gets {} < 0 for {:?}", mapped[i], texture.parameter)));
-        }
-    }
-    Ok(mapped)
 }

@@ -1,5 +1,5 @@
 // Shared by raycast.wgsl and tet_raycast.wgsl, which are compiled with this file in front:
-// Camera::ray, ToolPicture::hit with raycast::nearest_tool, and the RGBA8 of Rendered.
+// Camera::ray, ToolPicture::hit with volume::nearest_tool, and the RGBA8 of Rendered.
 
 struct Ray {
     origin: vec3<f32>,

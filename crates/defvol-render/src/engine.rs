@@ -7,9 +7,9 @@ use std::sync::Arc;
 use nalgebra::Vector3;
 
 use super::camera::Camera;
-use super::raycast::{RaycastParams, ToolPicture, VolumeRaycaster};
-use super::tet_raycast::TetRaycaster;
+use super::mesh::TetRaycaster;
 use super::transfer::Tables;
+use super::volume::{RaycastParams, ToolPicture, VolumeRaycaster};
 use super::{RenderError, Rendered};
 use defvol_core::volume::Volume;
 use defvol_gpu::backend::{Backend, BackendError, RunsOn};
@@ -23,7 +23,7 @@ pub enum RenderEngineError {
     Backend(#[from] BackendError),
     #[cfg(feature = "gpu")]
     #[error(transparent)]
-    Gpu(#[from] super::raycast_gpu::GpuRenderError),
+    Gpu(#[from] super::volume::gpu::GpuRenderError),
     #[error("the CPU raycaster needs the volume on the host")]
     NoHostVolume,
 }
@@ -40,7 +40,7 @@ pub enum VolumeRenderer {
     /// Tables built once; each frame prepares the macro cells of the volume it is given.
     Cpu { tables: Arc<Tables>, params: RaycastParams },
     #[cfg(feature = "gpu")]
-    Gpu(Box<super::raycast_gpu::GpuVolumeRaycaster>),
+    Gpu(Box<super::volume::gpu::GpuVolumeRaycaster>),
 }
 
 impl VolumeRenderer {
@@ -55,7 +55,7 @@ impl VolumeRenderer {
         let prepared = VolumeRaycaster::with_tables(volume, tables.clone(), params)?;
         #[cfg(feature = "gpu")]
         if let Some(gpu) =
-            backend.try_gpu("raycast", |ctx| super::raycast_gpu::GpuVolumeRaycaster::new(ctx.clone(), &prepared))?
+            backend.try_gpu("raycast", |ctx| super::volume::gpu::GpuVolumeRaycaster::new(ctx.clone(), &prepared))?
         {
             return Ok(Self::Gpu(Box::new(gpu)));
         }
@@ -75,7 +75,7 @@ impl VolumeRenderer {
         tables: &Tables,
         params: &RaycastParams,
     ) -> Result<Self, RenderEngineError> {
-        let gpu = super::raycast_gpu::GpuVolumeRaycaster::on_device(
+        let gpu = super::volume::gpu::GpuVolumeRaycaster::on_device(
             ctx,
             samples,
             &volume.grid(),
@@ -128,7 +128,7 @@ impl VolumeRenderer {
 pub enum MeshRenderer {
     Cpu(Box<TetRaycaster>),
     #[cfg(feature = "gpu")]
-    Gpu(Box<super::tet_raycast_gpu::GpuTetRaycaster>),
+    Gpu(Box<super::mesh::gpu::GpuTetRaycaster>),
 }
 
 impl MeshRenderer {
@@ -137,8 +137,8 @@ impl MeshRenderer {
     /// place on the device to the mesh's units.
     pub fn new(backend: &Backend, prepared: TetRaycaster, to_file: f64) -> Result<Self, RenderEngineError> {
         #[cfg(feature = "gpu")]
-        if let Some(gpu) = backend
-            .try_gpu("raycast", |ctx| super::tet_raycast_gpu::GpuTetRaycaster::new(ctx.clone(), &prepared, to_file))?
+        if let Some(gpu) =
+            backend.try_gpu("raycast", |ctx| super::mesh::gpu::GpuTetRaycaster::new(ctx.clone(), &prepared, to_file))?
         {
             return Ok(Self::Gpu(Box::new(gpu)));
         }

@@ -1,22 +1,17 @@
-//! Raycast images: cameras, transfer functions (with pre-integration), the volume
-//! raycaster (`raycast.rs`, its GPU twin `raycast_gpu.rs` + `raycast.wgsl`) and the
-//! tetrahedral-mesh raycaster (`tet_raycast.rs`, `tet_raycast_gpu.rs` + `tet_raycast.wgsl`),
-//! which also shows the source volume through the deformed mesh (`source_raycast.rs`);
-//! both shaders share `camera_tools.wgsl`. [`engine`] runs either on the run's backend.
+//! Raycast images: cameras, transfer functions (with pre-integration), and two raycasters,
+//! each a part with its CPU path, GPU twin, shader and agreement tests: [`volume`], a
+//! regular grid, and [`mesh`], a tetrahedral mesh, which also shows the source volume
+//! through the deformed mesh ([`mesh::source`]); both shaders share `camera_tools.wgsl`.
+//! [`engine`] runs either on the run's backend.
 
 // Errors are returned, not unwrapped (tests may unwrap).
 #![cfg_attr(not(test), deny(clippy::unwrap_used, clippy::expect_used))]
 
 pub mod camera;
 pub mod engine;
-pub mod raycast;
-#[cfg(feature = "gpu")]
-pub mod raycast_gpu;
-pub mod source_raycast;
-pub mod tet_raycast;
-#[cfg(feature = "gpu")]
-pub mod tet_raycast_gpu;
+pub mod mesh;
 pub mod transfer;
+pub mod volume;
 
 use std::io::BufWriter;
 use std::path::Path;

@@ -18,7 +18,29 @@ use std::collections::HashMap;
 
 use nalgebra::Vector3;
 
-use super::tool::ContactParams;
+/// What the contact kernel needs of a tool.
+#[derive(Debug, Clone, Copy)]
+pub struct ContactParams {
+    pub a: Vector3<f64>,
+    pub b: Vector3<f64>,
+    pub radius: f64,
+    pub stiffness: f64,
+}
+
+impl ContactParams {
+    /// Penalty contact at `p`: (force, unit normal) when `p` is inside the shape.
+    pub fn contact(&self, p: &Vector3<f64>) -> Option<(Vector3<f64>, Vector3<f64>)> {
+        let d = p - closest_on_segment(&self.a, &self.b, p);
+        let dist = d.norm();
+        if dist >= self.radius {
+            return None;
+        }
+        // A node exactly on the core has no defined normal: push it along +z of the world,
+        // any fixed choice keeps the step deterministic.
+        let n = if dist > 1e-12 { d / dist } else { Vector3::z() };
+        Some((n * (self.stiffness * (self.radius - dist)), n))
+    }
+}
 
 /// Faces per leaf of the hierarchy.
 const LEAF: usize = 4;

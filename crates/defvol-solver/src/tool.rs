@@ -10,6 +10,8 @@
 use nalgebra::{Isometry3, Point3, Vector3};
 use serde::{Deserialize, Serialize};
 
+use super::contact::ContactParams;
+
 /// Tool geometry in the tool frame. The tool frame's origin is the tip; a capsule's
 /// shaft runs from the tip along +z (towards the handle).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -126,30 +128,6 @@ impl Tool {
     pub fn contact_params(&self) -> ContactParams {
         let (a, b) = self.segment();
         ContactParams { a, b, radius: self.shape.radius(), stiffness: self.contact_stiffness }
-    }
-}
-
-/// What the contact kernel needs of a tool.
-#[derive(Debug, Clone, Copy)]
-pub struct ContactParams {
-    pub a: Vector3<f64>,
-    pub b: Vector3<f64>,
-    pub radius: f64,
-    pub stiffness: f64,
-}
-
-impl ContactParams {
-    /// Penalty contact at `p`: (force, unit normal) when `p` is inside the shape.
-    pub fn contact(&self, p: &Vector3<f64>) -> Option<(Vector3<f64>, Vector3<f64>)> {
-        let d = p - super::contact::closest_on_segment(&self.a, &self.b, p);
-        let dist = d.norm();
-        if dist >= self.radius {
-            return None;
-        }
-        // A node exactly on the core has no defined normal: push it along +z of the world,
-        // any fixed choice keeps the step deterministic.
-        let n = if dist > 1e-12 { d / dist } else { Vector3::z() };
-        Some((n * (self.stiffness * (self.radius - dist)), n))
     }
 }
 

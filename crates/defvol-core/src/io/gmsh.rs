@@ -7,7 +7,7 @@ use std::collections::HashMap;
 
 use nalgebra::Vector3;
 
-use super::MeshFile;
+use super::mesh_file::MeshFile;
 
 type Fault = String;
 

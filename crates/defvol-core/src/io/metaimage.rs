@@ -9,7 +9,8 @@ use std::path::Path;
 
 use nalgebra::Matrix3;
 
-use super::{decompress, malformed, pattern_files, sample_bytes, Compression, Fields, IoError, SampleType};
+use super::error::{malformed, IoError};
+use super::raw::{decompress, pattern_files, sample_bytes, Compression, Fields, SampleType};
 use crate::volume::Volume;
 
 fn numbers(path: &Path, fields: &Fields, key: &str, n: usize) -> Result<Option<Vec<f64>>, IoError> {
@@ -134,7 +135,7 @@ pub(super) fn parse(path: &Path, bytes: &[u8], sidecar: &dyn Fn(&str) -> Option<
         let mut joined = Vec::new();
         for name in &names {
             let data = sidecar(name).ok_or_else(|| malformed(path, format!("data file `{name}` cannot be read")))?;
-            if joined.len().saturating_add(data.len()) > super::MAX_DECODED_BYTES {
+            if joined.len().saturating_add(data.len()) > super::error::MAX_DECODED_BYTES {
                 return Err(malformed(path, "the data files hold more than a volume here can"));
             }
             joined.extend_from_slice(&data);
@@ -193,16 +194,16 @@ fn header_text(volume: &Volume, data_file: &str, compressed_size: usize) -> Stri
 
 pub(super) fn write(path: &Path, volume: &Volume) -> Result<(), IoError> {
     let mut z = flate2::write::ZlibEncoder::new(Vec::new(), flate2::Compression::fast());
-    z.write_all(bytemuck::cast_slice(volume.data())).map_err(super::io_error(path))?;
-    let compressed = z.finish().map_err(super::io_error(path))?;
+    z.write_all(bytemuck::cast_slice(volume.data())).map_err(super::error::io_error(path))?;
+    let compressed = z.finish().map_err(super::error::io_error(path))?;
     if path.extension().is_some_and(|e| e.eq_ignore_ascii_case("mha")) {
         let mut bytes = header_text(volume, "LOCAL", compressed.len()).into_bytes();
         bytes.extend_from_slice(&compressed);
-        return super::write_atomically(path, &bytes);
+        return super::files::write_atomically(path, &bytes);
     }
     // `.mhd`: the data file beside it, named after it, written first.
     let data_path = path.with_extension("zraw");
     let data_name = data_path.file_name().map_or_else(String::new, |n| n.to_string_lossy().into_owned());
-    super::write_atomically(&data_path, &compressed)?;
-    super::write_atomically(path, header_text(volume, &data_name, compressed.len()).as_bytes())
+    super::files::write_atomically(&data_path, &compressed)?;
+    super::files::write_atomically(path, header_text(volume, &data_name, compressed.len()).as_bytes())
 }

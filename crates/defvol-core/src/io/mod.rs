@@ -11,109 +11,35 @@
 //! tests drive them without files. Writes go to a temporary name beside the target and are
 //! renamed at the end: a failure or a kill never leaves a half file under the final name.
 
+mod error;
+mod files;
 mod gmsh;
+mod mesh_file;
 mod metaimage;
 mod nifti_io;
 mod nrrd;
+mod raw;
 mod tetgen;
 mod vtk;
 mod vtk_legacy;
 mod vtk_xml;
 
-use std::collections::BTreeMap;
-use std::path::{Path, PathBuf};
+pub use error::IoError;
+pub use mesh_file::SkippedCells;
+
+use error::{io_error, malformed};
+use files::{file_name, write_atomically};
+use mesh_file::MeshFile;
+
+use std::path::Path;
 
 use nalgebra::Vector3;
 
-use crate::mesh::{MeshError, TetMesh};
-use crate::volume::{Volume, VolumeError};
-
-#[derive(Debug, thiserror::Error)]
-#[non_exhaustive]
-pub enum IoError {
-    #[error("{path}: {source}")]
-    Io { path: PathBuf, source: std::io::Error },
-    #[error("{path}: unsupported file type (expected one of {expected})")]
-    UnsupportedExtension { path: PathBuf, expected: &'static str },
-    #[error("{path}: {message}")]
-    Malformed { path: PathBuf, message: String },
-    #[error("{path}: {message}")]
-    Unrepresentable { path: PathBuf, message: String },
-    #[error(transparent)]
-    Mesh(#[from] MeshError),
-    #[error(transparent)]
-    Volume(#[from] VolumeError),
-}
-
-pub(crate) fn malformed(path: &Path, message: impl Into<String>) -> IoError {
-    IoError::Malformed { path: path.to_owned(), message: message.into() }
-}
-
-pub(crate) fn io_error(path: &Path) -> impl FnOnce(std::io::Error) -> IoError + '_ {
-    move |source| IoError::Io { path: path.to_owned(), source }
-}
-
-fn file_name(path: &Path) -> String {
-    path.file_name().map_or_else(String::new, |n| n.to_string_lossy().to_lowercase())
-}
+use crate::mesh::TetMesh;
+use crate::volume::Volume;
 
 const MESH_TYPES: &str = ".vtu, .vtk, .msh, .node/.ele";
 const VOLUME_TYPES: &str = ".nii, .nii.gz, .nrrd, .nhdr, .mha, .mhd";
-
-/// The most bytes one array or volume may decode to (a claim beyond it is a broken header).
-pub(crate) const MAX_DECODED_BYTES: usize = 1 << 33;
-
-/// A named point array of a mesh file: `components` values per node.
-#[derive(Debug, Clone, PartialEq)]
-pub(crate) struct PointArray {
-    pub name: String,
-    pub components: usize,
-    pub values: Vec<f32>,
-    /// Tagged as the active scalars (legacy SCALARS, XML `Scalars="…"`).
-    pub active_scalars: bool,
-}
-
-/// A mesh as its file holds it: nodes, tets, point arrays, and the other cells skipped.
-#[derive(Debug, Clone, Default)]
-pub(crate) struct MeshFile {
-    pub nodes: Vec<Vector3<f64>>,
-    pub tets: Vec<[u32; 4]>,
-    pub arrays: Vec<PointArray>,
-    /// Cells other than linear tets, by kind.
-    pub skipped: BTreeMap<&'static str, usize>,
-}
-
-impl MeshFile {
-    /// Adds a piece's array whose nodes start at `first_node`: appended to the earlier
-    /// pieces' array of that name, or new for the first piece.
-    fn push_array(&mut self, first_node: usize, array: PointArray) {
-        match self.arrays.iter_mut().find(|a| a.name == array.name && a.components == array.components) {
-            Some(existing) if existing.values.len() == first_node * existing.components => {
-                existing.values.extend(array.values)
-            }
-            Some(_) => {}
-            None if first_node == 0 => self.arrays.push(array),
-            None => {}
-        }
-    }
-
-    /// The mesh's own scalars: the first one-component array tagged as the active scalars.
-    fn scalars(&self) -> Option<Vec<f32>> {
-        self.arrays.iter().find(|a| a.active_scalars && a.components == 1).map(|a| a.values.clone())
-    }
-
-    fn into_mesh(self, path: &Path) -> Result<(TetMesh, SkippedCells), IoError> {
-        if !self.skipped.is_empty() {
-            let skipped: Vec<String> = self.skipped.iter().map(|(kind, n)| format!("{n} {kind}")).collect();
-            tracing::info!("{}: kept {} tets, skipped {}", path.display(), self.tets.len(), skipped.join(", "));
-        }
-        let scalars = self.scalars();
-        Ok((TetMesh::new(self.nodes, self.tets, scalars, &path.display().to_string())?, self.skipped))
-    }
-}
-
-/// The cells other than linear tets a mesh file held, by kind: counted, and skipped.
-pub type SkippedCells = BTreeMap<&'static str, usize>;
 
 /// The mesh format a file name asks for.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -233,36 +159,6 @@ pub fn write_triangles(
     write_atomically(path, &bytes)
 }
 
-/// A temporary name beside `path` with the same extensions (writers that choose
-/// compression by extension see the right one) and no other dot in its stem.
-pub(crate) fn temporary_beside(path: &Path) -> PathBuf {
-    use std::sync::atomic::{AtomicU64, Ordering};
-    static NEXT: AtomicU64 = AtomicU64::new(0);
-    let name = file_name(path);
-    let extensions = if name.ends_with(".nii.gz") { "nii.gz" } else { name.rsplit('.').next().unwrap_or("tmp") };
-    let unique =
-        format!(".defvol-partial-{}-{}.{extensions}", std::process::id(), NEXT.fetch_add(1, Ordering::Relaxed));
-    path.parent().unwrap_or(Path::new(".")).join(unique)
-}
-
-/// Moves a finished temporary file to its final name.
-pub(crate) fn commit(temporary: &Path, path: &Path) -> Result<(), IoError> {
-    std::fs::rename(temporary, path).map_err(|e| {
-        let _ = std::fs::remove_file(temporary);
-        IoError::Io { path: path.to_owned(), source: e }
-    })
-}
-
-/// Writes `bytes` to exactly `path`, through a temporary file beside it.
-pub(crate) fn write_atomically(path: &Path, bytes: &[u8]) -> Result<(), IoError> {
-    let temporary = temporary_beside(path);
-    if let Err(source) = std::fs::write(&temporary, bytes) {
-        let _ = std::fs::remove_file(&temporary);
-        return Err(IoError::Io { path: path.to_owned(), source });
-    }
-    commit(&temporary, path)
-}
-
 /// Parses a volume of the format `path` names from its bytes; `sidecar` gives the bytes of
 /// a file the header names (a detached NRRD or MetaImage data file), or `None`.
 pub fn parse_volume(path: &Path, bytes: &[u8], sidecar: &dyn Fn(&str) -> Option<Vec<u8>>) -> Result<Volume, IoError> {
@@ -303,158 +199,6 @@ pub fn write_volume(path: &Path, volume: &Volume) -> Result<(), IoError> {
     } else {
         Err(IoError::UnsupportedExtension { path: path.to_owned(), expected: ".nii, .nii.gz, .nrrd, .mha, .mhd" })
     }
-}
-
-/// Sample element types found in volume files; all become f32.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub(crate) enum SampleType {
-    U8,
-    I8,
-    U16,
-    I16,
-    U32,
-    I32,
-    U64,
-    I64,
-    F32,
-    F64,
-}
-
-impl SampleType {
-    pub(crate) fn size(self) -> usize {
-        match self {
-            SampleType::U8 | SampleType::I8 => 1,
-            SampleType::U16 | SampleType::I16 => 2,
-            SampleType::U32 | SampleType::I32 | SampleType::F32 => 4,
-            SampleType::U64 | SampleType::I64 | SampleType::F64 => 8,
-        }
-    }
-
-    /// Decodes raw bytes (little- or big-endian) into f32 samples.
-    pub(crate) fn decode(self, bytes: &[u8], big_endian: bool) -> Vec<f32> {
-        let n = self.size();
-        bytes
-            .chunks_exact(n)
-            .map(|c| {
-                let mut b = [0u8; 8];
-                b[..n].copy_from_slice(c);
-                if big_endian {
-                    b[..n].reverse();
-                }
-                match self {
-                    SampleType::U8 => f32::from(b[0]),
-                    SampleType::I8 => f32::from(b[0] as i8),
-                    SampleType::U16 => f32::from(u16::from_le_bytes([b[0], b[1]])),
-                    SampleType::I16 => f32::from(i16::from_le_bytes([b[0], b[1]])),
-                    SampleType::U32 => u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as f32,
-                    SampleType::I32 => i32::from_le_bytes([b[0], b[1], b[2], b[3]]) as f32,
-                    SampleType::U64 => u64::from_le_bytes(b) as f32,
-                    SampleType::I64 => i64::from_le_bytes(b) as f32,
-                    SampleType::F32 => f32::from_le_bytes([b[0], b[1], b[2], b[3]]),
-                    SampleType::F64 => f64::from_le_bytes(b) as f32,
-                }
-            })
-            .collect()
-    }
-}
-
-/// The bytes `dims` samples of `sample` take, checked (overflow, and the decoding limit).
-pub(crate) fn sample_bytes(path: &Path, dims: [usize; 3], sample: SampleType) -> Result<usize, IoError> {
-    let bytes = dims.iter().try_fold(sample.size(), |acc, d| acc.checked_mul(*d));
-    match bytes {
-        Some(b) if b <= MAX_DECODED_BYTES => Ok(b),
-        _ => Err(malformed(
-            path,
-            format!("dims {dims:?} of {} bytes each: more data than a volume file can hold here", sample.size()),
-        )),
-    }
-}
-
-/// The samples from a payload: compressed streams are read up to `expected` bytes, never
-/// grown into beyond; too few bytes is an error naming how many there were.
-pub(crate) fn decompress(
-    path: &Path,
-    payload: &[u8],
-    compression: Compression,
-    expected: usize,
-) -> Result<Vec<u8>, IoError> {
-    use std::io::Read;
-    let limit = expected as u64;
-    let mut out = Vec::new();
-    let result = match compression {
-        Compression::None => {
-            out.extend_from_slice(&payload[..payload.len().min(expected)]);
-            Ok(())
-        }
-        Compression::Gzip => flate2::read::MultiGzDecoder::new(payload).take(limit).read_to_end(&mut out).map(|_| ()),
-        Compression::Zlib => flate2::read::ZlibDecoder::new(payload).take(limit).read_to_end(&mut out).map(|_| ()),
-    };
-    result.map_err(|e| malformed(path, format!("cannot decompress the sample data: {e}")))?;
-    if out.len() < expected {
-        return Err(malformed(path, format!("sample data holds {} bytes, {} needed", out.len(), expected)));
-    }
-    Ok(out)
-}
-
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub(crate) enum Compression {
-    None,
-    Gzip,
-    Zlib,
-}
-
-/// Header text as `Key = Value` or `key: value` lines: the value of a key, any case.
-pub(crate) struct Fields(BTreeMap<String, String>);
-
-impl Fields {
-    pub(crate) fn get(&self, key: &str) -> Option<&str> {
-        self.0.get(&key.to_ascii_lowercase()).map(String::as_str)
-    }
-
-    pub(crate) fn insert(&mut self, key: &str, value: &str) {
-        self.0.insert(key.trim().to_ascii_lowercase(), value.trim().to_owned());
-    }
-
-    pub(crate) fn new() -> Self {
-        Self(BTreeMap::new())
-    }
-}
-
-/// Samples named by pattern (`name%03d.raw 1 10 1`, as MetaImage and NRRD detached headers
-/// give per-slice files): the file names, checked for count.
-pub(crate) fn pattern_files(path: &Path, spec: &str, max_files: usize) -> Result<Vec<String>, IoError> {
-    let words: Vec<&str> = spec.split_whitespace().collect();
-    let [format, min, max, step, ..] = words[..] else {
-        return Err(malformed(path, format!("data file pattern `{spec}`: expected `format min max step`")));
-    };
-    let parse = |w: &str| {
-        w.parse::<i32>()
-            .map(i128::from)
-            .map_err(|_| malformed(path, format!("data file pattern `{spec}`: `{w}` is not an integer")))
-    };
-    let (min, max, step) = (parse(min)?, parse(max)?, parse(step)?);
-    if step == 0 || (max - min).signum() * step.signum() < 0 {
-        return Err(malformed(path, format!("data file pattern `{spec}`: step {step} never reaches {max} from {min}")));
-    }
-    let count = ((max - min) / step + 1).unsigned_abs() as usize;
-    if count > max_files {
-        return Err(malformed(path, format!("data file pattern `{spec}`: {count} files for {max_files} slices")));
-    }
-    let Some(percent) = format.find('%') else {
-        return Err(malformed(path, format!("data file pattern `{spec}`: no %d in `{format}`")));
-    };
-    let Some(d) = format[percent..].find('d') else {
-        return Err(malformed(path, format!("data file pattern `{spec}`: no %d in `{format}`")));
-    };
-    let width: usize = format[percent + 1..percent + d].trim_start_matches('0').parse().unwrap_or(0);
-    let zero = format[percent + 1..percent + d].starts_with('0');
-    Ok((0..count as i128)
-        .map(|k| {
-            let n = min + k * step;
-            let number = if zero { format!("{n:0width$}") } else { format!("{n:width$}") };
-            format!("{}{number}{}", &format[..percent], &format[percent + d + 1..])
-        })
-        .collect())
 }
 
 #[cfg(test)]

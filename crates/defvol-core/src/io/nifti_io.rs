@@ -13,7 +13,8 @@ use ndarray::{Array3, ShapeBuilder};
 use nifti::writer::WriterOptions;
 use nifti::NiftiHeader;
 
-use super::{malformed, sample_bytes, IoError, SampleType, MAX_DECODED_BYTES};
+use super::error::{malformed, IoError, MAX_DECODED_BYTES};
+use super::raw::{sample_bytes, SampleType};
 use crate::volume::Volume;
 
 const LPS_FROM_RAS: [f64; 3] = [-1.0, -1.0, 1.0];
@@ -289,12 +290,12 @@ pub(super) fn write(path: &Path, volume: &Volume) -> Result<(), IoError> {
         .map_err(|e| malformed(path, format!("sample layout: {e}")))?;
     // The nifti crate renames what it writes by extension ("scan.v2.nii" would become
     // "scan.nii"): write a dot-free temporary name beside the target, then rename it.
-    let temporary = super::temporary_beside(path);
+    let temporary = super::files::temporary_beside(path);
     if let Err(e) = WriterOptions::new(&temporary).reference_header(&header).write_nifti(&array) {
         let _ = std::fs::remove_file(&temporary);
         return Err(malformed(path, format!("cannot write NIfTI: {e}")));
     }
-    super::commit(&temporary, path)
+    super::files::commit(&temporary, path)
 }
 
 #[cfg(test)]

@@ -10,7 +10,8 @@ use std::path::Path;
 
 use nalgebra::{Matrix3, Vector3};
 
-use super::{decompress, malformed, pattern_files, sample_bytes, Compression, Fields, IoError, SampleType};
+use super::error::{malformed, IoError};
+use super::raw::{decompress, pattern_files, sample_bytes, Compression, Fields, SampleType};
 use crate::volume::Volume;
 
 fn parse_vector(path: &Path, field: &str, text: &str) -> Result<Vector3<f64>, IoError> {
@@ -187,7 +188,7 @@ pub(super) fn parse(path: &Path, bytes: &[u8], sidecar: &dyn Fn(&str) -> Option<
         let mut joined = Vec::new();
         for name in &files {
             let data = sidecar(name).ok_or_else(|| malformed(path, format!("data file `{name}` cannot be read")))?;
-            if joined.len().saturating_add(data.len()) > super::MAX_DECODED_BYTES {
+            if joined.len().saturating_add(data.len()) > super::error::MAX_DECODED_BYTES {
                 return Err(malformed(path, "the data files hold more than a volume here can"));
             }
             joined.extend_from_slice(&data);

@@ -7,7 +7,7 @@ use std::path::Path;
 
 use nalgebra::Vector3;
 
-use super::{MeshFile, PointArray};
+use super::mesh_file::{MeshFile, PointArray};
 
 type Fault = String;
 
@@ -105,7 +105,7 @@ pub(super) fn parse_elements(mesh: &mut MeshFile, first_index: i64, ele_bytes: &
     Ok(())
 }
 
-pub(super) fn write(path: &Path, nodes: &[Vector3<f64>], tets: &[[u32; 4]]) -> Result<(), super::IoError> {
+pub(super) fn write(path: &Path, nodes: &[Vector3<f64>], tets: &[[u32; 4]]) -> Result<(), super::error::IoError> {
     use std::fmt::Write;
     let mut node_text = format!("{} 3 0 0\n", nodes.len());
     for (i, p) in nodes.iter().enumerate() {
@@ -117,6 +117,6 @@ pub(super) fn write(path: &Path, nodes: &[Vector3<f64>], tets: &[[u32; 4]]) -> R
     }
     let node_path = path.with_extension("node");
     let ele_path = path.with_extension("ele");
-    super::write_atomically(&ele_path, ele_text.as_bytes())?;
-    super::write_atomically(&node_path, node_text.as_bytes())
+    super::files::write_atomically(&ele_path, ele_text.as_bytes())?;
+    super::files::write_atomically(&node_path, node_text.as_bytes())
 }

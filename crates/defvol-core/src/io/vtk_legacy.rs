@@ -5,7 +5,7 @@
 
 use nalgebra::Vector3;
 
-use super::{MeshFile, PointArray};
+use super::mesh_file::{MeshFile, PointArray};
 
 type Fault = String;
 

@@ -11,7 +11,8 @@ use base64::Engine;
 use nalgebra::Vector3;
 use roxmltree::{Document, Node};
 
-use super::{MeshFile, PointArray, MAX_DECODED_BYTES};
+use super::error::MAX_DECODED_BYTES;
+use super::mesh_file::{MeshFile, PointArray};
 
 /// What went wrong, in words; the caller adds the file's name.
 type Fault = String;

@@ -14,12 +14,12 @@ use bytemuck::{Pod, Zeroable};
 use nalgebra::{Matrix3, Vector3};
 use wgpu::util::DeviceExt;
 
-use super::camera::Camera;
-use super::raycast::{Shading, ToolPicture, MAX_TOOLS};
-use super::raycast_gpu::{camera_block, GpuRenderError};
-use super::source_raycast::{SourceLook, TetMap, EDGE_TOLERANCE};
-use super::tet_raycast::{TetGeometry, TetRaycaster, TILE};
-use super::{RenderError, Rendered};
+use super::cpu::{TetGeometry, TetRaycaster, TILE};
+use super::look::{SourceLook, TetMap, EDGE_TOLERANCE};
+use crate::camera::Camera;
+use crate::volume::gpu::{camera_block, GpuRenderError};
+use crate::volume::{Shading, ToolPicture, MAX_TOOLS};
+use crate::{RenderError, Rendered};
 use defvol_core::volume::Sampling;
 use defvol_gpu::gpu::{self, DeviceNodes, GpuContext, Kernels};
 
@@ -97,7 +97,7 @@ impl GpuTetRaycaster {
         use defvol_gpu::gpu::Binding::{Read, ReadWrite, Uniform};
         let kernels = ctx.kernels(
             "tet_raycast.wgsl",
-            concat!(include_str!("camera_tools.wgsl"), include_str!("tet_raycast.wgsl")),
+            concat!(include_str!("../camera_tools.wgsl"), include_str!("tet_raycast.wgsl")),
             &[Uniform, ReadWrite, Read, Read, Read, ReadWrite, Read, Read, ReadWrite, Read, Read, Read],
             ["geometry", "render"],
         );
@@ -427,9 +427,9 @@ fn fill_tools(block: &mut [[f32; 4]; 3 * MAX_TOOLS], tools: &[ToolPicture], anch
 mod tests {
     use super::*;
     use crate::camera::Projection;
-    use crate::raycast_gpu::tests::compare;
-    use crate::tet_raycast::TetRaycastParams;
+    use crate::mesh::TetRaycastParams;
     use crate::transfer::TransferFunction;
+    use crate::volume::gpu::tests::compare;
     use defvol_core::mesh::generate::{self, CellSplit};
     use defvol_core::mesh::TetMesh;
     use defvol_core::volume::Volume;
@@ -522,8 +522,8 @@ mod tests {
 
     #[test]
     fn gpu_frames_of_the_source_through_the_mesh_match_the_cpu() {
-        use crate::raycast::{RaycastParams, Shading};
-        use crate::source_raycast::SourceSampling;
+        use crate::mesh::source::SourceSampling;
+        use crate::volume::{RaycastParams, Shading};
         let Some(ctx) = defvol_gpu::gpu::test_context() else { return };
         let (volume, mesh, centre, outside_view, inside_view) = phantom_views(3000);
         let volume = Arc::new(volume);

@@ -10,9 +10,9 @@ use nalgebra::{Matrix3, Point3, Vector3};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::camera::Camera;
-use super::transfer::{Tables, TransferFunction};
-use super::{RenderError, Rendered};
+use crate::camera::Camera;
+use crate::transfer::{Tables, TransferFunction};
+use crate::{RenderError, Rendered};
 use defvol_core::volume::{trilinear, Grid, Volume};
 
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]

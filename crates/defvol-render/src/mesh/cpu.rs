@@ -19,11 +19,12 @@ use bytemuck::{Pod, Zeroable};
 use nalgebra::{Matrix3, Point3, Vector3};
 use rayon::prelude::*;
 
-use super::camera::{Camera, Projection};
-use super::raycast::{nearest_tool, ToolPicture, MAX_TOOLS};
-use super::source_raycast::SourceLook;
-use super::transfer::{SegmentTable, Tables, TransferFunction};
-use super::{RenderError, Rendered};
+use super::field::{linear_field, V3};
+use super::look::SourceLook;
+use crate::camera::{Camera, Projection};
+use crate::transfer::{SegmentTable, Tables, TransferFunction};
+use crate::volume::{nearest_tool, ToolPicture, MAX_TOOLS};
+use crate::{RenderError, Rendered};
 use defvol_core::mesh::{TetMesh, TET_FACES};
 
 #[derive(Debug, Clone, PartialEq)]
@@ -113,22 +114,6 @@ fn tet_geometry_f32(x: &[V3; 4], s: &[f32; 4]) -> TetGeometry {
     }
     g.gradient = linear_field(x, s);
     g
-}
-
-/// The linear field taking the values `s` at the tet's vertices `x`: gradient and offset
-/// (s(p) = g·p + w); a constant, their mean, on a degenerate tet.
-pub(crate) fn linear_field(x: &[V3; 4], s: &[f32; 4]) -> [f32; 4] {
-    // The rows of M are the edges from vertex 0; M⁻¹'s columns are the rows' cross products
-    // over det.
-    let (r0, r1, r2) = (x[1] - x[0], x[2] - x[0], x[3] - x[0]);
-    let det = r0.dot(&r1.cross(&r2));
-    let grad = if det != 0.0 {
-        (r1.cross(&r2) * (s[1] - s[0]) + r2.cross(&r0) * (s[2] - s[0]) + r0.cross(&r1) * (s[3] - s[0])) / det
-    } else {
-        V3::zeros()
-    };
-    let offset = if grad != V3::zeros() { s[0] - grad.dot(&x[0]) } else { (s[0] + s[1] + s[2] + s[3]) / 4.0 };
-    [grad.x, grad.y, grad.z, offset]
 }
 
 /// The faces with no neighbour, as tet · 4 + face.
@@ -238,8 +223,6 @@ struct Hit {
     /// The face looks toward the ray (an entry), not away (an exit).
     front: bool,
 }
-
-pub(crate) type V3 = Vector3<f32>;
 
 #[inline]
 fn plane_t(plane: &[f32; 4], o: &V3, d: &V3) -> (f32, f32) {

@@ -1,5 +1,5 @@
 // The mesh raycaster's boundary faces binned into 8x8-pixel tiles on the device: the twin
-// of `bin_boundary` in tet_raycast.rs, from the node positions as they are on the device.
+// of `bin_boundary` in cpu.rs, from the node positions as they are on the device.
 // `count_tiles` counts the faces each tile's box list gets, `scan_tiles` turns the counts
 // into starts (one workgroup), `fill_tiles` writes the faces. Within a tile the faces come
 // in whatever order the atomics give (the CPU lists them in boundary order); the walk

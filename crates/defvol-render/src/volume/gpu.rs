@@ -12,12 +12,12 @@ use std::sync::Arc;
 use bytemuck::{Pod, Zeroable};
 use wgpu::util::DeviceExt;
 
-use super::camera::{Camera, Projection};
-use super::raycast::{
+use crate::camera::{Camera, Projection};
+use crate::transfer::Tables;
+use crate::volume::{
     check_params, gradient_scale, IndexSpace, Mode, RaycastParams, Shading, ToolPicture, VolumeRaycaster, MAX_TOOLS,
 };
-use super::transfer::Tables;
-use super::{RenderError, Rendered};
+use crate::{RenderError, Rendered};
 use defvol_core::volume::Grid;
 use defvol_gpu::gpu::{self, GpuContext, GpuError, Kernels};
 
@@ -134,7 +134,7 @@ impl GpuVolumeRaycaster {
         use defvol_gpu::gpu::Binding::{Read, ReadWrite, Uniform};
         let kernels = ctx.kernels(
             "raycast.wgsl",
-            concat!(include_str!("camera_tools.wgsl"), include_str!("raycast.wgsl")),
+            concat!(include_str!("../camera_tools.wgsl"), include_str!("raycast.wgsl")),
             &[Uniform, Read, Read, Read, ReadWrite, ReadWrite, ReadWrite],
             ["render", "macro_cells"],
         );
@@ -283,8 +283,8 @@ impl GpuVolumeRaycaster {
 #[cfg(test)]
 pub(crate) mod tests {
     use super::*;
-    use crate::raycast::RaycastParams;
     use crate::transfer::TransferFunction;
+    use crate::volume::RaycastParams;
     use nalgebra::{Point3, Vector3};
 
     #[test]

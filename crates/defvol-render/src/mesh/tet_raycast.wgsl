@@ -1,9 +1,9 @@
-// The tetrahedral-mesh raycaster, line by line the twin of src/render/tet_raycast.rs:
+// The tetrahedral-mesh raycaster, line by line the twin of cpu.rs beside it:
 // `geometry` is TetRaycaster::update (tet_geometry_f32), one invocation per tet; `render` is
 // TetRaycaster::render and cast, with nearest_hit, locate_back, walk and integrate,
 // SegmentTable::lookup and Tables::sample, one invocation per pixel (Camera::ray and the
 // tools are camera_tools.wgsl's). Coordinates are anchored (world minus the rest mesh's centre).
-// Showing the source volume through the mesh (src/render/source_raycast.rs): `geometry` also
+// Showing the source volume through the mesh (look.rs and source.rs beside it): `geometry` also
 // writes each tet's map to the source's index, and the walk samples the source on one grid
 // along the ray (SourceLook::cross and finish, shade, value; Tables::sample_step and segment).
 

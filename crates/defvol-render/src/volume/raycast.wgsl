@@ -1,5 +1,5 @@
 // The volume raycaster, one invocation per pixel: line by line the twin of
-// render/raycast.rs (Caster::cast, composite, iso, shade, sample; Tables::sample and
+// volume/cpu.rs (Caster::cast, composite, iso, shade, sample; Tables::sample and
 // segment; MacroCells::visible_at and exit; clip); Camera::ray and the tools are
 // camera_tools.wgsl's, compiled in front of this file. `macro_cells` is MacroCells::new,
 // run on the device when the volume is a device buffer another stage rewrites (the warp).

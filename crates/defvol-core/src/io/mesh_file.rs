@@ -1,0 +1,62 @@
+//! A mesh as its file holds it, before it becomes a [`TetMesh`]: what every mesh parser
+//! fills in.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+
+use nalgebra::Vector3;
+
+use super::error::IoError;
+use crate::mesh::TetMesh;
+
+/// A named point array of a mesh file: `components` values per node.
+#[derive(Debug, Clone, PartialEq)]
+pub(crate) struct PointArray {
+    pub name: String,
+    pub components: usize,
+    pub values: Vec<f32>,
+    /// Tagged as the active scalars (legacy SCALARS, XML `Scalars="…"`).
+    pub active_scalars: bool,
+}
+
+/// A mesh as its file holds it: nodes, tets, point arrays, and the other cells skipped.
+#[derive(Debug, Clone, Default)]
+pub(crate) struct MeshFile {
+    pub nodes: Vec<Vector3<f64>>,
+    pub tets: Vec<[u32; 4]>,
+    pub arrays: Vec<PointArray>,
+    /// Cells other than linear tets, by kind.
+    pub skipped: BTreeMap<&'static str, usize>,
+}
+
+impl MeshFile {
+    /// Adds a piece's array whose nodes start at `first_node`: appended to the earlier
+    /// pieces' array of that name, or new for the first piece.
+    pub(crate) fn push_array(&mut self, first_node: usize, array: PointArray) {
+        match self.arrays.iter_mut().find(|a| a.name == array.name && a.components == array.components) {
+            Some(existing) if existing.values.len() == first_node * existing.components => {
+                existing.values.extend(array.values)
+            }
+            Some(_) => {}
+            None if first_node == 0 => self.arrays.push(array),
+            None => {}
+        }
+    }
+
+    /// The mesh's own scalars: the first one-component array tagged as the active scalars.
+    pub(crate) fn scalars(&self) -> Option<Vec<f32>> {
+        self.arrays.iter().find(|a| a.active_scalars && a.components == 1).map(|a| a.values.clone())
+    }
+
+    pub(crate) fn into_mesh(self, path: &Path) -> Result<(TetMesh, SkippedCells), IoError> {
+        if !self.skipped.is_empty() {
+            let skipped: Vec<String> = self.skipped.iter().map(|(kind, n)| format!("{n} {kind}")).collect();
+            tracing::info!("{}: kept {} tets, skipped {}", path.display(), self.tets.len(), skipped.join(", "));
+        }
+        let scalars = self.scalars();
+        Ok((TetMesh::new(self.nodes, self.tets, scalars, &path.display().to_string())?, self.skipped))
+    }
+}
+
+/// The cells other than linear tets a mesh file held, by kind: counted, and skipped.
+pub type SkippedCells = BTreeMap<&'static str, usize>;

@@ -1,0 +1,245 @@
+//! What the tet raycaster reads inside a tet when it shows the source volume (built by
+//! `source.rs`): per tet the affine map from deformed positions to the source's index
+//! space, and the march of samples on one grid along the ray, composited as the volume
+//! raycaster composites. `tet_raycast.wgsl` holds the GPU twin (`source_cross`,
+//! `source_finish`).
+
+use std::sync::Arc;
+
+use nalgebra::Vector3;
+use rayon::prelude::*;
+
+use super::field::{linear_field, V3};
+use crate::transfer::Tables;
+use crate::volume::{RaycastParams, Shading};
+use defvol_core::volume::bspline::{backward_all, CompiledDisplacement};
+use defvol_core::volume::{tricubic, Grid, Sampling, Volume};
+
+/// Samples this far (source voxels) outside the voxel-centre box are read on its edge: a
+/// ray enters and leaves a mesh built on the box exactly there, and the f32 maps put those
+/// samples a few 1e-6 voxels either side of it.
+pub(crate) const EDGE_TOLERANCE: f32 = 1e-3;
+
+/// Per tet: rows of the affine map from anchored deformed positions to the source's
+/// continuous index (q = G·x + w, row i = (Gᵢ, wᵢ)).
+pub(crate) type TetMap = [[f32; 4]; 3];
+
+/// What the tet raycaster needs to show the source.
+pub(crate) struct SourceLook {
+    pub(crate) volume: Arc<Volume>,
+    /// The volume's grid, where the displacement volumes move samples.
+    pub(crate) grid: Grid,
+    /// Per node: its rest position in the source's continuous index (w unused).
+    pub(crate) rest_index: Vec<[f32; 4]>,
+    /// Per tet, refreshed with the geometry.
+    pub(crate) maps: Vec<TetMap>,
+    /// Per tet: 1 when a sample inside it may be visible.
+    pub(crate) visible: Vec<u32>,
+    pub(crate) tables: Tables,
+    pub(crate) params: RaycastParams,
+    pub(crate) gradient_scale: f32,
+    pub(crate) sampling: Sampling,
+    pub(crate) displacements: Vec<CompiledDisplacement>,
+}
+
+/// A ray through the mesh (anchored origin and direction, the light it is lit from) and
+/// where its samples are: the k-th at `t0 + (k + offset)·step` (offset ½ when point
+/// sampling, the sample at the middle of its segment), and the last one's value.
+pub(crate) struct March {
+    o: V3,
+    d: V3,
+    light: V3,
+    t0: f32,
+    k: u32,
+    front: Option<f32>,
+}
+
+#[inline]
+fn apply(map: &TetMap, x: &V3) -> V3 {
+    let row = |r: &[f32; 4]| r[0] * x.x + r[1] * x.y + r[2] * x.z + r[3];
+    V3::new(row(&map[0]), row(&map[1]), row(&map[2]))
+}
+
+impl SourceLook {
+    /// The tets' maps for anchored deformed positions.
+    pub(crate) fn update_maps(&mut self, tets: &[[u32; 4]], anchored: &[V3]) {
+        let rest = &self.rest_index;
+        self.maps = tets
+            .par_iter()
+            .map(|tet| {
+                let x = tet.map(|i| anchored[i as usize]);
+                [0, 1, 2].map(|c| linear_field(&x, &tet.map(|i| rest[i as usize][c])))
+            })
+            .collect();
+    }
+
+    /// The source at continuous index q, after the displacement volumes; `None` outside
+    /// the voxel-centre box (nothing is there to see).
+    #[inline]
+    fn value(&self, q: &V3) -> Option<f32> {
+        let q = if self.displacements.is_empty() {
+            *q
+        } else {
+            let world = self.grid.world_from_index(q.cast::<f64>());
+            self.grid.index_from_world(backward_all(&self.displacements, &world)).cast::<f32>()
+        };
+        let (data, dims) = (self.volume.data(), self.volume.dims());
+        let tol = EDGE_TOLERANCE;
+        if !(0..3).all(|a| q[a] >= -tol && q[a] <= (dims[a] - 1) as f32 + tol) {
+            return None;
+        }
+        match self.sampling {
+            Sampling::Trilinear => Some(crate::volume::sample_clamped(data, dims, &q)),
+            Sampling::Tricubic => tricubic(data, dims, q.x, q.y, q.z),
+        }
+    }
+
+    /// The source clamped to its box (the gradient's neighbours at the border).
+    #[inline]
+    fn clamped(&self, q: &V3) -> f32 {
+        crate::volume::sample_clamped(self.volume.data(), self.volume.dims(), q)
+    }
+
+    /// Lambert factor at rest index q in a tet with `map`, lit from `light` (deformed world).
+    fn shade(&self, q: &V3, map: &TetMap, light: &V3) -> f32 {
+        let ambient = self.params.ambient as f32;
+        match self.params.shading {
+            Shading::None => 1.0,
+            Shading::Gradient => {
+                let gi = V3::new(
+                    self.clamped(&(q + V3::x())) - self.clamped(&(q - V3::x())),
+                    self.clamped(&(q + V3::y())) - self.clamped(&(q - V3::y())),
+                    self.clamped(&(q + V3::z())) - self.clamped(&(q - V3::z())),
+                ) * 0.5;
+                // ∇ₓf = Gᵀ ∇_q f: the source's gradient carried through the tet's map.
+                let g = V3::new(
+                    map[0][0] * gi.x + map[1][0] * gi.y + map[2][0] * gi.z,
+                    map[0][1] * gi.x + map[1][1] * gi.y + map[2][1] * gi.z,
+                    map[0][2] * gi.x + map[1][2] * gi.y + map[2][2] * gi.z,
+                );
+                let len = g.norm();
+                if len > 1e-12 {
+                    ambient + (1.0 - ambient) * (g.dot(light) / len).abs()
+                } else {
+                    1.0
+                }
+            }
+            Shading::ForwardDifference => {
+                // One world unit toward the light, in the source's index: G·l.
+                let l = V3::new(
+                    map[0][0] * light.x + map[0][1] * light.y + map[0][2] * light.z,
+                    map[1][0] * light.x + map[1][1] * light.y + map[1][2] * light.z,
+                    map[2][0] * light.x + map[2][1] * light.y + map[2][2] * light.z,
+                );
+                let drop = self.clamped(q) - self.clamped(&(q + l));
+                ambient + (1.0 - ambient) * (drop / self.gradient_scale).clamp(0.0, 1.0)
+            }
+        }
+    }
+
+    /// Adds a segment's premultiplied colour and α, shaded at q.
+    #[allow(clippy::too_many_arguments)]
+    fn add(&self, acc: &mut [f32; 4], depth: &mut f32, e: [f32; 4], q: &V3, map: &TetMap, light: &V3, t_mid: f32) {
+        if e[3] <= 1e-5 {
+            return;
+        }
+        let shade = self.shade(q, map, light);
+        let weight = 1.0 - acc[3];
+        for c in 0..3 {
+            acc[c] += weight * e[c] * shade;
+        }
+        acc[3] += weight * e[3];
+        if depth.is_infinite() && acc[3] >= 0.5 {
+            *depth = t_mid;
+        }
+    }
+
+    /// A ray from anchored `o` along `d` entering the mesh at `t0`.
+    pub(crate) fn march(&self, o: &V3, d: &V3, t0: f32) -> March {
+        let light = self.params.light.map_or(-d, |l| Vector3::from(l).normalize().cast::<f32>());
+        March { o: *o, d: *d, light, t0, k: 0, front: None }
+    }
+
+    /// The samples of `march` up to `t_out` inside `tet`.
+    pub(crate) fn cross(&self, march: &mut March, tet: usize, t_out: f32, acc: &mut [f32; 4], depth: &mut f32) {
+        let (o, d, light) = (march.o, march.d, march.light);
+        let step = self.params.step as f32;
+        let preintegrated = self.params.preintegrated;
+        let offset = if preintegrated { 0.0 } else { 0.5 };
+        let map = &self.maps[tet];
+        let t0 = march.t0;
+        let at = |k: u32| t0 + (k as f32 + offset) * step;
+        let termination = self.params.early_termination as f32;
+        // In a tet with nothing to see, only the segment coming in from the tet before (its
+        // front there) adds anything.
+        let mut composite = self.visible[tet] != 0 || (preintegrated && march.front.is_some());
+        while at(march.k) <= t_out {
+            if !composite {
+                // The last sample inside is kept, the next segment's front.
+                let last = ((t_out - t0) / step - offset).floor().max(march.k as f32) as u32;
+                let last = if at(last) > t_out { last.saturating_sub(1).max(march.k) } else { last };
+                if preintegrated {
+                    march.front = self.value(&apply(map, &(o + d * at(last))));
+                }
+                march.k = last + 1;
+                return;
+            }
+            composite = self.visible[tet] != 0;
+            let t = at(march.k);
+            let q = apply(map, &(o + d * t));
+            let value = self.value(&q);
+            if preintegrated {
+                if let (Some(front), Some(back), true) = (march.front, value, march.k > 0) {
+                    let middle = apply(map, &(o + d * (t - 0.5 * step)));
+                    self.add(acc, depth, self.tables.segment(front, back), &middle, map, &light, t - 0.5 * step);
+                }
+                march.front = value;
+            } else if let Some(v) = value {
+                self.add(acc, depth, self.tables.sample_step(v), &q, map, &light, t);
+            }
+            march.k += 1;
+            if acc[3] >= termination {
+                return;
+            }
+        }
+    }
+
+    /// The shorter last segment, from the last sample to `t_end` (the ray leaves the mesh
+    /// or meets a tool), inside `tet`.
+    pub(crate) fn finish(&self, march: &March, tet: usize, t_end: f32, acc: &mut [f32; 4], depth: &mut f32) {
+        let (o, d, light) = (&march.o, &march.d, &march.light);
+        let step = self.params.step as f32;
+        let map = &self.maps[tet];
+        // The segment after the last sample (pre-integrated) or the last sample's segment
+        // end (point sampling) up to t_end.
+        let start = march.t0 + march.k as f32 * step - if self.params.preintegrated { step } else { 0.0 };
+        let len = t_end - start;
+        if len <= 1e-6 * step {
+            return;
+        }
+        if self.params.preintegrated {
+            let (Some(front), Some(back)) = (march.front, self.value(&apply(map, &(o + d * t_end)))) else { return };
+            let seg = self.tables.segment(front, back);
+            // A shorter last segment: the same extinction over less length.
+            let alpha = 1.0 - (1.0 - seg[3]).max(0.0).powf(len / step);
+            let scale = if seg[3] > 0.0 { alpha / seg[3] } else { len / step };
+            let middle = apply(map, &(o + d * (start + 0.5 * len)));
+            let e = [seg[0] * scale, seg[1] * scale, seg[2] * scale, alpha];
+            self.add(acc, depth, e, &middle, map, light, start + 0.5 * len);
+        } else {
+            let middle = apply(map, &(o + d * (start + 0.5 * len)));
+            let Some(v) = self.value(&middle) else { return };
+            let e = self.tables.sample(v);
+            let alpha = 1.0 - (-e[3] * len).exp();
+            self.add(
+                acc,
+                depth,
+                [e[0] * alpha, e[1] * alpha, e[2] * alpha, alpha],
+                &middle,
+                map,
+                light,
+                start + 0.5 * len,
+            );
+        }
+    }
+}

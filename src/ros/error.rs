@@ -1,0 +1,26 @@
+//! What can stop the node: its arguments, DDS, ROS 2 entities, the pipeline, the recording.
+
+use super::{args, dds};
+use crate::pipeline::PipelineError;
+use crate::session::SessionError;
+
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum NodeError {
+    #[error(transparent)]
+    Args(#[from] args::ArgsError),
+    #[error(transparent)]
+    Dds(#[from] dds::DdsError),
+    #[error("ROS 2: {0}")]
+    Ros(String),
+    #[error(transparent)]
+    Pipeline(#[from] PipelineError),
+    #[error(transparent)]
+    Backend(#[from] crate::backend::BackendError),
+    #[error(transparent)]
+    Session(#[from] SessionError),
+}
+
+pub(super) fn ros_err(what: &str) -> impl Fn(ros2_client::CreateError) -> NodeError + '_ {
+    move |e| NodeError::Ros(format!("{what}: {e:?}"))
+}
