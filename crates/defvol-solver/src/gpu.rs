@@ -14,7 +14,7 @@ use nalgebra::Vector3;
 use super::cpu::CgStats;
 use super::kernels::ContactTool;
 use super::{Integrator, MassSpringModel, Simulation, SolverError, SolverParams, StepReport, Tool};
-use defvol_gpu::gpu::{GpuContext, GpuError};
+use defvol_gpu::gpu::{Binding, GpuContext, GpuError, Kernels};
 
 /// Storage buffers the solver shader binds at once.
 const STORAGE_BUFFERS: u32 = 25;
@@ -159,7 +159,7 @@ pub struct GpuSimulation {
     mirror: Simulation<f32>,
     nodes: u32,
     springs: u32,
-    pipelines: Vec<wgpu::ComputePipeline>,
+    pipelines: [wgpu::ComputePipeline; Kernel::ALL.len()],
     bind_group: wgpu::BindGroup,
     buffers: Buffers,
     history_valid: bool,
@@ -188,47 +188,15 @@ impl GpuSimulation {
         let mirror = Simulation::<f32>::new(model, params, tools)?;
         let n = model.node_count();
         let e = model.springs.len();
-        let device = &ctx.device;
-        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
-            label: Some("solver.wgsl"),
-            source: wgpu::ShaderSource::Wgsl(include_str!("solver.wgsl").into()),
-        });
-        let entries: Vec<wgpu::BindGroupLayoutEntry> = (0..=STORAGE_BUFFERS)
-            .map(|binding| wgpu::BindGroupLayoutEntry {
-                binding,
-                visibility: wgpu::ShaderStages::COMPUTE,
-                ty: wgpu::BindingType::Buffer {
-                    ty: if binding == 0 {
-                        wgpu::BufferBindingType::Uniform
-                    } else {
-                        wgpu::BufferBindingType::Storage { read_only: READ_ONLY.contains(&binding) }
-                    },
-                    has_dynamic_offset: false,
-                    min_binding_size: None,
-                },
-                count: None,
+        let bindings: Vec<Binding> = (0..=STORAGE_BUFFERS)
+            .map(|binding| match binding {
+                0 => Binding::Uniform,
+                b if READ_ONLY.contains(&b) => Binding::Read,
+                _ => Binding::ReadWrite,
             })
             .collect();
-        let layout = device
-            .create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor { label: Some("solver"), entries: &entries });
-        let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
-            label: Some("solver"),
-            bind_group_layouts: &[Some(&layout)],
-            immediate_size: 0,
-        });
-        let pipelines = Kernel::ALL
-            .iter()
-            .map(|kernel| {
-                device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                    label: Some(kernel.entry_point()),
-                    layout: Some(&pipeline_layout),
-                    module: &module,
-                    entry_point: Some(kernel.entry_point()),
-                    compilation_options: Default::default(),
-                    cache: None,
-                })
-            })
-            .collect();
+        let Kernels { layout, pipelines } =
+            ctx.kernels("solver.wgsl", include_str!("solver.wgsl"), &bindings, Kernel::ALL.map(Kernel::entry_point));
 
         let zeros4 = |count: usize| vec![[0f32; 4]; count.max(1)];
         let mat3 = |count: usize| vec![0f32; 12 * count.max(1)];
@@ -250,7 +218,7 @@ impl GpuSimulation {
         let rest_pos: Vec<[f32; 4]> = model.rest.iter().map(|p| [p.x as f32, p.y as f32, p.z as f32, 0.0]).collect();
         let buf = |label: &str, bytes: &[u8]| ctx.storage_buffer(label, bytes);
         let b = Buffers {
-            params: device.create_buffer(&wgpu::BufferDescriptor {
+            params: ctx.device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some("params"),
                 size: std::mem::size_of::<GpuParams>() as u64,
                 usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
@@ -314,19 +282,7 @@ impl GpuSimulation {
             rest_edge_b,
             rest_pos_b,
         ];
-        let bind_entries: Vec<wgpu::BindGroupEntry> = order
-            .iter()
-            .enumerate()
-            .map(|(binding, buffer)| wgpu::BindGroupEntry {
-                binding: binding as u32,
-                resource: buffer.as_entire_binding(),
-            })
-            .collect();
-        let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("solver"),
-            layout: &layout,
-            entries: &bind_entries,
-        });
+        let bind_group = ctx.bind_group("solver", &layout, &order);
         Ok(Self {
             ctx,
             mirror,

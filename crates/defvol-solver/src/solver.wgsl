@@ -1,4 +1,4 @@
-// Mass-spring solver kernels: the GPU twin of src/solver/kernels.rs and src/solver/cpu.rs.
+// Mass-spring solver kernels: the GPU twin of kernels.rs and cpu/ beside this file.
 // The state is displacements u from rest (f32 resolution follows the deformation, not the
 // distance from the origin); a spring's current edge is rest_edge + u_b - u_a.
 // Spring e joins (a, b); spring_force[e] is the force on a; spring_kv[e] = K_e (v_b - v_a);

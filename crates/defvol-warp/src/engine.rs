@@ -7,7 +7,7 @@ use std::sync::Arc;
 
 use nalgebra::Vector3;
 
-use super::{IncrementalWarp, WarpError, WarpOptions, WarpStats};
+use crate::{IncrementalWarp, WarpError, WarpOptions, WarpStats};
 use defvol_core::mesh::TetMesh;
 use defvol_core::volume::{Grid, Volume};
 use defvol_gpu::backend::{Backend, BackendError, RunsOn};
@@ -21,7 +21,7 @@ pub enum WarpEngineError {
     Backend(#[from] BackendError),
     #[cfg(feature = "gpu")]
     #[error(transparent)]
-    Gpu(#[from] super::gpu::GpuWarpError),
+    Gpu(#[from] crate::gpu::GpuWarpError),
     #[error("the CPU warp needs the deformed positions on the host")]
     NoPositions,
 }
@@ -35,7 +35,7 @@ pub enum WarpEngine {
         tolerance: f64,
     },
     #[cfg(feature = "gpu")]
-    Gpu { warp: Box<super::gpu::GpuWarp>, sequence: u64 },
+    Gpu { warp: Box<crate::gpu::GpuWarp>, sequence: u64 },
 }
 
 impl WarpEngine {
@@ -54,7 +54,7 @@ impl WarpEngine {
     ) -> Result<Self, WarpEngineError> {
         #[cfg(feature = "gpu")]
         if let Some(warp) = backend.try_gpu("warp", |ctx| {
-            super::gpu::GpuWarp::new(ctx.clone(), &source, &rest, grid.clone(), &options, to_file)
+            crate::gpu::GpuWarp::new(ctx.clone(), &source, &rest, grid.clone(), &options, to_file)
         })? {
             warp.place_host(&vec![Vector3::zeros(); rest.nodes().len()])?;
             warp.run();

@@ -16,7 +16,7 @@ use std::sync::Arc;
 use bytemuck::{Pod, Zeroable};
 use nalgebra::{Matrix3, Vector3};
 
-use super::{Sampling, WarpError, WarpOptions, WarpStats};
+use crate::{Sampling, WarpError, WarpOptions, WarpStats};
 use defvol_core::mesh::TetMesh;
 use defvol_core::volume::{Grid, Volume};
 use defvol_gpu::gpu::{self, DeviceNodes, GpuContext, GpuError, Kernels};

@@ -1,4 +1,4 @@
-// Grid warp by exact row spans: the GPU twin of the `Spans` scheme in warp/mod.rs.
+// Grid warp by exact row spans: the GPU twin of the `Spans` scheme in kernels.rs (rasterize_slice).
 // - `fill`: every output voxel gets the background, or with keep_uncovered the source's
 //   value at the same place (Sampler::at through the identity map, as `initial_value`);
 // - `tet_maps`: per tet, its maps from the deformed nodes (output index space) and the rest

@@ -1,0 +1,68 @@
+//! A step that diverges is undone: the state is saved before it, checked after it, and
+//! restored with the reason when it went wrong.
+
+use super::*;
+
+impl<T: Real> Simulation<T> {
+    pub(super) fn snapshot(&self) -> Snapshot<T> {
+        Snapshot {
+            u: self.u.clone(),
+            v: self.v.clone(),
+            history: self.history.clone(),
+            history_valid: self.history_valid,
+            proxies: self.proxies.clone(),
+        }
+    }
+
+    /// Takes a state computed elsewhere (the GPU) as this step's result, with the same
+    /// reporting and divergence check as a CPU step.
+    #[cfg_attr(not(feature = "gpu"), allow(dead_code))]
+    pub(crate) fn accept_step(
+        &mut self,
+        u: Vec<Vector3<T>>,
+        v: Vec<Vector3<T>>,
+        cg: CgStats,
+    ) -> Result<StepReport, SolverError> {
+        let saved = self.snapshot();
+        self.u = u;
+        self.v = v;
+        self.last_cg = cg;
+        self.finish_step(saved)
+    }
+
+    pub(super) fn finish_step(&mut self, saved: Snapshot<T>) -> Result<StepReport, SolverError> {
+        self.step += 1;
+        self.time += self.params.dt;
+        self.contacts = self.detect_contacts(false);
+        let report = self.report();
+        if let Some(reason) = self.divergence(&report) {
+            let failed = (self.step, self.time);
+            self.u = saved.u;
+            self.v = saved.v;
+            self.history = saved.history;
+            self.history_valid = saved.history_valid;
+            self.proxies = saved.proxies;
+            self.step -= 1;
+            self.time -= self.params.dt;
+            return Err(SolverError::Diverged { step: failed.0, time: failed.1, reason });
+        }
+        Ok(report)
+    }
+
+    pub(super) fn divergence(&self, report: &StepReport) -> Option<String> {
+        if !self.u.iter().chain(self.v.iter()).all(|p| p.iter().all(|c| c.is_finite())) {
+            return Some("non-finite positions or velocities".into());
+        }
+        let internal = report.kinetic_energy + self.spring_energy();
+        if internal > self.divergence_energy {
+            return Some(format!(
+                "energy grew to {internal:.3e} J, beyond {:.3e} J (every spring stretched by its own length)",
+                self.divergence_energy
+            ));
+        }
+        if report.max_displacement > self.divergence_distance {
+            return Some(format!("a node moved {:.3e} m, twice the mesh's size", report.max_displacement));
+        }
+        None
+    }
+}

@@ -1,0 +1,452 @@
+//! Per tet and per voxel, the arithmetic both paths share, line by line the twin of
+//! `warp.wgsl`: each tet's affine maps and exact row spans in output index space, the
+//! source sampler, and the rasterization of one output slice.
+
+use nalgebra::{Matrix3, Vector3};
+use rayon::prelude::*;
+
+use crate::bspline::{self, backward_all, CompiledDisplacement};
+use crate::{Sampling, Scheme, WarpError, WarpOptions, WarpStats};
+use defvol_core::math::Real;
+use defvol_core::mesh::TetMesh;
+use defvol_core::volume::{tricubic, trilinear, Grid, Volume, SAMPLE_TOLERANCE};
+
+/// A voxel is inside a tet when every barycentric coordinate is ≥ -ε. Without it, voxels on
+/// a mesh boundary that coincides with the lattice (a mesh built on the volume's box) fall
+/// out by round-off; ε is far below a voxel (coordinates are in voxel units).
+pub const INSIDE_TOLERANCE: f64 = 1e-9;
+
+/// One tet's maps in output index space.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TetMap {
+    /// Inclusive output voxel box, clipped to the grid.
+    pub lo: [usize; 3],
+    pub hi: [usize; 3],
+    /// `b_m = bary[m][0] + bary[m][1]·i + bary[m][2]·j + bary[m][3]·k`.
+    pub bary: [[f64; 4]; 4],
+    /// Source index `r = src[r][0] + src[r][1]·i + src[r][2]·j + src[r][3]·k`.
+    pub src: [[f64; 4]; 3],
+    /// Deformed vertices in output index space.
+    pub verts: [[f64; 3]; 4],
+    /// `1 / bary[m][1]` (0 where that is 0): the span bounds without divisions per row.
+    pub inv_c: [f64; 4],
+    /// The rest tet lies inside the source's voxel-centre box, so its samples need no
+    /// bounds test (true for meshes embedding the volume).
+    pub src_inside: bool,
+}
+
+impl TetMap {
+    /// Barycentric offsets of row (j, k): `b_m(i) + ε = a[m] + bary[m][1]·i`, with the
+    /// tolerance ε = [`INSIDE_TOLERANCE`] folded in.
+    #[inline]
+    pub fn row(&self, j: usize, k: usize) -> [f64; 4] {
+        let (j, k) = (j as f64, k as f64);
+        self.bary.map(|b| b[0] + b[2] * j + b[3] * k + INSIDE_TOLERANCE)
+    }
+
+    #[inline]
+    pub fn inside(&self, a: &[f64; 4], i: usize) -> bool {
+        let i = i as f64;
+        (0..4).all(|m| a[m] + self.bary[m][1] * i >= 0.0)
+    }
+
+    /// The inside voxels of row (j, k) as an inclusive range of i, exact w.r.t. `inside`.
+    pub fn span(&self, a: &[f64; 4]) -> Option<(usize, usize)> {
+        let (mut lo, mut hi) = (self.lo[0] as f64, self.hi[0] as f64);
+        for m in 0..4 {
+            let c = self.bary[m][1];
+            if c > 0.0 {
+                lo = lo.max((-a[m] * self.inv_c[m]).ceil());
+            } else if c < 0.0 {
+                hi = hi.min((-a[m] * self.inv_c[m]).floor());
+            } else if a[m] < 0.0 {
+                return None;
+            }
+        }
+        // The divisions can be off by one at a tie: widen by one voxel, then settle on
+        // the evaluated predicate (the inside set of a row is an interval).
+        let (box_lo, box_hi) = (self.lo[0] as f64, self.hi[0] as f64);
+        let mut lo = (lo - 1.0).clamp(box_lo, box_hi) as usize;
+        let mut hi = (hi + 1.0).clamp(box_lo, box_hi) as usize;
+        while lo <= hi && !self.inside(a, lo) {
+            lo += 1;
+        }
+        while hi >= lo && !self.inside(a, hi) {
+            if hi == 0 {
+                return None;
+            }
+            hi -= 1;
+        }
+        (lo <= hi).then_some((lo, hi))
+    }
+
+    /// Rows j of slice k that can meet the tet: the y-range of its cross-section with the
+    /// plane z = k, widened by one row (spans settle the exact set).
+    pub fn section_rows(&self, k: usize) -> Option<(usize, usize)> {
+        let z = k as f64;
+        let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
+        for a in 0..4 {
+            let pa = self.verts[a];
+            // Vertices within round-off of the plane belong to the section (a face lying
+            // on a voxel plane must not lose its rows).
+            if (pa[2] - z).abs() <= SAMPLE_TOLERANCE {
+                lo = lo.min(pa[1]);
+                hi = hi.max(pa[1]);
+            }
+            for b in a + 1..4 {
+                let pb = self.verts[b];
+                if (pa[2] - z) * (pb[2] - z) < 0.0 {
+                    let y = pa[1] + (z - pa[2]) / (pb[2] - pa[2]) * (pb[1] - pa[1]);
+                    lo = lo.min(y);
+                    hi = hi.max(y);
+                }
+            }
+        }
+        if lo > hi {
+            return None;
+        }
+        let j0 = (lo.ceil() - 1.0).max(self.lo[1] as f64);
+        let j1 = (hi.floor() + 1.0).min(self.hi[1] as f64);
+        (j0 <= j1).then_some((j0 as usize, j1 as usize))
+    }
+}
+
+/// The maps of every tet; `None` for deformed tets that are inverted, degenerate or miss the grid.
+pub fn tet_maps(
+    rest: &TetMesh,
+    deformed: &[Vector3<f64>],
+    source: &Grid,
+    grid: &Grid,
+) -> Result<Vec<Option<TetMap>>, WarpError> {
+    if deformed.len() != rest.nodes().len() {
+        return Err(WarpError::NodeCount { got: deformed.len(), expected: rest.nodes().len() });
+    }
+    if let Some(node) = deformed.iter().position(|p| !p.iter().all(|c| c.is_finite())) {
+        return Err(WarpError::NonFiniteNode { node });
+    }
+    let out_index: Vec<Vector3<f64>> = deformed.iter().map(|p| grid.index_from_world(*p)).collect();
+    let src_index: Vec<Vector3<f64>> = rest.nodes().iter().map(|p| source.index_from_world(*p)).collect();
+    let limit = Vector3::from(source.dims.map(|d| (d - 1) as f64));
+    let within = |q: &Vector3<f64>| (0..3).all(|a| q[a] >= -SAMPLE_TOLERANCE && q[a] <= limit[a] + SAMPLE_TOLERANCE);
+    Ok(rest
+        .tets()
+        .par_iter()
+        .map(|t| {
+            tet_map(t, &out_index, &src_index, grid.dims).map(|mut m| {
+                m.src_inside = t.iter().all(|n| within(&src_index[*n as usize]));
+                m
+            })
+        })
+        .collect())
+}
+
+fn tet_map(t: &[u32; 4], out_index: &[Vector3<f64>], src_index: &[Vector3<f64>], dims: [usize; 3]) -> Option<TetMap> {
+    let p = t.map(|n| out_index[n as usize]);
+    let q = t.map(|n| src_index[n as usize]);
+    let d = Matrix3::from_columns(&[p[1] - p[0], p[2] - p[0], p[3] - p[0]]);
+    let qm = Matrix3::from_columns(&[q[1] - q[0], q[2] - q[0], q[3] - q[0]]);
+    let (det, rest_det) = (d.determinant(), qm.determinant());
+    // Same orientation as at rest, and not flat: |det| against the cube of its longest edge.
+    let longest =
+        (0..4).flat_map(|a| (a + 1..4).map(move |b| (a, b))).map(|(a, b)| (p[a] - p[b]).norm()).fold(0.0, f64::max);
+    if det * rest_det <= 0.0 || det.abs() < 1e-9 * longest.powi(3) {
+        return None;
+    }
+    let inv = d.try_inverse()?;
+    let mut bary = [[0.0; 4]; 4];
+    for m in 1..4 {
+        let row = inv.row(m - 1);
+        bary[m] = [-(row * p[0])[0], row[0], row[1], row[2]];
+    }
+    for c in 0..4 {
+        bary[0][c] = if c == 0 { 1.0 } else { 0.0 } - bary[1][c] - bary[2][c] - bary[3][c];
+    }
+    let m = qm * inv;
+    let offset = q[0] - m * p[0];
+    let src = [0, 1, 2].map(|r| [offset[r], m[(r, 0)], m[(r, 1)], m[(r, 2)]]);
+    let mut lo = [0usize; 3];
+    let mut hi = [0usize; 3];
+    for a in 0..3 {
+        // Widened by the sample tolerance: a vertex at 38.9999999 still covers voxel 39.
+        let min = (p.iter().map(|v| v[a]).fold(f64::INFINITY, f64::min) - SAMPLE_TOLERANCE).ceil().max(0.0);
+        let max = (p.iter().map(|v| v[a]).fold(f64::NEG_INFINITY, f64::max) + SAMPLE_TOLERANCE)
+            .floor()
+            .min((dims[a] - 1) as f64);
+        if min > max {
+            return None;
+        }
+        lo[a] = min as usize;
+        hi[a] = max as usize;
+    }
+    let inv_c = bary.map(|b| if b[1] != 0.0 { 1.0 / b[1] } else { 0.0 });
+    Some(TetMap { lo, hi, bary, src, verts: p.map(|v| [v.x, v.y, v.z]), inv_c, src_inside: false })
+}
+
+/// Source samples and how to read them, in precision T.
+pub struct Sampler<'a> {
+    data: &'a [f32],
+    dims: [usize; 3],
+    sampling: Sampling,
+    background: f32,
+    displacements: Vec<CompiledDisplacement>,
+    source: Grid,
+}
+
+impl<'a> Sampler<'a> {
+    pub fn new(source: &'a Volume, options: &WarpOptions) -> Result<Self, WarpError> {
+        let displacements = bspline::compile_all(&options.displacements)
+            .map_err(|(index, why)| WarpError::BadDisplacement { index, why })?;
+        Ok(Self {
+            data: source.data(),
+            dims: source.dims(),
+            sampling: options.sampling,
+            background: options.background,
+            displacements,
+            source: source.grid(),
+        })
+    }
+
+    /// Value at a continuous source index, after the displacement volumes.
+    #[inline]
+    pub fn at<T: Real>(&self, x: T, y: T, z: T) -> T {
+        if self.displacements.is_empty() {
+            return self.at_index(x, y, z);
+        }
+        let world = self.source.world_from_index(Vector3::new(x.to_f64(), y.to_f64(), z.to_f64()));
+        let moved = self.source.index_from_world(backward_all(&self.displacements, &world));
+        self.at_index(T::of(moved.x), T::of(moved.y), T::of(moved.z))
+    }
+
+    fn is_plain_trilinear(&self) -> bool {
+        self.sampling == Sampling::Trilinear && self.displacements.is_empty()
+    }
+
+    /// Trilinear samples along a run of output voxels, source index base + step·i: the hot
+    /// loop of the warp, with the limits and strides hoisted out of it.
+    fn trilinear_run<T: Real>(&self, out: &mut [T], base: [T; 3], step: [T; 3], i0: usize, src_inside: bool) {
+        let [nx, ny, nz] = self.dims;
+        let top = [nx.saturating_sub(2), ny.saturating_sub(2), nz.saturating_sub(2)];
+        let sx = usize::from(nx > 1);
+        let sy = if ny > 1 { nx } else { 0 };
+        let sz = if nz > 1 { nx * ny } else { 0 };
+        let background = T::of(self.background as f64);
+        let data = self.data;
+        let (top, nx, nxy) = (top.map(|t| t as i32), nx as i32, (nx * ny) as i32);
+        // The run is affine in n. A rest tet inside the source box samples inside it (only
+        // round-off can leave, and the clamps absorb it); otherwise find the sub-run whose
+        // sample points lie in the box, so the loop needs no per-voxel bounds test.
+        let len = out.len();
+        let run = if src_inside { Some((0, len - 1)) } else { self.in_box_subrun(base, step, i0, len) };
+        let Some((first, last)) = run else {
+            out.fill(background);
+            return;
+        };
+        out[..first].fill(background);
+        out[last + 1..].fill(background);
+        for (n, slot) in out[first..=last].iter_mut().enumerate() {
+            let fi = T::of_i32((i0 + first + n) as i32);
+            let (x, y, z) = (base[0] + step[0] * fi, base[1] + step[1] * fi, base[2] + step[2] * fi);
+            let (i, j, k) =
+                (x.trunc_i32().clamp(0, top[0]), y.trunc_i32().clamp(0, top[1]), z.trunc_i32().clamp(0, top[2]));
+            let b = (i + nx * j + nxy * k) as usize;
+            // One bounds check for the whole cell instead of one per corner.
+            let cell = &data[b..=b + sx + sy + sz];
+            *slot = defvol_core::volume::lerp_cube(
+                |o| T::of_f32(cell[o]),
+                [sx, sy, sz],
+                [x - T::of_i32(i), y - T::of_i32(j), z - T::of_i32(k)],
+            );
+        }
+    }
+
+    /// The sub-run [first, last] of `len` samples at base + step·(i0 + n) that lies within
+    /// [`SAMPLE_TOLERANCE`] of the source's voxel-centre box, if any.
+    fn in_box_subrun<T: Real>(&self, base: [T; 3], step: [T; 3], i0: usize, len: usize) -> Option<(usize, usize)> {
+        let limit = self.dims.map(|n| (n - 1) as f64);
+        let (mut first, mut last) = (0.0f64, len as f64 - 1.0);
+        for a in 0..3 {
+            let (b0, s0, lim) = (
+                (base[a] + step[a] * T::of_i32(i0 as i32)).to_f64() + SAMPLE_TOLERANCE,
+                step[a].to_f64(),
+                limit[a] + 2.0 * SAMPLE_TOLERANCE,
+            );
+            if s0 > 0.0 {
+                first = first.max((-b0 / s0).ceil());
+                last = last.min(((lim - b0) / s0).floor());
+            } else if s0 < 0.0 {
+                first = first.max(((lim - b0) / s0).ceil());
+                last = last.min((-b0 / s0).floor());
+            } else if !(0.0..=lim).contains(&b0) {
+                return None;
+            }
+        }
+        let tol = T::of(SAMPLE_TOLERANCE);
+        let inside = |n: usize| {
+            let fi = T::of_i32((i0 + n) as i32);
+            (0..3).all(|a| {
+                let c = base[a] + step[a] * fi;
+                c >= -tol && c <= T::of(limit[a]) + tol
+            })
+        };
+        // Settle the rounding of the divisions on the evaluated test, as spans do.
+        let mut first = (first.max(0.0) as usize).min(len);
+        let mut last = if last < 0.0 { 0 } else { (last as usize).min(len.saturating_sub(1)) };
+        while first < len && first <= last && !inside(first) {
+            first += 1;
+        }
+        while last > first && !inside(last) {
+            last -= 1;
+        }
+        (first < len && first <= last && inside(first)).then_some((first, last))
+    }
+
+    #[inline]
+    fn at_index<T: Real>(&self, x: T, y: T, z: T) -> T {
+        match self.sampling {
+            Sampling::Trilinear => trilinear(self.data, self.dims, x, y, z, T::of(SAMPLE_TOLERANCE))
+                .unwrap_or(T::of(self.background as f64)),
+            Sampling::Tricubic => tricubic(self.data, self.dims, x, y, z).unwrap_or(T::of(self.background as f64)),
+        }
+    }
+}
+
+/// Output grid and its initial contents.
+pub(crate) fn initial_value<T: Real>(
+    sampler: &Sampler,
+    identity: &(Matrix3<f64>, Vector3<f64>),
+    keep_uncovered: bool,
+    i: usize,
+    j: usize,
+    k: usize,
+) -> T {
+    if !keep_uncovered {
+        return T::of(sampler.background as f64);
+    }
+    let s = identity.0 * Vector3::new(i as f64, j as f64, k as f64) + identity.1;
+    sampler.at(T::of(s.x), T::of(s.y), T::of(s.z))
+}
+
+/// Rasterizes `maps` into the output slice k (x-fastest rows), restricted to the inclusive
+/// box `[lo, hi]` in (i, j). The CPU twin of `warp.wgsl`.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn rasterize_slice<T: Real>(
+    slice: &mut [T],
+    nx: usize,
+    k: usize,
+    tets: &[u32],
+    maps: &[Option<TetMap>],
+    sampler: &Sampler,
+    scheme: Scheme,
+    lo: [usize; 2],
+    hi: [usize; 2],
+) -> WarpStats {
+    let mut stats = WarpStats::default();
+    for &t in tets {
+        let Some(m) = &maps[t as usize] else { continue };
+        if k < m.lo[2] || k > m.hi[2] {
+            continue;
+        }
+        let (j0, j1) = (m.lo[1].max(lo[1]), m.hi[1].min(hi[1]));
+        let (i0, i1) = (m.lo[0].max(lo[0]), m.hi[0].min(hi[0]));
+        if j0 > j1 || i0 > i1 {
+            continue;
+        }
+        match scheme {
+            Scheme::Spans => {
+                let Some((s0, s1)) = m.section_rows(k) else { continue };
+                for j in s0.max(j0)..=s1.min(j1) {
+                    let a = m.row(j, k);
+                    let Some((s0, s1)) = m.span(&a) else { continue };
+                    let (s0, s1) = (s0.max(i0), s1.min(i1));
+                    if s0 > s1 {
+                        continue;
+                    }
+                    write_run(&mut slice[j * nx..], m, j, k, s0, s1, sampler);
+                    let n = (s1 - s0 + 1) as u64;
+                    stats.candidates += n;
+                    stats.inside += n;
+                }
+            }
+            Scheme::Bbox => {
+                for j in j0..=j1 {
+                    let a = m.row(j, k);
+                    for i in i0..=i1 {
+                        stats.candidates += 1;
+                        if m.inside(&a, i) {
+                            write_run(&mut slice[j * nx..], m, j, k, i, i, sampler);
+                            stats.inside += 1;
+                        }
+                    }
+                }
+            }
+            Scheme::Culling => {
+                // Coarse points every CELL voxels from the tet's box corner; the cell test
+                // needs masks at its 8 corners (4 in this slice's plane pair).
+                let kc0 = m.lo[2] + (k - m.lo[2]) / CELL * CELL;
+                let kc1 = kc0 + CELL;
+                let mask = |i: usize, j: usize, kk: usize| -> u8 {
+                    let a = m.row(j, kk);
+                    let mut bits = 0u8;
+                    for q in 0..4 {
+                        let b = a[q] + m.bary[q][1] * i as f64;
+                        // b here is b_q + ε; inside needs b ≥ 0, which bounds b_q + ε ≤ 1 + 4ε.
+                        bits |= u8::from(b < 0.0) << (2 * q);
+                        bits |= u8::from(b > 1.0 + 4.0 * INSIDE_TOLERANCE) << (2 * q + 1);
+                    }
+                    bits
+                };
+                let mut jc = m.lo[1];
+                while jc <= m.hi[1] {
+                    let mut ic = m.lo[0];
+                    while ic <= m.hi[0] {
+                        let corners = [(ic, jc), (ic + CELL, jc), (ic, jc + CELL), (ic + CELL, jc + CELL)];
+                        let culled =
+                            corners.iter().fold(0xFFu8, |acc, &(i, j)| acc & mask(i, j, kc0) & mask(i, j, kc1));
+                        if culled == 0 {
+                            for j in jc.max(j0)..=(jc + CELL - 1).min(j1) {
+                                let a = m.row(j, k);
+                                for i in ic.max(i0)..=(ic + CELL - 1).min(i1) {
+                                    stats.candidates += 1;
+                                    if m.inside(&a, i) {
+                                        write_run(&mut slice[j * nx..], m, j, k, i, i, sampler);
+                                        stats.inside += 1;
+                                    }
+                                }
+                            }
+                        }
+                        ic += CELL;
+                    }
+                    jc += CELL;
+                }
+            }
+        }
+    }
+    stats
+}
+
+/// Coarse cell size of the culling scheme (the seed's 8x8x8).
+pub const CELL: usize = 8;
+
+/// Samples the source for output voxels i0..=i1 of row (j, k); `row` starts at i = 0.
+#[inline]
+pub(crate) fn write_run<T: Real>(
+    row: &mut [T],
+    m: &TetMap,
+    j: usize,
+    k: usize,
+    i0: usize,
+    i1: usize,
+    sampler: &Sampler,
+) {
+    let (jf, kf) = (j as f64, k as f64);
+    let base = m.src.map(|s| T::of(s[0] + s[2] * jf + s[3] * kf));
+    let step = m.src.map(|s| T::of(s[1]));
+    if sampler.is_plain_trilinear() {
+        sampler.trilinear_run(&mut row[i0..=i1], base, step, i0, m.src_inside);
+        return;
+    }
+    for (i, out) in row[i0..=i1].iter_mut().enumerate() {
+        let fi = T::of((i0 + i) as f64);
+        *out = sampler.at(base[0] + step[0] * fi, base[1] + step[1] * fi, base[2] + step[2] * fi);
+    }
+}
