@@ -4,11 +4,11 @@
 //! names: in the ground crate `defvol-core`, [`math`] (the scalar type), the data, [`mesh`]
 //! and [`volume`], and [`io`] for their files; in the plumbing crate `defvol-gpu`, [`gpu`],
 //! the wgpu plumbing that knows no stage, and [`backend`], the one CPU-or-GPU choice a run
-//! hands every stage. Then, in this crate: the stages, each one folder with its CPU path, its
-//! GPU host code, its shader and their agreement tests: [`solver`], [`warp`], [`dpcm`],
-//! [`render`]; [`scene`], what a run loads; [`pipeline`], the stages chained for the node
-//! without ROS; then the records and the wire: [`msgs`], [`record`], [`session`], [`shm`],
-//! [`ros`]; and [`bench`](mod@bench).
+//! hands every stage. Then the stages, a crate each with its CPU path, its GPU host code, its
+//! shader and their agreement tests: [`solver`], [`warp`], [`dpcm`], [`render`]. In this
+//! crate: [`scene`], what a run loads; [`pipeline`], the stages chained for the node without
+//! ROS; then the records and the wire: [`msgs`], [`record`], [`session`], [`shm`], [`ros`];
+//! and [`bench`](mod@bench).
 
 // Errors are returned, not unwrapped (tests may unwrap).
 #![cfg_attr(not(test), deny(clippy::unwrap_used, clippy::expect_used))]
