@@ -23,6 +23,7 @@ pub use defvol_solver as solver;
 pub use defvol_warp as warp;
 
 pub mod bench;
+pub mod logging;
 pub mod msgs;
 pub mod pipeline;
 pub mod record;

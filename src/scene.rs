@@ -418,6 +418,10 @@ mod tests {
         let bad = DEFAULT_SCENE.replace("density: 1000.0", "densty: 1000.0");
         let e = Scene::parse(&bad, "s.yaml").unwrap_err().to_string();
         assert!(e.contains("s.yaml") && e.contains("densty"), "{e}");
+        // Inside a tagged section too, with the names it takes.
+        let bad = DEFAULT_SCENE.replace("  stiffness: 1000.0", "  stifness: 1000.0");
+        let e = Scene::parse(&bad, "s.yaml").unwrap_err().to_string();
+        assert!(e.contains("unknown field `stifness`") && e.contains("`stiffness`"), "{e}");
     }
 
     #[test]

@@ -106,11 +106,11 @@ pub fn run(args: DemoArgs) -> Result<()> {
     outcome.context("the pipeline stopped")?;
     let r = pipeline.last_report();
     tracing::info!(
-        "demo: {steps} steps ({} s simulated) on {}; max displacement {:.3e} m; reaction {:?} N",
+        "demo: {steps} steps ({} s simulated) on {}; max displacement {:.3e} m; reaction {} N",
         args.seconds,
         pipeline.backend_name(),
         r.map_or(0.0, |r| r.max_displacement),
-        r.map(|r| r.reaction(0).force.map(|f| (f * 1e3).round() / 1e3))
+        r.map_or_else(|| "none".to_owned(), |r| defvol::logging::vector(r.reaction(0).force, 3))
     );
     Ok(())
 }

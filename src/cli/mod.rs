@@ -44,6 +44,7 @@ enum Command {
     Replay(replay::ReplayArgs),
     /// The ROS 2 node (as `defvol_node`): `defvol node [--record F.mcap] --ros-args -p …`.
     #[cfg(feature = "ros")]
+    #[command(disable_help_flag = true)]
     Node {
         /// The node's options and its ROS arguments, as `defvol_node` takes them.
         #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
@@ -56,6 +57,17 @@ enum Command {
     },
 }
 
+/// The command line, parsed: negative numbers are values everywhere (`--dt -0.01`,
+/// `--background -1000`), not flags.
+pub fn parse() -> Cli {
+    use clap::{CommandFactory, FromArgMatches};
+    fn negatives(command: clap::Command) -> clap::Command {
+        command.allow_negative_numbers(true).mut_subcommands(negatives)
+    }
+    let matches = negatives(Cli::command()).get_matches();
+    Cli::from_arg_matches(&matches).unwrap_or_else(|e| e.exit())
+}
+
 pub fn run(cli: Cli) -> Result<()> {
     match cli.command {
         Command::Simulate(args) => simulate::run(args),
@@ -66,11 +78,7 @@ pub fn run(cli: Cli) -> Result<()> {
         #[cfg(feature = "mcap")]
         Command::Replay(args) => replay::run(args),
         #[cfg(feature = "ros")]
-        Command::Node { args } => {
-            let settings = defvol::ros::node::settings_from_args(&args)?;
-            defvol::ros::node::run(settings)?;
-            Ok(())
-        }
+        Command::Node { args } => Ok(defvol::ros::node::run_from_args(&args)?),
         Command::Bench { stage } => bench::run(stage),
     }
 }

@@ -136,13 +136,13 @@ pub fn run(args: SimulateArgs) -> Result<()> {
                 csv.serialize(CsvRow::from(&report))?;
                 if report.step % 10 == 0 || report.step == args.steps {
                     tracing::info!(
-                        "step {:>5} t={:.3}s CG {:>4} its residual {:.1e} max displacement {:.3e} m reaction {:?}",
+                        "step {:>5} t={:.3}s CG {:>4} its residual {:.1e} max displacement {:.3e} m reaction {} N",
                         report.step,
                         report.time,
                         report.cg_iterations,
                         report.residual,
                         report.max_displacement,
-                        report.reaction(0).force.map(|f| (f * 1e3).round() / 1e3)
+                        defvol::logging::vector(report.reaction(0).force, 3)
                     );
                 }
             }
@@ -168,9 +168,9 @@ pub fn run(args: SimulateArgs) -> Result<()> {
         let (warped, stats) = defvol::warp::warp(&loaded.volume, &rest, &deformed, &grid, &options)?;
         io::write_volume(path, &warped)?;
         tracing::info!(
-            "wrote the warped volume {} ({:?} voxels, {} inside the mesh)",
+            "wrote the warped volume {} ({} voxels, {} inside the mesh)",
             path.display(),
-            warped.dims(),
+            defvol::logging::dims(warped.dims()),
             stats.inside
         );
     }

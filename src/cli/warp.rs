@@ -111,10 +111,21 @@ pub fn run(args: WarpArgs) -> Result<()> {
             warp_on_backend(&args, &source, &rest, &bent, grid, &options)?
         }
     };
-    tracing::info!("warped to {:?} in {:.1} ms", result.dims(), started.elapsed().as_secs_f64() * 1e3);
+    tracing::info!(
+        "warped to {} voxels in {:.1} ms",
+        defvol::logging::dims(result.dims()),
+        started.elapsed().as_secs_f64() * 1e3
+    );
     io::write_volume(&args.out, &result)?;
     tracing::info!("wrote {}", args.out.display());
     Ok(())
+}
+
+fn describe(s: &defvol::warp::WarpStats) -> String {
+    format!(
+        "{} voxels, {} inside the mesh, {} candidates tested, {} inverted or degenerate tets skipped",
+        s.voxels, s.inside, s.candidates, s.skipped_tets
+    )
 }
 
 /// The warp on the chosen backend (`auto` falls back to the CPU for options only it has).
@@ -132,12 +143,12 @@ fn warp_on_backend(
         .try_gpu("warp", |ctx| defvol::warp::gpu::GpuWarp::new(ctx.clone(), source, rest, grid.clone(), options, 1.0))?
     {
         let (data, stats) = gpu.warp(rest, deformed)?;
-        tracing::info!("warped on the GPU: {stats:?}");
+        tracing::info!("warped on the GPU: {}", describe(&stats));
         return Ok(Volume::from_grid(&grid, data, "warped volume")?);
     }
     #[cfg(not(feature = "gpu"))]
     let _ = backend;
     let (out, stats) = defvol::warp::warp(source, rest, deformed, &grid, options)?;
-    tracing::info!("warped on the CPU: {stats:?}");
+    tracing::info!("warped on the CPU: {}", describe(&stats));
     Ok(out)
 }

@@ -234,7 +234,7 @@ impl Pipeline {
                 )?;
                 self.times.warp = start.elapsed().as_secs_f64() * 1e3;
                 self.warp_grid = Some(engine.grid().clone());
-                tracing::info!("warp: {} ({:?} voxels)", engine.runs_on(), engine.grid().dims);
+                tracing::info!("warp: {} ({} voxels)", engine.runs_on(), crate::logging::dims(engine.grid().dims));
                 Some(frames::WarpSetup { engine, host: None })
             }
         };

@@ -24,6 +24,8 @@ pub enum ArgsError {
     ParamsFile { path: String, message: String },
     #[error("parameter `{name}`: {message}")]
     Parameter { name: String, message: String },
+    #[error("parameter `{name}` = {value}: {message}")]
+    Value { name: String, value: String, message: String },
     #[error("namespace `{0}` must start with '/'")]
     Namespace(String),
 }
@@ -189,23 +191,40 @@ pub fn scene_from_parameters(parameters: &BTreeMap<String, Value>) -> Result<Sce
     };
     let mut tree: Value = serde_yaml_ng::from_str(&text)
         .map_err(|e| ArgsError::Parameter { name: "scene_file".into(), message: format!("{origin}: {e}") })?;
-    for (name, value) in parameters.iter().filter(|(n, _)| !NODE_PARAMETERS.contains(&n.as_str())) {
+    let base = tree.clone();
+    let scene_parameters = || parameters.iter().filter(|(n, _)| !NODE_PARAMETERS.contains(&n.as_str()));
+    for (name, value) in scene_parameters() {
         set_path(&mut tree, name, value.clone())
             .map_err(|message| ArgsError::Parameter { name: name.clone(), message })?;
     }
     serde_yaml_ng::from_value(tree).map_err(|e: serde_yaml_ng::Error| {
         let message = e.to_string();
-        // Name the parameter behind an unknown field, when the message gives it.
-        let culprit =
-            parameters.keys().find(|n| message.contains(&format!("`{}`", n.rsplit('.').next().unwrap_or(n)))).cloned();
-        ArgsError::Parameter { name: culprit.unwrap_or_else(|| "scene".into()), message }
+        // The parameter that breaks the scene on its own, named with its value.
+        let culprit = scene_parameters().find(|(name, value)| {
+            let mut alone = base.clone();
+            set_path(&mut alone, name, (*value).clone()).is_ok() && serde_yaml_ng::from_value::<Scene>(alone).is_err()
+        });
+        match culprit {
+            Some((name, value)) => ArgsError::Value { name: name.clone(), value: inline(value), message },
+            None => ArgsError::Parameter { name: origin, message },
+        }
     })
+}
+
+/// A YAML value on one line, as a parameter was given.
+fn inline(value: &Value) -> String {
+    serde_yaml_ng::to_string(value).map_or_else(|_| format!("{value:?}"), |text| text.trim().to_owned())
 }
 
 /// The checks `Scene::load` would make, without loading: for parameter validators.
 pub fn check_scene(parameters: &BTreeMap<String, Value>) -> Result<Scene, String> {
     let scene = scene_from_parameters(parameters).map_err(|e| e.to_string())?;
-    scene.solver.validate().map_err(|e| SceneError::from(e).to_string())?;
+    scene.solver.validate().map_err(|e| match e {
+        crate::solver::SolverError::BadParameter { name, value, why } => {
+            format!("parameter `solver.{name}` = {value}: {why}")
+        }
+        other => SceneError::from(other).to_string(),
+    })?;
     Ok(scene)
 }
 
@@ -317,7 +336,18 @@ mod tests {
         assert!(e.contains("tools.3.shape.radius") && e.contains("past the 1 entries"), "{e}");
         params.clear();
         params.insert("solver.dt".to_owned(), Value::from(-1.0));
-        assert!(check_scene(&params).unwrap_err().contains("dt"));
+        let e = check_scene(&params).unwrap_err();
+        assert!(e.contains("parameter `solver.dt` = -1"), "{e}");
+    }
+
+    #[test]
+    fn a_parameter_of_the_wrong_type_is_named_with_its_value_among_good_ones() {
+        let mut params = BTreeMap::new();
+        params.insert("camera.height".to_owned(), Value::from(64));
+        params.insert("camera.width".to_owned(), Value::String("abc".into()));
+        params.insert("solver.dt".to_owned(), Value::from(0.005));
+        let e = scene_from_parameters(&params).unwrap_err().to_string();
+        assert!(e.starts_with("parameter `camera.width` = abc: invalid type"), "{e}");
     }
 
     #[test]

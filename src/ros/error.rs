@@ -13,6 +13,9 @@ pub enum NodeError {
     Dds(#[from] dds::DdsError),
     #[error("ROS 2: {0}")]
     Ros(String),
+    /// `--help` or `--version` was asked for: the text to print, not an error.
+    #[error("{0}")]
+    Help(String),
     #[error(transparent)]
     Pipeline(#[from] PipelineError),
     #[error(transparent)]

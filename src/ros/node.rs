@@ -429,8 +429,12 @@ impl DefvolNode {
     /// The feedback thread stops first; dropping the node stops its spinner; the
     /// recording is closed.
     fn close(self) -> Result<(), NodeError> {
-        let Self { feedback, node, session, .. } = self;
+        let Self { feedback, node, session, publishers, services, .. } = self;
         drop(feedback);
+        // Writers and servers go before the node that made them: dropped after it, DDS has
+        // no participant left to remove them from and logs an error at every shutdown.
+        drop(publishers);
+        drop(services);
         drop(node);
         session.finish()?;
         Ok(())
@@ -527,7 +531,10 @@ fn scene_of(text: &str) -> Result<Scene, String> {
 #[derive(Debug, clap::Parser)]
 #[command(
     name = "defvol_node",
-    about = "The defvol ROS 2 node: tool poses in; deformed meshes, warped volumes, DPCM surfaces and raycast images out"
+    about = "The defvol ROS 2 node: tool poses in; deformed meshes, warped volumes, DPCM surfaces and raycast images out",
+    after_help = "ROS arguments follow the options: --ros-args [-p NAME:=VALUE]... [-r FROM:=TO]... \
+                  [--params-file FILE] [-r __ns:=/NAMESPACE] [-r __node:=NAME]. Every scene field is a \
+                  parameter (`-p solver.dt:=0.005`, `-p scene_file:=organ.yaml`); `ros2 param list` shows them."
 )]
 struct NodeCli {
     /// Record every input and output topic to this MCAP file (rosbag2's format).
@@ -549,6 +556,18 @@ struct NodeCli {
     seconds: Option<f64>,
 }
 
+/// The node from a command line (`defvol_node …`, `defvol node …`): `--help` prints the
+/// node's options and returns; otherwise the node runs until Ctrl-C or `--seconds`.
+pub fn run_from_args(args: &[String]) -> Result<(), NodeError> {
+    match settings_from_args(args) {
+        Err(NodeError::Help(text)) => {
+            print!("{text}");
+            Ok(())
+        }
+        settings => run(settings?),
+    }
+}
+
 /// Settings from a command line: the node's options, then `--ros-args …`; node
 /// parameters (`-p record:=…`, `-p backend:=cpu`) fill what the options leave unset.
 pub fn settings_from_args(args: &[String]) -> Result<NodeSettings, NodeError> {
@@ -556,7 +575,10 @@ pub fn settings_from_args(args: &[String]) -> Result<NodeSettings, NodeError> {
     let ros = RosArgs::parse(args, "defvol")?;
     let mut argv = vec!["defvol_node".to_owned()];
     argv.extend(ros.rest.iter().cloned());
-    let cli = NodeCli::try_parse_from(argv).map_err(|e| NodeError::Ros(e.to_string()))?;
+    let cli = NodeCli::try_parse_from(argv).map_err(|e| match e.kind() {
+        clap::error::ErrorKind::DisplayHelp | clap::error::ErrorKind::DisplayVersion => NodeError::Help(e.to_string()),
+        _ => NodeError::Ros(e.to_string()),
+    })?;
     let text = |name: &str| match ros.parameters.get(name) {
         Some(Value::String(s)) if !s.is_empty() => Some(s.clone()),
         _ => None,

@@ -355,3 +355,43 @@ fn render_shows_the_source_through_a_deformed_mesh_as_the_moved_volume_looks() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success() && err.contains("its tets are not"), "{err}");
 }
+
+#[test]
+fn logs_go_to_stderr_uncoloured_when_piped_and_numbers_print_plainly() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = defvol()
+        .env("RUST_LOG", "info")
+        .args(["simulate", "--steps", "10", "--tets", "200", "--backend", "cpu", "--out"])
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(out.stdout.is_empty(), "stdout is for data: {}", String::from_utf8_lossy(&out.stdout));
+    let log = String::from_utf8_lossy(&out.stderr);
+    assert!(log.contains("step    10"), "{log}");
+    assert!(!log.contains('\u{1b}'), "no colour codes into a pipe: {log:?}");
+    let reaction = log.lines().find(|l| l.contains("step    10")).unwrap();
+    assert!(reaction.contains(" N") && !reaction.contains("Some(") && !reaction.contains("-0,"), "{reaction}");
+}
+
+#[cfg(feature = "ros")]
+#[test]
+fn the_node_prints_its_options_on_help_under_both_names() {
+    for (program, prefix) in [(env!("CARGO_BIN_EXE_defvol"), vec!["node"]), (env!("CARGO_BIN_EXE_defvol_node"), vec![])]
+    {
+        let out = Command::new(program).args(prefix).arg("--help").output().unwrap();
+        let help = String::from_utf8_lossy(&out.stdout);
+        assert!(out.status.success(), "{program}: {}", String::from_utf8_lossy(&out.stderr));
+        assert!(help.contains("--record") && help.contains("--backend") && help.contains("--ros-args"), "{help}");
+        assert!(!help.contains("Error"), "{help}");
+    }
+}
+
+#[test]
+fn negative_numbers_are_values_not_flags() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = defvol().args(["simulate", "--dt", "-0.01", "--tets", "200", "--out"]).arg(dir.path()).output().unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("parameter `dt` = -0.01"), "refused by the solver, not by the parser: {err}");
+}

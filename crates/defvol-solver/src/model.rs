@@ -10,6 +10,7 @@ use defvol_core::mesh::TetMesh;
 /// One row of a tissue table: springs whose sampled intensity is `intensity` get these values;
 /// intensities between rows are interpolated linearly, beyond the ends clamped.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct TissueRow {
     pub intensity: f64,
     pub stiffness: f64,
@@ -18,7 +19,7 @@ pub struct TissueRow {
 
 /// Where spring stiffness and damping come from.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case", tag = "kind")]
+#[serde(rename_all = "snake_case", tag = "kind", deny_unknown_fields)]
 pub enum Material {
     /// One stiffness (N/m) and damping (N·s/m) for every spring.
     Uniform { stiffness: f64, damping: f64 },
@@ -87,7 +88,7 @@ impl Material {
 
 /// Which nodes are held in place (velocity zero).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case", tag = "kind")]
+#[serde(rename_all = "snake_case", tag = "kind", deny_unknown_fields)]
 pub enum FixedNodes {
     Indices {
         nodes: Vec<u32>,

@@ -15,7 +15,7 @@ use super::contact::ContactParams;
 /// Tool geometry in the tool frame. The tool frame's origin is the tip; a capsule's
 /// shaft runs from the tip along +z (towards the handle).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case", tag = "kind")]
+#[serde(rename_all = "snake_case", tag = "kind", deny_unknown_fields)]
 pub enum ToolShape {
     Sphere { radius: f64 },
     Capsule { radius: f64, length: f64 },
