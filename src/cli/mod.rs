@@ -68,6 +68,14 @@ pub fn parse() -> Cli {
     Cli::from_arg_matches(&matches).unwrap_or_else(|e| e.exit())
 }
 
+/// An image output: PNG (what `Rendered::write_png` writes), in a folder that exists.
+fn check_png_output(path: &std::path::Path) -> Result<()> {
+    if !path.extension().is_some_and(|e| e.eq_ignore_ascii_case("png")) {
+        anyhow::bail!("{}: images are written as PNG; name the file .png", path.display());
+    }
+    Ok(defvol::io::check_folder(path)?)
+}
+
 pub fn run(cli: Cli) -> Result<()> {
     match cli.command {
         Command::Simulate(args) => simulate::run(args),

@@ -81,6 +81,9 @@ impl From<&StepReport> for CsvRow {
 }
 
 pub fn run(args: SimulateArgs) -> Result<()> {
+    if let Some(path) = &args.warp_out {
+        io::check_volume_output(path)?;
+    }
     let mut scene = match &args.scene {
         Some(path) => Scene::from_file(path)?,
         None => Scene::default_scene()?,

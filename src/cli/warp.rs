@@ -69,6 +69,7 @@ pub(super) fn parse_displacement(text: &str) -> Result<DisplacementVolume> {
 }
 
 pub fn run(args: WarpArgs) -> Result<()> {
+    io::check_volume_output(&args.out)?;
     let source = match &args.volume {
         Some(path) => io::read_volume(path)?,
         None => defvol::volume::phantom::phantom(defvol::volume::phantom::DEFAULT_DIMS, 1.0)?,

@@ -395,3 +395,33 @@ fn negative_numbers_are_values_not_flags() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("parameter `dt` = -0.01"), "refused by the solver, not by the parser: {err}");
 }
+
+#[test]
+fn output_names_are_refused_before_the_work() {
+    let dir = tempfile::tempdir().unwrap();
+    let cases: [(Vec<String>, &str); 4] = [
+        (vec!["render".into(), "--out".into(), dir.path().join("x.jpg").display().to_string()], "name the file .png"),
+        (vec!["warp".into(), "--out".into(), dir.path().join("w.png").display().to_string()], ".nii, .nii.gz, .nrrd"),
+        (
+            vec!["warp".into(), "--out".into(), dir.path().join("no/such/w.nrrd").display().to_string()],
+            "does not exist",
+        ),
+        (
+            vec![
+                "render".into(),
+                "--out".into(),
+                dir.path().join("r.png").display().to_string(),
+                "--depth-out".into(),
+                dir.path().join("depth.png").display().to_string(),
+            ],
+            ".nii, .nii.gz, .nrrd",
+        ),
+    ];
+    for (args, expected) in cases {
+        let out = defvol().args(&args).args(["--backend", "cpu"]).output().unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success() && err.contains(expected), "{args:?}: {err}");
+    }
+    // Nothing was written: the checks came first.
+    assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0);
+}

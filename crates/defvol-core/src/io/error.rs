@@ -16,6 +16,8 @@ pub enum IoError {
     Malformed { path: PathBuf, message: String },
     #[error("{path}: {message}")]
     Unrepresentable { path: PathBuf, message: String },
+    #[error("{path}: the folder {folder} does not exist")]
+    MissingFolder { path: PathBuf, folder: PathBuf },
     #[error(transparent)]
     Mesh(#[from] MeshError),
     #[error(transparent)]

@@ -188,6 +188,41 @@ pub fn read_volume(path: &Path) -> Result<Volume, IoError> {
 /// Writes a volume as f32 samples in the format the extension names, to exactly `path`
 /// (through a temporary file beside it). What the format cannot hold (dims over its
 /// limits) is refused by name.
+/// What a command checks of a mesh output before its work: a type [`write_mesh`] writes, in
+/// a folder that exists.
+pub fn check_mesh_output(path: &Path) -> Result<(), IoError> {
+    let name = file_name(path);
+    if MeshFormat::of(path).is_none() && !(name.ends_with(".node") || name.ends_with(".ele")) {
+        return Err(IoError::UnsupportedExtension { path: path.to_owned(), expected: MESH_TYPES });
+    }
+    check_folder(path)
+}
+
+/// What a command checks of a volume output before its work: a type [`write_volume`]
+/// writes, in a folder that exists.
+pub fn check_volume_output(path: &Path) -> Result<(), IoError> {
+    let name = file_name(path);
+    if !VOLUME_WRITE_TYPES.iter().any(|t| name.ends_with(t)) {
+        return Err(IoError::UnsupportedExtension {
+            path: path.to_owned(),
+            expected: ".nii, .nii.gz, .nrrd, .mha, .mhd",
+        });
+    }
+    check_folder(path)
+}
+
+/// The folder an output goes into exists.
+pub fn check_folder(path: &Path) -> Result<(), IoError> {
+    match path.parent().filter(|p| !p.as_os_str().is_empty()) {
+        Some(folder) if !folder.is_dir() => {
+            Err(IoError::MissingFolder { path: path.to_owned(), folder: folder.to_owned() })
+        }
+        _ => Ok(()),
+    }
+}
+
+const VOLUME_WRITE_TYPES: [&str; 5] = [".nii", ".nii.gz", ".nrrd", ".mha", ".mhd"];
+
 pub fn write_volume(path: &Path, volume: &Volume) -> Result<(), IoError> {
     let name = file_name(path);
     if name.ends_with(".nii") || name.ends_with(".nii.gz") {
