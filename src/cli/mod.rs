@@ -58,14 +58,59 @@ enum Command {
 }
 
 /// The command line, parsed: negative numbers are values everywhere (`--dt -0.01`,
-/// `--background -1000`), not flags.
+/// `--background -1000`), not flags; a choice may be spelt as the scene files spell it
+/// (`implicit_euler`, `red_blue`) or as the flags list it (`implicit-euler`, `red-blue`).
 pub fn parse() -> Cli {
     use clap::{CommandFactory, FromArgMatches};
     fn negatives(command: clap::Command) -> clap::Command {
         command.allow_negative_numbers(true).mut_subcommands(negatives)
     }
-    let matches = negatives(Cli::command()).get_matches();
+    let command = negatives(Cli::command());
+    let args = kebab_choices(&command, std::env::args_os().collect());
+    let matches = command.get_matches_from(args);
     Cli::from_arg_matches(&matches).unwrap_or_else(|e| e.exit())
+}
+
+/// `--flag snake_value` (or `--flag=a_b,c_d`) rewritten with dashes where that spelling is
+/// one of the flag's listed choices.
+fn kebab_choices(command: &clap::Command, args: Vec<std::ffi::OsString>) -> Vec<std::ffi::OsString> {
+    let mut at = command;
+    let mut out = Vec::with_capacity(args.len());
+    let mut choices: Vec<String> = Vec::new();
+    let fix = |value: &str, choices: &[String]| {
+        let items: Vec<String> = value
+            .split(',')
+            .map(|v| match v.replace('_', "-") {
+                kebab if choices.contains(&kebab) => kebab,
+                _ => v.to_owned(),
+            })
+            .collect();
+        items.join(",")
+    };
+    let listed = |arg: &clap::Arg| arg.get_possible_values().iter().map(|v| v.get_name().to_owned()).collect();
+    for arg in args {
+        let Some(text) = arg.to_str() else {
+            out.push(arg);
+            choices.clear();
+            continue;
+        };
+        if !choices.is_empty() && !text.starts_with("--") {
+            out.push(fix(text, &choices).into());
+        } else if let Some((flag, value)) = text.strip_prefix("--").and_then(|t| t.split_once('=')) {
+            let known: Vec<String> = at.get_arguments().find(|a| a.get_long() == Some(flag)).map_or(Vec::new(), listed);
+            out.push(format!("--{flag}={}", fix(value, &known)).into());
+        } else {
+            out.push(arg.clone());
+        }
+        choices = match text.strip_prefix("--") {
+            Some(flag) => at.get_arguments().find(|a| a.get_long() == Some(flag)).map_or(Vec::new(), listed),
+            None => Vec::new(),
+        };
+        if let Some(sub) = at.find_subcommand(text) {
+            at = sub;
+        }
+    }
+    out
 }
 
 /// An image output: PNG (what `Rendered::write_png` writes), in a folder that exists.

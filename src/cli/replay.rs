@@ -47,11 +47,9 @@ enum Input {
 
 pub fn run(args: ReplayArgs) -> Result<()> {
     let scene = load_scene(&args.scene)?;
-    let backend = scene
-        .backend(&BackendArgs { backend: Some(args.backend.backend.unwrap_or(BackendChoice::Cpu)), ..args.backend })?;
-    let mut pipeline =
-        Pipeline::new(scene, &backend, replay_limits(), FrameMode::Lockstep).context("starting the pipeline")?;
-    let topics = pipeline.tool_topics();
+    // The bag is read first: a missing or foreign file is refused before anything is built.
+    let topics: Vec<(String, String)> =
+        scene.tools.iter().enumerate().map(|(i, tool)| (tool.pose_topic(i), tool.wrench_topic(i))).collect();
     let wanted: Vec<(String, usize, bool)> = topics
         .iter()
         .enumerate()
@@ -63,9 +61,14 @@ pub fn run(args: ReplayArgs) -> Result<()> {
     let recorded = bag::read_messages(&args.bag, &names)?;
     if recorded.is_empty() {
         let all = bag::read_messages(&args.bag, &[])?;
-        let mut present: Vec<&str> = all.iter().map(|m| m.topic.as_str()).collect();
-        present.dedup();
-        bail!("{}: no tool inputs on {names:?}; the bag has {present:?} (see --namespace)", args.bag.display());
+        let present: std::collections::BTreeSet<&str> = all.iter().map(|m| m.topic.as_str()).collect();
+        let present: Vec<&str> = present.into_iter().collect();
+        bail!(
+            "{}: no tool inputs on {}; the bag's topics are {} (see --namespace)",
+            args.bag.display(),
+            names.join(", "),
+            present.join(", ")
+        );
     }
     let mut inputs = Vec::with_capacity(recorded.len());
     let mut undecodable = 0;
@@ -85,6 +88,10 @@ pub fn run(args: ReplayArgs) -> Result<()> {
             }
         }
     }
+    let backend = scene
+        .backend(&BackendArgs { backend: Some(args.backend.backend.unwrap_or(BackendChoice::Cpu)), ..args.backend })?;
+    let mut pipeline =
+        Pipeline::new(scene, &backend, replay_limits(), FrameMode::Lockstep).context("starting the pipeline")?;
     let records = RecordOptions { mcap: args.out.clone(), rerun_file: args.rerun.clone(), rerun_connect: None };
     let mut session = Session::open(&args.namespace, &records, &pipeline)?;
     let dt_ns = (pipeline.scene().solver.dt * 1e9).round() as u64;

@@ -347,6 +347,9 @@ pub fn parse_messages(path: &Path, bytes: &[u8], topics: &[&str]) -> Result<Vec<
         }
         Ok(())
     };
+    if !bytes.starts_with(mcap::MAGIC) {
+        return Err(bad("not an MCAP file (it does not begin with MCAP's magic bytes)".into()));
+    }
     let records = mcap::read::LinearReader::new_with_options(bytes, mcap::read::Options::IgnoreEndMagic.into())
         .map_err(|e| bad(format!("not a readable MCAP file: {e}")))?;
     for record in records {

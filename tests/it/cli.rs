@@ -425,3 +425,35 @@ fn output_names_are_refused_before_the_work() {
     // Nothing was written: the checks came first.
     assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0);
 }
+
+#[cfg(feature = "mcap")]
+#[test]
+fn replay_refuses_a_missing_or_foreign_bag_before_it_builds_anything() {
+    let dir = tempfile::tempdir().unwrap();
+    let foreign = dir.path().join("notes.mcap");
+    std::fs::write(&foreign, "not a bag").unwrap();
+    for (bag, expected) in [(dir.path().join("none.mcap"), "none.mcap"), (foreign, "not an MCAP file")] {
+        let out = defvol().env("RUST_LOG", "info").arg("replay").arg(&bag).output().unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success() && err.contains(expected), "{err}");
+        assert!(!err.contains("DPCM") && !err.contains("warp:"), "refused before the pipeline: {err}");
+    }
+}
+
+#[test]
+fn choices_take_the_spelling_of_the_files_and_of_the_flags() {
+    let dir = tempfile::tempdir().unwrap();
+    for integrator in ["implicit_euler", "implicit-euler"] {
+        let out = defvol()
+            .args(["simulate", "--integrator", integrator, "--steps", "2", "--tets", "200", "--backend", "cpu"])
+            .arg("--out")
+            .arg(dir.path())
+            .output()
+            .unwrap();
+        assert!(out.status.success(), "{integrator}: {}", String::from_utf8_lossy(&out.stderr));
+    }
+    let out = defvol().args(["simulate", "--integrator", "implicit_eulerr"]).output().unwrap();
+    assert!(String::from_utf8_lossy(&out.stderr).contains("implicit_eulerr"), "an unknown one is still named");
+    let file: defvol::dpcm::render::ColorMap = serde_yaml_ng::from_str("red-blue").unwrap();
+    assert_eq!(file, serde_yaml_ng::from_str("red_blue").unwrap());
+}

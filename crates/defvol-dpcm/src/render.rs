@@ -23,8 +23,10 @@ pub enum ColorMap {
     Cividis,
     Greys,
     /// Diverging: dents red, bumps blue.
+    #[serde(alias = "red-blue")]
     RedBlue,
     /// Diverging, earthy: for soil and sand.
+    #[serde(alias = "brown-green")]
     BrownGreen,
 }
 
