@@ -2,6 +2,7 @@
 //! (`choices.rs`), and their bodies, one file each.
 
 mod bench;
+mod checks;
 mod choices;
 mod demo;
 mod dpcm;
@@ -111,14 +112,6 @@ fn kebab_choices(command: &clap::Command, args: Vec<std::ffi::OsString>) -> Vec<
         }
     }
     out
-}
-
-/// An image output: PNG (what `Rendered::write_png` writes), in a folder that exists.
-fn check_png_output(path: &std::path::Path) -> Result<()> {
-    if !path.extension().is_some_and(|e| e.eq_ignore_ascii_case("png")) {
-        anyhow::bail!("{}: images are written as PNG; name the file .png", path.display());
-    }
-    Ok(defvol::io::check_folder(path)?)
 }
 
 pub fn run(cli: Cli) -> Result<()> {

@@ -122,7 +122,7 @@ fn point(text: &str) -> Result<Point3<f64>> {
 
 pub fn run(args: RenderArgs) -> Result<()> {
     // Outputs are checked before the work: a wrong name costs nothing.
-    super::check_png_output(&args.out)?;
+    super::checks::check_png_output(&args.out)?;
     if let Some(path) = &args.depth_out {
         defvol::io::check_volume_output(path)?;
     }

@@ -7,6 +7,7 @@ use anyhow::{bail, Context, Result};
 
 use defvol::io;
 use defvol::scene::{BackendArgs, MeshSource, Scene};
+use defvol::solver::FixedNodes;
 use defvol::solver::{SolverEngine, StepReport};
 use defvol::warp::WarpOptions;
 
@@ -34,6 +35,12 @@ pub struct SimulateArgs {
     preconditioner: Option<CliPreconditioner>,
     #[arg(long, default_value_t = 100)]
     steps: u64,
+    /// Which nodes are held (world metres): `lowest[:FRACTION]` (the nodes within FRACTION of
+    /// the mesh's height above its lowest point, 0.02 by default), `plane:NX,NY,NZ,OFFSET`,
+    /// `box:X0,Y0,Z0,X1,Y1,Z1`, `nodes:I,J,…` or `none`. Default: the scene's, or `lowest`
+    /// for a `--mesh` without a `--scene`.
+    #[arg(long, value_parser = parse_fix)]
+    fix: Option<Fix>,
     #[command(flatten)]
     backend: BackendArgs,
     /// The f64 reference path (CPU) instead of the f32 one.
@@ -46,6 +53,40 @@ pub struct SimulateArgs {
     /// .nrrd, .mha…), in the volume's own units.
     #[arg(long)]
     warp_out: Option<PathBuf>,
+}
+
+/// `--fix`: a rule for the held nodes, or none held.
+#[derive(Debug, Clone)]
+struct Fix(Option<FixedNodes>);
+
+fn parse_fix(text: &str) -> Result<Fix, String> {
+    let (kind, values) = text.split_once(':').unwrap_or((text, ""));
+    let numbers = || -> Result<Vec<f64>, String> {
+        values.split(',').map(|v| v.trim().parse::<f64>().map_err(|e| format!("`{v}` in `{text}`: {e}"))).collect()
+    };
+    let count = |n: usize, v: Vec<f64>| match v.len() == n {
+        true => Ok(v),
+        false => Err(format!("`{text}`: {kind} takes {n} numbers, got {}", v.len())),
+    };
+    let rule = match kind {
+        "none" => None,
+        "lowest" if values.is_empty() => Some(FixedNodes::Lowest { fraction: 0.02 }),
+        "lowest" => Some(FixedNodes::Lowest { fraction: count(1, numbers()?)?[0] }),
+        "plane" => {
+            let v = count(4, numbers()?)?;
+            Some(FixedNodes::Plane { normal: [v[0], v[1], v[2]], offset: v[3] })
+        }
+        "box" => {
+            let v = count(6, numbers()?)?;
+            Some(FixedNodes::Box { min: [v[0], v[1], v[2]], max: [v[3], v[4], v[5]] })
+        }
+        "nodes" => {
+            let nodes = values.split(',').map(|v| v.trim().parse::<u32>().map_err(|e| format!("`{v}`: {e}")));
+            Some(FixedNodes::Indices { nodes: nodes.collect::<Result<_, _>>()? })
+        }
+        other => return Err(format!("`{other}` is not a rule (lowest, plane, box, nodes or none)")),
+    };
+    Ok(Fix(rule))
 }
 
 #[derive(serde::Serialize)]
@@ -90,6 +131,13 @@ pub fn run(args: SimulateArgs) -> Result<()> {
     };
     if let Some(path) = &args.mesh {
         scene.mesh = MeshSource::File { path: path.clone() };
+        // The default scene's clamp plane fits its own lattice, not a user's mesh.
+        if args.scene.is_none() {
+            scene.fixed = Some(FixedNodes::Lowest { fraction: 0.02 });
+        }
+    }
+    if let Some(Fix(rule)) = &args.fix {
+        scene.fixed = rule.clone();
     }
     if let Some(tets) = args.tets {
         match &mut scene.mesh {
@@ -119,6 +167,11 @@ pub fn run(args: SimulateArgs) -> Result<()> {
         loaded.mesh.tets().len(),
         loaded.model.springs.len()
     );
+    let held = loaded.model.fixed.iter().filter(|f| **f).count();
+    match &loaded.scene.fixed {
+        Some(rule) => tracing::info!("fixed {held} of {} nodes: {rule}", loaded.mesh.nodes().len()),
+        None => tracing::warn!("no node is fixed: the mesh moves freely under gravity"),
+    }
     let mut engine = match args.f64 {
         true => SolverEngine::reference_f64(&loaded.model, loaded.scene.solver.clone(), loaded.tools_at(0.0))?,
         false => SolverEngine::new(&backend, &loaded.model, loaded.scene.solver.clone(), loaded.tools_at(0.0))?,

@@ -457,3 +457,42 @@ fn choices_take_the_spelling_of_the_files_and_of_the_flags() {
     let file: defvol::dpcm::render::ColorMap = serde_yaml_ng::from_str("red-blue").unwrap();
     assert_eq!(file, serde_yaml_ng::from_str("red_blue").unwrap());
 }
+
+#[test]
+fn a_users_mesh_simulates_held_by_its_lowest_layer_or_by_fix() {
+    use defvol::mesh::generate::{self, CellSplit};
+    let dir = tempfile::tempdir().unwrap();
+    // A 10 cm cube on 5x5x5 cells: its bottom layer is 36 nodes, far from the default scene's
+    // clamp plane.
+    let cube = generate::lattice(
+        nalgebra::Vector3::new(0.0, 0.0, 0.3),
+        nalgebra::Vector3::new(0.1, 0.1, 0.4),
+        [5, 5, 5],
+        CellSplit::Five,
+    )
+    .unwrap();
+    let path = dir.path().join("cube.vtu");
+    defvol::io::write_mesh(&path, &cube, None).unwrap();
+    let run = |extra: &[&str]| {
+        defvol()
+            .env("RUST_LOG", "info")
+            .args(["simulate", "--steps", "20", "--backend", "cpu", "--mesh"])
+            .arg(&path)
+            .args(extra)
+            .arg("--out")
+            .arg(dir.path().join("out"))
+            .output()
+            .unwrap()
+    };
+    let out = run(&[]);
+    let log = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{log}");
+    assert!(log.contains("fixed 36 of 216 nodes: the lowest 2% of the mesh's height"), "{log}");
+    let csv = std::fs::read_to_string(dir.path().join("out/steps.csv")).unwrap();
+    let last: Vec<f64> = csv.lines().last().unwrap().split(',').map(|v| v.parse().unwrap()).collect();
+    assert!(last[6] < 0.02, "held, it sags a little rather than falling: {} m", last[6]);
+    let out = run(&["--fix", "nodes:0,1,2"]);
+    assert!(String::from_utf8_lossy(&out.stderr).contains("fixed 3 of 216 nodes"));
+    let out = run(&["--fix", "plane:0,0,1"]);
+    assert!(String::from_utf8_lossy(&out.stderr).contains("plane takes 4 numbers, got 3"));
+}

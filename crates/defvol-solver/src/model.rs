@@ -103,6 +103,11 @@ pub enum FixedNodes {
         normal: [f64; 3],
         offset: f64,
     },
+    /// The mesh's lowest layer: nodes within `fraction` of its height above its lowest z
+    /// (what holds a user's organ on the table when the scene names nothing).
+    Lowest {
+        fraction: f64,
+    },
 }
 
 impl FixedNodes {
@@ -142,8 +147,34 @@ impl FixedNodes {
                     *f = n.dot(p) <= offset + tol;
                 }
             }
+            FixedNodes::Lowest { fraction } => {
+                if !(fraction.is_finite() && (0.0..=1.0).contains(fraction)) {
+                    return Err(SolverError::BadParameter {
+                        name: "fixed.fraction".into(),
+                        value: *fraction,
+                        why: "a fraction of the mesh's height, between 0 and 1".into(),
+                    });
+                }
+                let (lo, hi) =
+                    nodes.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), p| (lo.min(p.z), hi.max(p.z)));
+                let top = lo + fraction * (hi - lo) + 1e-9 * (1.0 + lo.abs());
+                for (f, p) in fixed.iter_mut().zip(nodes) {
+                    *f = p.z <= top;
+                }
+            }
         }
         Ok(fixed)
+    }
+}
+
+impl std::fmt::Display for FixedNodes {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            FixedNodes::Indices { nodes } => write!(f, "{} listed nodes", nodes.len()),
+            FixedNodes::Box { min, max } => write!(f, "inside the box {min:?} to {max:?}"),
+            FixedNodes::Plane { normal, offset } => write!(f, "below the plane {normal:?} · x = {offset}"),
+            FixedNodes::Lowest { fraction } => write!(f, "the lowest {}% of the mesh's height", fraction * 100.0),
+        }
     }
 }
 
