@@ -27,6 +27,28 @@ pub fn qualified(namespace: &str, topic: &str) -> String {
     format!("{}/{topic}", namespace.trim_end_matches('/'))
 }
 
+/// How a node names its topics: relative names under its namespace, ROS remaps applied
+/// (`-r deformed_mesh:=mesh_out`). DDS, the recording and the log all name a topic so.
+#[derive(Debug, Clone, Default)]
+pub struct TopicNames {
+    pub namespace: String,
+    pub remaps: std::collections::BTreeMap<String, String>,
+}
+
+impl TopicNames {
+    /// Names under `namespace` with no remaps (demo, replay, benches).
+    pub fn under(namespace: &str) -> Self {
+        Self { namespace: namespace.to_owned(), remaps: Default::default() }
+    }
+
+    /// The fully qualified name of `topic`, its remap (given relative or qualified) applied.
+    pub fn resolve(&self, topic: &str) -> String {
+        let full = qualified(&self.namespace, topic);
+        let remapped = self.remaps.get(topic).or_else(|| self.remaps.get(&full));
+        remapped.map_or(full, |to| qualified(&self.namespace, to))
+    }
+}
+
 /// Where a session's records go.
 #[derive(Debug, Clone, Default)]
 pub struct RecordOptions {
@@ -51,7 +73,7 @@ pub enum SessionError {
 /// The records of one run.
 pub struct Session {
     #[cfg_attr(not(feature = "mcap"), allow(dead_code))]
-    namespace: String,
+    names: TopicNames,
     #[cfg(feature = "mcap")]
     bag: Option<crate::record::bag::BagThread>,
     #[cfg(feature = "rerun")]
@@ -61,7 +83,7 @@ pub struct Session {
 }
 
 impl Session {
-    pub fn open(namespace: &str, options: &RecordOptions, pipeline: &Pipeline) -> Result<Self, SessionError> {
+    pub fn open(names: &TopicNames, options: &RecordOptions, pipeline: &Pipeline) -> Result<Self, SessionError> {
         #[cfg(not(feature = "mcap"))]
         if options.mcap.is_some() {
             return Err(SessionError::NotBuilt("--record", "mcap"));
@@ -73,7 +95,7 @@ impl Session {
         #[cfg(not(feature = "rerun"))]
         let _ = pipeline;
         Ok(Self {
-            namespace: namespace.to_owned(),
+            names: names.clone(),
             #[cfg(feature = "mcap")]
             bag: options.mcap.as_deref().map(crate::record::bag::BagThread::create).transpose()?,
             #[cfg(feature = "rerun")]
@@ -118,7 +140,7 @@ impl Session {
         #[cfg(feature = "mcap")]
         if let Some(bag) = &self.bag {
             // After a failure every write says so; the log and diagnostics take the first.
-            if let Err(e) = bag.write(&qualified(&self.namespace, topic), qos, msg, stamp.as_nanos()) {
+            if let Err(e) = bag.write(&self.names.resolve(topic), qos, msg, stamp.as_nanos()) {
                 self.note_error("MCAP recording", e);
             }
         }

@@ -13,7 +13,7 @@ use crate::msgs::{Header, Pose, PoseStamped, Time};
 use crate::pipeline::inputs::InputLimits;
 use crate::pipeline::{Demand, FrameMode, Pipeline, PipelineError};
 use crate::scene::Scene;
-use crate::session::{RecordOptions, Session};
+use crate::session::{RecordOptions, Session, TopicNames};
 
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
@@ -99,7 +99,7 @@ fn pose_to_feedback(
         Pipeline::new(scene, backend, InputLimits { max_age: None, ..Default::default() }, FrameMode::Lockstep)?;
     let tets = pipeline.mesh().tets().len();
     let records = RecordOptions { mcap: record.map(Into::into), ..Default::default() };
-    let mut session = Session::open("/", &records, &pipeline)?;
+    let mut session = Session::open(&TopicNames::under("/"), &records, &pipeline)?;
     let demand = Demand { tool_feedback: true, deformed_mesh: true, ..Demand::NONE };
     let mut samples = Vec::with_capacity(opts.steps);
     for k in 0..opts.settle + opts.steps {

@@ -10,7 +10,7 @@ use defvol::msgs::{Header, Pose, PoseStamped, Time};
 use defvol::pipeline::inputs::InputLimits;
 use defvol::pipeline::{Demand, FrameMode, Pipeline};
 use defvol::scene::{BackendArgs, Scene};
-use defvol::session::{qualified, RecordOptions, Session};
+use defvol::session::{qualified, RecordOptions, Session, TopicNames};
 
 #[derive(clap::Args)]
 pub struct DemoArgs {
@@ -67,7 +67,7 @@ pub fn run(args: DemoArgs) -> Result<()> {
         rerun_file: (!args.no_rerun).then(|| args.out.join("demo.rrd")),
         rerun_connect: None,
     };
-    let mut session = Session::open("/", &records, &pipeline)?;
+    let mut session = Session::open(&TopicNames::under("/"), &records, &pipeline)?;
     let dt_ns = (pipeline.scene().solver.dt * 1e9).round() as u64;
     let steps = (args.seconds * 1e9 / dt_ns as f64).round().max(1.0) as u64;
     let topics = pipeline.tool_topics();

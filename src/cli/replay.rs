@@ -11,7 +11,7 @@ use defvol::msgs::{self, PoseStamped, Time, WrenchStamped};
 use defvol::pipeline::{Demand, FrameMode, Pipeline};
 use defvol::record::bag;
 use defvol::scene::BackendArgs;
-use defvol::session::{qualified, RecordOptions, Session};
+use defvol::session::{qualified, RecordOptions, Session, TopicNames};
 
 use super::demo::{load_scene, progress, replay_limits};
 
@@ -93,7 +93,7 @@ pub fn run(args: ReplayArgs) -> Result<()> {
     let mut pipeline =
         Pipeline::new(scene, &backend, replay_limits(), FrameMode::Lockstep).context("starting the pipeline")?;
     let records = RecordOptions { mcap: args.out.clone(), rerun_file: args.rerun.clone(), rerun_connect: None };
-    let mut session = Session::open(&args.namespace, &records, &pipeline)?;
+    let mut session = Session::open(&TopicNames::under(&args.namespace), &records, &pipeline)?;
     let dt_ns = (pipeline.scene().solver.dt * 1e9).round() as u64;
     let (first, last) = (inputs.first().map_or(0, |i| i.0), inputs.last().map_or(0, |i| i.0));
     let steps = (last - first) / dt_ns + 1;

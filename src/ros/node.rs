@@ -2,7 +2,6 @@
 //! services served, the session recorded. All computing is in [`crate::pipeline`]; this
 //! file only moves messages.
 
-use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -26,7 +25,7 @@ use crate::pipeline::{Demand, FrameMode, Outputs, Pipeline};
 use crate::record::Qos;
 use crate::scene::BackendArgs;
 use crate::scene::Scene;
-use crate::session::{qualified, topics, RecordOptions, Session};
+use crate::session::{topics, RecordOptions, Session, TopicNames};
 
 macro_rules! ros_messages {
     ($($ty:ty),*) => {
@@ -85,15 +84,13 @@ pub fn qos(kind: Qos) -> QosProfile {
 }
 
 struct Topics<'a> {
-    namespace: &'a str,
-    remaps: &'a BTreeMap<String, String>,
+    names: &'a TopicNames,
 }
 
 impl Topics<'_> {
     /// The fully qualified name of a relative topic, remaps applied.
     fn resolve(&self, topic: &str) -> String {
-        let remapped = self.remaps.get(topic).map_or(topic, String::as_str);
-        qualified(self.namespace, remapped)
+        self.names.resolve(topic)
     }
 
     fn publisher<T: Message + ros2_client::Message>(
@@ -151,7 +148,8 @@ struct Publishers {
 
 /// Runs the node until Ctrl-C (or `run_for`); the recording is closed properly either way.
 pub fn run(settings: NodeSettings) -> Result<(), NodeError> {
-    let topics = Topics { namespace: &settings.ros.namespace, remaps: &settings.ros.remaps };
+    let names = TopicNames { namespace: settings.ros.namespace.clone(), remaps: settings.ros.remaps.clone() };
+    let topics = Topics { names: &names };
     let mut node = DefvolNode::open(&settings, &topics)?;
     let stop = stop_flag(&settings);
     let period = Duration::from_secs_f64(node.pipeline.scene().solver.dt);
@@ -160,7 +158,7 @@ pub fn run(settings: NodeSettings) -> Result<(), NodeError> {
     let mut demand = Demand::NONE;
     let mut ticks: u64 = 0;
     while !stop.load(Ordering::SeqCst) && settings.run_for.is_none_or(|limit| started.elapsed() < limit) {
-        let inputs = node.record_events(&settings.ros.namespace);
+        let inputs = node.record_events();
         if let Some(state) = node.feedback.latest() {
             node.pipeline.follow(state);
         }
@@ -280,12 +278,9 @@ impl DefvolNode {
 
         #[cfg(feature = "shm")]
         let shm = shm_publisher(&mut pipeline);
-        let session = Session::open(&settings.ros.namespace, &settings.record, &pipeline)?;
-        tracing::info!(
-            "node {} up: tools on {:?}",
-            node.fully_qualified_name(),
-            pipeline.tool_topics().iter().map(|(pose, _)| pose.clone()).collect::<Vec<_>>()
-        );
+        let session = Session::open(topics.names, &settings.record, &pipeline)?;
+        let poses: Vec<String> = pipeline.tool_topics().iter().map(|(pose, _)| topics.resolve(pose)).collect();
+        tracing::info!("node {} up: tools on {}", node.fully_qualified_name(), poses.join(", "));
         Ok(Self {
             pipeline,
             node,
@@ -300,7 +295,7 @@ impl DefvolNode {
     }
 
     /// Records the feedback thread's inputs and feedback, off its path; the inputs' count.
-    fn record_events(&mut self, namespace: &str) -> usize {
+    fn record_events(&mut self) -> usize {
         let mut inputs = 0;
         while let Ok(event) = self.feedback.events.try_recv() {
             match event {
@@ -309,11 +304,11 @@ impl DefvolNode {
                     let tool = tool.and_then(|(index, pose)| {
                         self.pipeline.scene().tools.get(index).map(|t| (t.name.as_str(), pose))
                     });
-                    self.session.record_pose(&qualified(namespace, &topic), &msg, tool);
+                    self.session.record_pose(&topic, &msg, tool);
                 }
                 Event::Wrench { topic, msg } => {
                     inputs += 1;
-                    self.session.record_wrench(&qualified(namespace, &topic), &msg);
+                    self.session.record_wrench(&topic, &msg);
                 }
                 Event::Feedback { stamp, msgs } => {
                     let out = Outputs { tool_feedback: msgs, ..Default::default() };

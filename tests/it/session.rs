@@ -210,3 +210,34 @@ fn a_gpu_demo_reports_every_stage_on_the_gpu() {
         assert!(text.contains("backend gpu") && text.contains("software adapters, not allowed"), "{text}");
     }
 }
+
+#[test]
+fn the_recording_names_topics_as_the_node_does_remaps_applied() {
+    use defvol::backend::Backend;
+    use defvol::msgs::{PoseStamped, Time};
+    use defvol::pipeline::inputs::InputLimits;
+    use defvol::pipeline::{Demand, FrameMode, Pipeline};
+    use defvol::scene::Scene;
+    use defvol::session::{RecordOptions, Session, TopicNames};
+    let dir = tempfile::tempdir().unwrap();
+    let bag_path = dir.path().join("remapped.mcap");
+    let scene = Scene::from_file(&scene()).unwrap();
+    let mut pipeline = Pipeline::new(scene, &Backend::cpu(), InputLimits::default(), FrameMode::Lockstep).unwrap();
+    let names = TopicNames {
+        namespace: "/robot".into(),
+        remaps: [("deformed_mesh", "mesh_out"), ("/robot/tool_pose", "probe_pose")]
+            .map(|(a, b)| (a.to_owned(), b.to_owned()))
+            .into(),
+    };
+    let records = RecordOptions { mcap: Some(bag_path.clone()), ..Default::default() };
+    let mut session = Session::open(&names, &records, &pipeline).unwrap();
+    let stamp = Time::from_nanos(1_000_000);
+    session.record_pose("tool_pose", &PoseStamped::default(), None);
+    let out = pipeline.tick(stamp, &Demand { deformed_mesh: true, ..Demand::NONE }).unwrap();
+    session.record_outputs(&out, &pipeline, stamp);
+    session.finish().unwrap();
+    let topics: std::collections::BTreeSet<String> =
+        bag::read_messages(&bag_path, &[]).unwrap().into_iter().map(|m| m.topic).collect();
+    assert!(topics.contains("/robot/mesh_out") && topics.contains("/robot/probe_pose"), "{topics:?}");
+    assert!(!topics.contains("/robot/deformed_mesh") && !topics.contains("/robot/tool_pose"), "{topics:?}");
+}
