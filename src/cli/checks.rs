@@ -1,6 +1,9 @@
 //! What a command checks before its work, so that a wrong name costs nothing.
 
-use anyhow::Result;
+use anyhow::{bail, Result};
+use nalgebra::Vector3;
+
+use defvol::volume::Volume;
 
 /// An image output: PNG (what `Rendered::write_png` writes), in a folder that exists.
 pub(super) fn check_png_output(path: &std::path::Path) -> Result<()> {
@@ -8,4 +11,42 @@ pub(super) fn check_png_output(path: &std::path::Path) -> Result<()> {
         anyhow::bail!("{}: images are written as PNG; name the file .png", path.display());
     }
     Ok(defvol::io::check_folder(path)?)
+}
+
+/// A mesh placed over a volume (after `--mesh-scale`) must meet it: a mesh in metres over
+/// a millimetre volume lies in one corner voxel and would give an empty picture or a
+/// one-voxel warp, silently.
+pub(super) fn check_mesh_meets_volume(what: &str, nodes: &[Vector3<f64>], scale: f64, volume: &Volume) -> Result<()> {
+    let (lo, hi) =
+        nodes.iter().fold((Vector3::repeat(f64::INFINITY), Vector3::repeat(f64::NEG_INFINITY)), |(lo, hi), p| {
+            (lo.inf(p), hi.sup(p))
+        });
+    let (vlo, vhi) = volume.bounds();
+    let meets = (0..3).all(|a| lo[a] <= vhi[a] && hi[a] >= vlo[a]);
+    // Overlapping boxes still miss when one is a speck in the other: a thousandfold unit slip.
+    let (mesh_size, volume_size) = ((hi - lo).max(), (vhi - vlo).max());
+    let speck = mesh_size > 0.0 && volume_size / mesh_size > 200.0;
+    if meets && !speck {
+        return Ok(());
+    }
+    let hint = match volume_size / mesh_size.max(f64::MIN_POSITIVE) {
+        r if (300.0..3000.0).contains(&r) => format!(
+            "; it looks like a mesh in metres over a volume in millimetres: try --mesh-scale {}",
+            1000.0 * scale
+        ),
+        _ => String::new(),
+    };
+    bail!(
+        "{what}: the mesh's box {} to {} (file units x --mesh-scale {scale}) {} the volume's box {} to {} (the \
+         volume's own units, millimetres for medical files){hint}",
+        show(&lo),
+        show(&hi),
+        if meets { "is a speck inside" } else { "does not meet" },
+        show(&vlo),
+        show(&vhi),
+    )
+}
+
+fn show(p: &Vector3<f64>) -> String {
+    defvol::logging::vector([p.x, p.y, p.z], 4)
 }

@@ -184,6 +184,7 @@ pub fn run(args: RenderArgs) -> Result<()> {
             }
             let scale = args.mesh_scale;
             mesh.map_nodes(|p| p * scale);
+            super::checks::check_mesh_meets_volume(&path.display().to_string(), mesh.nodes(), scale, &volume)?;
             if let Some(deformed_path) = &args.deformed {
                 let deformed = defvol::io::read_mesh(deformed_path)?;
                 if deformed.tets() != mesh.tets() {

@@ -46,7 +46,7 @@ pub struct SimulateArgs {
     /// The f64 reference path (CPU) instead of the f32 one.
     #[arg(long, conflicts_with = "backend")]
     f64: bool,
-    /// Output folder: final.vtu and steps.csv.
+    /// Output folder: rest.vtu, final.vtu and steps.csv.
     #[arg(long, default_value = "out")]
     out: PathBuf,
     /// Also warp the scene's volume through the final mesh and write it here (.nii.gz,
@@ -210,9 +210,10 @@ pub fn run(args: SimulateArgs) -> Result<()> {
     }
     // Whatever happened, keep what was computed: the CSV so far and the last stable mesh.
     csv.flush()?;
-    let mesh_path = args.out.join("final.vtu");
+    let (rest_path, mesh_path) = (args.out.join("rest.vtu"), args.out.join("final.vtu"));
+    io::write_mesh(&rest_path, &loaded.mesh, None)?;
     io::write_mesh(&mesh_path, &loaded.mesh, Some(&engine.positions()))?;
-    tracing::info!("wrote {} and {}", mesh_path.display(), csv_path.display());
+    tracing::info!("wrote {}, {} (metres) and {}", rest_path.display(), mesh_path.display(), csv_path.display());
     if let Some(path) = &args.warp_out {
         // The mesh lives in world units; the volume in its file's units.
         let to_file = 1.0 / loaded.scene.file_to_world;

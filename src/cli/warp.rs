@@ -23,6 +23,10 @@ pub struct WarpArgs {
     /// Deformed mesh: same topology, moved nodes.
     #[arg(long, requires = "rest")]
     deformed: Option<PathBuf>,
+    /// Volume units per mesh unit (1000 for a metre mesh, as `simulate` writes, over a
+    /// millimetre volume).
+    #[arg(long, default_value_t = 1.0)]
+    mesh_scale: f64,
     /// Source volume (.nii, .nii.gz, .nrrd, .nhdr, .mha, .mhd); the phantom when absent.
     #[arg(long)]
     volume: Option<PathBuf>,
@@ -86,8 +90,15 @@ pub fn run(args: WarpArgs) -> Result<()> {
     let started = std::time::Instant::now();
     let result = match (&args.rest, &args.deformed) {
         (Some(rest_path), Some(deformed_path)) => {
-            let rest = io::read_mesh(rest_path)?;
-            let deformed = io::read_mesh(deformed_path)?;
+            if !(args.mesh_scale.is_finite() && args.mesh_scale > 0.0) {
+                bail!("--mesh-scale {} must be finite and > 0", args.mesh_scale);
+            }
+            let scale = args.mesh_scale;
+            let mut rest = io::read_mesh(rest_path)?;
+            let mut deformed = io::read_mesh(deformed_path)?;
+            rest.map_nodes(|p| p * scale);
+            deformed.map_nodes(|p| p * scale);
+            super::checks::check_mesh_meets_volume(&rest_path.display().to_string(), rest.nodes(), scale, &source)?;
             if deformed.tets() != rest.tets() {
                 bail!(
                     "{}: the deformed mesh's tets differ from the rest mesh's ({} vs {} tets, or other node order)",
@@ -99,9 +110,8 @@ pub fn run(args: WarpArgs) -> Result<()> {
             let grid = defvol::warp::default_grid(&source, deformed.nodes());
             warp_on_backend(&args, &source, &rest, deformed.nodes(), grid, &options)?
         }
-        _ if args.volume.is_some() && args.rest.is_none() && !options.displacements.is_empty() => {
-            defvol::warp::displace(&source, &source.grid(), &options)?
-        }
+        // Displacement volumes alone: no mesh, so no generated bend either.
+        _ if !options.displacements.is_empty() => defvol::warp::displace(&source, &source.grid(), &options)?,
         _ => {
             // The phantom through a generated deformation: a bend.
             let (lo, hi) = source.bounds();

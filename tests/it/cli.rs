@@ -496,3 +496,61 @@ fn a_users_mesh_simulates_held_by_its_lowest_layer_or_by_fix() {
     let out = run(&["--fix", "plane:0,0,1"]);
     assert!(String::from_utf8_lossy(&out.stderr).contains("plane takes 4 numbers, got 3"));
 }
+
+#[test]
+fn simulate_meshes_in_metres_meet_a_millimetre_volume_only_through_mesh_scale() {
+    let dir = tempfile::tempdir().unwrap();
+    let sim = dir.path().join("sim");
+    let out = defvol()
+        .args(["simulate", "--steps", "5", "--tets", "200", "--backend", "cpu", "--out"])
+        .arg(&sim)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let (rest, last) = (sim.join("rest.vtu"), sim.join("final.vtu"));
+    let rest_mesh = defvol::io::read_mesh(&rest).unwrap();
+    assert_eq!(rest_mesh.nodes().len(), defvol::io::read_mesh(&last).unwrap().nodes().len());
+    // The phantom (millimetres) under both commands, the meshes as simulate wrote them.
+    let warped = dir.path().join("w.nrrd");
+    let warp = |scale: &str| {
+        defvol()
+            .args(["warp", "--backend", "cpu", "--mesh-scale", scale, "--rest"])
+            .arg(&rest)
+            .arg("--deformed")
+            .arg(&last)
+            .arg("--out")
+            .arg(&warped)
+            .output()
+            .unwrap()
+    };
+    let refused = warp("1");
+    let err = String::from_utf8_lossy(&refused.stderr);
+    assert!(!refused.status.success() && err.contains("try --mesh-scale 1000"), "{err}");
+    assert!(!warped.exists(), "nothing written for a refused mesh");
+    let done = warp("1000");
+    assert!(done.status.success(), "{}", String::from_utf8_lossy(&done.stderr));
+    let volume = defvol::io::read_volume(&warped).unwrap();
+    assert!(volume.dims().iter().all(|d| *d > 10), "a real warp, not one voxel: {:?}", volume.dims());
+    let picture = dir.path().join("r.png");
+    let mut render = defvol();
+    render.args(["render", "--backend", "cpu", "--size", "64x64", "--mesh"]).arg(&last);
+    let out = render.arg("--out").arg(&picture).output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("try --mesh-scale 1000") && !picture.exists(), "{err}");
+}
+
+#[test]
+fn displacement_volumes_alone_warp_the_phantom_on_its_own_grid_with_no_bend() {
+    let dir = tempfile::tempdir().unwrap();
+    let pushed = dir.path().join("pushed.mha");
+    let out = defvol()
+        .args(["warp", "--backend", "cpu", "--displace", "0,0,0:0,0,5:40", "--out"])
+        .arg(&pushed)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let volume = defvol::io::read_volume(&pushed).unwrap();
+    let phantom = defvol::volume::phantom::phantom(defvol::volume::phantom::DEFAULT_DIMS, 1.0).unwrap();
+    assert_eq!(volume.dims(), phantom.dims(), "the source's grid, not a bent mesh's box");
+    assert_eq!(volume.origin(), phantom.origin());
+}
