@@ -34,6 +34,21 @@ pub fn vector(v: [f64; 3], decimals: i32) -> String {
     format!("[{}]", shown.join(", "))
 }
 
+/// An error and its causes on one line, each cause once: a library error that already
+/// quotes its source (`organ.vtu: No such file or directory`) does not repeat it.
+pub fn error_chain(error: &(dyn std::error::Error + 'static)) -> String {
+    let mut text = error.to_string();
+    let mut cause = error.source();
+    while let Some(e) = cause {
+        let message = e.to_string();
+        if !text.contains(&message) {
+            text = format!("{text}: {message}");
+        }
+        cause = e.source();
+    }
+    text
+}
+
 /// Grid dimensions as `nx x ny x nz`.
 pub fn dims(d: [usize; 3]) -> String {
     format!("{}x{}x{}", d[0], d[1], d[2])
@@ -50,6 +65,18 @@ mod tests {
         assert!(colour(true, Some(OsStr::new(""))));
         assert!(!colour(true, Some(OsStr::new("1"))));
         assert!(!colour(false, None));
+    }
+
+    #[test]
+    fn an_error_chain_names_each_cause_once() {
+        let io = std::io::Error::new(std::io::ErrorKind::NotFound, "No such file");
+        let quoted = crate::io::IoError::Io { path: "organ.vtu".into(), source: io };
+        assert_eq!(error_chain(&quoted), "organ.vtu: No such file");
+        #[derive(Debug, thiserror::Error)]
+        #[error("loading the scene")]
+        struct Context(#[source] crate::io::IoError);
+        let context = Context(crate::io::IoError::MissingFolder { path: "a/b.nrrd".into(), folder: "a".into() });
+        assert_eq!(error_chain(&context), "loading the scene: a/b.nrrd: the folder a does not exist");
     }
 
     #[test]

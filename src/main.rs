@@ -2,7 +2,15 @@
 
 mod cli;
 
-fn main() -> anyhow::Result<()> {
+/// Errors print as one line with each cause once (`RUST_LOG=debug` adds the backtrace).
+fn main() -> std::process::ExitCode {
     defvol::logging::init();
-    cli::run(cli::parse())
+    match cli::run(cli::parse()) {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            tracing::debug!("{e:?}");
+            eprintln!("Error: {}", defvol::logging::error_chain(e.as_ref()));
+            std::process::ExitCode::FAILURE
+        }
+    }
 }

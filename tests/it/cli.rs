@@ -554,3 +554,13 @@ fn displacement_volumes_alone_warp_the_phantom_on_its_own_grid_with_no_bend() {
     assert_eq!(volume.dims(), phantom.dims(), "the source's grid, not a bent mesh's box");
     assert_eq!(volume.origin(), phantom.origin());
 }
+
+#[test]
+fn an_error_names_its_cause_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let out =
+        defvol().args(["warp", "--volume", "nosuch.nrrd", "--out"]).arg(dir.path().join("w.nrrd")).output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("nosuch.nrrd"), "{err}");
+    assert_eq!(err.matches("No such file or directory").count(), 1, "{err}");
+}
