@@ -43,31 +43,31 @@ pub struct NodeBenchOptions {
     pub volume_frames: usize,
 }
 
-pub const TABLE_HEADER: &str = "case                          backend   p50 ms   p99 ms    max ms   rate Hz  notes";
+pub const TABLE_HEADER: &str = "case                          backend     p50 ms     p99 ms     max ms  notes";
 
-pub fn table_row(row: &BenchRow) -> String {
-    if row.runs == 0 {
-        return format!(
-            "{:<29} {:<8} {:>7} {:>8} {:>9} {:>9}  {}",
-            row.case,
-            row.backend,
-            "-",
-            "-",
-            "-",
-            "-",
-            row.params["note"].as_str().unwrap_or_default()
-        );
+/// A time in milliseconds, with the digits a sub-microsecond delivery needs.
+fn ms(v: f64) -> String {
+    match v < 0.01 {
+        true => format!("{v:.5}"),
+        false => format!("{v:.3}"),
     }
-    let p99 = row.params["p99_ms"].as_f64().map_or("-".into(), |v| format!("{v:.3}"));
+}
+
+/// One row of the table; the rates are in the notes (what was sent and received), not
+/// derived from a percentile.
+pub fn table_row(row: &BenchRow) -> String {
     let notes = row.params["note"].as_str().unwrap_or_default();
+    if row.runs == 0 {
+        return format!("{:<29} {:<8} {:>10} {:>10} {:>10}  {notes}", row.case, row.backend, "-", "-", "-");
+    }
+    let p99 = row.params["p99_ms"].as_f64().map_or("-".into(), ms);
     format!(
-        "{:<29} {:<8} {:>7.3} {:>8} {:>9.3} {:>9.0}  {notes}",
+        "{:<29} {:<8} {:>10} {:>10} {:>10}  {notes}",
         row.case,
         row.backend,
-        row.time_ms.median,
+        ms(row.time_ms.median),
         p99,
-        row.time_ms.max,
-        1e3 / row.time_ms.median.max(1e-9)
+        ms(row.time_ms.max)
     )
 }
 
@@ -696,4 +696,15 @@ fn dds_delivery(mib: usize, cpu: &str) -> Result<BenchRow, NodeBenchError> {
         "publish() to take(), reliable".into()
     };
     Ok(row(samples, note))
+}
+
+#[cfg(test)]
+mod table_tests {
+    use super::*;
+
+    #[test]
+    fn sub_microsecond_times_keep_their_digits() {
+        assert_eq!(ms(0.00041), "0.00041");
+        assert_eq!(ms(1.5), "1.500");
+    }
 }

@@ -228,16 +228,41 @@ fn grid_for(source: &crate::volume::Volume, a: &[Vector3<f64>], b: &[Vector3<f64
 
 /// Table row for a warp measurement.
 pub fn warp_table_row(row: &BenchRow) -> String {
+    // A figure a row does not measure (an incremental row's error, say) shows as "-".
+    let cell = |v: Option<String>, width: usize| format!("{:>width$}", v.unwrap_or_else(|| "-".into()));
+    let work = |key: &str| row.work.get(key).and_then(|v| v.as_f64());
     format!(
-        "{:<26} {:<40} {:>10.2} {:>12.0} {:>10.2e} {:>9} {:>6.3}",
+        "{:<26} {:<40} {:>10.2} {} {} {} {}",
         row.case,
         row.params.to_string(),
         row.time_ms.median,
-        row.work.get("mvoxels_per_s").and_then(|v| v.as_f64()).unwrap_or(f64::NAN),
-        row.error.as_ref().map_or(f64::NAN, |e| e.value),
-        row.work.get("inside").and_then(|v| v.as_u64()).unwrap_or(0),
-        row.work.get("useful_fraction").and_then(|v| v.as_f64()).unwrap_or(f64::NAN),
+        cell(work("mvoxels_per_s").map(|v| format!("{v:.0}")), 12),
+        cell(row.error.as_ref().map(|e| format!("{:.2e}", e.value)), 10),
+        cell(row.work.get("inside").and_then(|v| v.as_u64()).map(|v| v.to_string()), 9),
+        cell(work("useful_fraction").map(|v| format!("{v:.3}")), 6),
     )
 }
 
 pub const WARP_TABLE_HEADER: &str = "case                       params                                   median ms  Mvoxels/s      error    inside useful";
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_figure_a_row_does_not_measure_shows_as_a_dash_not_nan() {
+        let row = BenchRow {
+            stage: "warp",
+            case: "bend incremental".into(),
+            backend: "cpu".into(),
+            device: "test".into(),
+            params: serde_json::json!({"scheme": "spans"}),
+            runs: 3,
+            time_ms: crate::bench::TimeMs { min: 1.0, median: 2.0, max: 3.0 },
+            error: None,
+            work: serde_json::json!({"inside": 42}),
+        };
+        let line = warp_table_row(&row);
+        assert!(!line.contains("NaN") && line.contains(" 42 ") && line.ends_with(" -"), "{line}");
+    }
+}
