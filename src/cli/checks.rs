@@ -13,14 +13,20 @@ pub(super) fn check_png_output(path: &std::path::Path) -> Result<()> {
     Ok(defvol::io::check_folder(path)?)
 }
 
+/// `--mesh-scale`: a finite factor above zero.
+pub(super) fn mesh_scale(text: &str) -> Result<f64, String> {
+    match text.parse::<f64>() {
+        Ok(scale) if scale.is_finite() && scale > 0.0 => Ok(scale),
+        Ok(scale) => Err(format!("{scale} must be finite and > 0")),
+        Err(e) => Err(e.to_string()),
+    }
+}
+
 /// A mesh placed over a volume (after `--mesh-scale`) must meet it: a mesh in metres over
 /// a millimetre volume lies in one corner voxel and would give an empty picture or a
 /// one-voxel warp, silently.
 pub(super) fn check_mesh_meets_volume(what: &str, nodes: &[Vector3<f64>], scale: f64, volume: &Volume) -> Result<()> {
-    let (lo, hi) =
-        nodes.iter().fold((Vector3::repeat(f64::INFINITY), Vector3::repeat(f64::NEG_INFINITY)), |(lo, hi), p| {
-            (lo.inf(p), hi.sup(p))
-        });
+    let (lo, hi) = defvol::mesh::bounds(nodes);
     let (vlo, vhi) = volume.bounds();
     let meets = (0..3).all(|a| lo[a] <= vhi[a] && hi[a] >= vlo[a]);
     // Overlapping boxes still miss when one is a speck in the other: a thousandfold unit slip.

@@ -46,7 +46,7 @@ pub struct RenderArgs {
     displace: Vec<String>,
     /// Volume units per mesh unit (1000 for a metre mesh, as `simulate` writes, over a
     /// millimetre volume).
-    #[arg(long, default_value_t = 1.0)]
+    #[arg(long, default_value_t = 1.0, value_parser = super::checks::mesh_scale)]
     mesh_scale: f64,
     /// Transfer-function preset: ct_soft_tissue, ct_bone, mri.
     #[arg(long, default_value = "ct_soft_tissue")]
@@ -179,9 +179,6 @@ pub fn run(args: RenderArgs) -> Result<()> {
     let (image, on) = match &args.mesh {
         Some(path) => {
             let mut mesh = defvol::io::read_mesh(path)?;
-            if !(args.mesh_scale.is_finite() && args.mesh_scale > 0.0) {
-                bail!("--mesh-scale {} must be finite and > 0", args.mesh_scale);
-            }
             let scale = args.mesh_scale;
             mesh.map_nodes(|p| p * scale);
             super::checks::check_mesh_meets_volume(&path.display().to_string(), mesh.nodes(), scale, &volume)?;

@@ -25,7 +25,7 @@ pub struct WarpArgs {
     deformed: Option<PathBuf>,
     /// Volume units per mesh unit (1000 for a metre mesh, as `simulate` writes, over a
     /// millimetre volume).
-    #[arg(long, default_value_t = 1.0)]
+    #[arg(long, default_value_t = 1.0, value_parser = super::checks::mesh_scale)]
     mesh_scale: f64,
     /// Source volume (.nii, .nii.gz, .nrrd, .nhdr, .mha, .mhd); the phantom when absent.
     #[arg(long)]
@@ -90,9 +90,6 @@ pub fn run(args: WarpArgs) -> Result<()> {
     let started = std::time::Instant::now();
     let result = match (&args.rest, &args.deformed) {
         (Some(rest_path), Some(deformed_path)) => {
-            if !(args.mesh_scale.is_finite() && args.mesh_scale > 0.0) {
-                bail!("--mesh-scale {} must be finite and > 0", args.mesh_scale);
-            }
             let scale = args.mesh_scale;
             let mut rest = io::read_mesh(rest_path)?;
             let mut deformed = io::read_mesh(deformed_path)?;

@@ -5,7 +5,7 @@ use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 
 use super::SolverError;
-use defvol_core::mesh::TetMesh;
+use defvol_core::mesh::{bounds, TetMesh};
 
 /// One row of a tissue table: springs whose sampled intensity is `intensity` get these values;
 /// intensities between rows are interpolated linearly, beyond the ends clamped.
@@ -155,9 +155,8 @@ impl FixedNodes {
                         why: "a fraction of the mesh's height, between 0 and 1".into(),
                     });
                 }
-                let (lo, hi) =
-                    nodes.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), p| (lo.min(p.z), hi.max(p.z)));
-                let top = lo + fraction * (hi - lo) + 1e-9 * (1.0 + lo.abs());
+                let (lo, hi) = bounds(nodes);
+                let top = lo.z + fraction * (hi.z - lo.z) + 1e-9 * (1.0 + lo.z.abs());
                 for (f, p) in fixed.iter_mut().zip(nodes) {
                     *f = p.z <= top;
                 }
