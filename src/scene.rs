@@ -37,8 +37,12 @@ pub enum SceneError {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case", tag = "kind", deny_unknown_fields)]
 pub enum MeshSource {
+    /// A mesh file. Its nodes are in the unit the file records (defvol's own VTK files do),
+    /// else in the scene's file units; `scale` (world units per file unit) overrides both.
     File {
         path: PathBuf,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        scale: Option<f64>,
     },
     /// A lattice of about `target_tets` tets embedding the volume's box.
     VolumeLattice {
@@ -366,7 +370,7 @@ impl Scene {
         };
         let scale = self.file_to_world;
         let mesh = match &self.mesh {
-            MeshSource::File { path } => io::read_mesh(path)?,
+            MeshSource::File { path, scale: chosen } => read_world_mesh(path, *chosen, scale)?,
             MeshSource::VolumeLattice { target_tets, split } => {
                 let (lo, hi) = volume.bounds();
                 generate::lattice_for_box(lo * scale, hi * scale, *target_tets, *split)?
@@ -387,6 +391,32 @@ impl Scene {
         let model = MassSpringModel::new(&mesh, &self.material, self.density, &fixed, Some(&sample))?;
         Ok(LoadedScene { scene: self, volume, mesh, model })
     }
+}
+
+/// A mesh file in world metres: scaled by `chosen`, else by the unit the file records, else
+/// by the scene's `file_to_world`; the log says which, and warns of a size no organ has.
+fn read_world_mesh(path: &Path, chosen: Option<f64>, file_to_world: f64) -> Result<TetMesh, SceneError> {
+    let read = io::read_mesh_with_metadata(path)?;
+    let (scale, why) = match (chosen, read.metres_per_unit) {
+        (Some(s), _) => (s, "as asked".to_owned()),
+        (None, Some(unit)) => (unit, format!("the file records {unit} m per unit")),
+        (None, None) => (file_to_world, format!("the scene's file_to_world {file_to_world}")),
+    };
+    if !(scale.is_finite() && scale > 0.0) {
+        return Err(SceneError::Invalid(format!("mesh scale {scale} must be finite and > 0")));
+    }
+    let mut mesh = read.mesh;
+    mesh.map_nodes(|p| p * scale);
+    let (lo, hi) = crate::mesh::bounds(mesh.nodes());
+    let size = (hi - lo).max();
+    tracing::info!("mesh {}: x{scale} to metres ({why}): {size:.4} m across", path.display());
+    if !(0.001..=10.0).contains(&size) {
+        tracing::warn!(
+            "mesh {} is {size:.4} m across: is its unit right? (--mesh-scale, or `scale:` in the scene)",
+            path.display()
+        );
+    }
+    Ok(mesh)
 }
 
 impl LoadedScene {

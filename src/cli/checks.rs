@@ -1,9 +1,15 @@
 //! What a command checks before its work, so that a wrong name costs nothing.
 
+use std::path::Path;
+
 use anyhow::{bail, Result};
 use nalgebra::Vector3;
 
+use defvol::mesh::TetMesh;
 use defvol::volume::Volume;
+
+/// Metres per unit of a volume file (medical volumes are in millimetres).
+const MILLIMETRE: f64 = 0.001;
 
 /// An image output: PNG (what `Rendered::write_png` writes), in a folder that exists.
 pub(super) fn check_png_output(path: &std::path::Path) -> Result<()> {
@@ -20,6 +26,25 @@ pub(super) fn mesh_scale(text: &str) -> Result<f64, String> {
         Ok(scale) => Err(format!("{scale} must be finite and > 0")),
         Err(e) => Err(e.to_string()),
     }
+}
+
+/// A mesh file in the units of the volume it is placed over, and the factor applied:
+/// `--mesh-scale` when given, else the unit the file records over the volume's millimetres
+/// (volumes are in millimetres, as medical files are), else the file's numbers as they are.
+pub(super) fn mesh_over_volume(path: &Path, chosen: Option<f64>) -> Result<(TetMesh, f64)> {
+    let read = defvol::io::read_mesh_with_metadata(path)?;
+    let scale = match (chosen, read.metres_per_unit) {
+        (Some(scale), _) => scale,
+        (None, Some(unit)) => {
+            let scale = unit / MILLIMETRE;
+            tracing::info!("{}: the file records {unit} m per unit: x{scale} into millimetres", path.display());
+            scale
+        }
+        (None, None) => 1.0,
+    };
+    let mut mesh = read.mesh;
+    mesh.map_nodes(|p| p * scale);
+    Ok((mesh, scale))
 }
 
 /// A mesh placed over a volume (after `--mesh-scale`) must meet it: a mesh in metres over
@@ -43,7 +68,7 @@ pub(super) fn check_mesh_meets_volume(what: &str, nodes: &[Vector3<f64>], scale:
         _ => String::new(),
     };
     bail!(
-        "{what}: the mesh's box {} to {} (file units x --mesh-scale {scale}) {} the volume's box {} to {} (the \
+        "{what}: the mesh's box {} to {} (file units x {scale}) {} the volume's box {} to {} (the \
          volume's own units, millimetres for medical files){hint}",
         show(&lo),
         show(&hi),

@@ -44,10 +44,10 @@ pub struct RenderArgs {
     /// units, a backward distortion on top of the mesh's (repeatable; applied in order).
     #[arg(long, requires = "deformed")]
     displace: Vec<String>,
-    /// Volume units per mesh unit (1000 for a metre mesh, as `simulate` writes, over a
-    /// millimetre volume).
-    #[arg(long, default_value_t = 1.0, value_parser = super::checks::mesh_scale)]
-    mesh_scale: f64,
+    /// Volume units per mesh unit (1000 for a metre mesh over a millimetre volume). Default:
+    /// from the unit the mesh file records (defvol's files do), else 1.
+    #[arg(long, value_parser = super::checks::mesh_scale)]
+    mesh_scale: Option<f64>,
     /// Transfer-function preset: ct_soft_tissue, ct_bone, mri.
     #[arg(long, default_value = "ct_soft_tissue")]
     tf: String,
@@ -178,12 +178,10 @@ pub fn run(args: RenderArgs) -> Result<()> {
     let started = std::time::Instant::now();
     let (image, on) = match &args.mesh {
         Some(path) => {
-            let mut mesh = defvol::io::read_mesh(path)?;
-            let scale = args.mesh_scale;
-            mesh.map_nodes(|p| p * scale);
+            let (mesh, scale) = super::checks::mesh_over_volume(path, args.mesh_scale)?;
             super::checks::check_mesh_meets_volume(&path.display().to_string(), mesh.nodes(), scale, &volume)?;
             if let Some(deformed_path) = &args.deformed {
-                let deformed = defvol::io::read_mesh(deformed_path)?;
+                let (deformed, _) = super::checks::mesh_over_volume(deformed_path, args.mesh_scale)?;
                 if deformed.tets() != mesh.tets() {
                     bail!(
                         "--deformed {}: its tets are not --mesh {}'s ({} against {} tets, or in another order)",
@@ -193,7 +191,6 @@ pub fn run(args: RenderArgs) -> Result<()> {
                         mesh.tets().len()
                     );
                 }
-                let positions: Vec<Vector3<f64>> = deformed.nodes().iter().map(|p| p * scale).collect();
                 let sampling = SourceSampling {
                     sampling: args.sampling.into(),
                     displacements: args
@@ -208,7 +205,7 @@ pub fn run(args: RenderArgs) -> Result<()> {
                 let params = RaycastParams { step: args.step.unwrap_or(finest), ..params.clone() };
                 let mut raycaster =
                     TetRaycaster::with_source(&mesh, std::sync::Arc::new(volume.clone()), &tf, &params, &sampling)?;
-                raycaster.update(&positions)?;
+                raycaster.update(deformed.nodes())?;
                 let mut renderer = MeshRenderer::new(&backend, raycaster, 1.0)?;
                 let image = renderer.render(&tools, &camera)?;
                 let on =
@@ -257,6 +254,12 @@ fn finish(
     (w, h): (usize, usize),
 ) -> Result<()> {
     tracing::info!("rendered {w}x{h} on {on} in {:.1} ms", started.elapsed().as_secs_f64() * 1e3);
+    if image.rgba.chunks_exact(4).all(|pixel| pixel == &image.rgba[..4]) {
+        tracing::warn!(
+            "the picture is one colour: nothing is in view (the camera, the transfer function's opacity, or the \
+             mesh's unit?)"
+        );
+    }
     image.write_png(&args.out)?;
     tracing::info!("wrote {}", args.out.display());
     if let Some(path) = &args.depth_out {

@@ -21,6 +21,10 @@ pub struct SimulateArgs {
     /// Mesh file replacing the scene's mesh (.vtu, .vtk, .msh, .node/.ele).
     #[arg(long)]
     mesh: Option<PathBuf>,
+    /// Metres per unit of the `--mesh` file (0.001 for millimetres). Default: the unit the
+    /// file records (defvol's own files do), else the scene's `file_to_world`.
+    #[arg(long, requires = "mesh", value_parser = super::checks::mesh_scale)]
+    mesh_scale: Option<f64>,
     /// Tet count of a generated lattice mesh.
     #[arg(long)]
     tets: Option<usize>,
@@ -130,7 +134,7 @@ pub fn run(args: SimulateArgs) -> Result<()> {
         None => Scene::default_scene()?,
     };
     if let Some(path) = &args.mesh {
-        scene.mesh = MeshSource::File { path: path.clone() };
+        scene.mesh = MeshSource::File { path: path.clone(), scale: args.mesh_scale };
         // The default scene's clamp plane fits its own lattice, not a user's mesh.
         if args.scene.is_none() {
             scene.fixed = Some(FixedNodes::Lowest { fraction: 0.02 });
@@ -211,8 +215,8 @@ pub fn run(args: SimulateArgs) -> Result<()> {
     // Whatever happened, keep what was computed: the CSV so far and the last stable mesh.
     csv.flush()?;
     let (rest_path, mesh_path) = (args.out.join("rest.vtu"), args.out.join("final.vtu"));
-    io::write_mesh(&rest_path, &loaded.mesh, None)?;
-    io::write_mesh(&mesh_path, &loaded.mesh, Some(&engine.positions()))?;
+    io::write_mesh(&rest_path, &loaded.mesh, None, Some(1.0))?;
+    io::write_mesh(&mesh_path, &loaded.mesh, Some(&engine.positions()), Some(1.0))?;
     tracing::info!("wrote {}, {} (metres) and {}", rest_path.display(), mesh_path.display(), csv_path.display());
     if let Some(path) = &args.warp_out {
         // The mesh lives in world units; the volume in its file's units.

@@ -23,10 +23,10 @@ pub struct WarpArgs {
     /// Deformed mesh: same topology, moved nodes.
     #[arg(long, requires = "rest")]
     deformed: Option<PathBuf>,
-    /// Volume units per mesh unit (1000 for a metre mesh, as `simulate` writes, over a
-    /// millimetre volume).
-    #[arg(long, default_value_t = 1.0, value_parser = super::checks::mesh_scale)]
-    mesh_scale: f64,
+    /// Volume units per mesh unit (1000 for a metre mesh over a millimetre volume). Default:
+    /// from the unit the mesh file records (defvol's files do), else 1.
+    #[arg(long, value_parser = super::checks::mesh_scale)]
+    mesh_scale: Option<f64>,
     /// Source volume (.nii, .nii.gz, .nrrd, .nhdr, .mha, .mhd); the phantom when absent.
     #[arg(long)]
     volume: Option<PathBuf>,
@@ -90,11 +90,8 @@ pub fn run(args: WarpArgs) -> Result<()> {
     let started = std::time::Instant::now();
     let result = match (&args.rest, &args.deformed) {
         (Some(rest_path), Some(deformed_path)) => {
-            let scale = args.mesh_scale;
-            let mut rest = io::read_mesh(rest_path)?;
-            let mut deformed = io::read_mesh(deformed_path)?;
-            rest.map_nodes(|p| p * scale);
-            deformed.map_nodes(|p| p * scale);
+            let (rest, scale) = super::checks::mesh_over_volume(rest_path, args.mesh_scale)?;
+            let (deformed, _) = super::checks::mesh_over_volume(deformed_path, args.mesh_scale)?;
             super::checks::check_mesh_meets_volume(&rest_path.display().to_string(), rest.nodes(), scale, &source)?;
             if deformed.tets() != rest.tets() {
                 bail!(
@@ -124,6 +121,13 @@ pub fn run(args: WarpArgs) -> Result<()> {
         defvol::logging::dims(result.dims()),
         started.elapsed().as_secs_f64() * 1e3
     );
+    let (low, high) = result.range();
+    if result.dims().iter().any(|d| *d < 2) || low == high {
+        tracing::warn!(
+            "the warped volume is degenerate ({} voxels, values {low} to {high}): does the mesh cover the source?",
+            defvol::logging::dims(result.dims())
+        );
+    }
     io::write_volume(&args.out, &result)?;
     tracing::info!("wrote {}", args.out.display());
     Ok(())

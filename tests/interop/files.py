@@ -266,7 +266,7 @@ def read_defvol_files(folder):
 
                 mesh = meshio.read(path)
                 tets = mesh.cells_dict.get("tetra")
-                entry["meshio"] = {"points": mesh.points.tolist(), "tets": tets.tolist() if tets is not None else [], "arrays": sorted(mesh.point_data)}
+                entry["meshio"] = {"points": mesh.points.tolist(), "tets": tets.tolist() if tets is not None else [], "arrays": sorted(mesh.point_data), "field_data": {k: np.asarray(v).ravel().tolist() for k, v in mesh.field_data.items()}}
                 if name.endswith((".vtu", ".vtk")):
                     import vtk
 
@@ -274,7 +274,9 @@ def read_defvol_files(folder):
                     reader.SetFileName(path)
                     reader.Update()
                     grid = reader.GetOutput()
-                    entry["vtk"] = {"points": grid.GetNumberOfPoints(), "cells": grid.GetNumberOfCells(), "first": list(grid.GetPoint(0)), "last": list(grid.GetPoint(grid.GetNumberOfPoints() - 1))}
+                    fields = grid.GetFieldData()
+                    field_data = {fields.GetArrayName(i): [fields.GetArray(i).GetValue(j) for j in range(fields.GetArray(i).GetNumberOfValues())] for i in range(fields.GetNumberOfArrays())}
+                    entry["vtk"] = {"points": grid.GetNumberOfPoints(), "cells": grid.GetNumberOfCells(), "first": list(grid.GetPoint(0)), "last": list(grid.GetPoint(grid.GetNumberOfPoints() - 1)), "field_data": field_data}
                 if name.endswith(".msh"):
                     import gmsh
 

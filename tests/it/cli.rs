@@ -77,7 +77,7 @@ fn warp_round_trip_keeps_file_units_and_geometry() {
     let mut mesh = cube.clone();
     mesh.map_nodes(|p| rotated.world_from_index(*p));
     let rest_path = dir.path().join("rest.vtu");
-    defvol::io::write_mesh(&rest_path, &mesh, None).unwrap();
+    defvol::io::write_mesh(&rest_path, &mesh, None, None).unwrap();
     let out_path = dir.path().join("out.nrrd");
     let out = defvol()
         .args(["warp", "--rest"])
@@ -220,13 +220,50 @@ fn render_writes_an_image_and_a_depth_map_and_names_bad_input() {
 }
 
 #[test]
+fn an_empty_picture_and_a_degenerate_warp_are_said_so() {
+    let dir = tempfile::tempdir().unwrap();
+    // Looking away from the phantom: an empty picture, still written.
+    let away = dir.path().join("away.png");
+    let out = defvol()
+        .args(["render", "--backend", "cpu", "--size", "32x32", "--camera=0,-2000,0:0,-4000,0", "--out"])
+        .arg(&away)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success() && err.contains("the picture is one colour: nothing is in view"), "{err}");
+    let pixels = image_pixels(&away);
+    assert!(pixels.chunks(4).all(|p| p == &pixels[..4]), "the warning tells the truth");
+    // A mesh over the phantom's empty corner warps air only.
+    let phantom = defvol::volume::phantom::phantom(defvol::volume::phantom::DEFAULT_DIMS, 1.0).unwrap();
+    let lo = nalgebra::Vector3::from(phantom.bounds().0);
+    let corner = lo + nalgebra::Vector3::repeat(12.0);
+    let mesh = defvol::mesh::generate::lattice(lo, corner, [2, 2, 2], defvol::mesh::generate::CellSplit::Five).unwrap();
+    let rest = dir.path().join("corner.vtu");
+    defvol::io::write_mesh(&rest, &mesh, None, None).unwrap();
+    let warped = dir.path().join("corner.nrrd");
+    let out = defvol()
+        .args(["warp", "--backend", "cpu", "--rest"])
+        .arg(&rest)
+        .arg("--deformed")
+        .arg(&rest)
+        .arg("--out")
+        .arg(&warped)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success() && err.contains("the warped volume is degenerate"), "{err}");
+    let (low, high) = defvol::io::read_volume(&warped).unwrap().range();
+    assert_eq!(low, high, "the warning tells the truth");
+}
+
+#[test]
 fn render_draws_a_tetrahedral_mesh_with_sampled_or_named_scalars() {
     let dir = tempfile::tempdir().unwrap();
     let phantom = defvol::volume::phantom::phantom([64, 40, 31], 4.0).unwrap();
     let (lo, hi) = phantom.bounds();
     let mesh = defvol::mesh::generate::lattice_for_box(lo, hi, 600, defvol::mesh::generate::CellSplit::Five).unwrap();
     let mesh_path = dir.path().join("organ.vtu");
-    defvol::io::write_mesh(&mesh_path, &mesh, None).unwrap();
+    defvol::io::write_mesh(&mesh_path, &mesh, None, None).unwrap();
     let png = dir.path().join("mesh.png");
     let depth = dir.path().join("depth.nrrd");
     let out = defvol()
@@ -255,7 +292,7 @@ fn render_draws_a_tetrahedral_mesh_with_sampled_or_named_scalars() {
     let mut labelled = mesh.clone();
     labelled.set_scalars(vec![700.0; mesh.nodes().len()]).unwrap();
     let labelled_path = dir.path().join("labelled.vtu");
-    defvol::io::write_mesh(&labelled_path, &labelled, None).unwrap();
+    defvol::io::write_mesh(&labelled_path, &labelled, None, None).unwrap();
     let out = defvol()
         .args(["render", "--size", "48x48", "--scalars", "scalar", "--mesh"])
         .arg(&labelled_path)
@@ -303,8 +340,8 @@ fn render_shows_the_source_through_a_deformed_mesh_as_the_moved_volume_looks() {
         .map(|name| dir.path().join(name));
     defvol::io::write_volume(&paths[0], &phantom).unwrap();
     defvol::io::write_volume(&paths[1], &lifted).unwrap();
-    defvol::io::write_mesh(&paths[2], &mesh, None).unwrap();
-    defvol::io::write_mesh(&paths[3], &moved, None).unwrap();
+    defvol::io::write_mesh(&paths[2], &mesh, None, None).unwrap();
+    defvol::io::write_mesh(&paths[3], &moved, None, None).unwrap();
     let c = (lo + hi) / 2.0 + lift;
     let camera = format!("--camera={},{},{}:{},{},{}", c.x - 150.0, c.y - 380.0, c.z + 120.0, c.x, c.y, c.z);
     let common = ["render", "--size", "48x40", "--step", "2", "--shading", "none", &camera];
@@ -342,7 +379,7 @@ fn render_shows_the_source_through_a_deformed_mesh_as_the_moved_volume_looks() {
     assert!(off <= both.len() / 50, "{off} of {} depths differ by more than a step", both.len());
     // A deformed mesh that is not the rest mesh's is named.
     let other = defvol::mesh::generate::lattice(lo, hi, [2, 2, 2], defvol::mesh::generate::CellSplit::Five).unwrap();
-    defvol::io::write_mesh(&paths[3], &other, None).unwrap();
+    defvol::io::write_mesh(&paths[3], &other, None, None).unwrap();
     let out = defvol()
         .args(["render", "--mesh"])
         .arg(&paths[2])
@@ -472,7 +509,7 @@ fn a_users_mesh_simulates_held_by_its_lowest_layer_or_by_fix() {
     )
     .unwrap();
     let path = dir.path().join("cube.vtu");
-    defvol::io::write_mesh(&path, &cube, None).unwrap();
+    defvol::io::write_mesh(&path, &cube, None, Some(1.0)).unwrap();
     let run = |extra: &[&str]| {
         defvol()
             .env("RUST_LOG", "info")
@@ -491,6 +528,17 @@ fn a_users_mesh_simulates_held_by_its_lowest_layer_or_by_fix() {
     let csv = std::fs::read_to_string(dir.path().join("out/steps.csv")).unwrap();
     let last: Vec<f64> = csv.lines().last().unwrap().split(',').map(|v| v.parse().unwrap()).collect();
     assert!(last[6] < 0.02, "held, it sags a little rather than falling: {} m", last[6]);
+    // The same cube in millimetres with no unit recorded: read in the scene's file units.
+    let mut in_mm = cube.clone();
+    in_mm.map_nodes(|p| p * 1000.0);
+    defvol::io::write_mesh(&path, &in_mm, None, None).unwrap();
+    let out = run(&[]);
+    let log = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success() && log.contains("x0.001 to metres (the scene's file_to_world 0.001)"), "{log}");
+    assert!(log.contains("fixed 36 of 216 nodes") && log.contains("0.1000 m across"), "{log}");
+    let out = run(&["--mesh-scale", "1"]);
+    let log = String::from_utf8_lossy(&out.stderr);
+    assert!(log.contains("is 100.0000 m across: is its unit right?"), "{log}");
     let out = run(&["--fix", "nodes:0,1,2"]);
     assert!(String::from_utf8_lossy(&out.stderr).contains("fixed 3 of 216 nodes"));
     let out = run(&["--fix", "plane:0,0,1"]);
@@ -498,7 +546,7 @@ fn a_users_mesh_simulates_held_by_its_lowest_layer_or_by_fix() {
 }
 
 #[test]
-fn simulate_meshes_in_metres_meet_a_millimetre_volume_only_through_mesh_scale() {
+fn simulate_meshes_record_metres_and_meet_a_millimetre_volume_by_that_unit() {
     let dir = tempfile::tempdir().unwrap();
     let sim = dir.path().join("sim");
     let out = defvol()
@@ -508,35 +556,53 @@ fn simulate_meshes_in_metres_meet_a_millimetre_volume_only_through_mesh_scale() 
         .unwrap();
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let (rest, last) = (sim.join("rest.vtu"), sim.join("final.vtu"));
-    let rest_mesh = defvol::io::read_mesh(&rest).unwrap();
-    assert_eq!(rest_mesh.nodes().len(), defvol::io::read_mesh(&last).unwrap().nodes().len());
+    let read = defvol::io::read_mesh_with_metadata(&rest).unwrap();
+    assert_eq!(read.metres_per_unit, Some(1.0), "simulate records metres");
+    assert_eq!(read.mesh.nodes().len(), defvol::io::read_mesh(&last).unwrap().nodes().len());
     // The phantom (millimetres) under both commands, the meshes as simulate wrote them.
-    let warped = dir.path().join("w.nrrd");
-    let warp = |scale: &str| {
+    let warp = |scale: &[&str], out: &std::path::Path| {
         defvol()
-            .args(["warp", "--backend", "cpu", "--mesh-scale", scale, "--rest"])
+            .env("RUST_LOG", "info")
+            .args(["warp", "--backend", "cpu", "--rest"])
             .arg(&rest)
             .arg("--deformed")
             .arg(&last)
+            .args(scale)
             .arg("--out")
-            .arg(&warped)
+            .arg(out)
             .output()
             .unwrap()
     };
-    let refused = warp("1");
+    let (by_unit, by_flag) = (dir.path().join("unit.nrrd"), dir.path().join("flag.nrrd"));
+    let done = warp(&[], &by_unit);
+    let log = String::from_utf8_lossy(&done.stderr);
+    assert!(done.status.success() && log.contains("records 1 m per unit: x1000 into millimetres"), "{log}");
+    let volume = defvol::io::read_volume(&by_unit).unwrap();
+    assert!(volume.dims().iter().all(|d| *d > 10), "a real warp, not one voxel: {:?}", volume.dims());
+    assert!(warp(&["--mesh-scale", "1000"], &by_flag).status.success());
+    assert_eq!(volume.data(), defvol::io::read_volume(&by_flag).unwrap().data(), "the unit is the flag's 1000");
+    let refused = warp(&["--mesh-scale", "1"], &dir.path().join("w.nrrd"));
     let err = String::from_utf8_lossy(&refused.stderr);
     assert!(!refused.status.success() && err.contains("try --mesh-scale 1000"), "{err}");
-    assert!(!warped.exists(), "nothing written for a refused mesh");
-    let done = warp("1000");
-    assert!(done.status.success(), "{}", String::from_utf8_lossy(&done.stderr));
-    let volume = defvol::io::read_volume(&warped).unwrap();
-    assert!(volume.dims().iter().all(|d| *d > 10), "a real warp, not one voxel: {:?}", volume.dims());
+    assert!(!dir.path().join("w.nrrd").exists(), "nothing written for a refused mesh");
+    let render = |mesh: &std::path::Path, picture: &std::path::Path| {
+        let mut render = defvol();
+        render.args(["render", "--backend", "cpu", "--size", "64x64", "--mesh"]).arg(mesh);
+        render.arg("--out").arg(picture).output().unwrap()
+    };
     let picture = dir.path().join("r.png");
-    let mut render = defvol();
-    render.args(["render", "--backend", "cpu", "--size", "64x64", "--mesh"]).arg(&last);
-    let out = render.arg("--out").arg(&picture).output().unwrap();
+    let out = render(&last, &picture);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let pixels = image_pixels(&picture);
+    let background = &pixels[..4];
+    let drawn = pixels.chunks(4).filter(|p| *p != background).count();
+    assert!(drawn > 64 * 64 / 10, "the mesh fills the picture: {drawn} pixels drawn");
+    // The same nodes in a file that records no unit are taken as the volume's, and refused.
+    let bare = dir.path().join("bare.vtu");
+    defvol::io::write_mesh(&bare, &read.mesh, None, None).unwrap();
+    let out = render(&bare, &dir.path().join("bare.png"));
     let err = String::from_utf8_lossy(&out.stderr);
-    assert!(!out.status.success() && err.contains("try --mesh-scale 1000") && !picture.exists(), "{err}");
+    assert!(!out.status.success() && err.contains("try --mesh-scale 1000"), "{err}");
 }
 
 #[test]
@@ -563,4 +629,14 @@ fn an_error_names_its_cause_once() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success() && err.contains("nosuch.nrrd"), "{err}");
     assert_eq!(err.matches("No such file or directory").count(), 1, "{err}");
+}
+
+/// A PNG's pixels as RGBA bytes.
+fn image_pixels(path: &std::path::Path) -> Vec<u8> {
+    let decoder = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(path).unwrap()));
+    let mut reader = decoder.read_info().unwrap();
+    let mut pixels = vec![0; reader.output_buffer_size().unwrap()];
+    let frame = reader.next_frame(&mut pixels).unwrap();
+    pixels.truncate(frame.buffer_size());
+    pixels
 }

@@ -236,7 +236,7 @@ fn no_mesh_file_crashes_the_mesh_loaders() {
     let mut seeds = Vec::new();
     for name in ["m.vtu", "m.vtk", "m.msh", "m.node"] {
         let path = dir.path().join(name);
-        io::write_mesh(&path, &mesh, None).unwrap();
+        io::write_mesh(&path, &mesh, None, None).unwrap();
         seeds.push((name.to_owned(), std::fs::read(&path).unwrap()));
     }
     let ele = std::fs::read(dir.path().join("m.ele")).unwrap();

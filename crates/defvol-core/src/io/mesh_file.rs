@@ -27,6 +27,8 @@ pub(crate) struct MeshFile {
     pub arrays: Vec<PointArray>,
     /// Cells other than linear tets, by kind.
     pub skipped: BTreeMap<&'static str, usize>,
+    /// The length unit the file records (field data `metres_per_unit`), when it does.
+    pub metres_per_unit: Option<f64>,
 }
 
 impl MeshFile {
@@ -48,14 +50,32 @@ impl MeshFile {
         self.arrays.iter().find(|a| a.active_scalars && a.components == 1).map(|a| a.values.clone())
     }
 
-    pub(crate) fn into_mesh(self, path: &Path) -> Result<(TetMesh, SkippedCells), IoError> {
+    /// Keeps a recorded unit only when it is a length a mesh can have: finite and above zero.
+    pub(crate) fn record_unit(&mut self, values: &[f64]) {
+        if let [unit] = values {
+            self.metres_per_unit = Some(*unit).filter(|u| u.is_finite() && *u > 0.0);
+        }
+    }
+
+    pub(crate) fn into_mesh(self, path: &Path) -> Result<MeshRead, IoError> {
         if !self.skipped.is_empty() {
             let skipped: Vec<String> = self.skipped.iter().map(|(kind, n)| format!("{n} {kind}")).collect();
             tracing::info!("{}: kept {} tets, skipped {}", path.display(), self.tets.len(), skipped.join(", "));
         }
         let scalars = self.scalars();
-        Ok((TetMesh::new(self.nodes, self.tets, scalars, &path.display().to_string())?, self.skipped))
+        let mesh = TetMesh::new(self.nodes, self.tets, scalars, &path.display().to_string())?;
+        Ok(MeshRead { mesh, skipped: self.skipped, metres_per_unit: self.metres_per_unit })
     }
+}
+
+/// A mesh and what its file said beside the tets.
+#[derive(Debug, Clone)]
+pub struct MeshRead {
+    pub mesh: TetMesh,
+    /// The cells other than linear tets the file held, by kind: counted, and skipped.
+    pub skipped: SkippedCells,
+    /// Metres per file unit, when the file records it (defvol's VTK files do).
+    pub metres_per_unit: Option<f64>,
 }
 
 /// The cells other than linear tets a mesh file held, by kind: counted, and skipped.

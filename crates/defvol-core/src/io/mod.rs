@@ -25,7 +25,7 @@ mod vtk_legacy;
 mod vtk_xml;
 
 pub use error::IoError;
-pub use mesh_file::SkippedCells;
+pub use mesh_file::{MeshRead, SkippedCells};
 
 use error::{io_error, malformed};
 use files::{file_name, write_atomically};
@@ -75,12 +75,12 @@ fn parse_mesh_file(path: &Path, bytes: &[u8], format: MeshFormat) -> Result<Mesh
 
 /// Parses a one-file mesh (`.vtu`, `.vtk`, `.msh`) from its bytes; `path` names it in errors.
 pub fn parse_mesh(path: &Path, bytes: &[u8], format: MeshFormat) -> Result<TetMesh, IoError> {
-    Ok(parse_mesh_file(path, bytes, format)?.into_mesh(path)?.0)
+    Ok(parse_mesh_file(path, bytes, format)?.into_mesh(path)?.mesh)
 }
 
 /// Parses a TetGen pair from the bytes of its `.node` and `.ele` files.
 pub fn parse_tetgen(path: &Path, node: &[u8], ele: &[u8]) -> Result<TetMesh, IoError> {
-    Ok(tetgen::parse(node, ele).map_err(|message| malformed(path, message))?.into_mesh(path)?.0)
+    Ok(tetgen::parse(node, ele).map_err(|message| malformed(path, message))?.into_mesh(path)?.mesh)
 }
 
 fn read_mesh_file(path: &Path) -> Result<MeshFile, IoError> {
@@ -113,16 +113,24 @@ pub fn read_mesh_point_array(path: &Path, name: &str) -> Result<Vec<f32>, IoErro
 
 /// Reads a tetrahedral mesh (VTK `.vtu`/`.vtk`, Gmsh `.msh` 2.2 or 4.1, TetGen `.node`/`.ele`).
 pub fn read_mesh(path: &Path) -> Result<TetMesh, IoError> {
-    Ok(read_mesh_with_skipped(path)?.0)
+    Ok(read_mesh_with_metadata(path)?.mesh)
 }
 
-/// [`read_mesh`], and how many cells of each other kind the file held beside the tets.
-pub fn read_mesh_with_skipped(path: &Path) -> Result<(TetMesh, SkippedCells), IoError> {
+/// [`read_mesh`], with the cells of other kinds the file held and the unit it records.
+pub fn read_mesh_with_metadata(path: &Path) -> Result<MeshRead, IoError> {
     read_mesh_file(path)?.into_mesh(path)
 }
 
 /// Writes `mesh` with node positions `positions` (the deformed state, or the mesh's own).
-pub fn write_mesh(path: &Path, mesh: &TetMesh, positions: Option<&[Vector3<f64>]>) -> Result<(), IoError> {
+/// `metres_per_unit` is recorded in VTK files as the field-data array `metres_per_unit`
+/// (read back by [`read_mesh_with_metadata`], kept by VTK, ParaView and meshio); Gmsh and
+/// TetGen files have no place for it.
+pub fn write_mesh(
+    path: &Path,
+    mesh: &TetMesh,
+    positions: Option<&[Vector3<f64>]>,
+    metres_per_unit: Option<f64>,
+) -> Result<(), IoError> {
     let nodes = positions.unwrap_or(mesh.nodes());
     if nodes.len() != mesh.nodes().len() {
         return Err(malformed(path, format!("{} positions for a mesh of {} nodes", nodes.len(), mesh.nodes().len())));
@@ -133,9 +141,10 @@ pub fn write_mesh(path: &Path, mesh: &TetMesh, positions: Option<&[Vector3<f64>]
     }
     let points: Vec<[f64; 3]> = nodes.iter().map(|p| [p.x, p.y, p.z]).collect();
     let bytes = match MeshFormat::of(path) {
-        Some(MeshFormat::VtkXml) => vtk::xml(&points, mesh.tets(), vtk::TETRA, mesh.scalars()),
+        Some(MeshFormat::VtkXml) => vtk::xml(&points, mesh.tets(), vtk::TETRA, mesh.scalars(), metres_per_unit),
         Some(MeshFormat::VtkLegacy) => {
-            vtk::legacy(&points, mesh.tets(), vtk::TETRA, mesh.scalars(), "defvol tetrahedral mesh")
+            let title = "defvol tetrahedral mesh";
+            vtk::legacy(&points, mesh.tets(), vtk::TETRA, mesh.scalars(), metres_per_unit, title)
         }
         Some(MeshFormat::Gmsh) => gmsh::write(nodes, mesh.tets()),
         None => return Err(IoError::UnsupportedExtension { path: path.to_owned(), expected: MESH_TYPES }),
@@ -143,7 +152,8 @@ pub fn write_mesh(path: &Path, mesh: &TetMesh, positions: Option<&[Vector3<f64>]
     write_atomically(path, &bytes)
 }
 
-/// Writes a triangle surface with per-vertex scalars (`.vtu` or legacy `.vtk`).
+/// Writes a triangle surface in metres with per-vertex scalars (`.vtu` or legacy `.vtk`; the
+/// unit recorded as in [`write_mesh`]).
 pub fn write_triangles(
     path: &Path,
     nodes: &[[f32; 3]],
@@ -152,8 +162,10 @@ pub fn write_triangles(
 ) -> Result<(), IoError> {
     let points: Vec<[f64; 3]> = nodes.iter().map(|p| p.map(f64::from)).collect();
     let bytes = match MeshFormat::of(path) {
-        Some(MeshFormat::VtkXml) => vtk::xml(&points, triangles, vtk::TRIANGLE, scalars),
-        Some(MeshFormat::VtkLegacy) => vtk::legacy(&points, triangles, vtk::TRIANGLE, scalars, "defvol surface"),
+        Some(MeshFormat::VtkXml) => vtk::xml(&points, triangles, vtk::TRIANGLE, scalars, Some(1.0)),
+        Some(MeshFormat::VtkLegacy) => {
+            vtk::legacy(&points, triangles, vtk::TRIANGLE, scalars, Some(1.0), "defvol surface")
+        }
         _ => return Err(IoError::UnsupportedExtension { path: path.to_owned(), expected: ".vtu, .vtk" }),
     };
     write_atomically(path, &bytes)
@@ -275,7 +287,7 @@ mod tests {
         mesh.set_scalars((0..mesh.nodes().len()).map(|i| i as f32 * 0.5).collect()).unwrap();
         for name in ["m.vtu", "m.vtk", "m.msh", "m.node"] {
             let path = dir.path().join(name);
-            write_mesh(&path, &mesh, None).unwrap();
+            write_mesh(&path, &mesh, None, None).unwrap();
             let back = read_mesh(&path).unwrap_or_else(|e| panic!("{name}: {e}"));
             assert_eq!(back.tets(), mesh.tets(), "{name}");
             for (a, b) in back.nodes().iter().zip(mesh.nodes()) {
@@ -285,6 +297,25 @@ mod tests {
                 assert_eq!(back.scalars(), mesh.scalars(), "{name}");
             }
         }
+    }
+
+    #[test]
+    fn vtk_files_record_the_length_unit_they_were_written_in() {
+        let dir = tempfile::tempdir().unwrap();
+        let mesh = generate::bar(0.1).unwrap();
+        for (name, unit, recorded) in
+            [("a.vtu", Some(0.001), Some(0.001)), ("b.vtk", Some(1.0), Some(1.0)), ("c.vtu", None, None)]
+        {
+            let path = dir.path().join(name);
+            write_mesh(&path, &mesh, None, unit).unwrap();
+            let back = read_mesh_with_metadata(&path).unwrap();
+            assert_eq!(back.metres_per_unit, recorded, "{name}");
+            assert_eq!(back.mesh.tets(), mesh.tets(), "{name}: the field data leaves the mesh whole");
+        }
+        let surface = dir.path().join("s.vtk");
+        write_triangles(&surface, &[[0.0; 3], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], &[[0, 1, 2]], None).unwrap();
+        let text = std::fs::read(&surface).unwrap();
+        assert!(text.windows(30).any(|w| w == b"FIELD FieldData 1\nmetres_per_u"), "surfaces record metres");
     }
 
     #[test]
@@ -310,14 +341,14 @@ mod tests {
         mesh.set_scalars(values.clone()).unwrap();
         for name in ["m.vtu", "m.vtk"] {
             let path = dir.path().join(name);
-            write_mesh(&path, &mesh, None).unwrap();
+            write_mesh(&path, &mesh, None, None).unwrap();
             assert_eq!(read_mesh_point_array(&path, "scalar").unwrap(), values, "{name}");
             let err = read_mesh_point_array(&path, "dose").unwrap_err().to_string();
             assert!(err.contains("`dose`") && err.contains("\"scalar\"") && err.contains(name), "{err}");
         }
         // A Gmsh file carries no point arrays: the error lists none.
         let msh = dir.path().join("m.msh");
-        write_mesh(&msh, &mesh, None).unwrap();
+        write_mesh(&msh, &mesh, None, None).unwrap();
         let err = read_mesh_point_array(&msh, "scalar").unwrap_err().to_string();
         assert!(err.contains("`scalar`") && err.contains("[]"), "{err}");
         assert!(matches!(

@@ -42,14 +42,24 @@ fn data_array(out: &mut String, ty: &str, name: &str, components: usize, bytes: 
     out.push_str("\n        </DataArray>\n");
 }
 
+/// The name of the one-value field-data array that records a file's length unit: numeric,
+/// because meshio refuses VTK's String arrays.
+pub(super) const UNIT_ARRAY: &str = "metres_per_unit";
+
 /// An unstructured grid of one cell type as `.vtu` bytes.
 pub(super) fn xml<const N: usize>(
     points: &[[f64; 3]],
     cells: &[[u32; N]],
     cell_type: u8,
     scalars: Option<&[f32]>,
+    metres_per_unit: Option<f64>,
 ) -> Vec<u8> {
     let mut s = String::from("<?xml version=\"1.0\"?>\n<VTKFile type=\"UnstructuredGrid\" version=\"1.0\" byte_order=\"LittleEndian\" header_type=\"UInt32\" compressor=\"vtkZLibDataCompressor\">\n  <UnstructuredGrid>\n");
+    if let Some(unit) = metres_per_unit {
+        s.push_str(&format!(
+            "    <FieldData>\n      <DataArray type=\"Float64\" Name=\"{UNIT_ARRAY}\" NumberOfTuples=\"1\" format=\"ascii\">{unit:?}</DataArray>\n    </FieldData>\n"
+        ));
+    }
     s.push_str(&format!("    <Piece NumberOfPoints=\"{}\" NumberOfCells=\"{}\">\n", points.len(), cells.len()));
     if let Some(values) = scalars {
         s.push_str("      <PointData Scalars=\"scalar\">\n");
@@ -74,6 +84,7 @@ pub(super) fn legacy<const N: usize>(
     cells: &[[u32; N]],
     cell_type: u8,
     scalars: Option<&[f32]>,
+    metres_per_unit: Option<f64>,
     title: &str,
 ) -> Vec<u8> {
     let mut out = format!(
@@ -94,6 +105,11 @@ pub(super) fn legacy<const N: usize>(
     out.extend_from_slice(format!("\nCELL_TYPES {}\n", cells.len()).as_bytes());
     for _ in cells {
         out.extend_from_slice(&i32::from(cell_type).to_be_bytes());
+    }
+    // After the cells, where meshio as well as VTK reads it as the dataset's field data.
+    if let Some(unit) = metres_per_unit {
+        out.extend_from_slice(format!("\nFIELD FieldData 1\n{UNIT_ARRAY} 1 1 double\n").as_bytes());
+        out.extend_from_slice(&unit.to_be_bytes());
     }
     if let Some(values) = scalars {
         out.extend_from_slice(

@@ -229,7 +229,9 @@ pub(super) fn parse(bytes: &[u8]) -> Result<MeshFile, Fault> {
                     let tuples = c.count("the array's tuple count")?;
                     let ty = c.expect_word("the array type")?;
                     let values = c.values(components.checked_mul(tuples).ok_or("the array size overflows")?, ty)?;
-                    if point_data && tuples == points {
+                    if !point_data && name == super::vtk::UNIT_ARRAY {
+                        mesh.record_unit(&values);
+                    } else if point_data && tuples == points {
                         mesh.arrays.push(PointArray {
                             name,
                             components,

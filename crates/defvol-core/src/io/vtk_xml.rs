@@ -101,6 +101,14 @@ pub(super) fn parse(bytes: &[u8]) -> Result<MeshFile, Fault> {
     for piece in pieces {
         read_piece(piece, &layout, appended.as_ref(), &mut mesh)?;
     }
+    let unit = grid
+        .children()
+        .filter(|n| n.has_tag_name("FieldData"))
+        .flat_map(|data| data.children())
+        .find(|n| n.has_tag_name("DataArray") && n.attribute("Name") == Some(super::vtk::UNIT_ARRAY));
+    if let Some(node) = unit {
+        mesh.record_unit(&values(node, &layout, appended.as_ref(), Some(1))?);
+    }
     Ok(mesh)
 }
 
