@@ -41,8 +41,10 @@ pub struct DpcmArgs {
     /// Grid size, WxH phyxels (overrides the configuration's).
     #[arg(long)]
     size: Option<String>,
-    /// Motion file: CSV `time,marker,x,y,z` (seconds, id, world metres), or an MCAP bag of
-    /// geometry_msgs/msg/PoseStamped tool poses (one marker per topic).
+    /// Motion file: CSV `time,marker,x,y,z` (seconds, id, the marker's tip in world metres:
+    /// a tip at the surface's rest height touches it, one 1 mm lower presses 1 mm in), or an
+    /// MCAP bag of geometry_msgs/msg/PoseStamped tool poses (one marker per topic, each pose
+    /// the centre of the marker's sphere, as the node's tools are).
     #[arg(long, conflicts_with = "udp")]
     markers: Option<PathBuf>,
     /// With an MCAP --markers file: the pose topics to use (default: every PoseStamped topic).
@@ -52,7 +54,8 @@ pub struct DpcmArgs {
     /// or ADDR:PORT, an address other hosts can reach only when given one.
     #[arg(long, value_parser = udp_address)]
     udp: Option<SocketAddr>,
-    /// Height of UDP markers' centres (metres; default: the script's pressing height).
+    /// Height of UDP markers' tips above the grid's plane (metres; default: the script's
+    /// pressing depth below the rest height).
     #[arg(long)]
     udp_height: Option<f64>,
     /// World position of phyxel (0, 0) for motion files (default: the grid centred on the
@@ -112,13 +115,16 @@ pub fn run(args: DpcmArgs) -> Result<()> {
     }
     let mut source = if let Some(path) = &args.markers {
         let calibration = match &args.origin {
-            Some(o) => {
-                Calibration { world_from_grid: Isometry3::translation(o[0], o[1], o[2]), spacing: config.spacing }
-            }
+            Some(o) => Calibration::new(Isometry3::translation(o[0], o[1], o[2]), config.spacing),
             None => Calibration::centred(&config),
         };
         let is_mcap = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("mcap"));
-        let motion = if is_mcap { load_mcap(path, &args.marker_topics)? } else { MotionFile::load(path)? };
+        // Tool poses are the centres of their tip spheres; a CSV row is a tip.
+        let (motion, calibration) = match is_mcap {
+            true => (load_mcap(path, &args.marker_topics)?, calibration),
+            false => (MotionFile::load(path)?, calibration.at_tips(&config)),
+        };
+        warn_of_no_press(path, &motion, &calibration, &config);
         Source::Motion(motion, calibration)
     } else if let Some(addr) = args.udp {
         if !addr.ip().is_loopback() {
@@ -129,7 +135,9 @@ pub fn run(args: DpcmArgs) -> Result<()> {
             "listening for UDP marker frames on {}",
             udp.local_addr().map_or(addr.to_string(), |a| a.to_string())
         );
-        Source::Udp(udp, args.udp_height.unwrap_or_else(|| config.script.pressing_height(&config)))
+        let reach = config.marker.reach_below_centre();
+        let centre = args.udp_height.map_or_else(|| config.script.pressing_height(&config), |tip| tip + reach);
+        Source::Udp(udp, centre)
     } else {
         Source::Script
     };
@@ -186,6 +194,28 @@ pub fn run(args: DpcmArgs) -> Result<()> {
         );
     }
     write_outputs(&args, &config, &engine, None)
+}
+
+/// A motion whose markers never reach below the rest height presses nothing; a centre below
+/// it pushes the surface up around the marker (the seed's sphere repels to the nearer side).
+fn warn_of_no_press(path: &std::path::Path, motion: &MotionFile, calibration: &Calibration, config: &DpcmConfig) {
+    let centre = motion.lowest_centre(calibration);
+    let lowest = centre - config.marker.reach_below_centre();
+    if lowest >= config.rest_height {
+        tracing::warn!(
+            "{}: no marker reaches below the surface's rest height ({} m above the grid's plane; the lowest tip \
+             is at {lowest:.4} m): nothing will be pressed",
+            path.display(),
+            config.rest_height
+        );
+    } else if centre < config.rest_height {
+        tracing::warn!(
+            "{}: a marker's centre goes below the surface's rest height ({centre:.4} m against {} m): the surface \
+             there is pushed up around it, not down",
+            path.display(),
+            config.rest_height
+        );
+    }
 }
 
 #[cfg(feature = "mcap")]

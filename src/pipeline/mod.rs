@@ -315,10 +315,8 @@ impl Pipeline {
             }
             let engine = DpcmEngine::new(&config, &self.backend)?;
             let steps_per_tick = (self.scene.solver.dt / config.dt).round().max(1.0) as usize;
-            let calibration = Calibration {
-                world_from_grid: nalgebra::Isometry3::translation(c.origin[0], c.origin[1], c.origin[2]),
-                spacing: config.spacing,
-            };
+            let origin = nalgebra::Isometry3::translation(c.origin[0], c.origin[1], c.origin[2]);
+            let calibration = Calibration::new(origin, config.spacing);
             tracing::info!(
                 "DPCM: {} {}x{}, {} steps per solver step",
                 engine.name(),

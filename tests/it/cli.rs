@@ -139,35 +139,45 @@ fn dpcm_preset_writes_every_rendering_and_a_motion_file_drives_it() {
     assert_eq!(height.dims(), [96, 64, 1]);
     assert!(height.range().0 < -5e-4, "the vehicles left tracks: {:?}", height.range());
 
-    // A motion file: one marker pressing 1.5 mm into the grid's centre (world origin).
+    // A motion file: one tool tip pressing 1.5 mm into the grid's centre (world origin).
     let motion = dir.path().join("press.csv");
-    std::fs::write(&motion, "time,marker,x,y,z\n0,0,0,0,0.004\n0.2,0,0,0,0.0025\n").unwrap();
+    std::fs::write(&motion, "time,marker,x,y,z\n0,0,0,0,0.0015\n0.2,0,0,0,-0.0015\n").unwrap();
     let pressed = dir.path().join("pressed");
-    let out = defvol()
-        .args([
-            "dpcm",
-            "--preset",
-            "sand",
-            "--size",
-            "64x64",
-            "--steps",
-            "200",
-            "--render",
-            "height",
-            "--backend",
-            "cpu",
-            "--markers",
-        ])
-        .arg(&motion)
-        .arg("--out")
-        .arg(&pressed)
-        .output()
-        .unwrap();
+    let press = |motion: &std::path::Path| {
+        defvol()
+            .args([
+                "dpcm",
+                "--preset",
+                "sand",
+                "--size",
+                "64x64",
+                "--steps",
+                "200",
+                "--render",
+                "height",
+                "--backend",
+                "cpu",
+                "--markers",
+            ])
+            .arg(motion)
+            .arg("--out")
+            .arg(&pressed)
+            .output()
+            .unwrap()
+    };
+    let out = press(&motion);
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let h = defvol::io::read_volume(&pressed.join("height.mha")).unwrap();
     let centre = h.data()[32 * 64 + 32];
     let corner = h.data()[0];
-    assert!(centre < -1e-3 && corner == 0.0, "centre {centre}, corner {corner}");
+    assert!(centre < -1e-3 && centre > -2e-3 && corner == 0.0, "the tip's 1.5 mm: centre {centre}, corner {corner}");
+    // A tip that stays at or above the surface presses nothing, and is said to.
+    std::fs::write(&motion, "time,marker,x,y,z\n0,0,0,0,0.001\n0.2,0,0,0,0\n").unwrap();
+    let out = press(&motion);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success() && err.contains("no marker reaches below the surface's rest height"), "{err}");
+    let h = defvol::io::read_volume(&pressed.join("height.mha")).unwrap();
+    assert!(h.data().iter().all(|z| *z == 0.0), "untouched: {:?}", h.range());
 }
 
 #[test]

@@ -99,12 +99,15 @@ fn motion_files_interpolate_in_time_and_map_through_the_calibration() {
     drop(f);
     let motion = MotionFile::load(&path).unwrap();
     assert_eq!(motion.duration(), 1.0);
-    let calibration = Calibration { world_from_grid: Isometry3::translation(-0.01, 0.0, 0.0), spacing: 0.001 };
+    let water = DpcmConfig::preset("water").unwrap();
+    let calibration = Calibration::new(Isometry3::translation(-0.01, 0.0, 0.0), 0.001).at_tips(&water);
     let at = motion.markers_at(&calibration, 0.25);
     assert_eq!(at.len(), 1, "marker 1 has not appeared yet");
     let m = at[0];
-    // x = 0.025 m world, 0.035 m from the grid origin = 35 phyxels; z interpolated.
-    assert!((m.col - 35.0).abs() < 1e-9 && m.row.abs() < 1e-9 && (m.height - 0.0075).abs() < 1e-12, "{m:?}");
+    // x = 0.025 m world, 0.035 m from the grid origin = 35 phyxels; the tip's z interpolated,
+    // the centre water's 4 mm reach above it.
+    assert!((m.col - 35.0).abs() < 1e-9 && m.row.abs() < 1e-9 && (m.height - 0.0115).abs() < 1e-12, "{m:?}");
+    assert!((motion.lowest_centre(&calibration) - 0.004).abs() < 1e-12);
     let at = motion.markers_at(&calibration, 0.6);
     assert_eq!(at.len(), 2);
     assert!((at[1].row - 60.0).abs() < 1e-9);
@@ -122,16 +125,17 @@ fn motion_files_interpolate_in_time_and_map_through_the_calibration() {
 }
 
 #[test]
-fn a_tool_tip_becomes_a_marker_through_the_calibration_pose() {
+fn a_tool_point_becomes_a_marker_through_the_calibration_pose() {
     let c = DpcmConfig::preset("water").unwrap();
     // Grid rotated 90° about z and lifted 0.1 m: world +y runs along the grid's columns.
-    let calibration = Calibration {
-        world_from_grid: Isometry3::new(Vector3::new(0.0, 0.0, 0.1), Vector3::z() * std::f64::consts::FRAC_PI_2),
-        spacing: c.spacing,
-    };
+    let pose = Isometry3::new(Vector3::new(0.0, 0.0, 0.1), Vector3::z() * std::f64::consts::FRAC_PI_2);
+    let calibration = Calibration::new(pose, c.spacing);
     let m = calibration.marker(7, Point3::new(-0.020, 0.030, 0.103));
     assert_eq!(m.id, 7);
     assert!((m.col - 30.0).abs() < 1e-9 && (m.row - 20.0).abs() < 1e-9 && (m.height - 0.003).abs() < 1e-12, "{m:?}");
+    // The same point as a tip: water's 4 mm sphere has its centre 7 mm above the grid.
+    let m = calibration.at_tips(&c).marker(7, Point3::new(-0.020, 0.030, 0.103));
+    assert!((m.height - 0.007).abs() < 1e-12, "{m:?}");
     let centred = Calibration::centred(&c);
     let m = centred.marker(0, Point3::origin());
     assert!((m.col - 255.5).abs() < 1e-9 && (m.row - 255.5).abs() < 1e-9);
@@ -268,7 +272,7 @@ fn tool_poses_recorded_in_an_mcap_bag_drive_markers() {
     let (motion, counts) = defvol::record::bag::motion_from_bag(&path, &[]).unwrap();
     assert_eq!(counts.topics, vec!["/left/tool_pose".to_owned(), "/right/tool_pose".to_owned()]);
     assert_eq!((counts.messages, counts.dropped), (4, 2));
-    let calibration = Calibration { world_from_grid: Isometry3::identity(), spacing: 0.001 };
+    let calibration = Calibration::new(Isometry3::identity(), 0.001);
     let at = motion.markers_at(&calibration, 0.1);
     assert_eq!(at.len(), 2);
     assert!((at[0].col - 10.0).abs() < 1e-9 && (at[0].height - 0.005).abs() < 1e-12, "{:?}", at[0]);

@@ -137,6 +137,11 @@ pub struct MarkerParams {
 }
 
 impl MarkerParams {
+    /// How far the marker reaches below its centre: its lowest point.
+    pub fn reach_below_centre(&self) -> f64 {
+        self.threshold * (1.0 - self.flattening)
+    }
+
     pub(crate) fn validate(&self, name: &str) -> Result<(), DpcmError> {
         let bad = |field: &str, v: f64, why: &str| DpcmError::BadParameter {
             name: format!("{name}.{field}"),
@@ -381,7 +386,7 @@ pub enum Pattern {
 impl Script {
     /// The height of a marker centre that reaches `depth` below the rest height.
     pub fn pressing_height(&self, config: &DpcmConfig) -> f64 {
-        config.rest_height + config.marker.threshold * (1.0 - config.marker.flattening) - self.depth
+        config.rest_height + config.marker.reach_below_centre() - self.depth
     }
 
     /// The markers at time `t` (seconds).

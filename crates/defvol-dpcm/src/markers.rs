@@ -31,20 +31,36 @@ pub struct Calibration {
     pub world_from_grid: Isometry3<f64>,
     /// Metres per phyxel.
     pub spacing: f64,
+    /// Metres from a given point up to its marker's centre: 0 where points are the centres
+    /// of tools' tip spheres (tool poses); the marker's reach below its centre where points
+    /// are tips (motion files), so that a tip at the rest height touches the surface.
+    pub tip_to_centre: f64,
 }
 
 impl Calibration {
-    /// A grid lying in the world's xy plane, centred on the origin.
+    /// The grid placed by `world_from_grid`; points are marker centres.
+    pub fn new(world_from_grid: Isometry3<f64>, spacing: f64) -> Self {
+        Self { world_from_grid, spacing, tip_to_centre: 0.0 }
+    }
+
+    /// A grid lying in the world's xy plane, centred on the origin; points are marker centres.
     pub fn centred(config: &DpcmConfig) -> Self {
         let half =
             nalgebra::Vector3::new((config.width - 1) as f64, (config.height - 1) as f64, 0.0) * (0.5 * config.spacing);
-        Self { world_from_grid: Isometry3::translation(-half.x, -half.y, 0.0), spacing: config.spacing }
+        Self::new(Isometry3::translation(-half.x, -half.y, 0.0), config.spacing)
     }
 
-    /// A tool tip (world) as a marker: projected on the grid, its height above the plane.
-    pub fn marker(&self, id: u32, world_tip: Point3<f64>) -> Marker {
-        let p = self.world_from_grid.inverse_transform_point(&world_tip);
-        Marker { id, col: p.x / self.spacing, row: p.y / self.spacing, height: p.z, params: None }
+    /// The same grid, its points taken as tips: the lowest points of `config`'s markers.
+    pub fn at_tips(self, config: &DpcmConfig) -> Self {
+        Self { tip_to_centre: config.marker.reach_below_centre(), ..self }
+    }
+
+    /// A tool's point (world) as a marker: projected on the grid, its centre's height above
+    /// the grid's plane.
+    pub fn marker(&self, id: u32, world_point: Point3<f64>) -> Marker {
+        let p = self.world_from_grid.inverse_transform_point(&world_point);
+        let height = p.z + self.tip_to_centre;
+        Marker { id, col: p.x / self.spacing, row: p.y / self.spacing, height, params: None }
     }
 }
 
@@ -123,6 +139,12 @@ impl MotionFile {
     /// The last sample time.
     pub fn duration(&self) -> f64 {
         self.tracks.values().filter_map(|t| t.last().map(|s| s.0)).fold(0.0, f64::max)
+    }
+
+    /// The lowest marker centre of the file, in the grid's frame (metres above its plane).
+    pub fn lowest_centre(&self, calibration: &Calibration) -> f64 {
+        let points = self.tracks.iter().flat_map(|(id, track)| track.iter().map(move |(_, p)| (*id, *p)));
+        points.map(|(id, p)| calibration.marker(id, p).height).fold(f64::INFINITY, f64::min)
     }
 
     /// The markers at time `t`, through `calibration`.
