@@ -197,15 +197,20 @@ pub fn scene_from_parameters(parameters: &BTreeMap<String, Value>) -> Result<Sce
         set_path(&mut tree, name, value.clone())
             .map_err(|message| ArgsError::Parameter { name: name.clone(), message })?;
     }
-    serde_yaml_ng::from_value(tree).map_err(|e: serde_yaml_ng::Error| {
-        let message = e.to_string();
+    // Through text, where serde_yaml_ng tracks the path of a field.
+    let text = serde_yaml_ng::to_string(&tree)
+        .map_err(|e| ArgsError::Parameter { name: origin.clone(), message: e.to_string() })?;
+    crate::scene::field_path::parse(&text, crate::scene::DEFAULT_SCENE, false).map_err(|message| {
         // The parameter that breaks the scene on its own, named with its value.
         let culprit = scene_parameters().find(|(name, value)| {
             let mut alone = base.clone();
             set_path(&mut alone, name, (*value).clone()).is_ok() && serde_yaml_ng::from_value::<Scene>(alone).is_err()
         });
         match culprit {
-            Some((name, value)) => ArgsError::Value { name: name.clone(), value: inline(value), message },
+            Some((name, value)) => {
+                let message = message.strip_prefix(&format!("{name}: ")).map_or(message.clone(), str::to_owned);
+                ArgsError::Value { name: name.clone(), value: inline(value), message }
+            }
             None => ArgsError::Parameter { name: origin, message },
         }
     })

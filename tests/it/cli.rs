@@ -641,6 +641,19 @@ fn an_error_names_its_cause_once() {
     assert_eq!(err.matches("No such file or directory").count(), 1, "{err}");
 }
 
+#[test]
+fn a_scene_typo_is_named_by_its_field_path_with_the_nearest_name() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = dir.path().join("typo.yaml");
+    std::fs::write(&scene, defvol::scene::DEFAULT_SCENE.replace("  stiffness: 1000.0", "  stifness: 1000.0")).unwrap();
+    let out = defvol().args(["simulate", "--steps", "1", "--scene"]).arg(&scene).arg("--out").arg(dir.path()).output();
+    let out = out.unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{err}");
+    assert!(err.contains("typo.yaml: material: unknown field `stifness`"), "{err}");
+    assert!(err.contains("(did you mean `stiffness`?)"), "{err}");
+}
+
 /// A PNG's pixels as RGBA bytes.
 fn image_pixels(path: &std::path::Path) -> Vec<u8> {
     let decoder = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(path).unwrap()));

@@ -1,6 +1,8 @@
 //! Scene descriptions (YAML): what to load or generate, the material, the solver and the
 //! tools. The default scene is `config/default_scene.yaml`, compiled in.
 
+pub mod field_path;
+
 use std::path::{Path, PathBuf};
 
 use nalgebra::{Isometry3, Vector3};
@@ -15,7 +17,7 @@ use crate::solver::{
 };
 use crate::volume::{phantom, Volume, VolumeError};
 
-pub const DEFAULT_SCENE: &str = include_str!("../config/default_scene.yaml");
+pub const DEFAULT_SCENE: &str = include_str!("../../config/default_scene.yaml");
 
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
@@ -349,8 +351,10 @@ impl Scene {
         Self::parse(DEFAULT_SCENE, "embedded default scene")
     }
 
+    /// A scene from YAML text; `origin` names it in errors, which name the field at fault.
     pub fn parse(text: &str, origin: &str) -> Result<Self, SceneError> {
-        serde_yaml_ng::from_str(text).map_err(|e| SceneError::Parse { path: origin.to_owned(), message: e.to_string() })
+        field_path::parse(text, DEFAULT_SCENE, true)
+            .map_err(|message| SceneError::Parse { path: origin.to_owned(), message })
     }
 
     pub fn from_file(path: &Path) -> Result<Self, SceneError> {

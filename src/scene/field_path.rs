@@ -1,0 +1,115 @@
+//! Scene errors that name the field: serde_yaml_ng gives the path of most errors
+//! (`solver.dt: invalid type`) but loses it inside internally tagged enums (`kind: uniform`),
+//! whose content it buffers, and gives a line within that buffer. There the entry at fault
+//! is found by trying the file's top-level entries one at a time on a whole one (the
+//! embedded default scene; a list's items one at a time), and an unknown field gets the
+//! nearest name.
+
+use serde::de::DeserializeOwned;
+use serde_yaml_ng::{Mapping, Value};
+
+/// The `T` in `text`, or an error that names the path of the field at fault and, for an
+/// unknown field, the nearest expected name. `base`: a whole `T` as YAML (the default scene)
+/// to try entries on. `keep_lines`: whether line numbers are worth keeping (the user's own
+/// text, not one made from parameters).
+pub fn parse<T: DeserializeOwned>(text: &str, base: &str, keep_lines: bool) -> Result<T, String> {
+    let error = match serde_yaml_ng::from_str::<T>(text) {
+        Ok(scene) => return Ok(scene),
+        Err(error) => error.to_string(),
+    };
+    let message =
+        match (has_path(&error), serde_yaml_ng::from_str::<Value>(text).ok().and_then(|t| culprit::<T>(&t, base))) {
+            (false, Some(path)) => format!("{path}: {}", without_location(&error)),
+            (_, _) if !keep_lines => without_location(&error).to_owned(),
+            _ => error,
+        };
+    Err(match nearest_expected(&message) {
+        Some(name) => format!("{message} (did you mean `{name}`?)"),
+        None => message,
+    })
+}
+
+/// Whether the message starts with a field path (`material.kind: …`).
+fn has_path(message: &str) -> bool {
+    message.split_once(": ").is_some_and(|(head, _)| !head.is_empty() && !head.contains(' '))
+}
+
+/// The location serde_yaml_ng gives inside a buffered enum is within the buffer: dropped.
+fn without_location(message: &str) -> &str {
+    message.rfind(" at line ").map_or(message, |at| &message[..at])
+}
+
+/// The first top-level entry of `tree` that breaks `base` on its own; for a list,
+/// the first item that does.
+fn culprit<T: DeserializeOwned>(tree: &Value, base: &str) -> Option<String> {
+    let (Value::Mapping(user), Ok(Value::Mapping(base))) = (tree, serde_yaml_ng::from_str::<Value>(base)) else {
+        return None;
+    };
+    let breaks = |key: &Value, value: &Value| {
+        let mut trial: Mapping = base.clone();
+        trial.insert(key.clone(), value.clone());
+        serde_yaml_ng::from_value::<T>(Value::Mapping(trial)).is_err()
+    };
+    let (key, value) = user.iter().find(|(key, value)| breaks(key, value))?;
+    let name = key.as_str().map_or_else(|| format!("{key:?}"), str::to_owned);
+    let item = match value {
+        Value::Sequence(items) => items.iter().position(|item| breaks(key, &Value::Sequence(vec![item.clone()]))),
+        _ => None,
+    };
+    Some(match item {
+        Some(i) => format!("{name}[{i}]"),
+        None => name,
+    })
+}
+
+/// For "unknown field `stifness`, expected `stiffness` or `damping`": the expected name
+/// nearest the unknown one, when it is near enough to be a typo.
+fn nearest_expected(message: &str) -> Option<&str> {
+    let rest = message.split("unknown field `").nth(1).or_else(|| message.split("unknown variant `").nth(1))?;
+    let (unknown, rest) = rest.split_once('`')?;
+    let expected = rest.split_once("expected")?.1;
+    let names = expected.split('`').skip(1).step_by(2);
+    names
+        .map(|name| (strsim::normalized_damerau_levenshtein(unknown, name), name))
+        .filter(|(score, _)| *score >= 0.6)
+        .max_by(|a, b| a.0.total_cmp(&b.0))
+        .map(|(_, name)| name)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::scene::{Scene, DEFAULT_SCENE};
+
+    fn error_of(text: &str) -> String {
+        parse::<Scene>(text, DEFAULT_SCENE, true).unwrap_err()
+    }
+
+    #[test]
+    fn a_typo_inside_a_tagged_enum_is_named_with_its_path_and_the_nearest_field() {
+        let text = DEFAULT_SCENE.replace("  stiffness: 1000.0", "  stifness: 1000.0");
+        let message = error_of(&text);
+        assert!(message.starts_with("material: unknown field `stifness`"), "{message}");
+        assert!(message.ends_with("(did you mean `stiffness`?)") && !message.contains("line 3"), "{message}");
+    }
+
+    #[test]
+    fn a_bad_list_item_is_named_by_its_index() {
+        let text = DEFAULT_SCENE.replace("kind: sphere, radius:", "kind: sphere, radus:");
+        let message = error_of(&text);
+        assert!(message.starts_with("tools[0]: unknown field `radus`"), "{message}");
+        assert!(message.ends_with("(did you mean `radius`?)"), "{message}");
+        // Where serde_yaml_ng keeps the path itself, it is its own.
+        let message = error_of(&DEFAULT_SCENE.replace("kind: sphere", "kind: spere"));
+        assert!(message.starts_with("tools[0].shape.kind: unknown variant `spere`"), "{message}");
+    }
+
+    #[test]
+    fn a_path_serde_gives_is_kept_and_far_names_get_no_guess() {
+        let message = error_of(&DEFAULT_SCENE.replace("  dt: 0.01", "  dt: fast"));
+        assert!(message.starts_with("solver.dt: invalid type: string \"fast\""), "{message}");
+        assert!(message.ends_with("at line 20 column 7"), "the line of the user's text: {message}");
+        let message = error_of(&DEFAULT_SCENE.replace("  stiffness: 1000.0", "  zzzzzz: 1000.0"));
+        assert!(message.starts_with("material: unknown field `zzzzzz`") && !message.contains("did you mean"));
+    }
+}
