@@ -4,8 +4,10 @@
 
 use std::io::IsTerminal;
 
-/// What is logged when `RUST_LOG` is unset.
-pub const DEFAULT_FILTER: &str = "info,rustdds=error,ros2_client=warn";
+/// What is logged when `RUST_LOG` is unset. ros2-client warns at every start that
+/// `ROS_DISTRO` is unset (it is, outside a sourced ROS workspace, and the wire format does not
+/// depend on it); a distribution that does not match still shows, as an error.
+pub const DEFAULT_FILTER: &str = "info,rustdds=error,ros2_client=warn,ros2_client::distributions=error";
 
 /// Installs the log for a binary; call once, first.
 pub fn init() {

@@ -206,6 +206,10 @@ struct Services {
 /// The running node: the pipeline, its ROS 2 entities, the feedback thread and the session.
 struct DefvolNode {
     pipeline: Pipeline,
+    /// Kept past the node: its participant must outlive every entity the node made.
+    context: ros2_client::Context,
+    /// Says when the spinner thread has let go of the node's parameter services.
+    spinner_stopped: std::sync::mpsc::Receiver<()>,
     node: Node,
     publishers: Publishers,
     services: Services,
@@ -248,10 +252,13 @@ impl DefvolNode {
         let (options, parameters) = Parameters::declare(options, declared);
         let mut node = context.new_node(node_name, options).map_err(|e| NodeError::Ros(format!("node: {e:?}")))?;
         let spinner = node.spinner().map_err(ros_err("spinner"))?;
+        let (spinner_done, spinner_stopped) = std::sync::mpsc::channel();
         std::thread::spawn(move || {
             if let Err(e) = futures::executor::block_on(spinner.spin()) {
                 tracing::error!("ROS 2 spinner stopped: {e:?}");
             }
+            // spin() consumed the spinner: its parameter services are dropped by now.
+            let _ = spinner_done.send(());
         });
 
         let publishers = Publishers {
@@ -283,6 +290,8 @@ impl DefvolNode {
         tracing::info!("node {} up: tools on {}", node.fully_qualified_name(), poses.join(", "));
         Ok(Self {
             pipeline,
+            context,
+            spinner_stopped,
             node,
             publishers,
             services,
@@ -424,13 +433,18 @@ impl DefvolNode {
     /// The feedback thread stops first; dropping the node stops its spinner; the
     /// recording is closed.
     fn close(self) -> Result<(), NodeError> {
-        let Self { feedback, node, session, publishers, services, .. } = self;
+        let Self { feedback, context, spinner_stopped, node, session, publishers, services, parameters, .. } = self;
         drop(feedback);
-        // Writers and servers go before the node that made them: dropped after it, DDS has
-        // no participant left to remove them from and logs an error at every shutdown.
+        // Writers and servers go before the node that made them, and the node (with its own
+        // parameter services and rosout) before the participant: an entity dropped after the
+        // participant has no one to remove it and DDS logs an error for each at shutdown.
         drop(publishers);
         drop(services);
+        drop(parameters);
         drop(node);
+        // Dropping the node stops its spinner, whose thread then drops the parameter services.
+        let _ = spinner_stopped.recv_timeout(std::time::Duration::from_secs(2));
+        drop(context);
         session.finish()?;
         Ok(())
     }

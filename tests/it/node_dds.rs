@@ -57,6 +57,9 @@ fn start_node(dir: &Path, seconds: u32, test: &str) -> Child {
         .arg("-p")
         .arg(format!("warp.service:=defvol/{test}_{}", std::process::id()))
         .env("ROS_DOMAIN_ID", "17")
+        .env_remove("ROS_DISTRO")
+        .env_remove("RUST_LOG")
+        .stderr(std::process::Stdio::piped())
         .spawn()
         .unwrap()
 }
@@ -80,7 +83,7 @@ fn pose_at(z: f64) -> PoseStamped {
 fn a_second_participant_drives_the_node_and_receives_every_output() {
     isolated("a_second_participant_drives_the_node_and_receives_every_output", || {
         let dir = tempfile::tempdir().unwrap();
-        let mut node_process = start_node(dir.path(), 14, "second_participant");
+        let node_process = start_node(dir.path(), 14, "second_participant");
         // A second context: in loopback-only mode a participant does not hear itself.
         let context = dds::context(17, Discovery::Localhost).unwrap();
         let mut peer = context.new_node(NodeName::new("/", "peer").unwrap(), NodeOptions::new()).unwrap();
@@ -211,8 +214,8 @@ fn a_second_participant_drives_the_node_and_receives_every_output() {
             }
             std::thread::sleep(Duration::from_millis(10));
         }
-        let status = node_process.wait().unwrap();
-        assert!(status.success(), "the node exited with {status}");
+        let exit = node_process.wait_with_output().unwrap();
+        assert!(exit.status.success(), "the node exited with {}", exit.status);
         eprintln!("received {counts:?}; peak force {peak_force} N, displacement {peak_displacement} m");
         assert!(counts.iter().all(|c| *c > 0), "every output topic delivers: {counts:?}");
         assert!(
@@ -260,12 +263,17 @@ fn a_cyclone_dds_peer_sees_ros2_types() {
             return;
         }
         let dir = tempfile::tempdir().unwrap();
-        let mut node_process = start_node(dir.path(), 12, "cyclone");
+        let node_process = start_node(dir.path(), 12, "cyclone");
         let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/interop/cyclone_peer.py");
         let out = Command::new("python3").arg(script).args(["8", "/robot"]).env("ROS_DOMAIN_ID", "17").env("CYCLONEDDS_URI", "<CycloneDDS><Domain id=\"17\"><General><Interfaces><NetworkInterface name=\"lo\"/></Interfaces></General></Domain></CycloneDDS>").output().unwrap();
         let text = String::from_utf8_lossy(&out.stdout);
         assert!(out.status.success(), "{text}{}", String::from_utf8_lossy(&out.stderr));
-        assert!(node_process.wait().unwrap().success());
+        let exit = node_process.wait_with_output().unwrap();
+        let log = String::from_utf8_lossy(&exit.stderr);
+        assert!(exit.status.success(), "{log}");
+        // A start and a shutdown say nothing alarming (no ROS_DISTRO nag, no DDS entity left
+        // behind its participant).
+        assert!(!log.contains("ERROR") && !log.contains("WARN") && log.contains("node /robot/defvol up"), "{log}");
         let got: serde_json::Value = serde_json::from_str(text.lines().last().unwrap()).unwrap();
         eprintln!("{got}");
         assert!(
