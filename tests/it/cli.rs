@@ -654,6 +654,24 @@ fn a_scene_typo_is_named_by_its_field_path_with_the_nearest_name() {
     assert!(err.contains("(did you mean `stiffness`?)"), "{err}");
 }
 
+#[test]
+fn solver_bench_cases_are_named_by_their_tets_as_the_readme_counts_them() {
+    let common = ["bench", "solver", "--sizes", "80", "--steps", "2", "--tolerances", "1e-2", "--backends", "cpu"];
+    let out = defvol().args(common).args(["--preconditioners", "amg", "--json"]).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let rows: Vec<serde_json::Value> =
+        String::from_utf8_lossy(&out.stdout).lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    assert!(!rows.is_empty());
+    for row in &rows {
+        assert_eq!((row["case"].as_str(), row["work"]["tets"].as_u64()), (Some("cantilever_80tets"), Some(80)));
+    }
+    let out = defvol().args(common).args(["--preconditioners", "amg"]).output().unwrap();
+    let table = String::from_utf8_lossy(&out.stdout);
+    let (header, first) = (table.lines().next().unwrap(), table.lines().nth(1).unwrap());
+    assert_eq!(header.find("backend"), first.find(" cpu ").map(|at| at + 1), "columns line up:\n{table}");
+    assert!(!table.contains("NaN"), "{table}");
+}
+
 /// A PNG's pixels as RGBA bytes.
 fn image_pixels(path: &std::path::Path) -> Vec<u8> {
     let decoder = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(path).unwrap()));
