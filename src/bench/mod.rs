@@ -1,5 +1,5 @@
 //! `defvol bench`: run time against error, one JSON object per measurement
-//! (format in `../shared/conventions.md`), plus a human table.
+//! (format in `docs/conventions.md`), plus a human table.
 
 pub mod dpcm;
 pub mod node;

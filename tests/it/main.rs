@@ -12,6 +12,8 @@ mod fuzz_loaders;
 mod layers;
 #[cfg(feature = "ros")]
 mod node_dds;
+#[cfg(all(feature = "ros", feature = "mcap", feature = "shm"))]
+mod readme;
 mod render;
 #[cfg(feature = "mcap")]
 mod session;

@@ -1,0 +1,266 @@
+//! Every defvol command in the README's shell blocks, run through the real binaries in the
+//! README's order: each line as it stands, on tiny files standing in for the ones it names
+//! (`ct.nii.gz`, `organ.vtu`, …), with the sizes that would take minutes cut by the
+//! replacements listed beside it. A README command the table lacks fails the test, and so
+//! does a listed line the README no longer has. The build-loop lines (`cargo test`,
+//! `cargo clippy`, `tests/run.sh`) are this suite itself. Node lines run inside a private
+//! network namespace (tests/netns-run), as every DDS participant here does.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+
+use defvol::mesh::generate::{lattice, CellSplit};
+use nalgebra::Vector3;
+
+/// A README command, what the suite replaces in it, and the files it must leave behind.
+struct Run {
+    line: &'static str,
+    replace: &'static [(&'static str, &'static str)],
+    writes: &'static [&'static str],
+}
+
+const SMALL_BENCH: &str = "--steps 2 --tolerances 1e-2 --preconditioners amg --allow-software-gpu";
+
+const RUNS: &[Run] = &[
+    Run {
+        line: "cargo run --release -- demo --seconds 2 --out out",
+        replace: &[("--seconds 2", "--seconds 0.2")],
+        writes: &["out"],
+    },
+    Run {
+        line: "defvol node --record session.mcap --ros-args -r __ns:=/robot -p stages.warp:=false",
+        replace: &[
+            ("node --record", "node --seconds 1 --backend cpu --record"),
+            ("stages.warp:=false", "stages.warp:=false -p scene_file:=my_scene.yaml"),
+        ],
+        writes: &["session.mcap"],
+    },
+    Run {
+        line: "defvol_node --ros-args --params-file my_params.yaml",
+        replace: &[("defvol_node --ros-args", "defvol_node --seconds 1 --backend cpu --ros-args")],
+        writes: &[],
+    },
+    Run {
+        line: "cargo run --release -- simulate --steps 100 --out out --warp-out out/warped.nii.gz",
+        replace: &[("--steps 100", "--steps 3 --tets 300")],
+        writes: &["out/rest.vtu", "out/final.vtu", "out/steps.csv", "out/warped.nii.gz"],
+    },
+    Run {
+        line: "defvol simulate --mesh organ.vtu --integrator implicit-euler --dt 0.01 --steps 500 --backend gpu",
+        replace: &[("--steps 500", "--steps 3 --out organ_out"), ("--backend gpu", "--backend gpu --allow-software-gpu")],
+        writes: &["organ_out/final.vtu"],
+    },
+    Run {
+        line: "defvol simulate --scene my_scene.yaml --f64",
+        replace: &[("--f64", "--f64 --steps 3")],
+        writes: &["out/final.vtu"],
+    },
+    Run {
+        line: "defvol bench solver --backends cpu,gpu",
+        replace: &[("cpu,gpu", "cpu,gpu --sizes 80 --steps 2 --tolerances 1e-2 --preconditioners amg --allow-software-gpu")],
+        writes: &[],
+    },
+    Run {
+        line: "defvol bench solver --sizes 80,14000 --json > solver.jsonl",
+        replace: &[("80,14000", "80"), ("--json", SMALL_BENCH), (" >", " --json >")],
+        writes: &["solver.jsonl"],
+    },
+    Run {
+        line: "defvol warp --rest out/rest.vtu --deformed out/final.vtu --volume ct.nii.gz --out warped.nii.gz",
+        replace: &[],
+        writes: &["warped.nii.gz"],
+    },
+    Run {
+        line: "defvol warp --volume ct.mha --displace 10,5,0:0,0,4:30 --out pushed.mha",
+        replace: &[],
+        writes: &["pushed.mha"],
+    },
+    Run { line: "defvol warp --out warped.nrrd", replace: &[], writes: &["warped.nrrd"] },
+    Run {
+        line: "defvol bench warp --incremental --gpu",
+        replace: &[("--gpu", "--gpu --allow-software-gpu --tets 40 --cases upright --dims 48,32,24 --runs 1")],
+        writes: &[],
+    },
+    Run {
+        line: "defvol dpcm --preset water --steps 2000 --out out/dpcm",
+        replace: &[("--steps 2000", "--steps 20 --size 64x64")],
+        writes: &["out/dpcm/colour.png", "out/dpcm/height.mha"],
+    },
+    Run {
+        line: "defvol dpcm --preset sand --markers path.csv --out out/sand",
+        replace: &[("--out", "--steps 20 --size 64x64 --out")],
+        writes: &["out/sand/height.mha"],
+    },
+    Run {
+        line: "defvol dpcm --preset loose_soil --udp 9000 --realtime --steps 60000",
+        replace: &[("--udp 9000", "--udp 0"), ("--steps 60000", "--steps 20 --size 64x64 --out out/udp")],
+        writes: &["out/udp/height.mha"],
+    },
+    Run {
+        line: "defvol bench dpcm --gpu",
+        replace: &[(
+            "--gpu",
+            "--gpu --allow-software-gpu --size 64,64 --markers 1 --topologies four --physics elastic --steps 5 --no-sweep",
+        )],
+        writes: &[],
+    },
+    Run {
+        line: "defvol render --out view.png --depth-out depth.mha",
+        replace: &[("--out", "--size 64x48 --out")],
+        writes: &["view.png", "depth.mha"],
+    },
+    Run {
+        line: "defvol render --volume ct.nii.gz --tf ct_bone --camera 0,-600,200:0,0,0 --size 1024x1024",
+        replace: &[("1024x1024", "64x64")],
+        writes: &["render.png"],
+    },
+    Run {
+        line: "defvol render --mode iso --iso 300 --shading forward-difference --out bone.png",
+        replace: &[("--out", "--size 64x48 --out")],
+        writes: &["bone.png"],
+    },
+    Run {
+        line: "defvol render --mesh out/final.vtu --volume ct.nii.gz --out mesh.png",
+        replace: &[("--out", "--size 64x48 --out")],
+        writes: &["mesh.png"],
+    },
+    Run {
+        line: "defvol render --mesh organ.vtu --scalars dose --tf-file dose.yaml",
+        // defvol writes a mesh's one point array under the name `scalar`.
+        replace: &[("--scalars dose", "--scalars scalar"), ("dose.yaml", "dose.yaml --size 64x48 --out dose.png")],
+        writes: &["dose.png"],
+    },
+    Run {
+        line: "defvol render --mesh out/rest.vtu --deformed out/final.vtu --volume ct.nii.gz --out ct.png",
+        replace: &[("--out", "--size 64x48 --out")],
+        writes: &["ct.png"],
+    },
+    Run {
+        line: "defvol bench render",
+        replace: &[(
+            "render",
+            "render --sizes 32 --steps 4 --runs 1 --reference-step 2 --no-warped --meshes --source-meshes",
+        )],
+        writes: &[],
+    },
+    Run {
+        line: "tests/netns-run defvol bench node",
+        replace: &[("node", "node --tets 300 --steps 30 --settle 5 --volume-mib 1 --volume-frames 2")],
+        writes: &[],
+    },
+];
+
+fn root() -> &'static Path {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+}
+
+/// The commands of the README's shell blocks: comments and build-loop lines left out.
+fn readme_commands() -> Vec<String> {
+    let text = std::fs::read_to_string(root().join("README.md")).unwrap();
+    let mut commands = Vec::new();
+    let mut in_shell = false;
+    for line in text.lines() {
+        if line.starts_with("```") {
+            in_shell = !in_shell && (line == "```sh" || line == "```bash");
+            continue;
+        }
+        let command = line.split(" #").next().unwrap_or("").trim();
+        let runs_defvol =
+            ["defvol", "defvol_node", "cargo run", "tests/netns-run"].iter().any(|p| command.starts_with(p));
+        if in_shell && runs_defvol {
+            commands.push(command.to_owned());
+        }
+    }
+    commands
+}
+
+/// The tiny stand-ins for the files the README's commands name.
+fn stand_ins(dir: &Path) {
+    let phantom = defvol::volume::phantom::phantom([64, 40, 31], 4.0).unwrap();
+    defvol::io::write_volume(&dir.join("ct.nii.gz"), &phantom).unwrap();
+    defvol::io::write_volume(&dir.join("ct.mha"), &phantom).unwrap();
+    // An organ in millimetres with a point array, as a user's file would be.
+    let mut organ = lattice(Vector3::repeat(-30.0), Vector3::repeat(30.0), [3, 3, 3], CellSplit::Five).unwrap();
+    organ.set_scalars((0..organ.nodes().len()).map(|i| i as f32).collect()).unwrap();
+    defvol::io::write_mesh(&dir.join("organ.vtu"), &organ, None, None).unwrap();
+    let scene = root().join("tests/data/small_scene.yaml");
+    std::fs::copy(&scene, dir.join("my_scene.yaml")).unwrap();
+    std::fs::write(dir.join("path.csv"), "time,marker,x,y,z\n0,0,0,0,0.001\n0.02,0,0,0,-0.001\n").unwrap();
+    let tf = "relative: true\npoints:\n  - { value: 0.0, color: [0, 0, 1], opacity: 0.0 }\n  - { value: 1.0, color: [1, 0, 0], opacity: 0.5 }\n";
+    std::fs::write(dir.join("dose.yaml"), tf).unwrap();
+    let params = format!(
+        "/**:\n  ros__parameters:\n    scene_file: {}\n    warp.service: defvol/readme_{}\n",
+        scene.display(),
+        std::process::id()
+    );
+    std::fs::write(dir.join("my_params.yaml"), params).unwrap();
+}
+
+/// The line's program and arguments as the suite runs them; stdout's file for a `>`.
+fn command_for(line: &str) -> (Command, Option<PathBuf>) {
+    let mut words: Vec<&str> = line.split_whitespace().collect();
+    let stdout = words.iter().position(|w| *w == ">").map(|at| {
+        let file = PathBuf::from(words[at + 1]);
+        words.truncate(at);
+        file
+    });
+    if words.starts_with(&["cargo", "run", "--release", "--"]) {
+        words.splice(0..4, ["defvol"]);
+    }
+    let binary = |word: &str| match word {
+        "defvol" => env!("CARGO_BIN_EXE_defvol"),
+        "defvol_node" => env!("CARGO_BIN_EXE_defvol_node"),
+        other => panic!("`{other}` is not a defvol binary"),
+    };
+    // DDS participants only inside a private network namespace.
+    let dds = words.contains(&"node") || words[0] == "defvol_node";
+    let (program, args) = match (words[0], dds) {
+        ("tests/netns-run", _) => (
+            root().join("tests/netns-run"),
+            std::iter::once(binary(words[1])).chain(words[2..].iter().copied()).collect(),
+        ),
+        (first, true) => {
+            (root().join("tests/netns-run"), std::iter::once(binary(first)).chain(words[1..].iter().copied()).collect())
+        }
+        (first, false) => (PathBuf::from(binary(first)), words[1..].to_vec()),
+    };
+    let mut command = Command::new(program);
+    command.args(args);
+    (command, stdout)
+}
+
+#[test]
+fn every_readme_command_runs_as_written_on_tiny_stand_ins() {
+    let listed: Vec<&str> = RUNS.iter().map(|r| r.line).collect();
+    let commands = readme_commands();
+    let missing: Vec<&String> = commands.iter().filter(|c| !listed.contains(&c.as_str())).collect();
+    let stale: Vec<&&str> = listed.iter().filter(|l| !commands.iter().any(|c| c == *l)).collect();
+    assert!(
+        missing.is_empty() && stale.is_empty(),
+        "README commands the suite does not run: {missing:#?}\nlisted lines the README lost: {stale:#?}"
+    );
+    let dir = tempfile::tempdir().unwrap();
+    stand_ins(dir.path());
+    for run in RUNS {
+        let mut line = run.line.to_owned();
+        for (from, to) in run.replace {
+            assert!(line.contains(from), "`{from}` is not in `{}`", run.line);
+            line = line.replacen(from, to, 1);
+        }
+        let (mut command, stdout) = command_for(&line);
+        command.current_dir(dir.path()).env("ROS_DOMAIN_ID", "29").env_remove("RUST_LOG");
+        let out = match &stdout {
+            Some(file) => {
+                let file = std::fs::File::create(dir.path().join(file)).unwrap();
+                command.stdout(Stdio::from(file)).output().unwrap()
+            }
+            None => command.output().unwrap(),
+        };
+        assert!(out.status.success(), "`{line}` failed:\n{}", String::from_utf8_lossy(&out.stderr));
+        for file in run.writes {
+            assert!(dir.path().join(file).exists(), "`{line}` did not write {file}");
+        }
+    }
+    let rows = std::fs::read_to_string(dir.path().join("solver.jsonl")).unwrap();
+    assert!(rows.lines().all(|l| serde_json::from_str::<serde_json::Value>(l).is_ok()), "{rows}");
+}
