@@ -14,6 +14,51 @@ fn block() -> MassSpringModel {
     MassSpringModel::new(&mesh, &Material::Uniform { stiffness: 500.0, damping: 1.0 }, 1000.0, &fixed, None).unwrap()
 }
 
+/// What the springs pull on the fixed nodes with at `positions`: at rest (no damping force),
+/// the load the supports carry, which balances every external force the mesh received. It
+/// is computed from the positions alone, not from the contact list the reaction sums.
+fn support_load(model: &MassSpringModel, positions: &[Vector3<f64>]) -> Vector3<f64> {
+    let mut load = Vector3::zeros();
+    for (e, [a, b]) in model.springs.iter().enumerate() {
+        let (a, b) = (*a as usize, *b as usize);
+        let edge = positions[b] - positions[a];
+        let on_a = model.stiffness[e] * (edge.norm() - model.rest_length[e]) * edge.normalize();
+        if model.fixed[a] {
+            load += on_a;
+        }
+        if model.fixed[b] {
+            load -= on_a;
+        }
+    }
+    load
+}
+
+/// The rest stiffness matrix of the free nodes (k n nᵀ per spring), dense: the linear
+/// prediction of a small load's displacement.
+fn free_stiffness(model: &MassSpringModel) -> (nalgebra::DMatrix<f64>, Vec<Option<usize>>) {
+    let mut index = vec![None; model.rest.len()];
+    let mut free = 0;
+    for (i, slot) in index.iter_mut().enumerate() {
+        if !model.fixed[i] {
+            *slot = Some(free);
+            free += 1;
+        }
+    }
+    let mut k = nalgebra::DMatrix::zeros(3 * free, 3 * free);
+    for (e, [a, b]) in model.springs.iter().enumerate() {
+        let n = (model.rest[*b as usize] - model.rest[*a as usize]).normalize();
+        let block = model.stiffness[e] * n * n.transpose();
+        let (ia, ib) = (index[*a as usize], index[*b as usize]);
+        for (p, q, sign) in [(ia, ia, 1.0), (ib, ib, 1.0), (ia, ib, -1.0), (ib, ia, -1.0)] {
+            if let (Some(p), Some(q)) = (p, q) {
+                let mut view = k.fixed_view_mut::<3, 3>(3 * p, 3 * q);
+                view += block * sign;
+            }
+        }
+    }
+    (k, index)
+}
+
 #[test]
 fn pressing_sphere_settles_with_reaction_equal_to_the_support_load() {
     let model = block();
@@ -25,9 +70,13 @@ fn pressing_sphere_settles_with_reaction_equal_to_the_support_load() {
     for _ in 0..400 {
         report = sim.step().unwrap();
     }
-    // Pushed down, at rest, the tool feels the tissue push it up (+z).
-    assert!(report.reaction(0).force[2] > 0.05, "{report:?}");
-    assert!(report.kinetic_energy < 1e-9, "settled: {report:?}");
+    // Pushed down, at rest, the tool feels the tissue push it up (+z), as hard as the
+    // supports hold the block down.
+    let felt = Vector3::from(report.reaction(0).force);
+    assert!(felt.z > 0.05, "{report:?}");
+    assert!(report.kinetic_energy < 1e-12, "settled: {report:?}");
+    let support = support_load(&model, &sim.positions_f64());
+    assert!((felt + support).norm() < 1e-4 * felt.norm(), "felt {felt} N, the supports carry {support} N");
     assert!(report.reaction(0).force[0].abs() < 1e-6 * report.reaction(0).force[2] + 1e-9, "symmetric: {report:?}");
     // No node remains inside the sphere by more than the penalty depth F/k_c of one node.
     let worst_depth =
@@ -36,28 +85,41 @@ fn pressing_sphere_settles_with_reaction_equal_to_the_support_load() {
 }
 
 #[test]
-fn commanded_force_displaces_the_surface_and_is_felt_back() {
+fn commanded_force_displaces_the_surface_as_its_stiffness_predicts_and_the_supports_carry_it() {
     let model = block();
     let mut tool = Tool::new(ToolShape::Sphere { radius: 0.001 }, 0.0);
     tool.world_from_tool = Isometry3::translation(0.0, 0.0, 0.0);
     tool.spread_radius = 0.03;
-    tool.applied_force = Vector3::new(0.0, 0.0, -1.0);
-    let params = SolverParams { gravity: [0.0; 3], ..Default::default() };
-    let mut sim = Simulation::<f32>::new(&model, params, vec![tool]).unwrap();
+    // Small enough for the linear prediction: a fraction of a millimetre.
+    tool.applied_force = Vector3::new(0.0, 0.0, -0.05);
+    let params = SolverParams { gravity: [0.0; 3], dt: 0.01, cg_tolerance: 1e-10, ..Default::default() };
+    let mut sim = Simulation::<f64>::new(&model, params, vec![tool.clone()]).unwrap();
     let mut report = sim.step().unwrap();
-    for _ in 0..300 {
+    for _ in 0..2000 {
         report = sim.step().unwrap();
+        if report.kinetic_energy < 1e-20 {
+            break;
+        }
     }
-    let top_centre = sim
-        .positions_f64()
-        .iter()
-        .zip(&model.rest)
-        .filter(|(_, r)| r.x.abs() < 1e-9 && r.y.abs() < 1e-9 && r.z.abs() < 1e-9)
-        .map(|(p, _)| p.z)
-        .next()
-        .unwrap();
-    assert!(top_centre < -1e-4, "pushed down: {top_centre}");
-    assert!((report.reaction(0).force[2] - 1.0).abs() < 1e-9, "{report:?}");
+    assert!(report.kinetic_energy < 1e-20, "settled: {report:?}");
+    // K u = f on the free nodes, f spread as the tool spreads it over the rest positions.
+    let (k, index) = free_stiffness(&model);
+    let mut f = nalgebra::DVector::zeros(k.nrows());
+    for (node, w) in defvol::solver::tool::spread_weights(&model.rest, &Vector3::zeros(), tool.spread_radius) {
+        if let Some(i) = index[node as usize] {
+            f.fixed_rows_mut::<3>(3 * i).copy_from(&(tool.applied_force * w));
+        }
+    }
+    let predicted = k.lu().solve(&f).unwrap();
+    let moved: Vec<Vector3<f64>> = sim.positions_f64().iter().zip(&model.rest).map(|(p, r)| p - r).collect();
+    let centre = model.rest.iter().position(|r| r.norm() < 1e-9).unwrap();
+    let (got, want) = (moved[centre].z, predicted[3 * index[centre].unwrap() + 2]);
+    assert!(want < -1e-5 && (got - want).abs() < 0.02 * want.abs(), "top centre moved {got} m, K predicts {want} m");
+    // The supports carry the commanded force, and the tool feels it back.
+    let support = support_load(&model, &sim.positions_f64());
+    assert!((support - tool.applied_force).norm() < 1e-3 * 0.05, "the supports carry {support} N");
+    let felt = Vector3::from(report.reaction(0).force);
+    assert!((felt + support).norm() < 1e-3 * 0.05, "felt {felt} N against {support} N carried");
 }
 
 /// A slab whose boundary spacing is 15-17 mm, fixed at the bottom, top at z = 0.
