@@ -324,6 +324,16 @@ impl FeedbackLoop {
         for (count, reaction) in self.saturated_steps.iter_mut().zip(&report.reactions) {
             *count += u64::from(reaction.coupling_saturated);
         }
+        for (index, reaction) in report.reactions.iter().enumerate() {
+            let before = self.last_report.as_ref().is_some_and(|r| r.reaction(index).passed_through);
+            if reaction.passed_through && !before {
+                tracing::warn!(
+                    "{}: the tool went through the surface (its tip is inside the body and no contact holds it: a \
+                     teleport, or a pose step too long); a coupling holds a tool at the surface",
+                    self.tools[index].pose_topic
+                );
+            }
+        }
         let feedback = (self.tools.iter().enumerate())
             .map(|(index, t)| outputs::feedback(&report, index, t.last_pose.unwrap_or(stamp), &self.frame_id))
             .collect();

@@ -325,3 +325,29 @@ fn a_pose_jumping_through_the_organ_is_held_at_the_surface() {
     }
     assert!(saturated == 500, "every step reports the saturated coupling ({saturated})");
 }
+
+/// An uncoupled thin tool put deeper than a spacing into the body meets no face: nothing
+/// holds it, and the step says it went through, rather than passing silently. Above the
+/// surface, or held by it, it did not.
+#[test]
+fn a_thin_tool_put_through_the_surface_is_reported_not_passed_silently() {
+    let (_, model) = coarse_slab();
+    let radius = 0.001;
+    let tool = Tool::new(ToolShape::Sphere { radius }, 20_000.0);
+    let params = SolverParams { gravity: [0.0; 3], dt: 0.002, cg_tolerance: 1e-9, ..Default::default() };
+    let mut sim = Simulation::<f64>::new(&model, params, vec![tool]).unwrap();
+    let mut at = |z: f64| {
+        sim.tool_mut(0).unwrap().world_from_tool = Isometry3::translation(0.043, 0.058, z);
+        sim.step().unwrap().reaction(0)
+    };
+    let above = at(0.01);
+    assert!(!above.passed_through && above.force == [0.0; 3], "{above:?}");
+    let pressing = at(radius - 0.002);
+    assert!(!pressing.passed_through && pressing.force[2] > 0.0, "held by the surface: {pressing:?}");
+    // 40 mm deep, more than two spacings: no face within reach.
+    let inside = at(-0.04);
+    assert!(inside.passed_through && inside.force == [0.0; 3], "{inside:?}");
+    // Beside the slab, level with its inside: outside the body.
+    sim.tool_mut(0).unwrap().world_from_tool = Isometry3::translation(0.2, 0.058, -0.04);
+    assert!(!sim.step().unwrap().reaction(0).passed_through);
+}

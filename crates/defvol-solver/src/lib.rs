@@ -170,4 +170,7 @@ pub struct Reaction {
     /// The coupling held the device back with its largest force this step (the device's
     /// pose ran away from the tool: a dropped packet, a teleport through the organ).
     pub coupling_saturated: bool,
+    /// A surface-contact tool's tip lies inside the body with no contact holding it: it went
+    /// through the surface (a teleport, or a step too long), and nothing pushes back.
+    pub passed_through: bool,
 }

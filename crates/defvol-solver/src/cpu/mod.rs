@@ -364,7 +364,12 @@ impl<T: Real> Simulation<T> {
                 kinetic += 0.5 * coupling.mass * proxy.v.norm_squared();
                 contact_energy += 0.5 * coupling.stiffness * (tool.tip() - proxy.x).norm_squared();
             }
-            reactions.push(Reaction { force: force.into(), torque: torque.into(), coupling_saturated });
+            reactions.push(Reaction {
+                force: force.into(),
+                torque: torque.into(),
+                coupling_saturated,
+                passed_through: false,
+            });
         }
         let max_displacement = self.u.iter().map(|u| u.norm().to_f64()).fold(0.0, f64::max);
         StepReport {
