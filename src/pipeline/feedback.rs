@@ -303,6 +303,19 @@ impl FeedbackLoop {
         self.quiet_steps = 0;
     }
 
+    /// While the solver sleeps: each tool's last reaction (the mesh at rest and untouched)
+    /// stamped with its latest pose, so that a device streaming poses gets an answer to each
+    /// at a fixed rate. None while awake or paused, or before the first step.
+    pub fn resting_feedback(&self, stamp: Time) -> Option<Vec<WrenchStamped>> {
+        if !self.asleep || self.paused {
+            return None;
+        }
+        let report = self.last_report.as_ref()?;
+        let feedback = (self.tools.iter().enumerate())
+            .map(|(index, t)| outputs::feedback(report, index, t.last_pose.unwrap_or(stamp), &self.frame_id));
+        Some(feedback.collect())
+    }
+
     /// One solver step, unless there is no solver here, or it is paused or asleep.
     pub fn step(&mut self, stamp: Time) -> Result<Option<Stepped>, PipelineError> {
         let Some(engine) = self.engine.as_mut().filter(|_| !self.paused && !self.asleep) else {

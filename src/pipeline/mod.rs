@@ -562,6 +562,9 @@ impl Pipeline {
             if let Some(f) = &mut self.frames {
                 (f.warp_stale, f.raycast_stale) = (true, true);
             }
+        } else if demand.tool_feedback {
+            // Asleep, the devices still get a force every tick.
+            out.tool_feedback = self.feedback.resting_feedback(stamp).unwrap_or_default();
         }
         // Output rates run on the stamps' clock (bag time in replays, wall time live), which
         // goes on while the solver sleeps.
@@ -769,6 +772,14 @@ mod tests {
             "asleep after {SLEEP_AFTER} quiet steps"
         );
         assert!(p.asleep());
+        // Asleep, a device holding still gets its (zero) force at every tick, stamped with
+        // its pose, and the solver does not step.
+        p.apply_pose("tool_pose", &pose(0.405, 0.5), Time::from_secs(0.405)).unwrap();
+        let out = p.tick(Time::from_secs(0.41), &Demand::ALL).unwrap();
+        assert!(!out.stepped && p.asleep());
+        let [answer] = &out.tool_feedback[..] else { panic!("one answer: {:?}", out.tool_feedback) };
+        assert_eq!(answer.header.stamp, Time::from_secs(0.405));
+        assert_eq!((answer.wrench.force.x, answer.wrench.force.y, answer.wrench.force.z), (0.0, 0.0, 0.0));
         // Pressing 5 mm into the top node nearest the centre wakes it, and it stays awake
         // while the tool touches (contact acts on nodes: aim at one on this coarse mesh).
         let top = p

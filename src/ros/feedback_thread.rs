@@ -209,6 +209,15 @@ impl Worker {
                 }
             } else if idle {
                 next_step = now;
+                // Asleep, each pose still gets its answer: the rest state's force.
+                if let Some(msgs) = self.feedback.resting_feedback(Time::now()).filter(|_| posed) {
+                    for (publisher, msg) in self.io.feedback.iter().zip(&msgs) {
+                        if let Err(e) = publisher.1.publish(msg.clone()) {
+                            tracing::debug!("{}: not sent ({e:?})", publisher.0);
+                        }
+                    }
+                    let _ = self.events.send(Event::Feedback { stamp: Time::now(), msgs });
+                }
             }
             if stepped.is_some() || changed || commanded {
                 self.publish_state(stepped);
