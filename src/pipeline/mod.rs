@@ -805,6 +805,30 @@ mod tests {
         assert_eq!(p.tool_on("tool_pose").unwrap().1.translation.z, top.z + 0.02);
     }
 
+    /// Poses at 10 kHz into a 1 kHz loop: each step uses the latest pose and answers it
+    /// once; the nine before it are coalesced, neither queued for later steps nor refused.
+    #[test]
+    fn a_pose_stream_faster_than_the_loop_is_coalesced_not_queued() {
+        let mut s = scene(crate::scene::Stages::default());
+        s.tools[0].path = None;
+        s.solver.dt = 1e-3;
+        let mut p = pipeline(s);
+        for step in 1..=5u32 {
+            for k in 0..10u32 {
+                let t = f64::from(10 * (step - 1) + k) * 1e-4;
+                p.apply_pose("tool_pose", &pose(t, 0.2 - t), Time::from_secs(t)).unwrap();
+            }
+            let stamp = Time::from_secs(f64::from(step) * 1e-3);
+            let out = p.tick(stamp, &Demand::ALL).unwrap();
+            let latest = Time::from_secs(f64::from(10 * step - 1) * 1e-4);
+            let [answer] = &out.tool_feedback[..] else { panic!("one answer a step: {:?}", out.tool_feedback) };
+            assert!(out.stepped && answer.header.stamp == latest, "step {step} answers the latest pose");
+            let at = p.tool_on("tool_pose").unwrap().1.translation.z;
+            assert!((at - (0.2 - f64::from(10 * step - 1) * 1e-4)).abs() < 1e-12, "step {step} uses it");
+        }
+        assert_eq!(p.counters().total_rejected(), 0, "none refused");
+    }
+
     /// The node's arrangement: the loop detached and stepped on its own, the pipeline
     /// following its states, against the same run in lockstep.
     #[test]
