@@ -33,17 +33,11 @@ pub(super) fn mesh_scale(text: &str) -> Result<f64, String> {
 /// (volumes are in millimetres, as medical files are), else the file's numbers as they are.
 pub(super) fn mesh_over_volume(path: &Path, chosen: Option<f64>) -> Result<(TetMesh, f64)> {
     let read = defvol::io::read_mesh_with_metadata(path)?;
-    let scale = match (chosen, read.metres_per_unit) {
-        (Some(scale), _) => scale,
-        (None, Some(unit)) => {
-            let scale = unit / MILLIMETRE;
-            tracing::info!("{}: the file records {unit} m per unit: x{scale} into millimetres", path.display());
-            scale
-        }
-        (None, None) => 1.0,
-    };
-    let mut mesh = read.mesh;
-    mesh.map_nodes(|p| p * scale);
+    let recorded = read.metres_per_unit.filter(|_| chosen.is_none());
+    let (mesh, scale) = read.into_scaled(MILLIMETRE, chosen, 1.0);
+    if let Some(unit) = recorded {
+        tracing::info!("{}: the file records {unit} m per unit: x{scale} into millimetres", path.display());
+    }
     Ok((mesh, scale))
 }
 

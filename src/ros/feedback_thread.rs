@@ -187,13 +187,7 @@ impl Worker {
             if due && !self.feedback.paused() && !self.feedback.asleep() {
                 match self.feedback.step(Time::now()) {
                     Ok(Some(mut s)) => {
-                        for (publisher, msg) in self.io.feedback.iter().zip(&s.feedback) {
-                            if let Err(e) = publisher.1.publish(msg.clone()) {
-                                tracing::debug!("{}: not sent ({e:?})", publisher.0);
-                            }
-                        }
-                        let msgs = std::mem::take(&mut s.feedback);
-                        let _ = self.events.send(Event::Feedback { stamp: Time::now(), msgs });
+                        self.send_feedback(std::mem::take(&mut s.feedback));
                         stepped = Some(s);
                     }
                     Ok(None) => {}
@@ -210,19 +204,24 @@ impl Worker {
             } else if idle {
                 next_step = now;
                 // Asleep, each pose still gets its answer: the rest state's force.
-                if let Some(msgs) = self.feedback.resting_feedback(Time::now()).filter(|_| posed) {
-                    for (publisher, msg) in self.io.feedback.iter().zip(&msgs) {
-                        if let Err(e) = publisher.1.publish(msg.clone()) {
-                            tracing::debug!("{}: not sent ({e:?})", publisher.0);
-                        }
-                    }
-                    let _ = self.events.send(Event::Feedback { stamp: Time::now(), msgs });
+                if let Some(msgs) = posed.then(|| self.feedback.resting_feedback(Time::now())).flatten() {
+                    self.send_feedback(msgs);
                 }
             }
             if stepped.is_some() || changed || commanded {
                 self.publish_state(stepped);
             }
         }
+    }
+
+    /// Publishes each tool's feedback and hands it to the node to record.
+    fn send_feedback(&self, msgs: Vec<WrenchStamped>) {
+        for (publisher, msg) in self.io.feedback.iter().zip(&msgs) {
+            if let Err(e) = publisher.1.publish(msg.clone()) {
+                tracing::debug!("{}: not sent ({e:?})", publisher.0);
+            }
+        }
+        let _ = self.events.send(Event::Feedback { stamp: Time::now(), msgs });
     }
 
     /// Waits on every tool subscription (`true`) or stops waiting on them.

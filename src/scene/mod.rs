@@ -400,17 +400,16 @@ impl Scene {
 /// A mesh file in world metres: scaled by `chosen`, else by the unit the file records, else
 /// by the scene's `file_to_world`; the log says which, and warns of a size no organ has.
 fn read_world_mesh(path: &Path, chosen: Option<f64>, file_to_world: f64) -> Result<TetMesh, SceneError> {
-    let read = io::read_mesh_with_metadata(path)?;
-    let (scale, why) = match (chosen, read.metres_per_unit) {
-        (Some(s), _) => (s, "as asked".to_owned()),
-        (None, Some(unit)) => (unit, format!("the file records {unit} m per unit")),
-        (None, None) => (file_to_world, format!("the scene's file_to_world {file_to_world}")),
-    };
-    if !(scale.is_finite() && scale > 0.0) {
+    if let Some(scale) = chosen.filter(|s| !(s.is_finite() && *s > 0.0)) {
         return Err(SceneError::Invalid(format!("mesh scale {scale} must be finite and > 0")));
     }
-    let mut mesh = read.mesh;
-    mesh.map_nodes(|p| p * scale);
+    let read = io::read_mesh_with_metadata(path)?;
+    let why = match (chosen, read.metres_per_unit) {
+        (Some(_), _) => "as asked".to_owned(),
+        (None, Some(unit)) => format!("the file records {unit} m per unit"),
+        (None, None) => format!("the scene's file_to_world {file_to_world}"),
+    };
+    let (mesh, scale) = read.into_scaled(1.0, chosen, file_to_world);
     let (lo, hi) = crate::mesh::bounds(mesh.nodes());
     let size = (hi - lo).max();
     tracing::info!("mesh {}: x{scale} to metres ({why}): {size:.4} m across", path.display());

@@ -223,16 +223,17 @@ impl Surface {
         (b - a).cross(&(c - a)).try_normalize(0.0).unwrap_or_else(Vector3::zeros)
     }
 
-    /// Whether `p` lies inside the closed surface at positions `x`: its generalised winding
-    /// number (the faces' solid angles seen from `p`, over 4π; Jacobson et al. 2013) is near
-    /// 1 inside and 0 outside, with no ray to graze an edge.
-    pub fn encloses(&self, p: &Vector3<f64>, x: &[Vector3<f64>]) -> bool {
+    /// Whether `p` lies inside the closed surface with node positions `position(i)` (the
+    /// hierarchy refitted to them): its generalised winding number (the faces' solid angles
+    /// seen from `p`, over 4π; Jacobson et al. 2013) is near 1 inside and 0 outside, with no
+    /// ray to graze an edge. A point outside the surface's box costs nothing more.
+    pub fn encloses(&self, p: &Vector3<f64>, position: impl Fn(u32) -> Vector3<f64>) -> bool {
         let (lo, hi) = self.bvh.first().map_or((*p, *p), |root| (root.lo, root.hi));
         if (0..3).any(|k| p[k] < lo[k] || p[k] > hi[k]) {
             return false;
         }
         let solid_angle = |face: &[u32; 3]| {
-            let [a, b, c] = face.map(|i| x[i as usize] - p);
+            let [a, b, c] = face.map(|i| position(i) - p);
             let (la, lb, lc) = (a.norm(), b.norm(), c.norm());
             let below = la * lb * lc + a.dot(&b) * lc + a.dot(&c) * lb + b.dot(&c) * la;
             2.0 * a.dot(&b.cross(&c)).atan2(below)

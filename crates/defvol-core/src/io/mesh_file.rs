@@ -78,5 +78,17 @@ pub struct MeshRead {
     pub metres_per_unit: Option<f64>,
 }
 
+impl MeshRead {
+    /// The mesh in a frame of `target` metres per unit (1 for a metre world, 0.001 for a
+    /// millimetre volume), and the factor applied: `chosen` when given, else the unit the
+    /// file records, else `fallback` (what the caller assumes of a file that says nothing).
+    pub fn into_scaled(self, target: f64, chosen: Option<f64>, fallback: f64) -> (TetMesh, f64) {
+        let scale = chosen.or(self.metres_per_unit.map(|unit| unit / target)).unwrap_or(fallback);
+        let mut mesh = self.mesh;
+        mesh.map_nodes(|p| p * scale);
+        (mesh, scale)
+    }
+}
+
 /// The cells other than linear tets a mesh file held, by kind: counted, and skipped.
 pub type SkippedCells = BTreeMap<&'static str, usize>;

@@ -115,21 +115,17 @@ impl<T: Real> Simulation<T> {
         self.surface.detect(&cores, &x, margin)
     }
 
-    /// Per tool: a surface-contact tool that touches nothing while its tip lies inside the
-    /// body went through the surface (a teleport, or a step too long for its samples to meet
-    /// a face). Nothing holds it there, and the report says so. Call after `detect_contacts`
-    /// refitted the surface to the current positions.
-    pub(super) fn passed_through(&self) -> Vec<bool> {
-        let x = self.positions_f64();
-        (self.tools.iter().enumerate())
-            .map(|(index, tool)| {
-                if tool.contact != ContactModel::Surface || self.contacts.iter().any(|c| c.tool == index) {
-                    return false;
-                }
-                let tip = self.proxies.iter().find(|p| p.tool == index).map_or_else(|| tool.tip(), |p| p.x);
-                self.surface.encloses(&tip, &x)
-            })
-            .collect()
+    /// Whether tool `index` went through the surface: a surface-contact tool that touches
+    /// nothing while its tip lies inside the body (a teleport, or a step too long for its
+    /// samples to meet a face). Nothing holds it there, and the report says so. Call after
+    /// `detect_contacts` refitted the surface to the current positions.
+    pub(super) fn passed_through(&self, index: usize) -> bool {
+        let tool = &self.tools[index];
+        if tool.contact != ContactModel::Surface || self.contacts.iter().any(|c| c.tool == index) {
+            return false;
+        }
+        let tip = self.proxies.iter().find(|p| p.tool == index).map_or_else(|| tool.tip(), |p| p.x);
+        self.surface.encloses(&tip, |i| self.world(i as usize).map(T::to_f64))
     }
 
     #[cfg_attr(not(feature = "gpu"), allow(dead_code))]

@@ -368,7 +368,7 @@ impl<T: Real> Simulation<T> {
                 force: force.into(),
                 torque: torque.into(),
                 coupling_saturated,
-                passed_through: false,
+                passed_through: self.passed_through(index),
             });
         }
         let max_displacement = self.u.iter().map(|u| u.norm().to_f64()).fold(0.0, f64::max);

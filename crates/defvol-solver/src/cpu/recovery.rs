@@ -34,10 +34,7 @@ impl<T: Real> Simulation<T> {
         self.step += 1;
         self.time += self.params.dt;
         self.contacts = self.detect_contacts(false);
-        let mut report = self.report();
-        for (reaction, through) in report.reactions.iter_mut().zip(self.passed_through()) {
-            reaction.passed_through = through;
-        }
+        let report = self.report();
         if let Some(reason) = self.divergence(&report) {
             let failed = (self.step, self.time);
             self.u = saved.u;
