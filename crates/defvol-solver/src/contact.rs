@@ -2,11 +2,12 @@
 //! spacing (a 1-2 mm needle against 5-20 mm tets) are felt between nodes.
 //!
 //! The tool's collision model is the one surgical simulators (SOFA) use: spheres of the
-//! tool's radius sampled along its core, each finding the nearest point of the boundary
-//! surface. That point lies on a face, an edge or a node; the penalty force `k φ` goes to
-//! the feature's nodes by barycentric weights, and the tool feels the sum pushed back.
-//! Inside or outside is decided with angle-weighted pseudo-normals (Bærentzen & Aanæs), so
-//! a sample that went past the surface is pushed back out rather than through. Boundary
+//! tool's radius sampled along its core. Each sphere is held out of the faces near it as a
+//! god-object proxy is held by its constraint planes (`sample_contacts`); the penalty force
+//! `k φ` goes to the holding faces' nodes by barycentric weights and the planes' shares,
+//! and the tool feels the sum pushed back. Inside or outside is decided with angle-weighted
+//! pseudo-normals (Bærentzen & Aanæs), so a sample that went past the surface is pushed
+//! back out rather than through. Boundary
 //! nodes inside a wide tool (wider than the spacing) are pushed out one by one besides,
 //! so a large probe dents a patch rather than one point.
 //!
@@ -47,27 +48,73 @@ const LEAF: usize = 4;
 /// Barycentric weights below this are zero: the closest point lies on an edge or a node.
 const ON_FEATURE: f64 = 1e-9;
 
+/// The most nodes one contact spreads over: the ring of faces around a node of valence up
+/// to 15, on which a sphere may rest all at once.
+pub const CONTACT_NODES: usize = 16;
+
 /// One contact of a tool sample with the surface. The surface is pushed along `push` with
-/// force `stiffness · depth`, spread over `nodes` by `weights`; the tool gets the opposite.
+/// force `stiffness · depth`, spread over `nodes` by `shares`; the tool gets the opposite.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct SurfaceContact {
     pub tool: usize,
-    /// Feature nodes (a node contact repeats its node with zero weights).
-    pub nodes: [u32; 3],
-    pub weights: [f64; 3],
-    /// Unit direction in which the surface is pushed (into the body).
+    /// The nodes the force is spread over; `u32::MAX` past the last.
+    pub nodes: [u32; CONTACT_NODES],
+    /// Each node's part of the force per unit `stiffness · depth`, summing to `push`: w·n
+    /// for a node of barycentric weight w on a face pushed along n. Also the gradient of
+    /// the penetration φ with respect to the node's position, negated.
+    pub shares: [Vector3<f64>; CONTACT_NODES],
+    /// Unit direction in which the surface is pushed (into the body); the gradient of φ
+    /// with respect to the tool's position.
     pub push: Vector3<f64>,
-    /// Penetration φ > 0 (m).
+    /// Penetration φ > 0 (m); ≤ 0 for a contact about to begin.
     pub depth: f64,
+    /// A row with no force of its own (depth 0) that carries the rest of the stiffness of
+    /// a sphere held by several planes, across them, into the implicit step; it stands or
+    /// falls with the contact before it.
+    pub joins_previous: bool,
     pub stiffness: f64,
     /// The contact point on the surface (world), for torques.
     pub at: Vector3<f64>,
 }
 
 impl SurfaceContact {
+    /// A contact pushing `nodes` by barycentric `weights` along `push`.
+    fn on_feature(tool: &ToolCore, nodes: &[u32], weights: &[f64], push: Vector3<f64>, depth: f64) -> Self {
+        let mut contact = Self {
+            tool: tool.tool,
+            nodes: [u32::MAX; CONTACT_NODES],
+            shares: [Vector3::zeros(); CONTACT_NODES],
+            push,
+            depth,
+            joins_previous: false,
+            stiffness: tool.core.stiffness,
+            at: Vector3::zeros(),
+        };
+        for (k, (&node, &w)) in nodes.iter().zip(weights).enumerate() {
+            contact.nodes[k] = node;
+            contact.shares[k] = push * w;
+        }
+        contact
+    }
+
+    /// Adds `share` to `node`'s, taking the next free slot for a node not yet in (`Hold`
+    /// never brings in more nodes than there are slots).
+    fn add_share(&mut self, node: u32, share: Vector3<f64>) {
+        if let Some(k) = self.nodes.iter().position(|&m| m == node || m == u32::MAX) {
+            self.nodes[k] = node;
+            self.shares[k] += share;
+        }
+    }
+
     /// The force on the surface (N); the tool gets its negative.
     pub fn force(&self) -> Vector3<f64> {
         self.push * (self.stiffness * self.depth)
+    }
+
+    /// Each node with its part of `force` (N).
+    pub fn node_forces(&self) -> impl Iterator<Item = (u32, Vector3<f64>)> + '_ {
+        let scale = self.stiffness * self.depth;
+        (self.nodes.iter().zip(&self.shares)).take_while(|(n, _)| **n != u32::MAX).map(move |(&n, s)| (n, s * scale))
     }
 }
 
@@ -282,7 +329,7 @@ impl Surface {
     /// the implicit step, which evaluates it at the step's end).
     ///
     /// A tool thinner than the spacing is sampled along its core at most half the spacing
-    /// apart; each sample touches the surface feature (face, edge, node) nearest to it. A
+    /// apart; each sample is held beyond the faces near it (`sample_contacts`). A
     /// tool at least
     /// as wide as the spacing always has nodes inside it before anything passes between
     /// them: it pushes each boundary node inside it.
@@ -301,14 +348,14 @@ impl Surface {
             for s in 0..samples {
                 let t = if samples > 1 { s as f64 / (samples - 1) as f64 } else { 0.0 };
                 let centre = a + (b - a) * t;
-                contacts.extend(self.sample_contact(tool, &centre, reach, margin, positions));
+                contacts.extend(self.sample_contacts(tool, &centre, reach, margin, positions));
             }
         }
         contacts
     }
 
     fn node_contacts(&self, tool: &ToolCore, x: &[Vector3<f64>], margin: f64, out: &mut Vec<SurfaceContact>) {
-        let ContactParams { a, b, radius, stiffness } = tool.core;
+        let ContactParams { a, b, radius, .. } = tool.core;
         let lo = a.inf(&b) - Vector3::repeat(radius + margin);
         let hi = a.sup(&b) + Vector3::repeat(radius + margin);
         let mut near = Vec::new();
@@ -323,63 +370,219 @@ impl Surface {
                 continue;
             }
             let push = if dist > 1e-12 { d / dist } else { -self.node_normal(i, x) };
-            out.push(SurfaceContact {
-                tool: tool.tool,
-                nodes: [i; 3],
-                weights: [1.0, 0.0, 0.0],
-                push,
-                depth: radius - dist,
-                stiffness,
-                at: p,
-            });
+            let mut contact = SurfaceContact::on_feature(tool, &[i], &[1.0], push, radius - dist);
+            contact.at = p;
+            out.push(contact);
         }
     }
 
-    /// The contact of one sphere, at the surface point nearest to its centre (ties go to
-    /// the lowest face: deterministic). One contact a sample keeps its force continuous as
-    /// it slides from feature to feature; several (one per locally nearest feature) would
-    /// each add a whole penalty force the moment their Voronoi regions overlap, as they do
-    /// in the groove a needle presses. Inside the body the sample is pushed on through.
-    fn sample_contact(
+    /// The contacts of one sphere. Outside the body, every face near it gives a separating
+    /// plane (through the face's point nearest the centre, facing the centre: the face lies
+    /// wholly behind it), and the sphere is pushed to the nearest place at least its radius
+    /// beyond all of them, as a god-object proxy is (Zilles & Salisbury 1995): one push, of
+    /// the length it moved, shared among the planes holding it (`Hold`). In a groove the two
+    /// walls share one push instead of adding a whole one each, and as the sphere slides the
+    /// push moves continuously from face to face, so a probe held still comes to rest. Out
+    /// of the body is the side the nearest feature's pseudo-normal says; a centre already
+    /// past the surface is pushed on through by that feature alone, never out of the far
+    /// side (from inside, no other face's plane separates).
+    fn sample_contacts(
         &self,
         tool: &ToolCore,
         centre: &Vector3<f64>,
         reach: f64,
         margin: f64,
         x: &[Vector3<f64>],
-    ) -> Option<SurfaceContact> {
-        let search = tool.core.radius + reach;
-        let mut best: Option<(f64, u32, Vector3<f64>, [f64; 3])> = None;
+    ) -> Vec<SurfaceContact> {
+        let radius = tool.core.radius;
+        let near = self.near_faces(centre, radius + reach, x);
+        let Some(nearest) = near.first() else { return Vec::new() };
+        let outward = self.feature_normal(nearest.face, &nearest.weights, x);
+        let inside = (centre - nearest.at).dot(&outward) < 0.0;
+        if inside || nearest.distance >= radius {
+            // Inside, or not touching: the nearest face alone, if about to touch (speculative).
+            let (towards, depth) =
+                if inside { (-1.0, radius + nearest.distance) } else { (1.0, radius - nearest.distance) };
+            if depth <= -margin {
+                return Vec::new();
+            }
+            let d = nearest.at - centre;
+            let push = if nearest.distance > 1e-12 { d * (towards / nearest.distance) } else { -outward };
+            let face = &self.faces[nearest.face as usize];
+            let mut contact = SurfaceContact::on_feature(tool, face, &nearest.weights, push, depth);
+            contact.at = nearest.at;
+            return vec![contact];
+        }
+        let planes: Vec<(Vector3<f64>, f64)> = (near.iter())
+            .map(|f| {
+                let n = if f.distance > 1e-12 {
+                    (centre - f.at) / f.distance
+                } else {
+                    self.feature_normal(f.face, &f.weights, x)
+                };
+                (n, n.dot(&f.at) + radius)
+            })
+            .collect();
+        let corners: Vec<[u32; 3]> = near.iter().map(|f| self.faces[f.face as usize]).collect();
+        Hold::new(centre, &planes, &corners, radius)
+            .map_or_else(Vec::new, |hold| hold.contacts(tool, &near, &planes, &corners))
+    }
+
+    /// The faces within `search` of `centre`, nearest first (ties to the lowest face:
+    /// deterministic).
+    fn near_faces(&self, centre: &Vector3<f64>, search: f64, x: &[Vector3<f64>]) -> Vec<NearFace> {
+        let mut near = Vec::new();
         let r = Vector3::repeat(search);
-        self.faces_near(centre - r, centre + r, |f| {
-            let [a, b, c] = self.faces[f as usize].map(|i| x[i as usize]);
-            let (q, w) = closest_on_triangle(centre, &a, &b, &c);
-            let d = (centre - q).norm();
-            if best.is_none_or(|(bd, bf, _, _)| d < bd || (d == bd && f < bf)) {
-                best = Some((d, f, q, w));
+        self.faces_near(centre - r, centre + r, |face| {
+            let [a, b, c] = self.faces[face as usize].map(|i| x[i as usize]);
+            let (at, weights) = closest_on_triangle(centre, &a, &b, &c);
+            let distance = (centre - at).norm();
+            if distance <= search {
+                near.push(NearFace { face, at, weights, distance });
             }
         });
-        let (dist, f, q, weights) = best.filter(|b| b.0 <= search)?;
-        let outward = self.feature_normal(f, &weights, x);
-        let outside = (centre - q).dot(&outward) >= 0.0;
-        if outside && dist >= tool.core.radius + margin {
+        near.sort_unstable_by(|a, b| a.distance.total_cmp(&b.distance).then(a.face.cmp(&b.face)));
+        near
+    }
+}
+
+/// A face near a sphere: its point nearest the centre, with barycentric weights.
+struct NearFace {
+    face: u32,
+    at: Vector3<f64>,
+    weights: [f64; 3],
+    distance: f64,
+}
+
+/// A sphere held beyond separating planes: which planes hold it, how they share the push
+/// (multipliers μ, p − c = Σ μ_j n_j), and the inverse Gram matrix G⁻¹ of their normals.
+struct Hold {
+    lift: f64,
+    holding: Vec<usize>,
+    multipliers: nalgebra::DVector<f64>,
+    inverse_gram: nalgebra::DMatrix<f64>,
+}
+
+impl Hold {
+    /// Every plane the held sphere rests on: around a node more than the three the
+    /// projection needed, and which three it took would flip with rounding from step to
+    /// step; they share the push by the least multipliers that make it when those are all
+    /// positive, else by the projection's own.
+    fn new(centre: &Vector3<f64>, planes: &[(Vector3<f64>, f64)], corners: &[[u32; 3]], radius: f64) -> Option<Self> {
+        let (held, multipliers) = beyond_planes(centre, planes);
+        let lift = (held - centre).norm();
+        if lift == 0.0 {
             return None;
         }
-        let push = match (dist > 1e-12, outside) {
-            (true, true) => (q - centre) / dist,
-            (true, false) => (centre - q) / dist,
-            (false, _) => -outward,
+        let gram = |set: &[usize]| {
+            nalgebra::DMatrix::from_fn(set.len(), set.len(), |a, b| planes[set[a]].0.dot(&planes[set[b]].0))
         };
-        Some(SurfaceContact {
-            tool: tool.tool,
-            nodes: self.faces[f as usize],
-            weights,
-            push,
-            depth: if outside { tool.core.radius - dist } else { tool.core.radius + dist },
-            stiffness: tool.core.stiffness,
-            at: q,
-        })
+        let resting: Vec<usize> = (0..planes.len())
+            .filter(|&j| multipliers[j] > 0.0 || planes[j].0.dot(&held) - planes[j].1 < 1e-9 * radius)
+            .collect();
+        let violation = nalgebra::DVector::from_iterator(
+            resting.len(),
+            resting.iter().map(|&j| planes[j].1 - planes[j].0.dot(centre)),
+        );
+        let mut nodes: Vec<u32> = resting.iter().flat_map(|&j| corners[j]).collect();
+        nodes.sort_unstable();
+        nodes.dedup();
+        let gram_inverse = if nodes.len() <= CONTACT_NODES { gram(&resting).pseudo_inverse(1e-12).ok() } else { None };
+        if let Some(inverse_gram) = gram_inverse {
+            let least = &inverse_gram * violation;
+            if least.iter().all(|m| *m >= 0.0) {
+                return Some(Self { lift, holding: resting, multipliers: least, inverse_gram });
+            }
+        }
+        let holding: Vec<usize> = (0..planes.len()).filter(|&j| multipliers[j] > 0.0).collect();
+        let inverse_gram = gram(&holding).try_inverse()?;
+        let multipliers = nalgebra::DVector::from_iterator(holding.len(), holding.iter().map(|&j| multipliers[j]));
+        Some(Self { lift, holding, multipliers, inverse_gram })
     }
+
+    /// The energy ½k gᵀG⁻¹g of the holding planes' violations g as contact rows:
+    /// G⁻¹ = u uᵀ + Σ v vᵀ with u = μ/|δ|, whose row is the push (depth |δ|), and rows v of
+    /// depth 0 (vᵀg = 0) that carry the stiffness across the planes into the implicit step.
+    fn contacts(
+        &self,
+        tool: &ToolCore,
+        near: &[NearFace],
+        planes: &[(Vector3<f64>, f64)],
+        corners: &[[u32; 3]],
+    ) -> Vec<SurfaceContact> {
+        let u = &self.multipliers / self.lift;
+        let rest = nalgebra::SymmetricEigen::new(&self.inverse_gram - &u * u.transpose());
+        let mut rows = vec![(u, self.lift, false)];
+        for (k, &lambda) in rest.eigenvalues.iter().enumerate() {
+            if lambda > 1e-9 * self.inverse_gram.norm() {
+                rows.push((rest.eigenvectors.column(k) * lambda.sqrt(), 0.0, true));
+            }
+        }
+        let total = self.multipliers.sum();
+        let at: Vector3<f64> =
+            (self.holding.iter().zip(self.multipliers.iter())).map(|(&j, mu)| near[j].at * (mu / total)).sum();
+        let row = |(coefficients, depth, joins_previous): (nalgebra::DVector<f64>, f64, bool)| {
+            let mut contact = SurfaceContact::on_feature(tool, &[], &[], Vector3::zeros(), depth);
+            (contact.at, contact.joins_previous) = (at, joins_previous);
+            for (&j, c) in self.holding.iter().zip(coefficients.iter()) {
+                let n = planes[j].0;
+                contact.push -= n * *c;
+                for (&node, w) in corners[j].iter().zip(near[j].weights) {
+                    contact.add_share(node, -n * (c * w));
+                }
+            }
+            contact
+        };
+        rows.into_iter().map(row).collect()
+    }
+}
+
+/// The point p nearest to `c` with n_j·p ≥ b_j for every plane (n_j, b_j), and the
+/// multipliers μ_j ≥ 0 with p - c = Σ μ_j n_j. The dual active-set method of Goldfarb &
+/// Idnani (1983) for the identity Hessian: from p = c, the most violated plane is brought in, dropping
+/// any active plane whose multiplier would turn negative; in 3-D at most three stay active.
+pub fn beyond_planes(c: &Vector3<f64>, planes: &[(Vector3<f64>, f64)]) -> (Vector3<f64>, Vec<f64>) {
+    const TOLERANCE: f64 = 1e-15;
+    let mut p = *c;
+    let mut mu = vec![0.0; planes.len()];
+    let mut active: Vec<usize> = Vec::with_capacity(3);
+    for _ in 0..4 * planes.len() + 8 {
+        let slack = |j: usize| planes[j].0.dot(&p) - planes[j].1;
+        let Some(s) =
+            (0..planes.len()).filter(|&j| slack(j) < -TOLERANCE).min_by(|&i, &j| slack(i).total_cmp(&slack(j)))
+        else {
+            break;
+        };
+        let n = planes[s].0;
+        // The step that keeps the active planes: z moves p, r trades their multipliers.
+        let basis = nalgebra::DMatrix::from_fn(3, active.len(), |row, k| planes[active[k]].0[row]);
+        let gram = basis.transpose() * &basis;
+        let Some(inverse) = gram.try_inverse() else { break };
+        let r = inverse * (basis.transpose() * nalgebra::DVector::from_column_slice(n.as_slice()));
+        let z = n - Vector3::from_iterator((&basis * &r).iter().copied());
+        let full = if z.norm_squared() > 1e-20 { -slack(s) / n.dot(&z) } else { f64::INFINITY };
+        let blocking = (0..active.len())
+            .filter(|&k| r[k] > 0.0)
+            .map(|k| (mu[active[k]] / r[k], k))
+            .min_by(|a, b| a.0.total_cmp(&b.0));
+        let t = blocking.map_or(full, |(t, _)| t.min(full));
+        if !t.is_finite() {
+            break; // Opposing planes: no point is beyond all of them.
+        }
+        p += z * t;
+        for (k, &j) in active.iter().enumerate() {
+            mu[j] = (mu[j] - t * r[k]).max(0.0);
+        }
+        mu[s] += t;
+        match blocking {
+            Some((tb, k)) if tb < full => {
+                mu[active[k]] = 0.0;
+                active.remove(k);
+            }
+            _ => active.push(s),
+        }
+    }
+    (p, mu)
 }
 
 /// The point of segment [a, b] nearest to p.
@@ -514,5 +717,70 @@ mod tests {
         assert_relative_eq!(below[0].push, Vector3::new(0.0, 0.0, -1.0), epsilon = 1e-12);
         assert_relative_eq!(below[0].depth, 0.003, epsilon = 1e-12);
         assert!(surface.detect(&[tool(0.0011)], mesh.nodes(), 0.0).is_empty());
+    }
+
+    /// The projection beyond planes is optimal: its result meets the KKT conditions of
+    /// min |p - c|² subject to n_j·p ≥ b_j (feasible, μ ≥ 0, p - c = Σ μ n, and μ_j > 0 only
+    /// on planes p touches), which for this convex problem certify the minimiser; on sets
+    /// with nearly parallel, redundant and corner planes.
+    #[test]
+    fn projection_beyond_planes_meets_the_optimality_conditions() {
+        let mut seed = 0x2545_f491_4f6c_dd1du64;
+        let mut random = move || {
+            seed ^= seed << 13;
+            seed ^= seed >> 7;
+            seed ^= seed << 17;
+            (seed >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0
+        };
+        for case in 0..200 {
+            let c = Vector3::new(random(), random(), random()) * 0.1;
+            let count = 1 + case % 9;
+            let planes: Vec<(Vector3<f64>, f64)> = (0..count)
+                .map(|j| {
+                    // Half the cases tilt every normal only slightly off +z: a shallow groove.
+                    let spread = if case % 2 == 0 { 0.05 } else { 1.0 };
+                    let n = (Vector3::z() + Vector3::new(random(), random(), random()) * spread).normalize();
+                    let b = n.dot(&c) + 0.02 * random() + if j % 3 == 0 { 0.01 } else { 0.0 };
+                    (n, b)
+                })
+                .collect();
+            let (p, mu) = beyond_planes(&c, &planes);
+            let mut sum = Vector3::zeros();
+            for ((n, b), m) in planes.iter().zip(&mu) {
+                let slack = n.dot(&p) - b;
+                assert!(slack > -1e-12, "case {case}: a plane is violated by {slack}");
+                assert!(*m >= 0.0 && m * slack.abs() < 1e-12, "case {case}: μ {m} on a plane {slack} away");
+                sum += n * *m;
+            }
+            assert!((p - c - sum).norm() < 1e-12, "case {case}: p - c = {} but Σμn = {sum}", p - c);
+        }
+    }
+
+    /// A sphere resting in a V-groove is pushed out once, straight up, by as much as it
+    /// must rise to clear both walls (r / cos θ - h for walls at θ, its centre h above the
+    /// crease), not once per wall (which would push it about twice as hard).
+    #[test]
+    fn a_sphere_in_a_groove_is_pushed_out_once_not_once_per_wall() {
+        let (theta, length) = (0.3f64, 1.0);
+        let rise = length * theta.tan();
+        let rest = vec![
+            Vector3::new(0.0, -1.0, 0.0),
+            Vector3::new(0.0, 1.0, 0.0),
+            Vector3::new(length, -1.0, rise),
+            Vector3::new(length, 1.0, rise),
+            Vector3::new(-length, -1.0, rise),
+            Vector3::new(-length, 1.0, rise),
+        ];
+        let faces = [[0, 2, 3], [0, 3, 1], [0, 1, 5], [0, 5, 4]];
+        let surface = Surface::new(&faces, &rest);
+        let (radius, height, stiffness) = (0.2, 0.15, 1000.0);
+        let centre = Vector3::new(0.0, 0.0, height);
+        let tool = ToolCore { tool: 0, core: ContactParams { a: centre, b: centre, radius, stiffness } };
+        let contacts = surface.detect(&[tool], &rest, 0.0);
+        let force: Vector3<f64> = contacts.iter().map(|c| c.force()).sum();
+        let on_nodes: Vector3<f64> = contacts.iter().flat_map(|c| c.node_forces()).map(|(_, f)| f).sum();
+        let lift = radius / theta.cos() - height;
+        assert_relative_eq!(force, Vector3::new(0.0, 0.0, -stiffness * lift), epsilon = 1e-9);
+        assert_relative_eq!(on_nodes, force, epsilon = 1e-9);
     }
 }

@@ -134,9 +134,9 @@ impl<T: Real> Simulation<T> {
     }
 
     /// The simulated tools' rows and the surface contacts' terms (few: sequential, so the
-    /// sums keep their order). A contact of depth φ along n has energy ½kφ², ∇φ = Σ_r c_r n
-    /// over its rows (c = -w on the face's nodes, +1 on a simulated tool), hence
-    /// b_r += -c_r h k (φ + h φ̇) n with φ̇ = n·Σ c v, and A += h² k (c cᵀ) ⊗ n nᵀ.
+    /// sums keep their order). A contact of depth φ has energy ½kφ² and gradient g_r on its
+    /// rows (minus a node's share of the push, the push on a simulated tool), hence
+    /// b_r += -h k (φ + h φ̇) g_r with φ̇ = Σ g·v, and A += h² k g gᵀ.
     pub(super) fn assemble_tools(&mut self) {
         let n = self.u.len();
         let h = self.params.dt;
@@ -160,41 +160,32 @@ impl<T: Real> Simulation<T> {
         let h = self.params.dt;
         let mut blocks: Vec<(usize, Matrix3<f64>)> = Vec::new();
         for c in &self.active_contacts {
-            let proxy = self.proxies.iter().position(|p| p.tool == c.tool);
-            let mut rows = [usize::MAX; 4];
-            let mut coefficients = [0.0; 4];
-            for k in 0..3 {
-                if c.weights[k] > 0.0 && !self.fixed[c.nodes[k] as usize] {
-                    rows[k] = c.nodes[k] as usize;
-                    coefficients[k] = -c.weights[k];
+            let mut rows = [usize::MAX; CONTACT_NODES + 1];
+            let mut gradients = [Vector3::zeros(); CONTACT_NODES + 1];
+            let mut normal_speed = 0.0;
+            for (k, (&node, share)) in c.nodes.iter().zip(&c.shares).enumerate() {
+                if node != u32::MAX && !self.fixed[node as usize] {
+                    rows[k] = node as usize;
+                    gradients[k] = -share;
+                    normal_speed -= share.dot(&self.v[node as usize].map(T::to_f64));
                 }
             }
-            if let Some(k) = proxy {
-                rows[3] = n + k;
-                coefficients[3] = 1.0;
-            }
-            let mut normal_speed = 0.0;
-            for k in 0..3 {
-                normal_speed -= c.weights[k] * c.push.dot(&self.v[c.nodes[k] as usize].map(T::to_f64));
-            }
-            if let Some(k) = proxy {
+            if let Some(k) = self.proxies.iter().position(|p| p.tool == c.tool) {
+                rows[CONTACT_NODES] = n + k;
+                gradients[CONTACT_NODES] = c.push;
                 normal_speed += c.push.dot(&self.proxies[k].v);
             }
             let g = h * c.stiffness * (c.depth + h * normal_speed);
-            let nn = c.push * c.push.transpose() * (h * h * c.stiffness);
-            for r in 0..4 {
-                if rows[r] != usize::MAX {
-                    if !self.rows_before_contacts.iter().any(|(row, _, _)| *row == rows[r]) {
-                        self.rows_before_contacts.push((rows[r], self.rhs[rows[r]], self.precond[rows[r]]));
-                    }
-                    self.rhs[rows[r]] -= (c.push * (coefficients[r] * g)).map(T::of);
-                    blocks.push((rows[r], nn * (coefficients[r] * coefficients[r])));
+            for (&row, gradient) in rows.iter().zip(&gradients).filter(|(row, _)| **row != usize::MAX) {
+                if !self.rows_before_contacts.iter().any(|(r, _, _)| *r == row) {
+                    self.rows_before_contacts.push((row, self.rhs[row], self.precond[row]));
                 }
+                self.rhs[row] -= (gradient * g).map(T::of);
+                blocks.push((row, gradient * gradient.transpose() * (h * h * c.stiffness)));
             }
             self.contact_rows.push(ContactRows {
                 rows,
-                coefficients: coefficients.map(T::of),
-                push: c.push.map(T::of),
+                gradients: gradients.map(|g| g.map(T::of)),
                 h2k: T::of(h * h * c.stiffness),
             });
         }
@@ -217,17 +208,19 @@ impl<T: Real> Simulation<T> {
         let keep: Vec<bool> = (self.active_contacts.iter().zip(&self.contact_rows))
             .map(|(c, rows)| {
                 let mut rate = T::zero();
-                for r in 0..4 {
-                    let row = rows.rows[r];
-                    if row == usize::MAX {
-                        continue;
-                    }
+                for (&row, gradient) in rows.rows.iter().zip(&rows.gradients).filter(|(row, _)| **row != usize::MAX) {
                     let v = if row < n { self.v[row] } else { self.proxies[row - n].v.map(T::of) };
-                    rate += rows.coefficients[r] * rows.push.dot(&(v + self.dv[row]));
+                    rate += gradient.dot(&(v + self.dv[row]));
                 }
                 T::of(c.depth) + h * rate > T::zero()
             })
             .collect();
+        let mut keep = keep;
+        for (k, c) in self.active_contacts.iter().enumerate().skip(1) {
+            if c.joins_previous {
+                keep[k] = keep[k - 1];
+            }
+        }
         if keep.iter().all(|k| *k) {
             return false;
         }
@@ -245,17 +238,11 @@ impl<T: Real> Simulation<T> {
     /// out += the surface contacts' part of A p (rank one per contact).
     pub(super) fn contact_product(&self, p: &[Vector3<T>], out: &mut [Vector3<T>]) {
         for c in &self.contact_rows {
-            let mut y = T::zero();
-            for r in 0..4 {
-                if c.rows[r] != usize::MAX {
-                    y += c.coefficients[r] * c.push.dot(&p[c.rows[r]]);
-                }
-            }
+            let touched = || c.rows.iter().zip(&c.gradients).filter(|(row, _)| **row != usize::MAX);
+            let y = touched().fold(T::zero(), |y, (&row, gradient)| y + gradient.dot(&p[row]));
             let s = c.h2k * y;
-            for r in 0..4 {
-                if c.rows[r] != usize::MAX {
-                    out[c.rows[r]] += c.push * (c.coefficients[r] * s);
-                }
+            for (&row, gradient) in touched() {
+                out[row] += gradient * s;
             }
         }
     }

@@ -229,10 +229,10 @@ impl<T: Real> Simulation<T> {
                 }
             }
             for c in &self.contact_rows {
-                let nn = c.push.map(T::to_f64) * c.push.map(T::to_f64).transpose() * c.h2k.to_f64();
-                for (a, &ra) in c.rows.iter().enumerate().filter(|(_, r)| **r != usize::MAX) {
-                    for (b, &rb) in c.rows.iter().enumerate().filter(|(_, r)| **r != usize::MAX) {
-                        let block = nn * (c.coefficients[a] * c.coefficients[b]).to_f64();
+                let touched = || c.rows.iter().zip(&c.gradients).filter(|(r, _)| **r != usize::MAX);
+                for (&ra, ga) in touched() {
+                    for (&rb, gb) in touched() {
+                        let block = (ga * gb.transpose() * c.h2k).map(T::to_f64);
                         for r in 0..3 {
                             for col in 0..3 {
                                 triplets.push((3 * ra + r, 3 * rb + col, block[(r, col)]));

@@ -10,7 +10,7 @@ mod implicit;
 mod recovery;
 
 use crate::amg::{Amg, Csr};
-use crate::contact::{Surface, SurfaceContact, ToolCore};
+use crate::contact::{Surface, SurfaceContact, ToolCore, CONTACT_NODES};
 use crate::kernels::{self, ContactTool, SpringTerms};
 use crate::model::MassSpringModel;
 use crate::tool::{spread_weights, ContactModel, Tool};
@@ -52,12 +52,11 @@ struct Proxy {
 }
 
 /// A surface contact as the implicit system uses it: rows (nodes, then the proxy's) with
-/// their coefficients c in ∇φ = Σ c_r n, and h² k.
+/// the penetration's gradient on each (∇φ), and h² k.
 #[derive(Debug, Clone, Copy)]
 struct ContactRows<T: Real> {
-    rows: [usize; 4],
-    coefficients: [T; 4],
-    push: Vector3<T>,
+    rows: [usize; CONTACT_NODES + 1],
+    gradients: [Vector3<T>; CONTACT_NODES + 1],
     h2k: T,
 }
 
@@ -264,7 +263,8 @@ impl<T: Real> Simulation<T> {
         Some(pose)
     }
 
-    /// The surface contacts at the end of the last step.
+    /// The surface contacts at the end of the last step (those that push: not the rows
+    /// that only carry a multi-plane hold's stiffness into the step).
     pub fn contacts(&self) -> &[SurfaceContact] {
         &self.contacts
     }
@@ -388,8 +388,8 @@ impl<T: Real> Simulation<T> {
 /// Adds each penetrating contact's force to its feature's nodes, by their weights.
 fn add_contact_forces<T: Real>(contacts: &[SurfaceContact], forces: &mut [Vector3<T>]) {
     for c in contacts.iter().filter(|c| c.depth > 0.0) {
-        for k in 0..3 {
-            forces[c.nodes[k] as usize] += (c.force() * c.weights[k]).map(T::of);
+        for (node, force) in c.node_forces() {
+            forces[node as usize] += force.map(T::of);
         }
     }
 }

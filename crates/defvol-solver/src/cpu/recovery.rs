@@ -33,7 +33,7 @@ impl<T: Real> Simulation<T> {
     pub(super) fn finish_step(&mut self, saved: Snapshot<T>) -> Result<StepReport, SolverError> {
         self.step += 1;
         self.time += self.params.dt;
-        self.contacts = self.detect_contacts(false);
+        self.contacts = self.detect_contacts(false).into_iter().filter(|c| !c.joins_previous).collect();
         let report = self.report();
         if let Some(reason) = self.divergence(&report) {
             let failed = (self.step, self.time);
