@@ -9,6 +9,7 @@ mod dpcm;
 mod dpcm_markers;
 mod file_interop;
 mod fuzz_loaders;
+mod haptic;
 mod layers;
 #[cfg(feature = "ros")]
 mod node_dds;

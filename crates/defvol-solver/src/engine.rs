@@ -3,7 +3,7 @@
 
 use nalgebra::Vector3;
 
-use super::{MassSpringModel, Simulation, SolverError, SolverParams, StepReport, Tool};
+use super::{LocalModel, MassSpringModel, Simulation, SolverError, SolverParams, StepReport, Tool};
 use defvol_gpu::backend::{Backend, BackendError, RunsOn};
 
 #[derive(Debug, thiserror::Error)]
@@ -88,6 +88,17 @@ impl SolverEngine {
             Self::CpuF64(s) => s.tool_mut(index),
             #[cfg(feature = "gpu")]
             Self::Gpu(g) => g.tool_mut(index),
+        }
+    }
+
+    /// Each coupled tool's local model for the force loop, from the last step
+    /// (`haptic.rs`); the GPU solver couples no tool.
+    pub fn local_models(&mut self) -> Vec<LocalModel> {
+        match self {
+            Self::Cpu(s) => s.local_models(),
+            Self::CpuF64(s) => s.local_models(),
+            #[cfg(feature = "gpu")]
+            Self::Gpu(_) => Vec::new(),
         }
     }
 

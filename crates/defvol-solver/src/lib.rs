@@ -12,6 +12,7 @@ pub mod cpu;
 pub mod engine;
 #[cfg(feature = "gpu")]
 pub mod gpu;
+pub mod haptic;
 pub mod kernels;
 pub mod model;
 pub mod tool;
@@ -20,6 +21,7 @@ use serde::{Deserialize, Serialize};
 
 pub use cpu::Simulation;
 pub use engine::{SolverEngine, SolverEngineError};
+pub use haptic::{LocalAnswer, LocalContact, LocalModel};
 pub use model::{FixedNodes, MassSpringModel, Material, TissueRow};
 pub use tool::{ContactModel, Coupling, Tool, ToolShape};
 

@@ -247,3 +247,89 @@ impl<T: Real> Simulation<T> {
         }
     }
 }
+
+impl<T: Real> Simulation<T> {
+    /// Each coupled tool's local model for the force loop (`haptic.rs`), from the step just
+    /// taken: the simulated tool, and the contact it presses condensed to one plane along
+    /// the contact force. The plane's stiffness is what the step's own system says the tool
+    /// feels along it: with A the system (the tool's row included), the tool's compliance
+    /// s = nᵀ(A⁻¹)_tt n, so h²k = 1/s minus the tool's own row (one more solve). A tool
+    /// touching nothing gets the nearest face it is about to touch, at the penalty's stiffness.
+    pub fn local_models(&mut self) -> Vec<LocalModel> {
+        let mut models = Vec::with_capacity(self.proxies.len());
+        for k in 0..self.proxies.len() {
+            let proxy = self.proxies[k].clone();
+            let Some(coupling) = self.tools[proxy.tool].coupling else { continue };
+            let contact = self.local_contact(k);
+            models.push(LocalModel::new(proxy.tool, coupling, proxy.x, proxy.v, proxy.device, contact));
+        }
+        models
+    }
+
+    fn local_contact(&mut self, k: usize) -> Option<LocalContact> {
+        let tool = self.proxies[k].tool;
+        let force: Vector3<f64> =
+            -self.contacts.iter().filter(|c| c.tool == tool).map(|c| c.force()).sum::<Vector3<f64>>();
+        let Some(normal) = force.try_normalize(0.0) else {
+            let ahead = self.detect_contacts(true);
+            let c = ahead.iter().filter(|c| c.tool == tool).max_by(|a, b| a.depth.total_cmp(&b.depth))?;
+            let c = *c;
+            let surface_speed = self.surface_speed(std::slice::from_ref(&c));
+            // The mesh's compliance there (h² gᵀA⁻¹g, g the contact's shares) in series.
+            let shares: Vec<(usize, Vector3<f64>)> =
+                c.node_forces().map(|(n, _)| n as usize).zip(c.shares.iter().copied()).collect();
+            let mesh = self.params.dt * self.params.dt * self.compliance_along(&shares);
+            let stiffness = 1.0 / (1.0 / c.stiffness + mesh.max(0.0));
+            return Some(LocalContact { normal: -c.push, depth: c.depth, stiffness, surface_speed });
+        };
+        let penalty: f64 = self.contacts.iter().filter(|c| c.tool == tool).map(|c| c.stiffness).fold(0.0, f64::max);
+        let row = self.u.len() + k;
+        let pressed = self.contact_rows.iter().any(|c| c.rows.contains(&row));
+        let h = self.params.dt;
+        let stiffness = match pressed {
+            true => {
+                let compliance = self.compliance_along(&[(row, normal)]);
+                let own = normal.dot(&(self.proxy_diag[k].map(T::to_f64) * normal));
+                ((1.0 / compliance - own) / (h * h)).clamp(0.0, penalty)
+            }
+            false => penalty,
+        };
+        let mine: Vec<SurfaceContact> = self.contacts.iter().filter(|c| c.tool == tool).copied().collect();
+        let surface_speed = self.surface_speed(&mine);
+        (stiffness > 0.0).then(|| LocalContact { normal, depth: force.norm() / stiffness, stiffness, surface_speed })
+    }
+
+    /// How fast the surface under `contacts` moves along their normal (out of the body):
+    /// each contact's rate -Σ share·v over its nodes, weighted by its force.
+    fn surface_speed(&self, contacts: &[SurfaceContact]) -> f64 {
+        let (mut sum, mut weight) = (0.0, 0.0);
+        for c in contacts.iter().filter(|c| !c.joins_previous) {
+            let w = c.depth.abs().max(f64::MIN_POSITIVE);
+            let rate: f64 = (c.nodes.iter().zip(&c.shares))
+                .take_while(|(n, _)| **n != u32::MAX)
+                .map(|(&n, share)| -share.dot(&self.v[n as usize].map(T::to_f64)))
+                .sum();
+            (sum, weight) = (sum + w * rate, weight + w);
+        }
+        if weight > 0.0 {
+            sum / weight
+        } else {
+            0.0
+        }
+    }
+
+    /// bᵀA⁻¹b for the assembled system A and b given on a few rows: one solve, the step's
+    /// Δv and right-hand side kept.
+    fn compliance_along(&mut self, b: &[(usize, Vector3<f64>)]) -> f64 {
+        let (dv, rhs) = (self.dv.clone(), self.rhs.clone());
+        self.rhs.iter_mut().for_each(|r| *r = Vector3::zeros());
+        for (row, v) in b.iter().filter(|(row, _)| *row >= self.u.len() || !self.fixed[*row]) {
+            self.rhs[*row] += v.map(T::of);
+        }
+        self.dv.iter_mut().for_each(|v| *v = Vector3::zeros());
+        self.solve();
+        let compliance = b.iter().map(|(row, v)| v.dot(&self.dv[*row].map(T::to_f64))).sum();
+        (self.dv, self.rhs) = (dv, rhs);
+        compliance
+    }
+}

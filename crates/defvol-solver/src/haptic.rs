@@ -1,0 +1,112 @@
+//! The force loop's **local model**: multirate haptics as Çavuşoğlu & Tendick (2000) do it.
+//! The full implicit solve runs at the simulation's rate; after each solve it hands the force
+//! loop, for every coupled tool, the simulated tool's state and the contact it presses
+//! condensed to what the tool feels: one plane along the contact force, whose stiffness is
+//! the penalty in series with the mesh's compliance there, read from the solve's own
+//! system (`Simulation::local_models`). The loop answers each device pose from that model at
+//! its own rate, with the coupling's law and implicit step, so its cost does not grow with
+//! the mesh; the next solve, which receives the same poses, brings it back in line.
+
+use nalgebra::{Matrix3, Vector3};
+
+use crate::tool::Coupling;
+
+/// The contact a coupled tool presses, as the force loop sees it between two solves.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LocalContact {
+    /// Unit normal out of the surface (the direction the contact pushes the tool).
+    pub normal: Vector3<f64>,
+    /// Penetration at the solve (m); negative for a surface the tool is about to touch.
+    pub depth: f64,
+    /// Stiffness the tool feels along `normal` (N/m).
+    pub stiffness: f64,
+    /// How fast the surface there moves along `normal` at the solve (m/s): a dent deepening
+    /// under the tool moves away from it.
+    pub surface_speed: f64,
+}
+
+/// One coupled tool's model between two solves.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LocalModel {
+    pub tool: usize,
+    pub coupling: Coupling,
+    /// The simulated tool (m, m/s), advanced by each answer.
+    pub position: Vector3<f64>,
+    pub velocity: Vector3<f64>,
+    /// The device's last position, for its velocity.
+    pub device: Vector3<f64>,
+    pub contact: Option<LocalContact>,
+    /// Where the simulated tool was when the contact was linearised, and the time since.
+    anchor: Vector3<f64>,
+    elapsed: f64,
+}
+
+/// What the device feels: the coupling's pull on it (N), and whether it saturated.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LocalAnswer {
+    pub force: Vector3<f64>,
+    pub saturated: bool,
+}
+
+impl LocalModel {
+    pub fn new(
+        tool: usize,
+        coupling: Coupling,
+        position: Vector3<f64>,
+        velocity: Vector3<f64>,
+        device: Vector3<f64>,
+        contact: Option<LocalContact>,
+    ) -> Self {
+        Self { tool, coupling, position, velocity, device, contact, anchor: position, elapsed: 0.0 }
+    }
+
+    /// The contact's penetration with the simulated tool at `x`, `elapsed` after the solve.
+    fn depth_at(&self, contact: &LocalContact, x: &Vector3<f64>, elapsed: f64) -> f64 {
+        contact.depth - contact.normal.dot(&(x - self.anchor)) + contact.surface_speed * elapsed
+    }
+
+    /// Advances the simulated tool by `dt` towards the device at `device` (the implicit
+    /// Euler step the full solve takes for it, the mesh condensed into the contact plane)
+    /// and returns what the device feels.
+    pub fn answer(&mut self, device: Vector3<f64>, dt: f64) -> LocalAnswer {
+        let device_velocity = if dt > 0.0 { (device - self.device) / dt } else { Vector3::zeros() };
+        self.device = device;
+        if dt > 0.0 {
+            let (pull, stiffness, damping, _) = self.pull(&device_velocity);
+            let h = dt;
+            let base = Matrix3::identity() * (self.coupling.mass + h * damping + h * h * stiffness);
+            let free = (pull - self.velocity * (h * stiffness)) * h;
+            let mut dv = base.try_inverse().unwrap_or_else(Matrix3::zeros) * free;
+            if let Some(c) = self.contact {
+                // The contact's row, kept only if the tool still presses at the step's end.
+                let depth = self.depth_at(&c, &self.position, self.elapsed);
+                let rate = c.surface_speed - c.normal.dot(&self.velocity);
+                let a = base + c.normal * c.normal.transpose() * (h * h * c.stiffness);
+                let b = free + c.normal * (h * c.stiffness * (depth + h * rate));
+                let pressed = a.try_inverse().unwrap_or_else(Matrix3::zeros) * b;
+                if depth + h * (c.surface_speed - c.normal.dot(&(self.velocity + pressed))) > 0.0 {
+                    dv = pressed;
+                }
+            }
+            self.velocity += dv;
+            self.position += self.velocity * h;
+            self.elapsed += h;
+        }
+        let (pull, _, _, saturated) = self.pull(&device_velocity);
+        LocalAnswer { force: -pull, saturated }
+    }
+
+    /// The coupling's pull on the simulated tool, with its stiffness and damping scaled
+    /// down when the pull saturates (the full solve's law).
+    fn pull(&self, device_velocity: &Vector3<f64>) -> (Vector3<f64>, f64, f64, bool) {
+        let c = &self.coupling;
+        let raw = (self.device - self.position) * c.stiffness + (device_velocity - self.velocity) * c.damping;
+        let magnitude = raw.norm();
+        if magnitude > c.max_force {
+            let scale = c.max_force / magnitude;
+            (raw * scale, c.stiffness * scale, c.damping * scale, true)
+        } else {
+            (raw, c.stiffness, c.damping, false)
+        }
+    }
+}
