@@ -165,6 +165,11 @@ impl Session {
         self.bag_write(topic, Qos::SensorData, msg, msg.header.stamp);
     }
 
+    /// Records one tool's feedback, published at `stamp` apart from a tick's outputs.
+    pub fn record_feedback(&mut self, topic: &str, msg: &WrenchStamped, stamp: Time) {
+        self.bag_write(topic, Qos::SensorData, msg, stamp);
+    }
+
     /// Records every output of a tick.
     pub fn record_outputs(&mut self, out: &Outputs, pipeline: &Pipeline, stamp: Time) {
         use topics::*;

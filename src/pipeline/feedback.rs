@@ -14,7 +14,7 @@ use super::outputs;
 use crate::backend::RunsOn;
 use crate::msgs::{PoseStamped, Time, WrenchStamped};
 use crate::scene::{Scene, ToolPath};
-use crate::solver::{SolverEngine, StepReport, Tool};
+use crate::solver::{LocalModel, SolverEngine, StepReport, Tool};
 
 /// Mesh kinetic energy (J) under which, with no tool touching or pushing, the solver sleeps.
 const SLEEP_ENERGY: f64 = 1e-9;
@@ -83,6 +83,12 @@ pub struct FeedbackLoop {
     solver_ms: f64,
     /// Steps in which each tool's coupling held its device back with its largest force.
     saturated_steps: Vec<u64>,
+    /// The coupled tools' local models from the last step, each with the stamp of the
+    /// last pose it answered.
+    local: Vec<(LocalModel, Option<Time>)>,
+    /// Tools whose device's first pose came since the last step: their simulated tools start
+    /// there, not where the tool waited.
+    to_seat: Vec<bool>,
 }
 
 impl FeedbackLoop {
@@ -119,6 +125,8 @@ impl FeedbackLoop {
             asleep: false,
             last_report: None,
             solver_ms: 0.0,
+            local: Vec::new(),
+            to_seat: Vec::new(),
         }
     }
 
@@ -139,6 +147,8 @@ impl FeedbackLoop {
             last_report: self.last_report.clone(),
             solver_ms: self.solver_ms,
             saturated_steps: self.saturated_steps.clone(),
+            local: self.local.clone(),
+            to_seat: self.to_seat.clone(),
         };
         std::mem::replace(self, follower)
     }
@@ -252,6 +262,12 @@ impl FeedbackLoop {
         let checker = Checker { limits: &self.limits, world_frame: &self.frame_id, now };
         let world_from_tool = checker.pose(topic, msg, self.tools[index].last_pose)?;
         let state = &mut self.tools[index];
+        if state.last_pose.is_none() && state.path.is_none() {
+            self.to_seat.resize(self.tools.len(), false);
+            self.to_seat[index] = true;
+            self.local.retain(|(model, _)| model.tool != index);
+        }
+        let state = &mut self.tools[index];
         state.last_pose = Some(msg.header.stamp);
         let moved = state.tool.world_from_tool != world_from_tool;
         if moved {
@@ -318,18 +334,33 @@ impl FeedbackLoop {
 
     /// One solver step, unless there is no solver here, or it is paused or asleep.
     pub fn step(&mut self, stamp: Time) -> Result<Option<Stepped>, PipelineError> {
-        let Some(engine) = self.engine.as_mut().filter(|_| !self.paused && !self.asleep) else {
-            return Ok(None);
-        };
-        for (index, state) in self.tools.iter().enumerate() {
-            let tool = engine.tool_mut(index)?;
-            tool.world_from_tool = state.tool.world_from_tool;
-            tool.applied_force = state.tool.applied_force;
+        let Some(input) = self.step_input(stamp) else { return Ok(None) };
+        let Some(engine) = self.engine.as_mut() else { return Ok(None) };
+        let output = run_step(engine, &input)?;
+        Ok(Some(self.finish_step(output)))
+    }
+
+    /// What a step needs, unless it is paused or asleep: the force loop's thread hands it to
+    /// the solver's own thread, so that poses are answered while the solver works.
+    pub fn step_input(&mut self, stamp: Time) -> Option<StepInput> {
+        if self.paused || self.asleep {
+            return None;
         }
-        let start = Instant::now();
-        let report = engine.step()?;
-        let positions = engine.positions();
-        self.solver_ms = start.elapsed().as_secs_f64() * 1e3;
+        let tools = self.tools.iter().map(|t| (t.tool.world_from_tool, t.tool.applied_force, t.last_pose)).collect();
+        Some(StepInput { tools, seat: std::mem::take(&mut self.to_seat), stamp })
+    }
+
+    /// Gives the solver away (to a thread of its own); this loop then only takes its steps.
+    pub fn take_engine(&mut self) -> Option<SolverEngine> {
+        self.engine.take()
+    }
+
+    /// Takes a step's outcome: the sleep rule, the counters, each tool's feedback stamped
+    /// with the pose the step used, and the local models the loop answers poses from until
+    /// the next step.
+    pub fn finish_step(&mut self, output: StepOutput) -> Stepped {
+        let StepOutput { report, positions, local, solver_ms, input } = output;
+        self.solver_ms = solver_ms;
         let touching = report.reactions.iter().any(|r| r.force.iter().any(|f| *f != 0.0))
             || self.tools.iter().any(|t| t.tool.applied_force != Vector3::zeros());
         self.quiet_steps = if report.kinetic_energy < SLEEP_ENERGY && !touching { self.quiet_steps + 1 } else { 0 };
@@ -347,10 +378,75 @@ impl FeedbackLoop {
                 );
             }
         }
-        let feedback = (self.tools.iter().enumerate())
-            .map(|(index, t)| outputs::feedback(&report, index, t.last_pose.unwrap_or(stamp), &self.frame_id))
+        let feedback = (input.tools.iter().enumerate())
+            .map(|(index, t)| outputs::feedback(&report, index, t.2.unwrap_or(input.stamp), &self.frame_id))
+            .collect();
+        self.local = local
+            .into_iter()
+            .map(|model| (input.tools.get(model.tool).and_then(|t| t.2), model))
+            .map(|(s, m)| (m, s))
             .collect();
         self.last_report = Some(report.clone());
-        Ok(Some(Stepped { report, positions, feedback, solver_ms: self.solver_ms }))
+        Stepped { report, positions, feedback, solver_ms }
     }
+
+    /// Whether tool `index` is answered from a local model between steps.
+    pub fn answers_locally(&self, index: usize) -> bool {
+        self.local.iter().any(|(model, _)| model.tool == index)
+    }
+
+    /// Tool `index`'s feedback to its latest pose from its local model (multirate: the
+    /// full solve refreshes the model, the loop answers every pose at once), advanced by the
+    /// time between the poses' stamps (at most [`LOCAL_STEP_MAX`]). None for a tool without
+    /// one (not coupled, or the solver on the GPU) or before its first step.
+    pub fn answer_locally(&mut self, index: usize) -> Option<WrenchStamped> {
+        let state = self.tools.get(index)?;
+        let stamp = state.last_pose?;
+        let device = state.tool.tip();
+        let (model, answered) = self.local.iter_mut().find(|(model, _)| model.tool == index)?;
+        let dt = answered.map_or(0.0, |last| (stamp.as_secs() - last.as_secs()).clamp(0.0, LOCAL_STEP_MAX));
+        *answered = Some(stamp);
+        let answer = model.answer(device, dt);
+        Some(outputs::local_feedback(&answer, stamp, &self.frame_id))
+    }
+}
+
+/// The longest time one local answer advances its model (s): a gap in the pose stream (a
+/// dropped packet) is not integrated as one long step.
+pub const LOCAL_STEP_MAX: f64 = 0.005;
+
+/// A step's inputs: each tool's pose, commanded force and latest pose stamp, and which
+/// tools' simulated tools start at their devices.
+#[derive(Debug, Clone)]
+pub struct StepInput {
+    tools: Vec<(Isometry3<f64>, Vector3<f64>, Option<Time>)>,
+    seat: Vec<bool>,
+    stamp: Time,
+}
+
+/// A step's outcome, from wherever the solver ran.
+pub struct StepOutput {
+    report: StepReport,
+    positions: Vec<Vector3<f64>>,
+    local: Vec<LocalModel>,
+    solver_ms: f64,
+    input: StepInput,
+}
+
+/// One step of `engine` with `input`'s tools, and the local models after it.
+pub fn run_step(engine: &mut SolverEngine, input: &StepInput) -> Result<StepOutput, PipelineError> {
+    for (index, (pose, force, _)) in input.tools.iter().enumerate() {
+        let tool = engine.tool_mut(index)?;
+        tool.world_from_tool = *pose;
+        tool.applied_force = *force;
+    }
+    for (index, _) in input.seat.iter().enumerate().filter(|(_, seat)| **seat) {
+        engine.seat_simulated_tool(index);
+    }
+    let start = Instant::now();
+    let report = engine.step()?;
+    let local = engine.local_models();
+    let positions = engine.positions();
+    let solver_ms = start.elapsed().as_secs_f64() * 1e3;
+    Ok(StepOutput { report, positions, local, solver_ms, input: input.clone() })
 }

@@ -10,7 +10,7 @@ pub mod inputs;
 mod outputs;
 
 pub use error::PipelineError;
-pub use feedback::{FeedbackLoop, LoopState, Stepped};
+pub use feedback::{run_step, FeedbackLoop, LoopState, StepInput, StepOutput, Stepped};
 pub use frames::{FrameMode, VolumeSink, WarpedVolume, WriteVolume};
 
 use std::sync::Arc;

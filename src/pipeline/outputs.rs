@@ -20,6 +20,16 @@ pub(super) fn feedback(report: &StepReport, index: usize, stamp: Time, frame: &s
     }
 }
 
+/// A tool's feedback answered from its local model between steps (no torque: the local
+/// model couples translation only).
+pub(super) fn local_feedback(answer: &crate::solver::LocalAnswer, stamp: Time, frame: &str) -> WrenchStamped {
+    let f = answer.force;
+    WrenchStamped {
+        header: header(stamp, frame),
+        wrench: Wrench { force: msgs::Vector3 { x: f.x, y: f.y, z: f.z }, torque: msgs::Vector3::default() },
+    }
+}
+
 fn displacement(mesh: &TetMesh, positions: &[Vector3<f64>]) -> Vec<f32> {
     mesh.nodes().iter().zip(positions).map(|(rest, p)| (p - rest).norm() as f32).collect()
 }

@@ -1,13 +1,16 @@
-//! The force loop's own thread: it waits on the tool subscriptions, steps the solver as
-//! soon as a pose comes (never more than half a step early: the average rate stays 1/dt)
-//! or when a step is due, and publishes each tool's feedback at once. The node's main
+//! The force loop's own thread: it waits on the tool subscriptions and answers each pose
+//! of a coupled tool at once from the tool's local model (multirate: `solver/haptic.rs`),
+//! whatever the mesh's size; the solver steps on a thread of its own, as soon as a pose
+//! comes (never more than half a step early: the average rate stays 1/dt) or when a step
+//! is due, and each step refreshes the local models. A tool without one (not coupled, or
+//! the solver on the GPU) gets each step's feedback as the step ends. The node's main
 //! thread, with the warp, the raycaster, DPCM, recording and the other topics, only
 //! follows it: it gets the accepted inputs and the feedback to record, and the latest
 //! state for the slow stages, and never holds it up.
 //!
-//! The thread runs inside a rayon pool of its own, sized by [`FeedbackLoop::threads`]:
-//! the solver's parallel loops start from a pool worker, so a small step never hands work
-//! to another thread.
+//! The solver's thread runs inside a rayon pool of its own, sized by
+//! [`FeedbackLoop::threads`]: its parallel loops start from a pool worker, so a small step
+//! never hands work to another thread.
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{mpsc, Arc, Mutex};
@@ -19,7 +22,8 @@ use ros2_client::{Publisher, Subscription};
 
 use super::error::NodeError;
 use crate::msgs::{PoseStamped, Time, WrenchStamped};
-use crate::pipeline::{FeedbackLoop, LoopState};
+use crate::pipeline::{run_step, FeedbackLoop, LoopState, StepInput, StepOutput};
+use crate::solver::SolverEngine;
 
 /// A tool's input subscriptions.
 pub(super) struct ToolSubscriptions {
@@ -63,6 +67,12 @@ pub(super) enum Event {
         stamp: Time,
         msgs: Vec<WrenchStamped>,
     },
+    /// Tool `index`'s answer to one pose, as published at `stamp`.
+    LocalFeedback {
+        stamp: Time,
+        index: usize,
+        msg: WrenchStamped,
+    },
     /// A step failed: the loop paused itself.
     Failed(String),
 }
@@ -86,19 +96,15 @@ pub(super) struct FeedbackThread {
 
 impl FeedbackThread {
     /// Starts the loop: `period` is the solver's time step.
-    pub fn spawn(feedback: FeedbackLoop, io: FeedbackIo, period: Duration) -> Result<Self, NodeError> {
-        let poll = Poll::new().map_err(|e| NodeError::Ros(format!("feedback thread: {e}")))?;
-        let waker =
-            Arc::new(Waker::new(poll.registry(), WAKER).map_err(|e| NodeError::Ros(format!("feedback thread: {e}")))?);
-        let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(feedback.threads())
-            .thread_name(|i| format!("defvol-feedback-{i}"))
-            .build()
-            .map_err(|e| NodeError::Ros(format!("feedback thread pool: {e}")))?;
+    pub fn spawn(mut feedback: FeedbackLoop, io: FeedbackIo, period: Duration) -> Result<Self, NodeError> {
+        let failed = |e: &dyn std::fmt::Display| NodeError::Ros(format!("feedback thread: {e}"));
+        let poll = Poll::new().map_err(|e| failed(&e))?;
+        let waker = Arc::new(Waker::new(poll.registry(), WAKER).map_err(|e| failed(&e))?);
+        let stop = Arc::new(AtomicBool::new(false));
+        let solver = SolverThread::spawn(feedback.take_engine(), feedback.threads(), waker.clone(), stop.clone())?;
         let (commands, command_rx) = mpsc::channel();
         let (event_tx, events) = mpsc::channel();
         let latest = Arc::new(Mutex::new(None));
-        let stop = Arc::new(AtomicBool::new(false));
         let mut worker = Worker {
             feedback,
             io,
@@ -109,11 +115,13 @@ impl FeedbackThread {
             generation: 0,
             stop: stop.clone(),
             period,
+            solver,
+            busy: false,
         };
         let handle = std::thread::Builder::new()
             .name("defvol-feedback".into())
-            .spawn(move || pool.install(|| worker.run()))
-            .map_err(|e| NodeError::Ros(format!("feedback thread: {e}")))?;
+            .spawn(move || worker.run())
+            .map_err(|e| failed(&e))?;
         Ok(Self { commands, events, latest, generation: 0, waker, stop, handle: Some(handle) })
     }
 
@@ -158,6 +166,82 @@ struct Worker {
     generation: u64,
     stop: Arc<AtomicBool>,
     period: Duration,
+    solver: SolverThread,
+    /// A step of this generation is on the solver's thread.
+    busy: bool,
+}
+
+/// Sent to the solver's thread.
+enum Job {
+    Step {
+        generation: u64,
+        input: StepInput,
+    },
+    /// The solver of a new loop (after a reset or a new scene).
+    Engine(Option<Box<SolverEngine>>),
+}
+
+/// The solver on a thread of its own: it takes a step's inputs, steps, and hands back the
+/// outcome, waking the force loop.
+struct SolverThread {
+    jobs: mpsc::Sender<Job>,
+    done: mpsc::Receiver<(u64, Result<StepOutput, String>)>,
+    handle: Option<JoinHandle<()>>,
+}
+
+impl SolverThread {
+    fn spawn(
+        engine: Option<SolverEngine>,
+        threads: usize,
+        waker: Arc<Waker>,
+        stop: Arc<AtomicBool>,
+    ) -> Result<Self, NodeError> {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .thread_name(|i| format!("defvol-solver-{i}"))
+            .build()
+            .map_err(|e| NodeError::Ros(format!("solver thread pool: {e}")))?;
+        let (jobs, job_rx) = mpsc::channel::<Job>();
+        let (done_tx, done) = mpsc::channel();
+        let handle = std::thread::Builder::new()
+            .name("defvol-solver".into())
+            .spawn(move || {
+                pool.install(move || {
+                    let mut engine = engine;
+                    while let Ok(job) = job_rx.recv() {
+                        if stop.load(Ordering::SeqCst) {
+                            break;
+                        }
+                        match job {
+                            Job::Engine(next) => engine = next.map(|e| *e),
+                            Job::Step { generation, input } => {
+                                let Some(engine) = engine.as_mut() else { continue };
+                                let outcome = run_step(engine, &input).map_err(|e| e.to_string());
+                                if done_tx.send((generation, outcome)).is_err() {
+                                    break;
+                                }
+                                let _ = waker.wake();
+                            }
+                        }
+                    }
+                })
+            })
+            .map_err(|e| NodeError::Ros(format!("solver thread: {e}")))?;
+        Ok(Self { jobs, done, handle: Some(handle) })
+    }
+}
+
+impl Drop for SolverThread {
+    fn drop(&mut self) {
+        // Closing the job channel ends the thread once its step is done.
+        let (closed, _) = mpsc::channel();
+        drop(std::mem::replace(&mut self.jobs, closed));
+        if let Some(handle) = self.handle.take() {
+            if handle.join().is_err() {
+                tracing::error!("the solver thread panicked");
+            }
+        }
+    }
 }
 
 impl Worker {
@@ -166,7 +250,7 @@ impl Worker {
         let mut events = Events::with_capacity(64);
         let mut next_step = Instant::now();
         while !self.stop.load(Ordering::SeqCst) {
-            let idle = self.feedback.paused() || self.feedback.asleep();
+            let idle = self.feedback.paused() || self.feedback.asleep() || self.busy;
             let wait = if idle { IDLE_WAIT } else { next_step.saturating_duration_since(Instant::now()) };
             if let Err(e) = self.poll.poll(&mut events, Some(wait)) {
                 if e.kind() != std::io::ErrorKind::Interrupted {
@@ -179,39 +263,70 @@ impl Worker {
             if commanded {
                 next_step = Instant::now();
             }
+            let stepped = self.take_step();
             let now = Instant::now();
             // A step goes as soon as a pose comes, at most half a step early, so that the
             // feedback follows the device's own clock at 1/dt on average.
             let due = now >= next_step || (posed && now + self.period / 2 >= next_step);
-            let mut stepped = None;
-            if due && !self.feedback.paused() && !self.feedback.asleep() {
-                match self.feedback.step(Time::now()) {
-                    Ok(Some(mut s)) => {
-                        self.send_feedback(std::mem::take(&mut s.feedback));
-                        stepped = Some(s);
+            if due && !self.busy {
+                if let Some(input) = self.feedback.step_input(Time::now()) {
+                    self.busy = self.solver.jobs.send(Job::Step { generation: self.generation, input }).is_ok();
+                    next_step += self.period;
+                    // Behind by more than a few steps (a stall, or waking from sleep): start afresh.
+                    if next_step + self.period * 5 < now {
+                        next_step = now + self.period;
                     }
-                    Ok(None) => {}
-                    Err(e) => {
-                        self.feedback.pause();
-                        let _ = self.events.send(Event::Failed(e.to_string()));
+                } else {
+                    next_step = now;
+                    // Asleep, each pose still gets its answer: the rest state's force.
+                    if let Some(msgs) = posed.then(|| self.feedback.resting_feedback(Time::now())).flatten() {
+                        self.send_feedback(msgs);
                     }
-                }
-                next_step += self.period;
-                // Behind by more than a few steps (a stall, or waking from sleep): start afresh.
-                if next_step + self.period * 5 < now {
-                    next_step = now + self.period;
-                }
-            } else if idle {
-                next_step = now;
-                // Asleep, each pose still gets its answer: the rest state's force.
-                if let Some(msgs) = posed.then(|| self.feedback.resting_feedback(Time::now())).flatten() {
-                    self.send_feedback(msgs);
                 }
             }
             if stepped.is_some() || changed || commanded {
                 self.publish_state(stepped);
             }
         }
+    }
+
+    /// The step the solver's thread finished, if any: its feedback goes to each tool not
+    /// answered from a local model.
+    fn take_step(&mut self) -> Option<crate::pipeline::Stepped> {
+        let mut latest = None;
+        while let Ok((generation, outcome)) = self.solver.done.try_recv() {
+            if generation != self.generation {
+                continue; // a step of a loop since replaced
+            }
+            self.busy = false;
+            match outcome {
+                Ok(output) => latest = Some(self.feedback.finish_step(output)),
+                Err(e) => {
+                    self.feedback.pause();
+                    let _ = self.events.send(Event::Failed(e));
+                }
+            }
+        }
+        let mut stepped = latest?;
+        let mut msgs = std::mem::take(&mut stepped.feedback);
+        if (0..msgs.len()).any(|index| self.feedback.answers_locally(index)) {
+            for (index, msg) in msgs.drain(..).enumerate().filter(|(index, _)| !self.feedback.answers_locally(*index)) {
+                self.send_one(index, msg);
+            }
+        } else {
+            self.send_feedback(msgs);
+        }
+        Some(stepped)
+    }
+
+    /// Publishes one tool's feedback and hands it to the node to record.
+    fn send_one(&self, index: usize, msg: WrenchStamped) {
+        if let Some((topic, publisher)) = self.io.feedback.get(index) {
+            if let Err(e) = publisher.publish(msg.clone()) {
+                tracing::debug!("{topic}: not sent ({e:?})");
+            }
+        }
+        let _ = self.events.send(Event::LocalFeedback { stamp: Time::now(), index, msg });
     }
 
     /// Publishes each tool's feedback and hands it to the node to record.
@@ -248,14 +363,20 @@ impl Worker {
         let (mut posed, mut changed) = (false, false);
         let now = Time::now();
         for tool in &self.io.tools {
+            let mut answer = false;
             drain(&tool.pose, |msg| {
                 changed = true;
                 if self.feedback.apply_pose(&tool.pose_topic, &msg, now).is_ok() {
-                    posed = true;
+                    (posed, answer) = (true, true);
                     let pose = self.feedback.tool_on(&tool.pose_topic);
                     let _ = self.events.send(Event::Pose { topic: tool.pose_topic.clone(), msg, tool: pose });
                 }
             });
+            // The latest pose of a coupled tool is answered now, from its local model.
+            let index = self.feedback.tool_on(&tool.pose_topic).map(|(index, _)| index);
+            if let Some(msg) = index.filter(|_| answer).and_then(|index| self.feedback.answer_locally(index)) {
+                self.send_one(index.unwrap_or_default(), msg);
+            }
             drain(&tool.wrench, |msg| {
                 changed = true;
                 if self.feedback.apply_wrench(&tool.wrench_topic, &msg, now).is_ok() {
@@ -274,9 +395,11 @@ impl Worker {
             match command {
                 Command::Pause => self.feedback.pause(),
                 Command::Resume => self.feedback.resume(),
-                Command::Replace { feedback, io } => {
+                Command::Replace { mut feedback, io } => {
+                    let _ = self.solver.jobs.send(Job::Engine(feedback.take_engine().map(Box::new)));
                     self.feedback = *feedback;
                     self.generation += 1;
+                    self.busy = false;
                     if let Some(io) = io {
                         self.register(false);
                         self.io = io;

@@ -323,6 +323,11 @@ impl DefvolNode {
                     let out = Outputs { tool_feedback: msgs, ..Default::default() };
                     self.session.record_outputs(&out, &self.pipeline, stamp);
                 }
+                Event::LocalFeedback { stamp, index, msg } => {
+                    if let Some(topic) = self.pipeline.feedback_topics().get(index) {
+                        self.session.record_feedback(topic, &msg, stamp);
+                    }
+                }
                 Event::Failed(e) => tracing::error!("step failed: {e}; paused (call reset or load_scene)"),
             }
         }

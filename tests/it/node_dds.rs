@@ -6,6 +6,8 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command};
 use std::time::{Duration, Instant};
 
+use nalgebra::Vector3;
+
 use defvol::msgs::{
     self, DeformedMesh, DiagnosticArray, Header, Image, LoadSceneRequest, Marker, Pose, PoseStamped, Time,
     TriggerRequest, TriggerResponse, WarpedVolumeInfo, WrenchStamped,
@@ -49,11 +51,15 @@ fn scene() -> PathBuf {
 /// A node on the small scene; its shared-memory service is its own (/dev/shm is shared by
 /// every network namespace, and tests run side by side).
 fn start_node(dir: &Path, seconds: u32, test: &str) -> Child {
+    start_node_on(&scene(), dir, seconds, test)
+}
+
+fn start_node_on(scene: &Path, dir: &Path, seconds: u32, test: &str) -> Child {
     Command::new(env!("CARGO_BIN_EXE_defvol_node"))
         .args(["--backend", "cpu", "--seconds", &seconds.to_string(), "--record"])
         .arg(dir.join("node.mcap"))
         .args(["--ros-args", "-r", "__ns:=/robot", "-p"])
-        .arg(format!("scene_file:={}", scene().display()))
+        .arg(format!("scene_file:={}", scene.display()))
         .arg("-p")
         .arg(format!("warp.service:=defvol/{test}_{}", std::process::id()))
         .env("ROS_DOMAIN_ID", "17")
@@ -246,6 +252,71 @@ fn a_second_participant_drives_the_node_and_receives_every_output() {
             bag::read_messages(&dir.path().join("node.mcap"), &["/robot/tool_pose", "/robot/deformed_mesh"]).unwrap();
         assert!(recorded.iter().filter(|m| m.topic == "/robot/tool_pose").count() > 100);
         assert!(recorded.iter().any(|m| m.topic == "/robot/deformed_mesh"));
+    });
+}
+
+/// A coupled thin tool is answered from its local model: each pose at once, stamped with
+/// it, so answers come at the pose rate (500 Hz here), not the solver's (100 Hz), and the
+/// surface holds the tool short of the coupling's largest force.
+#[test]
+fn a_coupled_tool_is_answered_at_the_pose_rate_not_the_solver_rate() {
+    isolated("a_coupled_tool_is_answered_at_the_pose_rate_not_the_solver_rate", || {
+        let dir = tempfile::tempdir().unwrap();
+        let small = std::fs::read_to_string(scene()).unwrap();
+        let (head, tail) = small.split_once("tools:").unwrap();
+        let rest = &tail[tail.find("frame_id:").unwrap()..];
+        let tool = "tools:\n  - name: probe\n    shape: { kind: sphere, radius: 0.002 }\n    contact: surface\n    \
+                    contact_stiffness: 20000.0\n    spread_radius: 0.01\n    \
+                    coupling: { stiffness: 1000.0, damping: 2.0, mass: 0.02, max_force: 10.0 }\n";
+        let coupled = format!("{head}{tool}{rest}").replace(
+            "stages: { solver: true, warp: true, dpcm: true, raycast: true }",
+            "stages: { solver: true, warp: false, dpcm: false, raycast: false }",
+        );
+        let scene = dir.path().join("coupled.yaml");
+        std::fs::write(&scene, coupled).unwrap();
+        let node_process = start_node_on(&scene, dir.path(), 9, "coupled");
+        let context = dds::context(17, Discovery::Localhost).unwrap();
+        let mut peer = context.new_node(NodeName::new("/", "device").unwrap(), NodeOptions::new()).unwrap();
+        let feedback_topic = peer
+            .create_topic(
+                &Name::parse("/robot/tool_feedback").unwrap(),
+                type_name::<WrenchStamped>(),
+                &qos(Qos::SensorData),
+            )
+            .unwrap();
+        let feedback = peer.create_subscription::<WrenchStamped>(&feedback_topic, Some(qos(Qos::SensorData))).unwrap();
+        let pose_topic = peer
+            .create_topic(&Name::parse("/robot/tool_pose").unwrap(), type_name::<PoseStamped>(), &qos(Qos::Reliable))
+            .unwrap();
+        let poses = peer.create_publisher::<PoseStamped>(&pose_topic, Some(qos(Qos::Reliable))).unwrap();
+        let (mut sent, mut answers, mut peak, mut strongest) = (Vec::new(), Vec::new(), 0.0f64, 0.0f64);
+        let start = Instant::now();
+        while start.elapsed() < Duration::from_secs(6) {
+            // Down from 1 cm above the phantom's top (z = 0.06) to 2 mm into it, then held.
+            let s = (start.elapsed().as_secs_f64() / 2.0).min(1.0);
+            let pose = pose_at(0.072 - 0.014 * s);
+            poses.publish(pose.clone()).unwrap();
+            sent.push((pose.header.stamp, Instant::now()));
+            while let Ok(Some((m, _))) = feedback.take() {
+                let f = Vector3::new(m.wrench.force.x, m.wrench.force.y, m.wrench.force.z);
+                (peak, strongest) = (peak.max(f.z), strongest.max(f.norm()));
+                answers.push((m.header.stamp, Instant::now()));
+            }
+            std::thread::sleep(Duration::from_millis(2));
+        }
+        let exit = node_process.wait_with_output().unwrap();
+        assert!(exit.status.success(), "the node exited with {}", exit.status);
+        // From the first answer on (the node up and matched), every pose is answered.
+        let first = answers.first().map(|a| a.0).expect("the device got feedback");
+        let expected: Vec<_> = sent.iter().filter(|(stamp, _)| stamp.as_secs() >= first.as_secs()).collect();
+        let answered = expected.iter().filter(|(stamp, _)| answers.iter().any(|a| a.0 == *stamp)).count();
+        let seconds = answers.last().unwrap().1.duration_since(answers[0].1).as_secs_f64();
+        let rate = answers.len() as f64 / seconds;
+        eprintln!("{answered} of {} poses answered, {rate:.0} Hz; peak {peak} N", expected.len());
+        assert!(answered as f64 > 0.95 * expected.len() as f64, "{answered} of {} poses answered", expected.len());
+        assert!(rate > 300.0, "answers come at {rate:.0} Hz, faster than the solver's 100 Hz");
+        // Pressed, held by the surface short of the coupling's largest force.
+        assert!(peak > 0.5 && strongest < 10.0, "the tool pressed with {peak} N, at most {strongest} N");
     });
 }
 

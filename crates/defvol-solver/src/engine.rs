@@ -91,6 +91,17 @@ impl SolverEngine {
         }
     }
 
+    /// Puts coupled tool `index`'s simulated tool at its device, at rest (its device's first
+    /// pose); the GPU solver couples no tool.
+    pub fn seat_simulated_tool(&mut self, index: usize) {
+        match self {
+            Self::Cpu(s) => s.seat_simulated_tool(index),
+            Self::CpuF64(s) => s.seat_simulated_tool(index),
+            #[cfg(feature = "gpu")]
+            Self::Gpu(_) => {}
+        }
+    }
+
     /// Each coupled tool's local model for the force loop, from the last step
     /// (`haptic.rs`); the GPU solver couples no tool.
     pub fn local_models(&mut self) -> Vec<LocalModel> {

@@ -244,6 +244,16 @@ impl<T: Real> Simulation<T> {
         self.tools.get_mut(index).ok_or(SolverError::NoSuchTool { index, count })
     }
 
+    /// Puts coupled tool `index`'s simulated tool where its device is, at rest: for a
+    /// device whose first pose arrives after the simulation started (the tool had been
+    /// waiting at its configured pose, maybe inside the organ).
+    pub fn seat_simulated_tool(&mut self, index: usize) {
+        let tip = self.tools.get(index).map(|t| t.tip());
+        if let (Some(proxy), Some(tip)) = (self.proxies.iter_mut().find(|p| p.tool == index), tip) {
+            (proxy.x, proxy.v, proxy.device, proxy.device_velocity) = (tip, Vector3::zeros(), tip, Vector3::zeros());
+        }
+    }
+
     /// Sets the state (e.g. to restart from a recorded one).
     pub fn set_state(&mut self, x: &[Vector3<f64>], v: &[Vector3<f64>]) {
         self.u = x.iter().zip(&self.rest).map(|(p, r)| (p - r).map(T::of)).collect();
