@@ -231,7 +231,7 @@ mod dds {
 
     use super::{percentile, time_stats, BenchRow, NodeBenchError, NodeBenchOptions};
     use crate::backend::{Backend, BackendChoice, RunsOn};
-    use crate::msgs::{Header, Pose, PoseStamped, Time, WrenchStamped};
+    use crate::msgs::{DiagnosticArray, Header, Pose, PoseStamped, Time, WrenchStamped};
     use crate::record::Qos;
     use crate::ros::args::RosArgs;
     use crate::ros::dds::{context, settings, Discovery};
@@ -246,15 +246,28 @@ mod dds {
         /// Feedback messages the device took, and the seconds it listened.
         feedback: usize,
         seconds: f64,
+        /// The coupled thin tool on surface contact (else the default probe).
+        haptic: bool,
+        /// Solver steps per second behind the answers, and the median step time (ms), from
+        /// the node's diagnostics.
+        simulation_hz: f64,
+        step_ms: f64,
     }
 
     impl FeedbackRun {
         pub fn row(self, case: String, backend: &str, device: &str, tets: usize, everything: bool) -> BenchRow {
             let rate = self.feedback as f64 / self.seconds.max(1e-9);
+            let tool = match self.haptic {
+                true => "coupled 2 mm tool, surface contact, local model",
+                false => "25 mm probe, node contact",
+            };
             let note = format!(
-                "DDS loop, 1 kHz poses; feedback at {rate:.0} Hz, {} of {} poses answered{}; goal p99 < 1 ms",
+                "DDS loop, 1 kHz poses, {tool}; feedback at {rate:.0} Hz, {} of {} poses answered, solver at {:.0} \
+                 steps/s ({:.2} ms a step){}; goal p99 < 1 ms",
                 self.latencies.len(),
                 self.poses,
+                self.simulation_hz,
+                self.step_ms,
                 if everything { "; warp, raycast and DPCM beside" } else { "" }
             );
             BenchRow {
@@ -262,7 +275,7 @@ mod dds {
                 case,
                 backend: backend.into(),
                 device: device.into(),
-                params: json!({"input_hz": 1000, "dt": 1e-3, "p99_ms": percentile(&self.latencies, 0.99), "sustained_hz": rate, "answered": self.latencies.len(), "poses": self.poses, "note": note}),
+                params: json!({"input_hz": 1000, "dt": 1e-3, "p99_ms": percentile(&self.latencies, 0.99), "sustained_hz": rate, "answered": self.latencies.len(), "poses": self.poses, "haptic_tool": self.haptic, "simulation_hz": self.simulation_hz, "solver_step_ms": self.step_ms, "note": note}),
                 runs: self.latencies.len(),
                 time_ms: time_stats(self.latencies),
                 error: None,
@@ -284,6 +297,15 @@ mod dds {
         parameters.insert("solver.dt".to_owned(), yaml(1e-3));
         for stage in ["warp", "raycast", "dpcm"] {
             parameters.insert(format!("stages.{stage}"), yaml(everything));
+        }
+        // The haptic configuration: a coupled 2 mm tool on the boundary surface, answered
+        // from its local model; the GPU solver couples no tool, so there the default probe.
+        let haptic = backend.runs_on() == RunsOn::Cpu;
+        if haptic {
+            for (name, value) in HAPTIC_TOOL {
+                let value: serde_yaml_ng::Value = serde_yaml_ng::from_str(value).map_err(|e| setup(&e))?;
+                parameters.insert(format!("tools.0.{name}"), value);
+            }
         }
         let stop = Arc::new(AtomicBool::new(false));
         let node_settings = NodeSettings {
@@ -307,15 +329,28 @@ mod dds {
             stop: Some(stop.clone()),
         };
         let node = std::thread::spawn(move || run(node_settings).map_err(|e| e.to_string()));
-        let measured = device_side(opts, &setup);
+        let measured = device_side(opts, haptic, &setup);
         stop.store(true, Ordering::SeqCst);
         let ran = node.join().map_err(|_| NodeBenchError::Setup("the node panicked".into()))?;
         ran.map_err(|e| NodeBenchError::Setup(format!("node: {e}")))?;
         measured
     }
 
+    /// The tool of the haptic configuration, as node parameters under `tools.0`.
+    const HAPTIC_TOOL: [(&str, &str); 8] = [
+        ("shape.kind", "sphere"),
+        ("shape.radius", "0.002"),
+        ("contact", "surface"),
+        ("contact_stiffness", "20000.0"),
+        ("coupling.stiffness", "2000.0"),
+        ("coupling.damping", "5.0"),
+        ("coupling.mass", "0.02"),
+        ("coupling.max_force", "10.0"),
+    ];
+
     fn device_side(
         opts: &NodeBenchOptions,
+        haptic: bool,
         setup: &dyn Fn(&dyn std::fmt::Debug) -> NodeBenchError,
     ) -> Result<FeedbackRun, NodeBenchError> {
         let (domain, _) = settings(|name| std::env::var(name).ok(), false).map_err(|e| setup(&e))?;
@@ -338,6 +373,17 @@ mod dds {
                 &q,
             )
             .map_err(|e| setup(&e))?;
+        let diagnostics_topic = device
+            .create_topic(
+                &Name::parse("/diagnostics").map_err(|e| setup(&e))?,
+                MessageTypeName::new("diagnostic_msgs", "DiagnosticArray"),
+                &qos(Qos::Reliable),
+            )
+            .map_err(|e| setup(&e))?;
+        let diagnostics = device
+            .create_subscription::<DiagnosticArray>(&diagnostics_topic, Some(qos(Qos::Reliable)))
+            .map_err(|e| setup(&e))?;
+        let mut solver_steps: Vec<(Instant, f64, f64)> = Vec::new();
         let poses = device.create_publisher::<PoseStamped>(&pose_topic, Some(q.clone())).map_err(|e| setup(&e))?;
         let mut feedback =
             device.create_subscription::<WrenchStamped>(&feedback_topic, Some(q)).map_err(|e| setup(&e))?;
@@ -376,10 +422,13 @@ mod dds {
             if k == opts.settle {
                 timed_from = Some(Instant::now());
             }
-            // The probe comes down 10 mm over the first half second, then holds: contact throughout.
+            // The probe comes down over the first half second, then holds: contact throughout
+            // (the default probe's 25 mm radius 10 mm in; the thin tool's centre 2 mm under
+            // the organ's top, at 6 cm).
             let t = k as f64 * 1e-3;
             let sent = Time::now();
-            let _ = poses.publish(pose(sent, 0.07 - 0.01 * (t / 0.5).min(1.0)));
+            let depth = if haptic { 0.012 } else { 0.01 };
+            let _ = poses.publish(pose(sent, 0.07 - depth * (t / 0.5).min(1.0)));
             next += period;
             loop {
                 let wait = next.saturating_duration_since(Instant::now());
@@ -387,6 +436,11 @@ mod dds {
                     break;
                 }
                 let _ = poll.poll(&mut events, Some(wait));
+                while let Ok(Some((msg, _))) = diagnostics.take() {
+                    if k >= opts.settle {
+                        solver_steps.extend(solver_step(&msg).map(|(step, ms)| (Instant::now(), step, ms)));
+                    }
+                }
                 while let Ok(Some((msg, _))) = feedback.take() {
                     let arrived = Time::now();
                     if k >= opts.settle {
@@ -405,7 +459,27 @@ mod dds {
         if let Some(from) = timed_from {
             listened = from.elapsed().as_secs_f64();
         }
-        Ok(FeedbackRun { latencies, poses: opts.steps, feedback: taken, seconds: listened })
+        let simulation_hz = match (solver_steps.first(), solver_steps.last()) {
+            (Some(a), Some(b)) if b.0 > a.0 => (b.1 - a.1) / b.0.duration_since(a.0).as_secs_f64(),
+            _ => f64::NAN,
+        };
+        let step_ms = percentile(&solver_steps.iter().map(|s| s.2).collect::<Vec<_>>(), 0.5);
+        Ok(FeedbackRun {
+            latencies,
+            poses: opts.steps,
+            feedback: taken,
+            seconds: listened,
+            haptic,
+            simulation_hz,
+            step_ms,
+        })
+    }
+
+    /// The solver's step count and step time in a diagnostics message.
+    fn solver_step(msg: &DiagnosticArray) -> Option<(f64, f64)> {
+        let status = msg.status.iter().find(|s| s.name == "defvol: solver")?;
+        let value = |key: &str| status.values.iter().find(|kv| kv.key == key)?.value.parse::<f64>().ok();
+        Some((value("step")?, value("step_ms")?))
     }
 
     /// A plain value as a YAML parameter.
