@@ -402,7 +402,7 @@ impl FeedbackLoop {
 
     /// Tool `index`'s feedback to its latest pose from its local model (multirate: the
     /// full solve refreshes the model, the loop answers every pose at once), advanced by the
-    /// time between the poses' stamps (at most [`LOCAL_STEP_MAX`]). None for a tool without
+    /// time between the poses' stamps (at most `LOCAL_STEP_MAX`). None for a tool without
     /// one (not coupled, or the solver on the GPU) or before its first step.
     pub fn answer_locally(&mut self, index: usize) -> Option<WrenchStamped> {
         let state = self.tools.get(index)?;
@@ -418,7 +418,7 @@ impl FeedbackLoop {
 
 /// The longest time one local answer advances its model (s): a gap in the pose stream (a
 /// dropped packet) is not integrated as one long step.
-pub const LOCAL_STEP_MAX: f64 = 0.005;
+const LOCAL_STEP_MAX: f64 = 0.005;
 
 /// A step's inputs: each tool's pose, commanded force and latest pose stamp, and which
 /// tools' simulated tools start at their devices.

@@ -312,7 +312,7 @@ impl Worker {
                     next_step = now;
                     // Asleep, each pose still gets its answer: the rest state's force.
                     if let Some(msgs) = posed.then(|| self.feedback.resting_feedback(Time::now())).flatten() {
-                        self.send_feedback(msgs);
+                        self.send_unanswered(msgs);
                     }
                 }
             }
@@ -340,15 +340,21 @@ impl Worker {
             }
         }
         let mut stepped = latest?;
-        let mut msgs = std::mem::take(&mut stepped.feedback);
+        self.send_unanswered(std::mem::take(&mut stepped.feedback));
+        Some(stepped)
+    }
+
+    /// Publishes the feedback of each tool not answered from a local model (those got
+    /// their answer as their pose came).
+    fn send_unanswered(&self, msgs: Vec<WrenchStamped>) {
         if (0..msgs.len()).any(|index| self.feedback.answers_locally(index)) {
-            for (index, msg) in msgs.drain(..).enumerate().filter(|(index, _)| !self.feedback.answers_locally(*index)) {
+            for (index, msg) in msgs.into_iter().enumerate().filter(|(index, _)| !self.feedback.answers_locally(*index))
+            {
                 self.send_one(index, msg);
             }
         } else {
             self.send_feedback(msgs);
         }
-        Some(stepped)
     }
 
     /// Publishes one tool's feedback and hands it to the node to record.
