@@ -306,6 +306,27 @@ impl ToolConfig {
         tool
     }
 
+    /// Why this tool's surface contact is too soft for its coupling, if it is: pulled with
+    /// the coupling's largest force, the penalty lets the tool in by max_force / k_c; past
+    /// its radius the tool's centre is inside the body, where one face alone holds it and a
+    /// held tool may not come to rest.
+    pub fn too_soft_for_its_coupling(&self) -> Option<String> {
+        let coupling = self.coupling.filter(|_| self.contact == ContactModel::Surface)?;
+        let (depth, radius) = (coupling.max_force / self.contact_stiffness, self.shape.radius());
+        (depth > radius).then(|| {
+            format!(
+                "tool `{}`: pulled with the coupling's max_force ({} N), a contact_stiffness of {} N/m lets it \
+                 {:.2} mm in, past its {:.2} mm radius; raise contact_stiffness to {:.0} N/m or more",
+                self.name,
+                coupling.max_force,
+                self.contact_stiffness,
+                depth * 1e3,
+                radius * 1e3,
+                coupling.max_force / radius
+            )
+        })
+    }
+
     /// The pose topic of the tool at `index`.
     pub fn pose_topic(&self, index: usize) -> String {
         self.pose_topic.clone().unwrap_or_else(|| {
@@ -367,6 +388,9 @@ impl Scene {
             return Err(SceneError::Invalid(format!("file_to_world = {} must be positive", self.file_to_world)));
         }
         self.solver.validate()?;
+        for why in self.tools.iter().filter_map(ToolConfig::too_soft_for_its_coupling) {
+            tracing::warn!("{why}");
+        }
         let volume = if self.volume == "phantom" {
             phantom::phantom(phantom::DEFAULT_DIMS, 1.0)?
         } else {

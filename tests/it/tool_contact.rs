@@ -465,3 +465,40 @@ fn sphere_pressed_into_a_block_follows_hertz_with_the_mesh_modulus() {
         assert!((felt - law).abs() < 0.05 * law, "at {d} m: {felt} N, Hertz on the layer says {law} N");
     }
 }
+
+/// A coupled thin tool whose surface contact is too soft for its coupling is said so, and
+/// truly: pulled through the organ with the coupling's largest force, its centre ends inside
+/// the body; stiff enough, it is not said, and the centre stays out.
+#[test]
+fn a_contact_too_soft_for_its_coupling_is_said_so_and_the_centre_goes_in() {
+    let (mesh, model) = coarse_slab();
+    let radius = 0.001;
+    let coupling = defvol::solver::Coupling { stiffness: 2000.0, damping: 5.0, mass: 0.02, max_force: 5.0 };
+    for (contact_stiffness, soft) in [(2_000.0, true), (20_000.0, false)] {
+        let config = defvol::scene::ToolConfig {
+            name: "probe".into(),
+            shape: ToolShape::Sphere { radius },
+            contact_stiffness,
+            spread_radius: 0.01,
+            contact: defvol::solver::ContactModel::Surface,
+            coupling: Some(coupling),
+            path: None,
+            pose_topic: None,
+            wrench_topic: None,
+            feedback_topic: None,
+        };
+        let said = config.too_soft_for_its_coupling();
+        assert_eq!(said.is_some(), soft, "k_c {contact_stiffness}: {said:?}");
+        let params = SolverParams { gravity: [0.0; 3], dt: 0.002, cg_tolerance: 1e-9, ..Default::default() };
+        let mut sim = Simulation::<f64>::new(&model, params, vec![config.tool()]).unwrap();
+        sim.tool_mut(0).unwrap().world_from_tool = Isometry3::translation(0.043, 0.058, 0.002);
+        sim.step().unwrap();
+        sim.tool_mut(0).unwrap().world_from_tool = Isometry3::translation(0.043, 0.058, -0.2);
+        for _ in 0..300 {
+            sim.step().unwrap();
+        }
+        let tip = sim.simulated_pose(0).unwrap().translation.vector;
+        let inside = tip.z < top_surface_height(&mesh, &sim.positions_f64(), tip.x, tip.y);
+        assert_eq!(inside, soft, "k_c {contact_stiffness}: the centre at {tip}");
+    }
+}
