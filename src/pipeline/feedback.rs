@@ -351,7 +351,15 @@ impl FeedbackLoop {
         if self.paused || self.asleep {
             return None;
         }
-        let tools = self.tools.iter().map(|t| (t.tool.world_from_tool, t.tool.applied_force, t.last_pose)).collect();
+        let tools = (self.tools.iter().enumerate())
+            .map(|(index, t)| ToolInput {
+                pose: t.tool.world_from_tool,
+                force: t.tool.applied_force,
+                last_pose: t.last_pose,
+                // A tool that waits for its device's first pose touches nothing yet.
+                contact_stiffness: if self.awaits_first_pose(index) { 0.0 } else { t.tool.contact_stiffness },
+            })
+            .collect();
         Some(StepInput { tools, seat: std::mem::take(&mut self.to_seat), stamp })
     }
 
@@ -384,15 +392,26 @@ impl FeedbackLoop {
             }
         }
         let feedback = (input.tools.iter().enumerate())
-            .map(|(index, t)| outputs::feedback(&report, index, t.2.unwrap_or(input.stamp), &self.frame_id))
+            .map(|(index, t)| outputs::feedback(&report, index, t.last_pose.unwrap_or(input.stamp), &self.frame_id))
             .collect();
-        self.local = local
-            .into_iter()
-            .map(|model| (input.tools.get(model.tool).and_then(|t| t.2), model))
-            .map(|(s, m)| (m, s))
+        // A model from before its device's first pose came would answer from where the tool
+        // waited: the next step, which seats it, brings one.
+        self.local = (local.into_iter())
+            .filter(|model| !self.to_seat.get(model.tool).copied().unwrap_or(false))
+            .map(|model| {
+                let answered = input.tools.get(model.tool).and_then(|t| t.last_pose);
+                (model, answered)
+            })
             .collect();
         self.last_report = Some(report.clone());
         Stepped { report, positions, feedback, solver_ms }
+    }
+
+    /// Whether tool `index` waits for its device's first pose (it has no scripted path): it
+    /// sits where the scene put it, maybe inside the organ, so it touches nothing and its
+    /// feedback answers nothing yet.
+    pub fn awaits_first_pose(&self, index: usize) -> bool {
+        self.tools.get(index).is_some_and(|t| t.last_pose.is_none() && t.path.is_none())
     }
 
     /// Whether tool `index` is answered from a local model between steps.
@@ -420,11 +439,19 @@ impl FeedbackLoop {
 /// dropped packet) is not integrated as one long step.
 const LOCAL_STEP_MAX: f64 = 0.005;
 
-/// A step's inputs: each tool's pose, commanded force and latest pose stamp, and which
-/// tools' simulated tools start at their devices.
+/// One tool as a step takes it.
+#[derive(Debug, Clone)]
+struct ToolInput {
+    pose: Isometry3<f64>,
+    force: Vector3<f64>,
+    last_pose: Option<Time>,
+    contact_stiffness: f64,
+}
+
+/// A step's inputs: each tool, and which tools' simulated tools start at their devices.
 #[derive(Debug, Clone)]
 pub struct StepInput {
-    tools: Vec<(Isometry3<f64>, Vector3<f64>, Option<Time>)>,
+    tools: Vec<ToolInput>,
     seat: Vec<bool>,
     stamp: Time,
 }
@@ -440,10 +467,11 @@ pub struct StepOutput {
 
 /// One step of `engine` with `input`'s tools, and the local models after it.
 pub fn run_step(engine: &mut SolverEngine, input: &StepInput) -> Result<StepOutput, PipelineError> {
-    for (index, (pose, force, _)) in input.tools.iter().enumerate() {
+    for (index, input) in input.tools.iter().enumerate() {
         let tool = engine.tool_mut(index)?;
-        tool.world_from_tool = *pose;
-        tool.applied_force = *force;
+        tool.world_from_tool = input.pose;
+        tool.applied_force = input.force;
+        tool.contact_stiffness = input.contact_stiffness;
     }
     for (index, _) in input.seat.iter().enumerate().filter(|(_, seat)| **seat) {
         engine.seat_simulated_tool(index);

@@ -345,11 +345,11 @@ impl Worker {
     }
 
     /// Publishes the feedback of each tool not answered from a local model (those got
-    /// their answer as their pose came).
+    /// their answer as their pose came) and not waiting for its device's first pose.
     fn send_unanswered(&self, msgs: Vec<WrenchStamped>) {
-        if (0..msgs.len()).any(|index| self.feedback.answers_locally(index)) {
-            for (index, msg) in msgs.into_iter().enumerate().filter(|(index, _)| !self.feedback.answers_locally(*index))
-            {
+        let elsewhere = |index: usize| self.feedback.answers_locally(index) || self.feedback.awaits_first_pose(index);
+        if (0..msgs.len()).any(elsewhere) {
+            for (index, msg) in msgs.into_iter().enumerate().filter(|(index, _)| !elsewhere(*index)) {
                 self.send_one(index, msg);
             }
         } else {
