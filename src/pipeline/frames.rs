@@ -275,6 +275,7 @@ impl Frames {
                 let pool = rayon::ThreadPoolBuilder::new()
                     .num_threads(threads)
                     .thread_name(|i| format!("defvol-frames-{i}"))
+                    .start_handler(|_| super::priority::into_background("the frame worker"))
                     .build()
                     .map_err(|e| PipelineError::Invalid(format!("frame worker threads: {e}")))?;
                 let (jobs, job_queue) = mpsc::sync_channel::<FrameJob>(1);

@@ -10,6 +10,7 @@ pub mod inputs;
 mod outputs;
 
 pub use error::PipelineError;
+pub mod priority;
 pub use feedback::{run_step, FeedbackLoop, LoopState, StepInput, StepOutput, Stepped};
 pub use frames::{FrameMode, VolumeSink, WarpedVolume, WriteVolume};
 

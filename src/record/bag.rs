@@ -227,6 +227,7 @@ impl BagThread {
         let thread = std::thread::Builder::new()
             .name("defvol-record".into())
             .spawn(move || {
+                crate::pipeline::priority::into_background("the recorder");
                 for e in entries {
                     if recorder.failure().is_some() {
                         continue;

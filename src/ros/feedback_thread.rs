@@ -22,7 +22,7 @@ use ros2_client::{Publisher, Subscription};
 
 use super::error::NodeError;
 use crate::msgs::{PoseStamped, Time, WrenchStamped};
-use crate::pipeline::{run_step, FeedbackLoop, LoopState, StepInput, StepOutput};
+use crate::pipeline::{priority, run_step, FeedbackLoop, LoopState, StepInput, StepOutput};
 use crate::solver::SolverEngine;
 
 /// A tool's input subscriptions.
@@ -78,28 +78,6 @@ pub(super) enum Event {
 }
 
 const WAKER: Token = Token(usize::MAX);
-/// Nice values: the force loop above the rest when the process may raise it, the solver's
-/// threads below (which needs no privilege), so that a pose is answered within a
-/// millisecond while the solver and the slow stages keep every core busy.
-const FORCE_LOOP_NICE: i32 = -10;
-const SOLVER_NICE: i32 = 5;
-
-/// Sets the calling thread's nice value (Linux: per thread).
-#[cfg(target_os = "linux")]
-fn set_thread_nice(nice: i32) -> std::io::Result<()> {
-    // SAFETY: gettid has no preconditions; setpriority with PRIO_PROCESS and a thread id
-    // changes that thread alone and touches no memory of ours.
-    let done = unsafe { libc::setpriority(libc::PRIO_PROCESS, libc::gettid() as libc::id_t, nice) };
-    match done {
-        0 => Ok(()),
-        _ => Err(std::io::Error::last_os_error()),
-    }
-}
-
-#[cfg(not(target_os = "linux"))]
-fn set_thread_nice(_nice: i32) -> std::io::Result<()> {
-    Err(std::io::Error::new(std::io::ErrorKind::Unsupported, "thread priorities are set on Linux only"))
-}
 /// How long the loop waits when nothing is due (asleep or paused) before it looks again.
 const IDLE_WAIT: Duration = Duration::from_millis(50);
 
@@ -143,7 +121,7 @@ impl FeedbackThread {
         let handle = std::thread::Builder::new()
             .name("defvol-feedback".into())
             .spawn(move || {
-                if let Err(e) = set_thread_nice(FORCE_LOOP_NICE) {
+                if let Err(e) = priority::set_thread_nice(priority::FORCE_LOOP_NICE) {
                     tracing::debug!("the force loop keeps the default priority ({e}); CAP_SYS_NICE would raise it");
                 }
                 worker.run()
@@ -226,11 +204,7 @@ impl SolverThread {
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(threads)
             .thread_name(|i| format!("defvol-solver-{i}"))
-            .start_handler(|_| {
-                if let Err(e) = set_thread_nice(SOLVER_NICE) {
-                    tracing::debug!("the solver keeps the default priority ({e})");
-                }
-            })
+            .start_handler(|_| priority::into_background("the solver"))
             .build()
             .map_err(|e| NodeError::Ros(format!("solver thread pool: {e}")))?;
         let (jobs, job_rx) = mpsc::channel::<Job>();
