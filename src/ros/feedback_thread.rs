@@ -385,9 +385,9 @@ impl Worker {
                 }
             });
             // The latest pose of a coupled tool is answered now, from its local model.
-            let index = self.feedback.tool_on(&tool.pose_topic).map(|(index, _)| index);
-            if let Some(msg) = index.filter(|_| answer).and_then(|index| self.feedback.answer_locally(index)) {
-                self.send_one(index.unwrap_or_default(), msg);
+            let to_answer = self.feedback.tool_on(&tool.pose_topic).map(|(index, _)| index).filter(|_| answer);
+            if let Some((index, msg)) = to_answer.and_then(|i| Some((i, self.feedback.answer_locally(i)?))) {
+                self.send_one(index, msg);
             }
             drain(&tool.wrench, |msg| {
                 changed = true;

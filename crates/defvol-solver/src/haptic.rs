@@ -96,17 +96,8 @@ impl LocalModel {
         LocalAnswer { force: -pull, saturated }
     }
 
-    /// The coupling's pull on the simulated tool, with its stiffness and damping scaled
-    /// down when the pull saturates (the full solve's law).
+    /// The coupling's pull on the simulated tool (the full solve's law, `Coupling::pull`).
     fn pull(&self, device_velocity: &Vector3<f64>) -> (Vector3<f64>, f64, f64, bool) {
-        let c = &self.coupling;
-        let raw = (self.device - self.position) * c.stiffness + (device_velocity - self.velocity) * c.damping;
-        let magnitude = raw.norm();
-        if magnitude > c.max_force {
-            let scale = c.max_force / magnitude;
-            (raw * scale, c.stiffness * scale, c.damping * scale, true)
-        } else {
-            (raw, c.stiffness, c.damping, false)
-        }
+        self.coupling.pull(self.device - self.position, device_velocity - self.velocity)
     }
 }

@@ -64,6 +64,20 @@ pub struct Coupling {
 }
 
 impl Coupling {
+    /// The pull on the simulated tool, `offset` (device minus tool) and `relative_velocity`
+    /// away from the device, with the stiffness and damping that make it: scaled down
+    /// together when the pull would pass `max_force`, which the last element says.
+    pub fn pull(&self, offset: Vector3<f64>, relative_velocity: Vector3<f64>) -> (Vector3<f64>, f64, f64, bool) {
+        let raw = offset * self.stiffness + relative_velocity * self.damping;
+        let magnitude = raw.norm();
+        if magnitude > self.max_force {
+            let scale = self.max_force / magnitude;
+            (raw * scale, self.stiffness * scale, self.damping * scale, true)
+        } else {
+            (raw, self.stiffness, self.damping, false)
+        }
+    }
+
     pub fn validate(&self, index: usize) -> Result<(), super::SolverError> {
         let checks = [
             ("stiffness", self.stiffness, self.stiffness > 0.0),

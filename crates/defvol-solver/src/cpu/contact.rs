@@ -205,7 +205,7 @@ impl<T: Real> Simulation<T> {
     pub(super) fn release_separating_contacts(&mut self) -> bool {
         let n = self.u.len();
         let h = T::of(self.params.dt);
-        let keep: Vec<bool> = (self.active_contacts.iter().zip(&self.contact_rows))
+        let mut keep: Vec<bool> = (self.active_contacts.iter().zip(&self.contact_rows))
             .map(|(c, rows)| {
                 let mut rate = T::zero();
                 for (&row, gradient) in rows.rows.iter().zip(&rows.gradients).filter(|(row, _)| **row != usize::MAX) {
@@ -215,7 +215,6 @@ impl<T: Real> Simulation<T> {
                 T::of(c.depth) + h * rate > T::zero()
             })
             .collect();
-        let mut keep = keep;
         for (k, c) in self.active_contacts.iter().enumerate().skip(1) {
             if c.joins_previous {
                 keep[k] = keep[k - 1];

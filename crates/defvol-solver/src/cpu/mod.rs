@@ -62,17 +62,10 @@ struct ContactRows<T: Real> {
 }
 
 /// The coupling force on the simulated tool and its stiffness and damping scaled down
-/// when the force saturates.
+/// when the force saturates (`Coupling::pull`).
 fn coupling_force(tool: &Tool, proxy: &Proxy) -> (Vector3<f64>, f64, f64, bool) {
-    let Some(c) = tool.coupling else { return (Vector3::zeros(), 0.0, 0.0, false) };
-    let raw = (tool.tip() - proxy.x) * c.stiffness + (proxy.device_velocity - proxy.v) * c.damping;
-    let magnitude = raw.norm();
-    if magnitude > c.max_force {
-        let scale = c.max_force / magnitude;
-        (raw * scale, c.stiffness * scale, c.damping * scale, true)
-    } else {
-        (raw, c.stiffness, c.damping, false)
-    }
+    tool.coupling
+        .map_or((Vector3::zeros(), 0.0, 0.0, false), |c| c.pull(tool.tip() - proxy.x, proxy.device_velocity - proxy.v))
 }
 
 /// A running mass-spring simulation on the CPU in precision `T`.
