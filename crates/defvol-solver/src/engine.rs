@@ -92,18 +92,18 @@ impl SolverEngine {
     }
 
     /// Puts coupled tool `index`'s simulated tool at its device, at rest (its device's first
-    /// pose); the GPU solver couples no tool.
+    /// pose).
     pub fn seat_simulated_tool(&mut self, index: usize) {
         match self {
             Self::Cpu(s) => s.seat_simulated_tool(index),
             Self::CpuF64(s) => s.seat_simulated_tool(index),
             #[cfg(feature = "gpu")]
-            Self::Gpu(_) => {}
+            Self::Gpu(g) => g.seat_simulated_tool(index),
         }
     }
 
     /// Each coupled tool's local model for the force loop, from the last step
-    /// (`haptic.rs`); the GPU solver couples no tool.
+    /// (`haptic.rs`); none yet from the GPU solver (its tools get each step's feedback).
     pub fn local_models(&mut self) -> Vec<LocalModel> {
         match self {
             Self::Cpu(s) => s.local_models(),

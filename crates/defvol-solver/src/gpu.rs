@@ -5,19 +5,30 @@
 //! CG runs `cg_check_interval` iterations per submission; the reductions and the stopping
 //! test stay on the GPU (a `done` flag makes the remaining kernels of a batch return at
 //! once), so the host reads back one small struct per batch instead of syncing every iteration.
+//!
+//! Surface contacts and coupled tools: the mirror finds the contacts each step (the BVH is
+//! on the host) and gives their terms (`ContactTerms`) and the simulated tools' rows, which
+//! are uploaded; the system then carries them as the CPU's does (rows after the nodes' for
+//! the simulated tools, rank-one contact terms gathered per touched row), and a contact that
+//! separates at the step's end is released and the step solved again, by the CPU's rule.
+
+use std::collections::BTreeMap;
 
 use std::sync::Arc;
 
 use bytemuck::{Pod, Zeroable};
 use nalgebra::Vector3;
 
-use super::cpu::CgStats;
+use super::contact::CONTACT_NODES;
+use super::cpu::{CgStats, ContactTerms};
 use super::kernels::ContactTool;
 use super::{Integrator, MassSpringModel, Simulation, SolverError, SolverParams, StepReport, Tool};
 use defvol_gpu::gpu::{Binding, GpuContext, GpuError, Kernels};
 
 /// Storage buffers the solver shader binds at once.
-const STORAGE_BUFFERS: u32 = 25;
+const STORAGE_BUFFERS: u32 = 30;
+/// Rows a contact's terms span (its nodes' and its simulated tool's).
+const CONTACT_ROWS: usize = CONTACT_NODES + 1;
 /// Tools the GPU kernels take per step.
 pub const MAX_TOOLS: usize = 4;
 const WORKGROUP: u32 = 256;
@@ -31,11 +42,6 @@ pub enum GpuSolverError {
     Gpu(#[from] GpuError),
     #[error("{0} tools given; the GPU solver takes at most {MAX_TOOLS}")]
     TooManyTools(usize),
-    #[error(
-        "tool {0} touches the boundary surface or follows its device through a coupling; \
-         the GPU kernels push nodes only (contact: nodes, no coupling)"
-    )]
-    SurfaceContact(usize),
 }
 
 #[repr(C)]
@@ -52,6 +58,31 @@ struct GpuParams {
     counts: [u32; 4],
     cg: [f32; 4],
     tools: [GpuTool; MAX_TOOLS],
+    /// Rows (nodes + simulated tools), contacts, touched rows, simulated tools.
+    system: [u32; 4],
+}
+
+/// `ContactTerm` of the shader: a contact's rows, gradients, and (h²k, h k (φ + h φ̇)).
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable)]
+struct GpuContactTerm {
+    rows: [[u32; 4]; 5],
+    gradients: [[f32; 4]; CONTACT_ROWS],
+    scale: [f32; 4],
+}
+
+impl GpuContactTerm {
+    fn new(terms: &ContactTerms) -> Self {
+        let mut rows = [[u32::MAX; 4]; 5];
+        let mut gradients = [[0.0; 4]; CONTACT_ROWS];
+        for (k, (row, g)) in terms.rows.iter().zip(&terms.gradients).enumerate() {
+            if *row != usize::MAX {
+                rows[k / 4][k % 4] = *row as u32;
+                gradients[k] = [g.x as f32, g.y as f32, g.z as f32, 0.0];
+            }
+        }
+        Self { rows, gradients, scale: [terms.h2k as f32, terms.rhs_scale as f32, 0.0, 0.0] }
+    }
 }
 
 #[repr(C)]
@@ -65,6 +96,7 @@ struct CgScalars {
     pq: f32,
     iterations: u32,
     done: u32,
+    contact_pq: f32,
 }
 
 /// The entry points of `solver.wgsl`; the discriminant indexes the pipelines.
@@ -89,10 +121,14 @@ enum Kernel {
     VelocityVerletPositions,
     VelocityVerletVelocities,
     AccelerationFromForce,
+    ContactRows,
+    ContactDot,
+    ContactScatter,
+    ContactOutcome,
 }
 
 impl Kernel {
-    const ALL: [Kernel; 19] = [
+    const ALL: [Kernel; 23] = [
         Kernel::SpringTerms,
         Kernel::SpringForces,
         Kernel::SpringForcesPredicted,
@@ -112,6 +148,10 @@ impl Kernel {
         Kernel::VelocityVerletPositions,
         Kernel::VelocityVerletVelocities,
         Kernel::AccelerationFromForce,
+        Kernel::ContactRows,
+        Kernel::ContactDot,
+        Kernel::ContactScatter,
+        Kernel::ContactOutcome,
     ];
 
     fn entry_point(self) -> &'static str {
@@ -135,13 +175,20 @@ impl Kernel {
             Kernel::VelocityVerletPositions => "velocity_verlet_positions",
             Kernel::VelocityVerletVelocities => "velocity_verlet_velocities",
             Kernel::AccelerationFromForce => "acceleration_from_force",
+            Kernel::ContactRows => "contact_rows",
+            Kernel::ContactDot => "contact_dot",
+            Kernel::ContactScatter => "contact_scatter",
+            Kernel::ContactOutcome => "contact_outcome",
         }
     }
 }
 
 /// Read-only bindings of the shader (the rest are read-write storage, 0 is the uniform).
-const READ_ONLY: [u32; 8] = [1, 2, 3, 4, 5, 8, 24, 25];
+const READ_ONLY: [u32; 11] = [1, 2, 3, 4, 5, 8, 24, 25, 26, 27, 28];
+/// Bindings of the contacts' buffers, which grow with the contact count.
+const CONTACT_BINDINGS: std::ops::Range<usize> = 26..31;
 
+/// The buffers the host writes or reads by name; `bound` holds every binding in order.
 struct Buffers {
     params: wgpu::Buffer,
     /// Displacements from rest.
@@ -152,6 +199,12 @@ struct Buffers {
     p: wgpu::Buffer,
     scalars: wgpu::Buffer,
     aux: wgpu::Buffer,
+    diag: wgpu::Buffer,
+    precond: wgpu::Buffer,
+    rhs: wgpu::Buffer,
+    bound: Vec<wgpu::Buffer>,
+    /// Contacts the contact buffers hold.
+    contact_capacity: usize,
 }
 
 pub struct GpuSimulation {
@@ -160,6 +213,7 @@ pub struct GpuSimulation {
     nodes: u32,
     springs: u32,
     pipelines: [wgpu::ComputePipeline; Kernel::ALL.len()],
+    layout: wgpu::BindGroupLayout,
     bind_group: wgpu::BindGroup,
     buffers: Buffers,
     history_valid: bool,
@@ -173,6 +227,17 @@ fn groups(count: u32) -> u32 {
     count.div_ceil(WORKGROUP).max(1)
 }
 
+/// A 3x3 block as the shader's `mat3x3<f32>` stores it: three padded columns.
+fn mat3_columns(m: &nalgebra::Matrix3<f64>) -> [f32; 12] {
+    let mut out = [0.0; 12];
+    for c in 0..3 {
+        for r in 0..3 {
+            out[4 * c + r] = m[(r, c)] as f32;
+        }
+    }
+    out
+}
+
 impl GpuSimulation {
     pub fn new(
         ctx: Arc<GpuContext>,
@@ -183,11 +248,12 @@ impl GpuSimulation {
         if tools.len() > MAX_TOOLS {
             return Err(GpuSolverError::TooManyTools(tools.len()));
         }
-        check_tools(&tools)?;
         ctx.require_storage_buffers("the solver", STORAGE_BUFFERS)?;
         let mirror = Simulation::<f32>::new(model, params, tools)?;
         let n = model.node_count();
         let e = model.springs.len();
+        // The system's rows: the nodes', then room for a simulated tool per tool.
+        let rows = n + MAX_TOOLS;
         let bindings: Vec<Binding> = (0..=STORAGE_BUFFERS)
             .map(|binding| match binding {
                 0 => Binding::Uniform,
@@ -200,13 +266,18 @@ impl GpuSimulation {
 
         let zeros4 = |count: usize| vec![[0f32; 4]; count.max(1)];
         let mat3 = |count: usize| vec![0f32; 12 * count.max(1)];
-        let springs: Vec<[u32; 2]> = model.springs.clone();
         let spring_params: Vec<[f32; 4]> = (0..e)
             .map(|s| [model.rest_length[s] as f32, model.stiffness[s] as f32, model.damping[s] as f32, 0.0])
             .collect();
-        let node_params: Vec<[f32; 4]> =
-            (0..n).map(|i| [model.mass[i] as f32, if model.fixed[i] { 1.0 } else { 0.0 }, 0.0, 0.0]).collect();
-        let adjacency: Vec<[u32; 2]> = model.adjacency.clone();
+        // Simulated tools' rows: free, no springs (their adjacency is empty).
+        let node_params: Vec<[f32; 4]> = (0..rows)
+            .map(|i| match i < n {
+                true => [model.mass[i] as f32, if model.fixed[i] { 1.0 } else { 0.0 }, 0.0, 0.0],
+                false => [1.0, 0.0, 0.0, 0.0],
+            })
+            .collect();
+        let mut offsets = model.offsets.clone();
+        offsets.resize(rows + 1, model.offsets[n]);
         let rest_edge: Vec<[f32; 4]> = model
             .springs
             .iter()
@@ -217,80 +288,67 @@ impl GpuSimulation {
             .collect();
         let rest_pos: Vec<[f32; 4]> = model.rest.iter().map(|p| [p.x as f32, p.y as f32, p.z as f32, 0.0]).collect();
         let buf = |label: &str, bytes: &[u8]| ctx.storage_buffer(label, bytes);
-        let b = Buffers {
-            params: ctx.device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some("params"),
-                size: std::mem::size_of::<GpuParams>() as u64,
-                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-                mapped_at_creation: false,
-            }),
-            x: buf("u", bytemuck::cast_slice(&zeros4(n))),
-            v: buf("v", bytemuck::cast_slice(&zeros4(n))),
-            external: buf("external", bytemuck::cast_slice(&zeros4(n))),
-            dv: buf("dv", bytemuck::cast_slice(&zeros4(n))),
-            p: buf("p", bytemuck::cast_slice(&zeros4(n))),
-            scalars: buf("scalars", bytemuck::bytes_of(&CgScalars::zeroed())),
-            aux: buf("aux", bytemuck::cast_slice(&zeros4(n))),
-        };
-        let others = [
-            buf("springs", bytemuck::cast_slice(&springs)),
+        let params_buffer = ctx.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("params"),
+            size: std::mem::size_of::<GpuParams>() as u64,
+            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let mut bound = vec![
+            params_buffer,
+            buf("springs", bytemuck::cast_slice(&model.springs)),
             buf("spring_params", bytemuck::cast_slice(&spring_params)),
-            buf("offsets", bytemuck::cast_slice(&model.offsets)),
-            buf("adjacency", bytemuck::cast_slice(&adjacency)),
+            buf("offsets", bytemuck::cast_slice(&offsets)),
+            buf("adjacency", bytemuck::cast_slice(&model.adjacency)),
             buf("node_params", bytemuck::cast_slice(&node_params)),
+            buf("u", bytemuck::cast_slice(&zeros4(n))),
+            buf("v", bytemuck::cast_slice(&zeros4(n))),
+            buf("external", bytemuck::cast_slice(&zeros4(n))),
             buf("spring_force", bytemuck::cast_slice(&zeros4(e))),
             buf("spring_kv", bytemuck::cast_slice(&zeros4(e))),
             buf("spring_block", bytemuck::cast_slice(&mat3(e))),
-            buf("diag", bytemuck::cast_slice(&mat3(n))),
-            buf("precond", bytemuck::cast_slice(&mat3(n))),
-            buf("rhs", bytemuck::cast_slice(&zeros4(n))),
-            buf("r", bytemuck::cast_slice(&zeros4(n))),
-            buf("z", bytemuck::cast_slice(&zeros4(n))),
-            buf("q", bytemuck::cast_slice(&zeros4(n))),
-            buf("partials", bytemuck::cast_slice(&zeros4(groups(n as u32) as usize))),
+            buf("diag", bytemuck::cast_slice(&mat3(rows))),
+            buf("precond", bytemuck::cast_slice(&mat3(rows))),
+            buf("rhs", bytemuck::cast_slice(&zeros4(rows))),
+            buf("dv", bytemuck::cast_slice(&zeros4(rows))),
+            buf("r", bytemuck::cast_slice(&zeros4(rows))),
+            buf("z", bytemuck::cast_slice(&zeros4(rows))),
+            buf("p", bytemuck::cast_slice(&zeros4(rows))),
+            buf("q", bytemuck::cast_slice(&zeros4(rows))),
+            buf("partials", bytemuck::cast_slice(&zeros4(groups(rows as u32) as usize))),
+            buf("scalars", bytemuck::bytes_of(&CgScalars::zeroed())),
+            buf("aux", bytemuck::cast_slice(&zeros4(n))),
             buf("force", bytemuck::cast_slice(&zeros4(n))),
             buf("rest_edge", bytemuck::cast_slice(&rest_edge)),
             buf("rest_pos", bytemuck::cast_slice(&rest_pos)),
         ];
-        let [springs_b, spring_params_b, offsets_b, adjacency_b, node_params_b, spring_force_b, spring_kv_b, spring_block_b, diag_b, precond_b, rhs_b, r_b, z_b, q_b, partials_b, force_b, rest_edge_b, rest_pos_b] =
-            &others;
-        let order: [&wgpu::Buffer; 26] = [
-            &b.params,
-            springs_b,
-            spring_params_b,
-            offsets_b,
-            adjacency_b,
-            node_params_b,
-            &b.x,
-            &b.v,
-            &b.external,
-            spring_force_b,
-            spring_kv_b,
-            spring_block_b,
-            diag_b,
-            precond_b,
-            rhs_b,
-            &b.dv,
-            r_b,
-            z_b,
-            &b.p,
-            q_b,
-            partials_b,
-            &b.scalars,
-            &b.aux,
-            force_b,
-            rest_edge_b,
-            rest_pos_b,
-        ];
-        let bind_group = ctx.bind_group("solver", &layout, &order);
+        let contact_capacity = 64;
+        bound.extend(contact_buffers(&ctx, contact_capacity));
+        let bind_group = ctx.bind_group("solver", &layout, &bound.iter().collect::<Vec<_>>());
+        let buffers = Buffers {
+            params: bound[0].clone(),
+            x: bound[6].clone(),
+            v: bound[7].clone(),
+            external: bound[8].clone(),
+            diag: bound[12].clone(),
+            precond: bound[13].clone(),
+            rhs: bound[14].clone(),
+            dv: bound[15].clone(),
+            p: bound[18].clone(),
+            scalars: bound[21].clone(),
+            aux: bound[22].clone(),
+            bound,
+            contact_capacity,
+        };
         Ok(Self {
             ctx,
             mirror,
             nodes: n as u32,
             springs: e as u32,
             pipelines,
+            layout,
             bind_group,
-            buffers: b,
+            buffers,
             history_valid: false,
         })
     }
@@ -309,6 +367,10 @@ impl GpuSimulation {
     }
     pub fn tool_mut(&mut self, index: usize) -> Result<&mut Tool, SolverError> {
         self.mirror.tool_mut(index)
+    }
+    /// Puts coupled tool `index`'s simulated tool at its device, at rest.
+    pub fn seat_simulated_tool(&mut self, index: usize) {
+        self.mirror.seat_simulated_tool(index);
     }
 
     fn dispatch(&self, pass: &mut wgpu::ComputePass<'_>, kernel: Kernel, invocations: u32) {
@@ -330,7 +392,7 @@ impl GpuSimulation {
         self.ctx.queue.submit([encoder.finish()]);
     }
 
-    fn upload_params(&self, tools: &[ContactTool<f32>]) {
+    fn upload_params(&self, tools: &[ContactTool<f32>], system: [u32; 4]) {
         let p = self.mirror.params();
         let mut gpu_tools = [GpuTool::zeroed(); MAX_TOOLS];
         for (slot, t) in gpu_tools.iter_mut().zip(tools) {
@@ -338,16 +400,93 @@ impl GpuSimulation {
         }
         let params = GpuParams {
             gravity_h: [p.gravity[0] as f32, p.gravity[1] as f32, p.gravity[2] as f32, p.dt as f32],
-            counts: [self.nodes, self.springs, tools.len() as u32, groups(self.nodes)],
+            counts: [self.nodes, self.springs, tools.len() as u32, groups(system[0])],
             cg: [(p.cg_tolerance * p.cg_tolerance) as f32, p.cg_max_iterations as f32, 0.0, 0.0],
             tools: gpu_tools,
+            system,
         };
         self.ctx.queue.write_buffer(&self.buffers.params, 0, bytemuck::bytes_of(&params));
         self.ctx.queue.write_buffer(
             &self.buffers.external,
             0,
-            bytemuck::cast_slice(&vec4s(self.mirror.external_forces())),
+            bytemuck::cast_slice(&vec4s(&self.mirror.external_forces())),
         );
+    }
+
+    /// The step's system beyond the springs, uploaded: the simulated tools' rows and the
+    /// active contacts' terms, gathered per touched row. Returns the terms and the
+    /// counts the shader's `system` takes.
+    fn upload_system(&mut self) -> (Vec<ContactTerms>, [u32; 4]) {
+        let (n, tools) = (self.nodes as usize, self.mirror.proxy_count());
+        let queue = &self.ctx.queue;
+        for k in 0..tools {
+            let Some((diag, rhs)) = self.mirror.proxy_row(k) else { continue };
+            let inverse = diag.try_inverse().unwrap_or_else(nalgebra::Matrix3::zeros);
+            let row = (n + k) as u64;
+            queue.write_buffer(&self.buffers.diag, row * 48, bytemuck::cast_slice(&mat3_columns(&diag)));
+            queue.write_buffer(&self.buffers.precond, row * 48, bytemuck::cast_slice(&mat3_columns(&inverse)));
+            queue.write_buffer(&self.buffers.rhs, row * 16, bytemuck::cast_slice(&vec4s(&[rhs.map(|c| c as f32)])));
+        }
+        let terms: Vec<ContactTerms> =
+            self.mirror.active_contacts().iter().map(|c| self.mirror.contact_terms(c)).collect();
+        let mut by_row: BTreeMap<usize, Vec<[u32; 2]>> = BTreeMap::new();
+        for (c, t) in terms.iter().enumerate() {
+            for (slot, row) in t.rows.iter().enumerate().filter(|(_, row)| **row != usize::MAX) {
+                by_row.entry(*row).or_default().push([c as u32, slot as u32]);
+            }
+        }
+        let mut touched: Vec<[u32; 4]> = Vec::with_capacity(by_row.len());
+        let mut incidence: Vec<[u32; 2]> = Vec::new();
+        for (row, list) in &by_row {
+            touched.push([*row as u32, incidence.len() as u32, list.len() as u32, 0]);
+            incidence.extend_from_slice(list);
+        }
+        self.reserve_contacts(terms.len());
+        let gpu_terms: Vec<GpuContactTerm> = terms.iter().map(GpuContactTerm::new).collect();
+        let [terms_buffer, touched_buffer, incidence_buffer, ..] = &self.buffers.bound[CONTACT_BINDINGS] else {
+            unreachable!("five contact bindings")
+        };
+        for (buffer, bytes) in [
+            (terms_buffer, bytemuck::cast_slice::<GpuContactTerm, u8>(&gpu_terms)),
+            (touched_buffer, bytemuck::cast_slice(&touched)),
+            (incidence_buffer, bytemuck::cast_slice(&incidence)),
+        ] {
+            if !bytes.is_empty() {
+                self.ctx.queue.write_buffer(buffer, 0, bytes);
+            }
+        }
+        let system = [(n + tools) as u32, terms.len() as u32, touched.len() as u32, tools as u32];
+        let at = std::mem::offset_of!(GpuParams, system) as u64;
+        self.ctx.queue.write_buffer(&self.buffers.params, at, bytemuck::bytes_of(&system));
+        (terms, system)
+    }
+
+    /// Grows the contacts' buffers to hold `contacts` (and rebinds them).
+    fn reserve_contacts(&mut self, contacts: usize) {
+        if contacts <= self.buffers.contact_capacity {
+            return;
+        }
+        let capacity = contacts.next_power_of_two();
+        let fresh = contact_buffers(&self.ctx, capacity);
+        self.buffers.bound.splice(CONTACT_BINDINGS, fresh);
+        self.buffers.contact_capacity = capacity;
+        self.bind_group = self.ctx.bind_group("solver", &self.layout, &self.buffers.bound.iter().collect::<Vec<_>>());
+    }
+
+    /// After a solve: the simulated tools' rows of Δv, and each contact's φ̇ at the step's
+    /// end (Σ g·(v + Δv): its start rate plus g·Δv from the GPU).
+    fn outcome(&self, terms: &[ContactTerms], system: [u32; 4]) -> Result<(Vec<Vector3<f64>>, Vec<f64>), GpuError> {
+        let tools = system[3] as usize;
+        let count = tools + terms.len();
+        if count == 0 {
+            return Ok((Vec::new(), Vec::new()));
+        }
+        self.run(&[(Kernel::ContactOutcome, count as u32)]);
+        let bytes = self.ctx.read_back(&self.buffers.bound[CONTACT_BINDINGS.end - 1], count as u64 * 16)?;
+        let rows: &[[f32; 4]] = bytemuck::try_cast_slice(&bytes).map_err(|e| GpuError::Readback(e.to_string()))?;
+        let proxy_dv = rows[..tools].iter().map(|r| Vector3::new(r[0], r[1], r[2]).map(f64::from)).collect();
+        let end_rates = terms.iter().zip(&rows[tools..]).map(|(t, r)| t.normal_speed + f64::from(r[0])).collect();
+        Ok((proxy_dv, end_rates))
     }
 
     fn read_vec(&self, buffer: &wgpu::Buffer) -> Result<Vec<Vector3<f32>>, GpuError> {
@@ -356,32 +495,32 @@ impl GpuSimulation {
         Ok(v.iter().map(|p| Vector3::new(p[0], p[1], p[2])).collect())
     }
 
-    fn solve(&self) -> Result<CgStats, GpuError> {
-        let (n, q) = (self.nodes, &self.ctx.queue);
+    /// CG on the system assembled from the current state, warm-started from the last Δv.
+    fn solve(&self, system: [u32; 4]) -> Result<CgStats, GpuError> {
+        let (n, rows, touched, q) = (self.nodes, system[0], system[2], &self.ctx.queue);
         q.write_buffer(&self.buffers.scalars, 0, bytemuck::bytes_of(&CgScalars::zeroed()));
         let mut encoder =
             self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("cg start") });
-        encoder.copy_buffer_to_buffer(&self.buffers.dv, 0, &self.buffers.p, 0, n as u64 * 16);
+        encoder.copy_buffer_to_buffer(&self.buffers.dv, 0, &self.buffers.p, 0, rows as u64 * 16);
         self.ctx.queue.submit([encoder.finish()]);
-        self.run(&[
-            (Kernel::SpringTerms, self.springs),
-            (Kernel::NodeTerms, n),
-            (Kernel::CgStartSpmv, n),
-            (Kernel::CgInit, n),
-            (Kernel::CgInitReduce, 1),
-        ]);
+        // The contacts' kernels run only when there are contacts.
+        let contacts = |kernels: &[(Kernel, u32)]| if touched > 0 { kernels.to_vec() } else { Vec::new() };
+        let mut start = vec![(Kernel::SpringTerms, self.springs), (Kernel::NodeTerms, n)];
+        start.extend(contacts(&[(Kernel::ContactRows, touched)]));
+        start.push((Kernel::CgStartSpmv, rows));
+        start.extend(contacts(&[(Kernel::ContactDot, 1), (Kernel::ContactScatter, touched)]));
+        start.extend([(Kernel::CgInit, rows), (Kernel::CgInitReduce, 1)]);
+        self.run(&start);
         let params = self.mirror.params();
-        let batch: Vec<(Kernel, u32)> = (0..params.cg_check_interval)
-            .flat_map(|_| {
-                [
-                    (Kernel::CgSpmv, n),
-                    (Kernel::CgAlpha, 1),
-                    (Kernel::CgUpdate, n),
-                    (Kernel::CgBeta, 1),
-                    (Kernel::CgDirection, n),
-                ]
-            })
-            .collect();
+        let mut iteration = vec![(Kernel::CgSpmv, rows)];
+        iteration.extend(contacts(&[(Kernel::ContactDot, 1), (Kernel::ContactScatter, touched)]));
+        iteration.extend([
+            (Kernel::CgAlpha, 1),
+            (Kernel::CgUpdate, rows),
+            (Kernel::CgBeta, 1),
+            (Kernel::CgDirection, rows),
+        ]);
+        let batch: Vec<(Kernel, u32)> = (0..params.cg_check_interval).flat_map(|_| iteration.clone()).collect();
         loop {
             let bytes = self.ctx.read_back(&self.buffers.scalars, std::mem::size_of::<CgScalars>() as u64)?;
             let s: CgScalars = bytemuck::pod_read_unaligned(&bytes);
@@ -393,19 +532,37 @@ impl GpuSimulation {
         }
     }
 
+    /// Implicit Euler: the solve, and again without the contacts that separate at the
+    /// step's end (at most four rounds, as on the CPU); the simulated tools' Δv and the
+    /// CG statistics of all rounds.
+    fn implicit_step(&mut self) -> Result<(Vec<Vector3<f64>>, CgStats), GpuError> {
+        let (mut terms, mut system) = self.upload_system();
+        let mut cg = self.solve(system)?;
+        let mut releases = 0;
+        let proxy_dv = loop {
+            let (proxy_dv, end_rates) = self.outcome(&terms, system)?;
+            if releases == 4 || !self.mirror.release_contacts(&end_rates) {
+                break proxy_dv;
+            }
+            releases += 1;
+            (terms, system) = self.upload_system();
+            let again = self.solve(system)?;
+            cg = CgStats { iterations: cg.iterations + again.iterations, relative_residual: again.relative_residual };
+        };
+        self.run(&[(Kernel::ImplicitUpdate, self.nodes)]);
+        Ok((proxy_dv, cg))
+    }
+
     /// Advances one step on the GPU; reads positions and velocities back for the report.
     pub fn step(&mut self) -> Result<StepReport, GpuSolverError> {
-        check_tools(self.mirror.tools())?;
         let tools = self.mirror.prepare_step()?;
-        self.upload_params(&tools);
+        // The implicit step rewrites `system` with its simulated tools and contacts.
+        self.upload_params(&tools, [self.nodes, 0, 0, 0]);
         let (n, e) = (self.nodes, self.springs);
-        let integrator = self.mirror.params().integrator;
         let mut cg = CgStats { iterations: 0, relative_residual: 0.0 };
-        match integrator {
-            Integrator::ImplicitEuler => {
-                cg = self.solve()?;
-                self.run(&[(Kernel::ImplicitUpdate, n)]);
-            }
+        let mut proxy_dv = Vec::new();
+        match self.mirror.params().integrator {
+            Integrator::ImplicitEuler => (proxy_dv, cg) = self.implicit_step()?,
             Integrator::ExplicitEuler => {
                 self.run(&[(Kernel::SpringForces, e), (Kernel::NodeForces, n), (Kernel::ExplicitEulerUpdate, n)])
             }
@@ -438,7 +595,7 @@ impl GpuSimulation {
         self.history_valid = true;
         let x = self.read_vec(&self.buffers.x)?;
         let v = self.read_vec(&self.buffers.v)?;
-        match self.mirror.accept_step(x, v, cg) {
+        match self.mirror.accept_step(x, v, &proxy_dv, cg) {
             Ok(report) => Ok(report),
             Err(err) => {
                 // Put the last stable state back on the GPU too.
@@ -455,28 +612,110 @@ impl GpuSimulation {
     }
 }
 
-/// The GPU kernels push nodes one by one: surface contact and couplings run on the CPU.
-fn check_tools(tools: &[Tool]) -> Result<(), GpuSolverError> {
-    match tools.iter().position(|t| t.contact != super::ContactModel::Nodes || t.coupling.is_some()) {
-        Some(index) => Err(GpuSolverError::SurfaceContact(index)),
-        None => Ok(()),
-    }
+/// The contacts' buffers (bindings 26-30) for `capacity` contacts.
+fn contact_buffers(ctx: &GpuContext, capacity: usize) -> [wgpu::Buffer; 5] {
+    let per_contact = |bytes: usize| (bytes * capacity) as u64;
+    [
+        ctx.zeroed_buffer("contact_terms", per_contact(std::mem::size_of::<GpuContactTerm>())),
+        ctx.zeroed_buffer("touched", per_contact(CONTACT_ROWS * 16)),
+        ctx.zeroed_buffer("incidence", per_contact(CONTACT_ROWS * 8)),
+        ctx.zeroed_buffer("contact_y", per_contact(16)),
+        ctx.zeroed_buffer("outcome", ((MAX_TOOLS + capacity) * 16) as u64),
+    ]
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::{FixedNodes, Material, ToolShape};
-    use defvol_core::mesh::generate;
+    use crate::{Coupling, FixedNodes, Material, ToolShape};
+    use defvol_core::mesh::generate::{self, CellSplit};
     use nalgebra::Isometry3;
 
     fn cantilever() -> MassSpringModel {
         let mesh =
-            generate::lattice(Vector3::zeros(), Vector3::new(0.12, 0.03, 0.03), [8, 2, 2], generate::CellSplit::Five)
-                .unwrap();
+            generate::lattice(Vector3::zeros(), Vector3::new(0.12, 0.03, 0.03), [8, 2, 2], CellSplit::Five).unwrap();
         let fixed = FixedNodes::Plane { normal: [1.0, 0.0, 0.0], offset: 0.0 }.select(mesh.nodes()).unwrap();
         MassSpringModel::new(&mesh, &Material::Uniform { stiffness: 800.0, damping: 0.5 }, 1000.0, &fixed, None)
             .unwrap()
+    }
+
+    /// A slab fixed at the bottom, top at z = 0, boundary spacing 15-17 mm.
+    fn slab() -> MassSpringModel {
+        let mesh =
+            generate::lattice(Vector3::new(0.0, 0.0, -0.06), Vector3::new(0.1, 0.1, 0.0), [6, 6, 4], CellSplit::Five)
+                .unwrap();
+        let fixed = FixedNodes::Plane { normal: [0.0, 0.0, 1.0], offset: -0.06 }.select(mesh.nodes()).unwrap();
+        MassSpringModel::new(&mesh, &Material::Uniform { stiffness: 300.0, damping: 2.0 }, 1000.0, &fixed, None)
+            .unwrap()
+    }
+
+    /// Steps a 2 mm tool on surface contact down from 3 mm above the slab to 3 mm into it
+    /// (over `steps / 2` steps, then held) on the CPU and the GPU (both f32): the largest
+    /// node and reaction differences over the run, relative to the largest displacement and
+    /// force, and the largest force (N).
+    fn surface_contact_run(params: SolverParams, coupling: Option<Coupling>, steps: usize) -> (f64, f64, f64) {
+        let ctx = defvol_gpu::gpu::test_context().expect("checked by the caller");
+        let mut tool = Tool::new(ToolShape::Sphere { radius: 0.001 }, 20_000.0);
+        tool.coupling = coupling;
+        let model = slab();
+        let mut cpu = Simulation::<f32>::new(&model, params.clone(), vec![tool.clone()]).unwrap();
+        let mut gpu = GpuSimulation::new(ctx, &model, params, vec![tool]).unwrap();
+        let (mut node_gap, mut force_gap, mut largest, mut moved) = (0.0f64, 0.0f64, 0.0f64, 0.0f64);
+        let mut touched = 0;
+        for k in 0..steps {
+            let z = 0.003 - 0.006 * (2.0 * k as f64 / steps as f64).min(1.0);
+            let pose = Isometry3::translation(0.043, 0.058, z);
+            cpu.tool_mut(0).unwrap().world_from_tool = pose;
+            gpu.tool_mut(0).unwrap().world_from_tool = pose;
+            let (rc, rg) = (cpu.step().unwrap(), gpu.step().unwrap());
+            let (fc, fg) = (Vector3::from(rc.reaction(0).force), Vector3::from(rg.reaction(0).force));
+            force_gap = force_gap.max((fc - fg).norm());
+            largest = largest.max(fc.norm());
+            moved = moved.max(rc.max_displacement);
+            touched += usize::from(!cpu.contacts().is_empty());
+            let worst = (cpu.displacements().iter().zip(gpu.mirror().displacements()))
+                .map(|(a, b)| f64::from((a - b).norm()))
+                .fold(0.0, f64::max);
+            node_gap = node_gap.max(worst);
+            let (pc, pg) = (cpu.simulated_pose(0).unwrap(), gpu.mirror().simulated_pose(0).unwrap());
+            node_gap = node_gap.max((pc.translation.vector - pg.translation.vector).norm());
+        }
+        assert!(touched > steps / 3 && moved > 5e-4, "the tool pressed: {touched} steps in contact, moved {moved} m");
+        (node_gap / moved, force_gap / largest, largest)
+    }
+
+    /// A coupled tool on surface contact (simulated tool's row, contact terms, releases):
+    /// the GPU's nodes, simulated tool and felt force follow the CPU's.
+    #[test]
+    fn gpu_matches_cpu_with_a_coupled_tool_on_surface_contact() {
+        if defvol_gpu::gpu::test_context().is_none() {
+            return;
+        }
+        let coupling = Coupling { stiffness: 2000.0, damping: 5.0, mass: 0.02, max_force: 5.0 };
+        let params = SolverParams { gravity: [0.0; 3], dt: 1e-3, cg_tolerance: 1e-6, ..Default::default() };
+        let (nodes, force, largest) = surface_contact_run(params, Some(coupling), 300);
+        assert!(largest > 1.0, "the coupling pulled the tool in: {largest} N");
+        // lavapipe: 3e-7 / 2e-7; hardware FMA rounding differs more.
+        assert!(nodes <= 1e-4 && force <= 1e-4, "GPU departs from CPU: nodes {nodes:e}, force {force:e} (relative)");
+    }
+
+    /// A thin tool on surface contact without a coupling, implicit and explicit: the GPU
+    /// follows the CPU.
+    #[test]
+    fn gpu_matches_cpu_with_a_thin_tool_on_surface_contact() {
+        if defvol_gpu::gpu::test_context().is_none() {
+            return;
+        }
+        for (integrator, dt, steps) in [(Integrator::ImplicitEuler, 1e-3, 200), (Integrator::ExplicitEuler, 1e-4, 1000)]
+        {
+            let params = SolverParams { integrator, gravity: [0.0; 3], dt, cg_tolerance: 1e-6, ..Default::default() };
+            let (nodes, force, _) = surface_contact_run(params, None, steps);
+            // lavapipe: 2e-7 / 2e-6.
+            assert!(
+                nodes <= 1e-4 && force <= 1e-4,
+                "{integrator:?}: GPU departs from CPU: nodes {nodes:e}, force {force:e} (relative)"
+            );
+        }
     }
 
     /// Every integrator, with a tool pressing in: GPU and CPU (f32) agree after 100 steps.

@@ -4,6 +4,9 @@
 // Spring e joins (a, b); spring_force[e] is the force on a; spring_kv[e] = K_e (v_b - v_a);
 // spring_block[e] = h D_e + h^2 K_e (the off-diagonal block of A is its negative).
 // Nodes gather their springs through the adjacency lists: no atomics anywhere.
+// The system's rows are the nodes', then one per simulated tool (a coupled tool's body);
+// surface contacts add rank-one terms h²k g gᵀ over their rows (contact_* kernels, the twin
+// of cpu/contact.rs), found on the host each step and gathered per touched row.
 
 struct Tool {
     a: vec4<f32>, // segment start (tip), radius in w
@@ -15,6 +18,15 @@ struct Params {
     counts: vec4<u32>,     // nodes, springs, tools, partial-sum slots
     cg: vec4<f32>,         // tolerance^2, max iterations, -, -
     tools: array<Tool, 4>,
+    system: vec4<u32>,     // rows (nodes + simulated tools), contacts, touched rows, simulated tools
+}
+
+// A surface contact's terms (cpu::ContactTerms): rows (NO_ROW where none), the gradient
+// of its penetration on each, and h²k, h k (φ + h φ̇).
+struct ContactTerm {
+    rows: array<vec4<u32>, 5>,
+    gradients: array<vec4<f32>, 17>,
+    scale: vec4<f32>,
 }
 
 struct CgScalars {
@@ -26,6 +38,7 @@ struct CgScalars {
     pq: f32,
     iterations: u32,
     done: u32,
+    contact_pq: f32,
 }
 
 @group(0) @binding(0) var<uniform> params: Params;
@@ -54,6 +67,14 @@ struct CgScalars {
 @group(0) @binding(23) var<storage, read_write> force: array<vec4<f32>>; // node forces of the explicit schemes
 @group(0) @binding(24) var<storage, read> rest_edge: array<vec4<f32>>;  // x_b - x_a at rest, per spring
 @group(0) @binding(25) var<storage, read> rest_pos: array<vec4<f32>>;   // rest positions, for contact
+@group(0) @binding(26) var<storage, read> contact_terms: array<ContactTerm>;
+@group(0) @binding(27) var<storage, read> touched: array<vec4<u32>>;     // row, first incidence, count, -
+@group(0) @binding(28) var<storage, read> incidence: array<vec2<u32>>;   // contact, slot
+@group(0) @binding(29) var<storage, read_write> contact_y: array<vec4<f32>>; // h²k g·p per contact
+@group(0) @binding(30) var<storage, read_write> outcome: array<vec4<f32>>;   // simulated tools' Δv, then contacts' g·Δv
+
+const CONTACT_ROWS: u32 = 17u;
+const NO_ROW: u32 = 0xffffffffu;
 
 const WG: u32 = 256u;
 var<workgroup> shared_sum: array<vec4<f32>, 256>;
@@ -228,17 +249,119 @@ fn node_terms(@builtin(global_invocation_id) gid: vec3<u32>) {
         return;
     }
     rhs[i] = vec4<f32>((f + kv * h) * h, 0.0);
-    let det = determinant(dg);
-    if (det != 0.0) {
-        // inverse of a 3x3 by cofactors
-        let c0 = dg[0];
-        let c1 = dg[1];
-        let c2 = dg[2];
-        let inv_t = mat3x3<f32>(cross(c1, c2), cross(c2, c0), cross(c0, c1)) * (1.0 / det);
-        precond[i] = transpose(inv_t);
-    } else {
-        precond[i] = mat3x3<f32>(vec3<f32>(0.0), vec3<f32>(0.0), vec3<f32>(0.0));
+    precond[i] = inverse_or_zero(dg);
+}
+
+// Inverse of a 3x3 by cofactors; zero when singular.
+fn inverse_or_zero(m: mat3x3<f32>) -> mat3x3<f32> {
+    let det = determinant(m);
+    if (det == 0.0) {
+        return mat3x3<f32>(vec3<f32>(0.0), vec3<f32>(0.0), vec3<f32>(0.0));
     }
+    let inv_t = mat3x3<f32>(cross(m[1], m[2]), cross(m[2], m[0]), cross(m[0], m[1])) * (1.0 / det);
+    return transpose(inv_t);
+}
+
+// ---- surface contacts (cpu/contact.rs: add_contacts, contact_product) ----------------------
+
+fn contact_row(c: u32, k: u32) -> u32 {
+    return contact_terms[c].rows[k / 4u][k % 4u];
+}
+
+// Per touched row: the contacts' part of b, and of the diagonal block block Jacobi inverts.
+@compute @workgroup_size(256)
+fn contact_rows(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let t = gid.x;
+    if (t >= params.system.z) {
+        return;
+    }
+    let entry = touched[t];
+    let row = entry.x;
+    var b = rhs[row].xyz;
+    var dg = diag[row];
+    for (var s = entry.y; s < entry.y + entry.z; s = s + 1u) {
+        let at = incidence[s];
+        let g = contact_terms[at.x].gradients[at.y].xyz;
+        let scale = contact_terms[at.x].scale;
+        b = b - g * scale.y;
+        dg = dg + outer(g) * scale.x;
+    }
+    rhs[row] = vec4<f32>(b, 0.0);
+    precond[row] = inverse_or_zero(dg);
+}
+
+// y_c = h²k (g_c·p) per contact, and Σ_c y_c (g_c·p), the contacts' part of p·Ap (one workgroup).
+@compute @workgroup_size(256)
+fn contact_dot(@builtin(local_invocation_id) lid: vec3<u32>) {
+    if (scalars.done != 0u) {
+        return;
+    }
+    var sum = 0.0;
+    for (var c = lid.x; c < params.system.y; c = c + WG) {
+        var gp = 0.0;
+        for (var k = 0u; k < CONTACT_ROWS; k = k + 1u) {
+            let row = contact_row(c, k);
+            if (row != NO_ROW) {
+                gp = gp + dot(contact_terms[c].gradients[k].xyz, p[row].xyz);
+            }
+        }
+        let y = contact_terms[c].scale.x * gp;
+        contact_y[c] = vec4<f32>(y, 0.0, 0.0, 0.0);
+        sum = sum + y * gp;
+    }
+    shared_sum[lid.x] = vec4<f32>(sum, 0.0, 0.0, 0.0);
+    workgroupBarrier();
+    for (var stride = WG / 2u; stride > 0u; stride = stride / 2u) {
+        if (lid.x < stride) {
+            shared_sum[lid.x] = shared_sum[lid.x] + shared_sum[lid.x + stride];
+        }
+        workgroupBarrier();
+    }
+    if (lid.x == 0u) {
+        scalars.contact_pq = shared_sum[0].x;
+    }
+}
+
+// q += the contacts' part of A p, per touched row.
+@compute @workgroup_size(256)
+fn contact_scatter(@builtin(global_invocation_id) gid: vec3<u32>) {
+    if (scalars.done != 0u) {
+        return;
+    }
+    let t = gid.x;
+    if (t >= params.system.z) {
+        return;
+    }
+    let entry = touched[t];
+    var acc = q[entry.x].xyz;
+    for (var s = entry.y; s < entry.y + entry.z; s = s + 1u) {
+        let at = incidence[s];
+        acc = acc + contact_terms[at.x].gradients[at.y].xyz * contact_y[at.x].x;
+    }
+    q[entry.x] = vec4<f32>(acc, 0.0);
+}
+
+// After the solve: the simulated tools' rows of Δv, then each contact's g·Δv.
+@compute @workgroup_size(256)
+fn contact_outcome(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let i = gid.x;
+    let tools = params.system.w;
+    if (i < tools) {
+        outcome[i] = dv[params.counts.x + i];
+        return;
+    }
+    let c = i - tools;
+    if (c >= params.system.y) {
+        return;
+    }
+    var gd = 0.0;
+    for (var k = 0u; k < CONTACT_ROWS; k = k + 1u) {
+        let row = contact_row(c, k);
+        if (row != NO_ROW) {
+            gd = gd + dot(contact_terms[c].gradients[k].xyz, dv[row].xyz);
+        }
+    }
+    outcome[i] = vec4<f32>(gd, 0.0, 0.0, 0.0);
 }
 
 fn spmv_row(i: u32) -> vec3<f32> {
@@ -291,7 +414,7 @@ fn reduce_partials(lid: u32) -> vec4<f32> {
 @compute @workgroup_size(256)
 fn cg_start_spmv(@builtin(global_invocation_id) gid: vec3<u32>) {
     let i = gid.x;
-    if (i < params.counts.x) {
+    if (i < params.system.x) {
         q[i] = vec4<f32>(spmv_row(i), 0.0);
     }
 }
@@ -300,7 +423,7 @@ fn cg_start_spmv(@builtin(global_invocation_id) gid: vec3<u32>) {
 fn cg_init(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>) {
     let i = gid.x;
     var sums = vec4<f32>(0.0);
-    if (i < params.counts.x) {
+    if (i < params.system.x) {
         let ri = rhs[i].xyz - q[i].xyz;
         let zi = precond[i] * ri;
         r[i] = vec4<f32>(ri, 0.0);
@@ -330,7 +453,7 @@ fn cg_spmv(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocat
     }
     let i = gid.x;
     var sums = vec4<f32>(0.0);
-    if (i < params.counts.x) {
+    if (i < params.system.x) {
         let qi = spmv_row(i);
         q[i] = vec4<f32>(qi, 0.0);
         sums.x = dot(p[i].xyz, qi);
@@ -345,12 +468,13 @@ fn cg_alpha(@builtin(local_invocation_id) lid: vec3<u32>) {
     }
     let s = reduce_partials(lid.x);
     if (lid.x == 0u) {
-        scalars.pq = s.x;
-        if (s.x <= 0.0) {
+        let pq = s.x + scalars.contact_pq;
+        scalars.pq = pq;
+        if (pq <= 0.0) {
             scalars.done = 1u;
             scalars.alpha = 0.0;
         } else {
-            scalars.alpha = scalars.rz / s.x;
+            scalars.alpha = scalars.rz / pq;
         }
     }
 }
@@ -363,7 +487,7 @@ fn cg_update(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invoc
     let i = gid.x;
     let alpha = scalars.alpha;
     var sums = vec4<f32>(0.0);
-    if (i < params.counts.x) {
+    if (i < params.system.x) {
         dv[i] = vec4<f32>(dv[i].xyz + p[i].xyz * alpha, 0.0);
         let ri = r[i].xyz - q[i].xyz * alpha;
         let zi = precond[i] * ri;
@@ -398,7 +522,7 @@ fn cg_direction(@builtin(global_invocation_id) gid: vec3<u32>) {
         return;
     }
     let i = gid.x;
-    if (i < params.counts.x) {
+    if (i < params.system.x) {
         p[i] = vec4<f32>(z[i].xyz + p[i].xyz * scalars.beta, 0.0);
     }
 }

@@ -128,25 +128,37 @@ impl<T: Real> Simulation<T> {
         self.surface.encloses(&tip, |i| self.world(i as usize).map(T::to_f64))
     }
 
+    /// The forces a GPU step takes as given: the commanded ones spread on the nodes, and
+    /// for the explicit schemes the surface contacts' (the implicit one assembles those).
     #[cfg_attr(not(feature = "gpu"), allow(dead_code))]
-    pub(crate) fn external_forces(&self) -> &[Vector3<T>] {
-        &self.external
+    pub(crate) fn external_forces(&self) -> Vec<Vector3<T>> {
+        let mut forces = self.external.clone();
+        if self.params.integrator != Integrator::ImplicitEuler {
+            add_contact_forces(&self.active_contacts, &mut forces);
+        }
+        forces
+    }
+
+    /// The surface contacts of the step being solved.
+    #[cfg_attr(not(feature = "gpu"), allow(dead_code))]
+    pub(crate) fn active_contacts(&self) -> &[SurfaceContact] {
+        &self.active_contacts
+    }
+
+    /// How many simulated tools the implicit system carries (rows after the nodes').
+    #[cfg_attr(not(feature = "gpu"), allow(dead_code))]
+    pub(crate) fn proxy_count(&self) -> usize {
+        self.proxies.len()
     }
 
     /// The simulated tools' rows and the surface contacts' terms (few: sequential, so the
-    /// sums keep their order). A contact of depth φ has energy ½kφ² and gradient g_r on its
-    /// rows (minus a node's share of the push, the push on a simulated tool), hence
-    /// b_r += -h k (φ + h φ̇) g_r with φ̇ = Σ g·v, and A += h² k g gᵀ.
+    /// sums keep their order).
     pub(super) fn assemble_tools(&mut self) {
         let n = self.u.len();
-        let h = self.params.dt;
-        for (k, proxy) in self.proxies.iter().enumerate() {
-            let tool = &self.tools[proxy.tool];
-            let Some(coupling) = tool.coupling else { continue };
-            let (force, stiffness, damping, _) = coupling_force(tool, proxy);
-            let diag = Matrix3::identity() * (coupling.mass + h * damping + h * h * stiffness);
+        for k in 0..self.proxies.len() {
+            let Some((diag, rhs)) = self.proxy_row(k) else { continue };
             self.proxy_diag[k] = diag.map(T::of);
-            self.rhs[n + k] = ((force - proxy.v * (h * stiffness)) * h).map(T::of);
+            self.rhs[n + k] = rhs.map(T::of);
             self.precond[n + k] = diag.try_inverse().unwrap_or_else(Matrix3::zeros).map(T::of);
         }
         self.contact_rows.clear();
@@ -154,39 +166,67 @@ impl<T: Real> Simulation<T> {
         self.add_contacts();
     }
 
+    /// Simulated tool k's row, (M + hD + h²K) Δv = h (f - h K v): its diagonal block and
+    /// right-hand side (both backends assemble it so).
+    pub(crate) fn proxy_row(&self, k: usize) -> Option<(Matrix3<f64>, Vector3<f64>)> {
+        let proxy = self.proxies.get(k)?;
+        let tool = &self.tools[proxy.tool];
+        let coupling = tool.coupling?;
+        let h = self.params.dt;
+        let (force, stiffness, damping, _) = coupling_force(tool, proxy);
+        let diag = Matrix3::identity() * (coupling.mass + h * damping + h * h * stiffness);
+        Some((diag, (force - proxy.v * (h * stiffness)) * h))
+    }
+
+    /// A surface contact's terms in the implicit system (both backends assemble them so).
+    /// A contact of depth φ has energy ½kφ² and gradient g_r on its rows (minus a node's
+    /// share of the push, the push on a simulated tool), hence b_r -= h k (φ + h φ̇) g_r
+    /// with φ̇ = Σ g·v, and A += h² k g gᵀ.
+    pub(crate) fn contact_terms(&self, c: &SurfaceContact) -> ContactTerms {
+        let n = self.u.len();
+        let h = self.params.dt;
+        let mut rows = [usize::MAX; CONTACT_NODES + 1];
+        let mut gradients = [Vector3::zeros(); CONTACT_NODES + 1];
+        let mut normal_speed = 0.0;
+        for (k, (&node, share)) in c.nodes.iter().zip(&c.shares).enumerate() {
+            if node != u32::MAX && !self.fixed[node as usize] {
+                rows[k] = node as usize;
+                gradients[k] = -share;
+                normal_speed -= share.dot(&self.v[node as usize].map(T::to_f64));
+            }
+        }
+        if let Some(k) = self.proxies.iter().position(|p| p.tool == c.tool) {
+            rows[CONTACT_NODES] = n + k;
+            gradients[CONTACT_NODES] = c.push;
+            normal_speed += c.push.dot(&self.proxies[k].v);
+        }
+        ContactTerms {
+            rows,
+            gradients,
+            h2k: h * h * c.stiffness,
+            rhs_scale: h * c.stiffness * (c.depth + h * normal_speed),
+            normal_speed,
+        }
+    }
+
     /// Adds the contacts' terms to the assembled rows, keeping each touched row as it was.
     pub(super) fn add_contacts(&mut self) {
         let n = self.u.len();
-        let h = self.params.dt;
         let mut blocks: Vec<(usize, Matrix3<f64>)> = Vec::new();
         for c in &self.active_contacts {
-            let mut rows = [usize::MAX; CONTACT_NODES + 1];
-            let mut gradients = [Vector3::zeros(); CONTACT_NODES + 1];
-            let mut normal_speed = 0.0;
-            for (k, (&node, share)) in c.nodes.iter().zip(&c.shares).enumerate() {
-                if node != u32::MAX && !self.fixed[node as usize] {
-                    rows[k] = node as usize;
-                    gradients[k] = -share;
-                    normal_speed -= share.dot(&self.v[node as usize].map(T::to_f64));
-                }
-            }
-            if let Some(k) = self.proxies.iter().position(|p| p.tool == c.tool) {
-                rows[CONTACT_NODES] = n + k;
-                gradients[CONTACT_NODES] = c.push;
-                normal_speed += c.push.dot(&self.proxies[k].v);
-            }
-            let g = h * c.stiffness * (c.depth + h * normal_speed);
-            for (&row, gradient) in rows.iter().zip(&gradients).filter(|(row, _)| **row != usize::MAX) {
+            let terms = self.contact_terms(c);
+            for (row, gradient) in terms.touched() {
                 if !self.rows_before_contacts.iter().any(|(r, _, _)| *r == row) {
                     self.rows_before_contacts.push((row, self.rhs[row], self.precond[row]));
                 }
-                self.rhs[row] -= (gradient * g).map(T::of);
-                blocks.push((row, gradient * gradient.transpose() * (h * h * c.stiffness)));
+                self.rhs[row] -= (gradient * terms.rhs_scale).map(T::of);
+                blocks.push((row, gradient * gradient.transpose() * terms.h2k));
             }
             self.contact_rows.push(ContactRows {
-                rows,
-                gradients: gradients.map(|g| g.map(T::of)),
-                h2k: T::of(h * h * c.stiffness),
+                rows: terms.rows,
+                gradients: terms.gradients.map(|g| g.map(T::of)),
+                h2k: T::of(terms.h2k),
+                normal_speed: terms.normal_speed,
             });
         }
         // Block Jacobi sees each touched row's diagonal block with its contact part.
@@ -203,18 +243,33 @@ impl<T: Real> Simulation<T> {
     /// end penetration φ + h φ̇ comes out ≤ 0 would pull the surface, so it leaves the active
     /// set and the step is solved again from the rows as they were (a few rounds at most).
     pub(super) fn release_separating_contacts(&mut self) -> bool {
-        let n = self.u.len();
-        let h = T::of(self.params.dt);
-        let mut keep: Vec<bool> = (self.active_contacts.iter().zip(&self.contact_rows))
-            .map(|(c, rows)| {
-                let mut rate = T::zero();
-                for (&row, gradient) in rows.rows.iter().zip(&rows.gradients).filter(|(row, _)| **row != usize::MAX) {
-                    let v = if row < n { self.v[row] } else { self.proxies[row - n].v.map(T::of) };
-                    rate += gradient.dot(&(v + self.dv[row]));
-                }
-                T::of(c.depth) + h * rate > T::zero()
+        let end_rates: Vec<f64> = (self.contact_rows.iter())
+            .map(|rows| {
+                let moved = (rows.rows.iter().zip(&rows.gradients))
+                    .filter(|(row, _)| **row != usize::MAX)
+                    .fold(T::zero(), |rate, (&row, gradient)| rate + gradient.dot(&self.dv[row]));
+                rows.normal_speed + moved.to_f64()
             })
             .collect();
+        if !self.release_contacts(&end_rates) {
+            return false;
+        }
+        for (row, rhs, precond) in self.rows_before_contacts.drain(..) {
+            self.rhs[row] = rhs;
+            self.precond[row] = precond;
+        }
+        self.contact_rows.clear();
+        self.add_contacts();
+        true
+    }
+
+    /// Drops the active contacts that separate at the step's end, given each one's rate
+    /// φ̇ = Σ g·(v + Δv) there (a row that joins the contact before it goes with it);
+    /// whether any went.
+    pub(crate) fn release_contacts(&mut self, end_rates: &[f64]) -> bool {
+        let h = self.params.dt;
+        let mut keep: Vec<bool> =
+            self.active_contacts.iter().zip(end_rates).map(|(c, rate)| c.depth + h * rate > 0.0).collect();
         for (k, c) in self.active_contacts.iter().enumerate().skip(1) {
             if c.joins_previous {
                 keep[k] = keep[k - 1];
@@ -223,14 +278,8 @@ impl<T: Real> Simulation<T> {
         if keep.iter().all(|k| *k) {
             return false;
         }
-        for (row, rhs, precond) in self.rows_before_contacts.drain(..) {
-            self.rhs[row] = rhs;
-            self.precond[row] = precond;
-        }
         let mut k = keep.iter();
         self.active_contacts.retain(|_| k.next().copied().unwrap_or(false));
-        self.contact_rows.clear();
-        self.add_contacts();
         true
     }
 

@@ -94,9 +94,14 @@ impl<T: Real> Simulation<T> {
             *v += dv[i];
             *x += *v * h;
         });
-        let n = self.u.len();
-        for (k, proxy) in self.proxies.iter_mut().enumerate() {
-            proxy.v += self.dv[n + k].map(T::to_f64);
+        let proxy_dv: Vec<Vector3<f64>> = self.dv[self.u.len()..].iter().map(|dv| dv.map(T::to_f64)).collect();
+        self.advance_proxies(&proxy_dv);
+    }
+
+    /// Moves the simulated tools by their rows of Δv.
+    pub(super) fn advance_proxies(&mut self, dv: &[Vector3<f64>]) {
+        for (proxy, dv) in self.proxies.iter_mut().zip(dv) {
+            proxy.v += dv;
             proxy.x += proxy.v * self.params.dt;
         }
     }

@@ -59,6 +59,28 @@ struct ContactRows<T: Real> {
     rows: [usize; CONTACT_NODES + 1],
     gradients: [Vector3<T>; CONTACT_NODES + 1],
     h2k: T,
+    /// φ̇ at the step's start, Σ g·v over the rows.
+    normal_speed: f64,
+}
+
+/// A surface contact's terms in the implicit system, in f64 for both backends: its rows
+/// (the nodes', then the simulated tool's; `usize::MAX` where none), the gradient of the
+/// penetration φ on each, h² k, and the right-hand side's factor h k (φ + h φ̇).
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct ContactTerms {
+    pub rows: [usize; CONTACT_NODES + 1],
+    pub gradients: [Vector3<f64>; CONTACT_NODES + 1],
+    pub h2k: f64,
+    pub rhs_scale: f64,
+    /// φ̇ at the step's start, Σ g·v over the rows.
+    pub normal_speed: f64,
+}
+
+impl ContactTerms {
+    /// The rows the contact touches, with the gradient on each.
+    pub(crate) fn touched(&self) -> impl Iterator<Item = (usize, &Vector3<f64>)> {
+        self.rows.iter().zip(&self.gradients).filter(|(row, _)| **row != usize::MAX).map(|(row, g)| (*row, g))
+    }
 }
 
 /// The coupling force on the simulated tool and its stiffness and damping scaled down

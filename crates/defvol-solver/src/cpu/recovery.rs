@@ -15,17 +15,19 @@ impl<T: Real> Simulation<T> {
     }
 
     /// Takes a state computed elsewhere (the GPU) as this step's result, with the same
-    /// reporting and divergence check as a CPU step.
+    /// reporting and divergence check as a CPU step; `proxy_dv` moves the simulated tools.
     #[cfg_attr(not(feature = "gpu"), allow(dead_code))]
     pub(crate) fn accept_step(
         &mut self,
         u: Vec<Vector3<T>>,
         v: Vec<Vector3<T>>,
+        proxy_dv: &[Vector3<f64>],
         cg: CgStats,
     ) -> Result<StepReport, SolverError> {
         let saved = self.snapshot();
         self.u = u;
         self.v = v;
+        self.advance_proxies(proxy_dv);
         self.last_cg = cg;
         self.finish_step(saved)
     }
