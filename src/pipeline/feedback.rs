@@ -478,7 +478,7 @@ pub fn run_step(engine: &mut SolverEngine, input: &StepInput) -> Result<StepOutp
     }
     let start = Instant::now();
     let report = engine.step()?;
-    let local = engine.local_models();
+    let local = engine.local_models()?;
     let positions = engine.positions();
     let solver_ms = start.elapsed().as_secs_f64() * 1e3;
     Ok(StepOutput { report, positions, local, solver_ms, input: input.clone() })

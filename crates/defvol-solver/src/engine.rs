@@ -103,14 +103,14 @@ impl SolverEngine {
     }
 
     /// Each coupled tool's local model for the force loop, from the last step
-    /// (`haptic.rs`); none yet from the GPU solver (its tools get each step's feedback).
-    pub fn local_models(&mut self) -> Vec<LocalModel> {
-        match self {
+    /// (`haptic.rs`), each backend solving its own system for the contact's stiffness.
+    pub fn local_models(&mut self) -> Result<Vec<LocalModel>, SolverEngineError> {
+        Ok(match self {
             Self::Cpu(s) => s.local_models(),
             Self::CpuF64(s) => s.local_models(),
             #[cfg(feature = "gpu")]
-            Self::Gpu(_) => Vec::new(),
-        }
+            Self::Gpu(g) => g.local_models().map_err(super::gpu::GpuSolverError::from)?,
+        })
     }
 
     /// Positions after the last step (world units).

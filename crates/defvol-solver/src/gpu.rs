@@ -22,7 +22,7 @@ use nalgebra::Vector3;
 use super::contact::CONTACT_NODES;
 use super::cpu::{CgStats, ContactTerms};
 use super::kernels::ContactTool;
-use super::{Integrator, MassSpringModel, Simulation, SolverError, SolverParams, StepReport, Tool};
+use super::{Integrator, LocalModel, MassSpringModel, Simulation, SolverError, SolverParams, StepReport, Tool};
 use defvol_gpu::gpu::{Binding, GpuContext, GpuError, Kernels};
 
 /// Storage buffers the solver shader binds at once.
@@ -83,6 +83,17 @@ impl GpuContactTerm {
         }
         Self { rows, gradients, scale: [terms.h2k as f32, terms.rhs_scale as f32, 0.0, 0.0] }
     }
+
+    /// The rows and directions b of a compliance solve (at most a contact's rows), for bᵀΔv.
+    fn probe(b: &[(usize, Vector3<f64>)]) -> Self {
+        let mut term = Self::zeroed();
+        term.rows = [[u32::MAX; 4]; 5];
+        for (k, (row, g)) in b.iter().take(CONTACT_ROWS).enumerate() {
+            term.rows[k / 4][k % 4] = *row as u32;
+            term.gradients[k] = [g.x as f32, g.y as f32, g.z as f32, 0.0];
+        }
+        term
+    }
 }
 
 #[repr(C)]
@@ -125,10 +136,11 @@ enum Kernel {
     ContactDot,
     ContactScatter,
     ContactOutcome,
+    ProbeOutcome,
 }
 
 impl Kernel {
-    const ALL: [Kernel; 23] = [
+    const ALL: [Kernel; 24] = [
         Kernel::SpringTerms,
         Kernel::SpringForces,
         Kernel::SpringForcesPredicted,
@@ -152,6 +164,7 @@ impl Kernel {
         Kernel::ContactDot,
         Kernel::ContactScatter,
         Kernel::ContactOutcome,
+        Kernel::ProbeOutcome,
     ];
 
     fn entry_point(self) -> &'static str {
@@ -179,6 +192,7 @@ impl Kernel {
             Kernel::ContactDot => "contact_dot",
             Kernel::ContactScatter => "contact_scatter",
             Kernel::ContactOutcome => "contact_outcome",
+            Kernel::ProbeOutcome => "probe_outcome",
         }
     }
 }
@@ -217,6 +231,9 @@ pub struct GpuSimulation {
     bind_group: wgpu::BindGroup,
     buffers: Buffers,
     history_valid: bool,
+    /// The `system` counts of the last implicit solve (its rows, contacts and touched rows
+    /// stay assembled until the next step).
+    system: [u32; 4],
 }
 
 fn vec4s(v: &[Vector3<f32>]) -> Vec<[f32; 4]> {
@@ -350,6 +367,7 @@ impl GpuSimulation {
             bind_group,
             buffers,
             history_valid: false,
+            system: [n as u32, 0, 0, 0],
         })
     }
 
@@ -468,6 +486,13 @@ impl GpuSimulation {
         }
         let capacity = contacts.next_power_of_two();
         let fresh = contact_buffers(&self.ctx, capacity);
+        // Keep what the old ones hold (a compliance solve grows them mid-step).
+        let mut encoder =
+            self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("grow contacts") });
+        for (old, new) in self.buffers.bound[CONTACT_BINDINGS].iter().zip(&fresh) {
+            encoder.copy_buffer_to_buffer(old, 0, new, 0, old.size());
+        }
+        self.ctx.queue.submit([encoder.finish()]);
         self.buffers.bound.splice(CONTACT_BINDINGS, fresh);
         self.buffers.contact_capacity = capacity;
         self.bind_group = self.ctx.bind_group("solver", &self.layout, &self.buffers.bound.iter().collect::<Vec<_>>());
@@ -497,7 +522,17 @@ impl GpuSimulation {
 
     /// CG on the system assembled from the current state, warm-started from the last Δv.
     fn solve(&self, system: [u32; 4]) -> Result<CgStats, GpuError> {
-        let (n, rows, touched, q) = (self.nodes, system[0], system[2], &self.ctx.queue);
+        let mut assembly = vec![(Kernel::SpringTerms, self.springs), (Kernel::NodeTerms, self.nodes)];
+        if system[2] > 0 {
+            assembly.push((Kernel::ContactRows, system[2]));
+        }
+        self.run(&assembly);
+        self.cg(system)
+    }
+
+    /// CG on the system as assembled, from the Δv in its buffer.
+    fn cg(&self, system: [u32; 4]) -> Result<CgStats, GpuError> {
+        let (rows, touched, q) = (system[0], system[2], &self.ctx.queue);
         q.write_buffer(&self.buffers.scalars, 0, bytemuck::bytes_of(&CgScalars::zeroed()));
         let mut encoder =
             self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("cg start") });
@@ -505,9 +540,7 @@ impl GpuSimulation {
         self.ctx.queue.submit([encoder.finish()]);
         // The contacts' kernels run only when there are contacts.
         let contacts = |kernels: &[(Kernel, u32)]| if touched > 0 { kernels.to_vec() } else { Vec::new() };
-        let mut start = vec![(Kernel::SpringTerms, self.springs), (Kernel::NodeTerms, n)];
-        start.extend(contacts(&[(Kernel::ContactRows, touched)]));
-        start.push((Kernel::CgStartSpmv, rows));
+        let mut start = vec![(Kernel::CgStartSpmv, rows)];
         start.extend(contacts(&[(Kernel::ContactDot, 1), (Kernel::ContactScatter, touched)]));
         start.extend([(Kernel::CgInit, rows), (Kernel::CgInitReduce, 1)]);
         self.run(&start);
@@ -550,7 +583,56 @@ impl GpuSimulation {
             cg = CgStats { iterations: cg.iterations + again.iterations, relative_residual: again.relative_residual };
         };
         self.run(&[(Kernel::ImplicitUpdate, self.nodes)]);
+        self.system = system;
         Ok((proxy_dv, cg))
+    }
+
+    /// Each coupled tool's local model for the force loop, from the step just taken, its
+    /// contact's stiffness solved on the step's own system on the GPU.
+    pub fn local_models(&mut self) -> Result<Vec<LocalModel>, GpuError> {
+        let h = self.mirror.params().dt;
+        let queries = self.mirror.local_queries();
+        let mut models = Vec::with_capacity(queries.len());
+        for query in queries {
+            let compliance = match query.along() {
+                Some(b) => self.compliance_along(b)?,
+                None => 0.0,
+            };
+            models.push(query.finish(compliance, h));
+        }
+        Ok(models)
+    }
+
+    /// bᵀA⁻¹b for the system the last step assembled (its contacts included) and b given on
+    /// a few rows: CG from zero, then bᵀΔv by the `probe_outcome` kernel (the twin of
+    /// `Simulation::compliance_along`). The next step assembles afresh.
+    fn compliance_along(&mut self, b: &[(usize, Vector3<f64>)]) -> Result<f64, GpuError> {
+        let system = self.system;
+        let free: Vec<(usize, Vector3<f64>)> =
+            b.iter().filter(|(row, _)| !self.mirror.fixed_row(*row)).copied().collect();
+        let contacts = system[1] as usize;
+        self.reserve_contacts(contacts + 1);
+        let mut encoder =
+            self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("probe") });
+        encoder.clear_buffer(&self.buffers.rhs, 0, None);
+        encoder.clear_buffer(&self.buffers.dv, 0, None);
+        self.ctx.queue.submit([encoder.finish()]);
+        let mut rhs: BTreeMap<usize, Vector3<f64>> = BTreeMap::new();
+        for (row, v) in &free {
+            *rhs.entry(*row).or_insert_with(Vector3::zeros) += v;
+        }
+        for (row, v) in rhs {
+            let bytes = vec4s(&[v.map(|c| c as f32)]);
+            self.ctx.queue.write_buffer(&self.buffers.rhs, row as u64 * 16, bytemuck::cast_slice(&bytes));
+        }
+        let probe = GpuContactTerm::probe(&free);
+        let at = (contacts * std::mem::size_of::<GpuContactTerm>()) as u64;
+        self.ctx.queue.write_buffer(&self.buffers.bound[CONTACT_BINDINGS.start], at, bytemuck::bytes_of(&probe));
+        self.cg(system)?;
+        self.run(&[(Kernel::ProbeOutcome, 1)]);
+        let bytes = self.ctx.read_back(&self.buffers.bound[CONTACT_BINDINGS.end - 1], 16)?;
+        let out: [f32; 4] = bytemuck::pod_read_unaligned(&bytes);
+        Ok(f64::from(out[0]))
     }
 
     /// Advances one step on the GPU; reads positions and velocities back for the report.
@@ -697,6 +779,46 @@ mod tests {
         assert!(largest > 1.0, "the coupling pulled the tool in: {largest} N");
         // lavapipe: 3e-7 / 2e-7; hardware FMA rounding differs more.
         assert!(nodes <= 1e-4 && force <= 1e-4, "GPU departs from CPU: nodes {nodes:e}, force {force:e} (relative)");
+    }
+
+    /// The force loop's local models from the GPU (the contact's stiffness solved on the
+    /// GPU's system) match the CPU's, about to touch and pressing.
+    #[test]
+    fn gpu_local_models_match_the_cpu_ones() {
+        let Some(ctx) = defvol_gpu::gpu::test_context() else { return };
+        let mut tool = Tool::new(ToolShape::Sphere { radius: 0.001 }, 20_000.0);
+        tool.coupling = Some(Coupling { stiffness: 2000.0, damping: 5.0, mass: 0.02, max_force: 5.0 });
+        let params = SolverParams { gravity: [0.0; 3], dt: 1e-3, cg_tolerance: 1e-6, ..Default::default() };
+        let model = slab();
+        let mut cpu = Simulation::<f32>::new(&model, params.clone(), vec![tool.clone()]).unwrap();
+        let mut gpu = GpuSimulation::new(ctx, &model, params, vec![tool]).unwrap();
+        let (mut ahead, mut pressed, mut worst) = (0, 0, 0.0f64);
+        for k in 0..150 {
+            let pose = Isometry3::translation(0.043, 0.058, 0.003 - 0.006 * (k as f64 / 100.0).min(1.0));
+            cpu.tool_mut(0).unwrap().world_from_tool = pose;
+            gpu.tool_mut(0).unwrap().world_from_tool = pose;
+            cpu.step().unwrap();
+            gpu.step().unwrap();
+            let (mc, mg) = (cpu.local_models().remove(0), gpu.local_models().unwrap().remove(0));
+            assert!((mc.position - mg.position).norm() < 1e-6, "step {k}: {mc:?} / {mg:?}");
+            match (mc.contact, mg.contact) {
+                (None, None) => {}
+                (Some(c), Some(g)) => {
+                    if c.depth > 0.0 {
+                        pressed += 1
+                    } else {
+                        ahead += 1
+                    }
+                    worst = worst.max((c.stiffness - g.stiffness).abs() / c.stiffness);
+                    worst = worst.max((c.normal - g.normal).norm());
+                    assert!((c.depth - g.depth).abs() < 1e-6, "step {k}: depth {} / {}", c.depth, g.depth);
+                }
+                (c, g) => panic!("step {k}: a contact on one side only: {c:?} / {g:?}"),
+            }
+        }
+        assert!(ahead > 3 && pressed > 30, "{ahead} steps about to touch, {pressed} pressing");
+        // lavapipe: 3e-6 (CG tolerance 1e-6 on both sides).
+        assert!(worst <= 1e-4, "stiffness or normal departs by {worst:e} (relative)");
     }
 
     /// A thin tool on surface contact without a coupling, implicit and explicit: the GPU

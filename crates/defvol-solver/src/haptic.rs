@@ -48,6 +48,79 @@ pub struct LocalAnswer {
     pub saturated: bool,
 }
 
+/// A coupled tool's local model before the one number it may need of the step's system,
+/// bᵀA⁻¹b along `along()` (the CPU and the GPU each solve it on their own system).
+#[derive(Debug, Clone)]
+pub(crate) struct LocalQuery {
+    model: LocalModel,
+    contact: Option<PendingContact>,
+}
+
+/// The contact of a local model, short of its stiffness.
+#[derive(Debug, Clone)]
+pub(crate) struct PendingContact {
+    pub normal: Vector3<f64>,
+    pub surface_speed: f64,
+    /// Rows and directions b of the system whose bᵀA⁻¹b the stiffness needs (none: it
+    /// needs nothing).
+    pub along: Vec<(usize, Vector3<f64>)>,
+    pub rule: StiffnessRule,
+}
+
+/// How the contact's stiffness follows from c = bᵀA⁻¹b (A the step's system, h its step).
+#[derive(Debug, Clone, Copy)]
+pub(crate) enum StiffnessRule {
+    /// About to touch: the penalty in series with the mesh's compliance h²c there.
+    InSeries { depth: f64, penalty: f64 },
+    /// Pressed through the simulated tool's row: the stiffness the tool feels along the
+    /// normal, (1/c minus its own row) / h², at most the penalty; the depth from the force.
+    Condensed { force: f64, own: f64, penalty: f64 },
+    /// Touching without the tool's row in the system: the penalty.
+    Penalty { force: f64, penalty: f64 },
+}
+
+impl LocalQuery {
+    pub(crate) fn new(
+        tool: usize,
+        coupling: Coupling,
+        position: Vector3<f64>,
+        velocity: Vector3<f64>,
+        device: Vector3<f64>,
+        contact: Option<PendingContact>,
+    ) -> Self {
+        Self { model: LocalModel::new(tool, coupling, position, velocity, device, None), contact }
+    }
+
+    /// The rows and directions b whose bᵀA⁻¹b `finish` needs, if any.
+    pub(crate) fn along(&self) -> Option<&[(usize, Vector3<f64>)]> {
+        self.contact.as_ref().map(|c| c.along.as_slice()).filter(|b| !b.is_empty())
+    }
+
+    /// The model, given c = bᵀA⁻¹b (ignored when `along` is none) and the step h.
+    pub(crate) fn finish(self, compliance: f64, h: f64) -> LocalModel {
+        let mut model = self.model;
+        model.contact = self.contact.and_then(|c| {
+            let (depth, stiffness) = match c.rule {
+                StiffnessRule::InSeries { depth, penalty } => {
+                    (depth, 1.0 / (1.0 / penalty + (h * h * compliance).max(0.0)))
+                }
+                StiffnessRule::Condensed { force, own, penalty } => {
+                    let stiffness = ((1.0 / compliance - own) / (h * h)).clamp(0.0, penalty);
+                    (force / stiffness, stiffness)
+                }
+                StiffnessRule::Penalty { force, penalty } => (force / penalty, penalty),
+            };
+            (stiffness > 0.0).then_some(LocalContact {
+                normal: c.normal,
+                depth,
+                stiffness,
+                surface_speed: c.surface_speed,
+            })
+        });
+        model
+    }
+}
+
 impl LocalModel {
     pub fn new(
         tool: usize,

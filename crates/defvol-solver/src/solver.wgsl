@@ -341,6 +341,23 @@ fn contact_scatter(@builtin(global_invocation_id) gid: vec3<u32>) {
     q[entry.x] = vec4<f32>(acc, 0.0);
 }
 
+// bᵀΔv for the probe stored after the contacts (the local model's compliance solve).
+@compute @workgroup_size(256)
+fn probe_outcome(@builtin(global_invocation_id) gid: vec3<u32>) {
+    if (gid.x != 0u) {
+        return;
+    }
+    let c = params.system.y;
+    var gd = 0.0;
+    for (var k = 0u; k < CONTACT_ROWS; k = k + 1u) {
+        let row = contact_row(c, k);
+        if (row != NO_ROW) {
+            gd = gd + dot(contact_terms[c].gradients[k].xyz, dv[row].xyz);
+        }
+    }
+    outcome[0] = vec4<f32>(gd, 0.0, 0.0, 0.0);
+}
+
 // After the solve: the simulated tools' rows of Δv, then each contact's g·Δv.
 @compute @workgroup_size(256)
 fn contact_outcome(@builtin(global_invocation_id) gid: vec3<u32>) {

@@ -157,7 +157,6 @@ impl<T: Real> Simulation<T> {
         let n = self.u.len();
         for k in 0..self.proxies.len() {
             let Some((diag, rhs)) = self.proxy_row(k) else { continue };
-            self.proxy_diag[k] = diag.map(T::of);
             self.rhs[n + k] = rhs.map(T::of);
             self.precond[n + k] = diag.try_inverse().unwrap_or_else(Matrix3::zeros).map(T::of);
         }
@@ -166,16 +165,24 @@ impl<T: Real> Simulation<T> {
         self.add_contacts();
     }
 
-    /// Simulated tool k's row, (M + hD + h²K) Δv = h (f - h K v): its diagonal block and
-    /// right-hand side (both backends assemble it so).
-    pub(crate) fn proxy_row(&self, k: usize) -> Option<(Matrix3<f64>, Vector3<f64>)> {
+    /// Simulated tool k's row, (M + hD + h²K) Δv = h (f - h K v): its diagonal block (kept
+    /// for the local model) and right-hand side (both backends assemble it so).
+    pub(crate) fn proxy_row(&mut self, k: usize) -> Option<(Matrix3<f64>, Vector3<f64>)> {
         let proxy = self.proxies.get(k)?;
         let tool = &self.tools[proxy.tool];
         let coupling = tool.coupling?;
         let h = self.params.dt;
         let (force, stiffness, damping, _) = coupling_force(tool, proxy);
         let diag = Matrix3::identity() * (coupling.mass + h * damping + h * h * stiffness);
-        Some((diag, (force - proxy.v * (h * stiffness)) * h))
+        let rhs = (force - proxy.v * (h * stiffness)) * h;
+        self.proxy_diag[k] = diag.map(T::of);
+        Some((diag, rhs))
+    }
+
+    /// Whether row `row` of the system is a fixed node's (the simulated tools' are free).
+    #[cfg_attr(not(feature = "gpu"), allow(dead_code))]
+    pub(crate) fn fixed_row(&self, row: usize) -> bool {
+        self.fixed.get(row).copied().unwrap_or(false)
     }
 
     /// A surface contact's terms in the implicit system (both backends assemble them so).
@@ -304,17 +311,29 @@ impl<T: Real> Simulation<T> {
     /// s = nᵀ(A⁻¹)_tt n, so h²k = 1/s minus the tool's own row (one more solve). A tool
     /// touching nothing gets the nearest face it is about to touch, at the penalty's stiffness.
     pub fn local_models(&mut self) -> Vec<LocalModel> {
-        let mut models = Vec::with_capacity(self.proxies.len());
+        let h = self.params.dt;
+        (self.local_queries().into_iter())
+            .map(|query| {
+                let compliance = query.along().map_or(0.0, |b| self.compliance_along(b));
+                query.finish(compliance, h)
+            })
+            .collect()
+    }
+
+    /// Each coupled tool's local model, short of the one number it may need of the step's
+    /// system (bᵀA⁻¹b along the query's rows), which each backend solves for itself.
+    pub(crate) fn local_queries(&mut self) -> Vec<LocalQuery> {
+        let mut queries = Vec::with_capacity(self.proxies.len());
         for k in 0..self.proxies.len() {
             let proxy = self.proxies[k].clone();
             let Some(coupling) = self.tools[proxy.tool].coupling else { continue };
             let contact = self.local_contact(k);
-            models.push(LocalModel::new(proxy.tool, coupling, proxy.x, proxy.v, proxy.device, contact));
+            queries.push(LocalQuery::new(proxy.tool, coupling, proxy.x, proxy.v, proxy.device, contact));
         }
-        models
+        queries
     }
 
-    fn local_contact(&mut self, k: usize) -> Option<LocalContact> {
+    fn local_contact(&mut self, k: usize) -> Option<PendingContact> {
         let tool = self.proxies[k].tool;
         let force: Vector3<f64> =
             -self.contacts.iter().filter(|c| c.tool == tool).map(|c| c.force()).sum::<Vector3<f64>>();
@@ -324,27 +343,24 @@ impl<T: Real> Simulation<T> {
             let c = *c;
             let surface_speed = self.surface_speed(std::slice::from_ref(&c));
             // The mesh's compliance there (h² gᵀA⁻¹g, g the contact's shares) in series.
-            let shares: Vec<(usize, Vector3<f64>)> =
-                c.node_forces().map(|(n, _)| n as usize).zip(c.shares.iter().copied()).collect();
-            let mesh = self.params.dt * self.params.dt * self.compliance_along(&shares);
-            let stiffness = 1.0 / (1.0 / c.stiffness + mesh.max(0.0));
-            return Some(LocalContact { normal: -c.push, depth: c.depth, stiffness, surface_speed });
+            let along = c.node_forces().map(|(n, _)| n as usize).zip(c.shares.iter().copied()).collect();
+            let rule = StiffnessRule::InSeries { depth: c.depth, penalty: c.stiffness };
+            return Some(PendingContact { normal: -c.push, surface_speed, along, rule });
         };
         let penalty: f64 = self.contacts.iter().filter(|c| c.tool == tool).map(|c| c.stiffness).fold(0.0, f64::max);
         let row = self.u.len() + k;
-        let pressed = self.contact_rows.iter().any(|c| c.rows.contains(&row));
-        let h = self.params.dt;
-        let stiffness = match pressed {
-            true => {
-                let compliance = self.compliance_along(&[(row, normal)]);
-                let own = normal.dot(&(self.proxy_diag[k].map(T::to_f64) * normal));
-                ((1.0 / compliance - own) / (h * h)).clamp(0.0, penalty)
-            }
-            false => penalty,
-        };
+        // The final active set of the step: the tool's row joins every contact of its tool.
+        let pressed = self.active_contacts.iter().any(|c| c.tool == tool);
         let mine: Vec<SurfaceContact> = self.contacts.iter().filter(|c| c.tool == tool).copied().collect();
         let surface_speed = self.surface_speed(&mine);
-        (stiffness > 0.0).then(|| LocalContact { normal, depth: force.norm() / stiffness, stiffness, surface_speed })
+        let (along, rule) = match pressed {
+            true => {
+                let own = normal.dot(&(self.proxy_diag[k].map(T::to_f64) * normal));
+                (vec![(row, normal)], StiffnessRule::Condensed { force: force.norm(), own, penalty })
+            }
+            false => (Vec::new(), StiffnessRule::Penalty { force: force.norm(), penalty }),
+        };
+        Some(PendingContact { normal, surface_speed, along, rule })
     }
 
     /// How fast the surface under `contacts` moves along their normal (out of the body):
