@@ -246,8 +246,6 @@ mod dds {
         /// Feedback messages the device took, and the seconds it listened.
         feedback: usize,
         seconds: f64,
-        /// The coupled thin tool on surface contact (else the default probe).
-        haptic: bool,
         /// Solver steps per second behind the answers, and the median step time (ms), from
         /// the node's diagnostics.
         simulation_hz: f64,
@@ -257,12 +255,8 @@ mod dds {
     impl FeedbackRun {
         pub fn row(self, case: String, backend: &str, device: &str, tets: usize, everything: bool) -> BenchRow {
             let rate = self.feedback as f64 / self.seconds.max(1e-9);
-            let tool = match self.haptic {
-                true => "coupled 2 mm tool, surface contact, local model",
-                false => "25 mm probe, node contact",
-            };
             let note = format!(
-                "DDS loop, 1 kHz poses, {tool}; feedback at {rate:.0} Hz, {} of {} poses answered, solver at {:.0} \
+                "DDS loop, 1 kHz poses, coupled 2 mm tool, surface contact, local model; feedback at {rate:.0} Hz, {} of {} poses answered, solver at {:.0} \
                  steps/s ({:.2} ms a step){}; goal p99 < 1 ms",
                 self.latencies.len(),
                 self.poses,
@@ -275,7 +269,7 @@ mod dds {
                 case,
                 backend: backend.into(),
                 device: device.into(),
-                params: json!({"input_hz": 1000, "dt": 1e-3, "p99_ms": percentile(&self.latencies, 0.99), "sustained_hz": rate, "answered": self.latencies.len(), "poses": self.poses, "haptic_tool": self.haptic, "simulation_hz": self.simulation_hz, "solver_step_ms": self.step_ms, "note": note}),
+                params: json!({"input_hz": 1000, "dt": 1e-3, "p99_ms": percentile(&self.latencies, 0.99), "sustained_hz": rate, "answered": self.latencies.len(), "poses": self.poses, "simulation_hz": self.simulation_hz, "solver_step_ms": self.step_ms, "note": note}),
                 runs: self.latencies.len(),
                 time_ms: time_stats(self.latencies),
                 error: None,
@@ -299,13 +293,10 @@ mod dds {
             parameters.insert(format!("stages.{stage}"), yaml(everything));
         }
         // The haptic configuration: a coupled 2 mm tool on the boundary surface, answered
-        // from its local model; the GPU solver couples no tool, so there the default probe.
-        let haptic = backend.runs_on() == RunsOn::Cpu;
-        if haptic {
-            for (name, value) in HAPTIC_TOOL {
-                let value: serde_yaml_ng::Value = serde_yaml_ng::from_str(value).map_err(|e| setup(&e))?;
-                parameters.insert(format!("tools.0.{name}"), value);
-            }
+        // from its local model, on either backend.
+        for (name, value) in HAPTIC_TOOL {
+            let value: serde_yaml_ng::Value = serde_yaml_ng::from_str(value).map_err(|e| setup(&e))?;
+            parameters.insert(format!("tools.0.{name}"), value);
         }
         let stop = Arc::new(AtomicBool::new(false));
         let node_settings = NodeSettings {
@@ -329,7 +320,7 @@ mod dds {
             stop: Some(stop.clone()),
         };
         let node = std::thread::spawn(move || run(node_settings).map_err(|e| e.to_string()));
-        let measured = device_side(opts, haptic, &setup);
+        let measured = device_side(opts, &setup);
         stop.store(true, Ordering::SeqCst);
         let ran = node.join().map_err(|_| NodeBenchError::Setup("the node panicked".into()))?;
         ran.map_err(|e| NodeBenchError::Setup(format!("node: {e}")))?;
@@ -350,7 +341,6 @@ mod dds {
 
     fn device_side(
         opts: &NodeBenchOptions,
-        haptic: bool,
         setup: &dyn Fn(&dyn std::fmt::Debug) -> NodeBenchError,
     ) -> Result<FeedbackRun, NodeBenchError> {
         let (domain, _) = settings(|name| std::env::var(name).ok(), false).map_err(|e| setup(&e))?;
@@ -422,13 +412,11 @@ mod dds {
             if k == opts.settle {
                 timed_from = Some(Instant::now());
             }
-            // The probe comes down over the first half second, then holds: contact throughout
-            // (the default probe's 25 mm radius 10 mm in; the thin tool's centre 2 mm under
-            // the organ's top, at 6 cm).
+            // The device comes down over the first half second, then holds: the thin tool's
+            // centre 2 mm under the organ's top (at 6 cm), in contact throughout.
             let t = k as f64 * 1e-3;
             let sent = Time::now();
-            let depth = if haptic { 0.012 } else { 0.01 };
-            let _ = poses.publish(pose(sent, 0.07 - depth * (t / 0.5).min(1.0)));
+            let _ = poses.publish(pose(sent, 0.07 - 0.012 * (t / 0.5).min(1.0)));
             next += period;
             loop {
                 let wait = next.saturating_duration_since(Instant::now());
@@ -464,15 +452,7 @@ mod dds {
             _ => f64::NAN,
         };
         let step_ms = percentile(&solver_steps.iter().map(|s| s.2).collect::<Vec<_>>(), 0.5);
-        Ok(FeedbackRun {
-            latencies,
-            poses: opts.steps,
-            feedback: taken,
-            seconds: listened,
-            haptic,
-            simulation_hz,
-            step_ms,
-        })
+        Ok(FeedbackRun { latencies, poses: opts.steps, feedback: taken, seconds: listened, simulation_hz, step_ms })
     }
 
     /// The solver's step count and step time in a diagnostics message.

@@ -422,7 +422,7 @@ impl FeedbackLoop {
     /// Tool `index`'s feedback to its latest pose from its local model (multirate: the
     /// full solve refreshes the model, the loop answers every pose at once), advanced by the
     /// time between the poses' stamps (at most `LOCAL_STEP_MAX`). None for a tool without
-    /// one (not coupled, or the solver on the GPU) or before its first step.
+    /// one (not coupled) or before its first step.
     pub fn answer_locally(&mut self, index: usize) -> Option<WrenchStamped> {
         let state = self.tools.get(index)?;
         let stamp = state.last_pose?;
