@@ -335,8 +335,10 @@ impl Surface {
     /// them: it pushes each boundary node inside it.
     pub fn detect(&self, tools: &[ToolCore], positions: &[Vector3<f64>], margin: f64) -> Vec<SurfaceContact> {
         let mut contacts = Vec::new();
-        // A sample up to one spacing past the surface still finds it and is pushed back.
+        // A sample up to one spacing past the surface still finds it and is pushed back;
+        // one about to touch finds what lies within its margin.
         let reach = self.spacing.max(f64::EPSILON);
+        let search = reach.max(margin);
         for tool in tools {
             if tool.core.radius >= self.spacing {
                 self.node_contacts(tool, positions, margin, &mut contacts);
@@ -348,7 +350,7 @@ impl Surface {
             for s in 0..samples {
                 let t = if samples > 1 { s as f64 / (samples - 1) as f64 } else { 0.0 };
                 let centre = a + (b - a) * t;
-                contacts.extend(self.sample_contacts(tool, &centre, reach, margin, positions));
+                contacts.extend(self.sample_contacts(tool, &centre, search, margin, positions));
             }
         }
         contacts

@@ -93,16 +93,22 @@ impl<T: Real> Simulation<T> {
 
     /// The surface contacts of the surface-contact tools at the current positions; with
     /// `speculative`, those about to begin too (within half the radius or spacing).
+    /// A simulated tool's margin also covers the farthest it can travel in the step (its
+    /// speed, and the coupling's largest pull on its mass), so one pulled fast at the
+    /// surface meets it within the step instead of passing it between two steps.
     pub(super) fn detect_contacts(&mut self, speculative: bool) -> Vec<SurfaceContact> {
-        let cores: Vec<ToolCore> = (self.tools.iter().enumerate())
+        let h = self.params.dt;
+        let cores: Vec<(ToolCore, f64)> = (self.tools.iter().enumerate())
             .filter(|(_, tool)| tool.contact == ContactModel::Surface && tool.contact_stiffness > 0.0)
             .map(|(index, tool)| {
                 let mut core = tool.contact_params();
-                if let Some(p) = self.proxies.iter().find(|p| p.tool == index) {
+                let mut travel = 0.0;
+                if let (Some(p), Some(coupling)) = (self.proxies.iter().find(|p| p.tool == index), tool.coupling) {
                     let shift = p.x - core.a;
                     (core.a, core.b) = (core.a + shift, core.b + shift);
+                    travel = p.v.norm() * h + coupling.max_force / coupling.mass * h * h;
                 }
-                ToolCore { tool: index, core }
+                (ToolCore { tool: index, core }, travel)
             })
             .collect();
         if cores.is_empty() {
@@ -110,9 +116,13 @@ impl<T: Real> Simulation<T> {
         }
         let x = self.positions_f64();
         self.surface.refit(&x);
-        let radius = cores.iter().map(|c| c.core.radius).fold(f64::INFINITY, f64::min);
-        let margin = if speculative { 0.5 * radius.min(self.surface.spacing()) } else { 0.0 };
-        self.surface.detect(&cores, &x, margin)
+        let spacing = self.surface.spacing();
+        (cores.iter())
+            .flat_map(|(core, travel)| {
+                let margin = if speculative { (0.5 * core.core.radius.min(spacing)).max(*travel) } else { 0.0 };
+                self.surface.detect(std::slice::from_ref(core), &x, margin)
+            })
+            .collect()
     }
 
     /// Whether tool `index` went through the surface: a surface-contact tool that touches
