@@ -782,7 +782,7 @@ mod tests {
         assert_eq!(answer.header.stamp, Time::from_secs(0.405));
         assert_eq!((answer.wrench.force.x, answer.wrench.force.y, answer.wrench.force.z), (0.0, 0.0, 0.0));
         // Pressing 5 mm into the top node nearest the centre wakes it, and it stays awake
-        // while the tool touches (contact acts on nodes: aim at one on this coarse mesh).
+        // while the tool touches.
         let top = p
             .mesh()
             .nodes()
@@ -791,7 +791,8 @@ mod tests {
             .min_by(|a, b| (a.x.hypot(a.y)).total_cmp(&b.x.hypot(b.y)))
             .copied()
             .unwrap();
-        let mut press = pose(0.5, top.z + 0.02);
+        let radius = p.scene().tools[0].shape.radius();
+        let mut press = pose(0.5, top.z + radius - 0.005);
         (press.pose.position.x, press.pose.position.y) = (top.x, top.y);
         p.apply_pose("tool_pose", &press, Time::from_secs(0.5)).unwrap();
         for k in 0..50 {
@@ -803,7 +804,7 @@ mod tests {
         assert!(p.apply_pose("tool_pose", &pose(1.0, f64::NAN), Time::from_secs(1.0)).is_err());
         assert!(p.apply_pose("elsewhere", &pose(1.0, 0.0), Time::from_secs(1.0)).is_err());
         assert_eq!(p.counters().total_rejected(), 2);
-        assert_eq!(p.tool_on("tool_pose").unwrap().1.translation.z, top.z + 0.02);
+        assert_eq!(p.tool_on("tool_pose").unwrap().1.translation.z, top.z + radius - 0.005);
     }
 
     /// Poses at 10 kHz into a 1 kHz loop: each step uses the latest pose and answers it
@@ -1109,7 +1110,8 @@ mod tests {
         let mut checked = 0;
         for k in 1..=60 {
             // The probe presses deeper, a node under it: the mesh moves every step.
-            let mut press = pose(k as f64 * 0.01, top.z + 0.025 - 0.0004 * k as f64);
+            let radius = s.tools[0].shape.radius();
+            let mut press = pose(k as f64 * 0.01, top.z + radius - 0.0004 * k as f64);
             (press.pose.position.x, press.pose.position.y) = (top.x, top.y);
             p.apply_pose("tool_pose", &press, Time::from_secs(k as f64 * 0.01)).unwrap();
             let demand = Demand { warped_volume: true, ..Demand::NONE };
@@ -1159,7 +1161,8 @@ mod tests {
         let mut away = pose(0.0, 1.0);
         away.pose.position.x = 0.5;
         p.apply_pose("tool_pose", &away, Time::from_secs(0.0)).unwrap();
-        let mut press = pose(0.0, top.z + 0.02);
+        let radius = p.scene().tools[1].shape.radius();
+        let mut press = pose(0.0, top.z + radius - 0.005);
         (press.pose.position.x, press.pose.position.y) = (top.x, top.y);
         p.apply_pose("needle/tool_pose", &press, Time::from_secs(0.0)).unwrap();
         let mut out = Outputs::default();
@@ -1193,8 +1196,8 @@ mod tests {
             // Both solvers block Jacobi, converged tightly: the same steps within round-off.
             s.solver.preconditioner = crate::solver::Preconditioner::BlockJacobi;
             s.solver.cg_tolerance = 1e-6;
-            // The 32x32 surface just above the organ, under the probe as it comes down.
-            s.dpcm.origin = [-0.016, -0.016, 0.073];
+            // The 32x32 surface at the organ's top (6 cm), which the probe comes down through.
+            s.dpcm.origin = [-0.016, -0.016, 0.061];
             let limits = InputLimits { max_age: None, ..Default::default() };
             let mut cpu = Pipeline::new(s.clone(), &Backend::cpu(), limits.clone(), FrameMode::Lockstep).unwrap();
             let mut gpu = Pipeline::new(s, &Backend::gpu(ctx.clone()), limits, FrameMode::Lockstep).unwrap();
@@ -1211,7 +1214,8 @@ mod tests {
             let (mut height, mut gpu_height) = (None, None);
             for k in 1..=30 {
                 let stamp = Time::from_secs(k as f64 * 0.01);
-                let mut press = pose(k as f64 * 0.01, top.z + 0.025 - 0.0005 * k as f64);
+                let radius = cpu.scene().tools[0].shape.radius();
+                let mut press = pose(k as f64 * 0.01, top.z + radius - 0.0005 * k as f64);
                 (press.pose.position.x, press.pose.position.y) = (top.x, top.y);
                 for p in [&mut cpu, &mut gpu] {
                     p.apply_pose("tool_pose", &press, stamp).unwrap();
