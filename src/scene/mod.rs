@@ -13,7 +13,7 @@ use crate::io::{self, IoError};
 use crate::mesh::generate::{self, CellSplit};
 use crate::mesh::{MeshError, TetMesh};
 use crate::solver::{
-    ContactModel, Coupling, FixedNodes, MassSpringModel, Material, SolverError, SolverParams, Tool, ToolShape,
+    ContactModel, Coupling, FixedNodes, Friction, MassSpringModel, Material, SolverError, SolverParams, Tool, ToolShape,
 };
 use crate::volume::{phantom, Volume, VolumeError};
 
@@ -100,6 +100,10 @@ pub struct ToolConfig {
     /// spring-damper and the device feels it (haptic rendering).
     #[serde(default)]
     pub coupling: Option<Coupling>,
+    /// Coulomb friction against the surface (`{static, kinetic, stick_speed}`; surface
+    /// contact): none, frictionless.
+    #[serde(default)]
+    pub friction: Option<Friction>,
     #[serde(default)]
     pub path: Option<ToolPath>,
     /// Input topics (relative to the node's namespace); `tool_pose` and `tool_wrench` for
@@ -303,6 +307,7 @@ impl ToolConfig {
         tool.spread_radius = self.spread_radius;
         tool.contact = self.contact;
         tool.coupling = self.coupling;
+        tool.friction = self.friction;
         tool
     }
 

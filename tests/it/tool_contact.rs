@@ -409,6 +409,61 @@ fn a_tool_pulled_fast_at_the_surface_is_stopped_not_passed_between_steps() {
     assert!(held > 190, "held back by the surface ({held} of 200 steps)");
 }
 
+/// Coulomb's law at a coupled probe pressed into the slab and pulled sideways: pulled
+/// below the static limit it sticks (slides slower than `stick_speed`, the regularised
+/// friction's creep; frictionless it would slide off), its friction balancing the pull and
+/// the push within the static limit; dragged at 20 mm/s it
+/// slides, braked by the kinetic coefficient times the contact's normal force.
+#[test]
+fn friction_holds_below_the_static_limit_and_brakes_sliding_at_the_kinetic_one() {
+    let (_, model) = coarse_slab();
+    let radius = 0.002;
+    let (mu_static, mu_kinetic, stick_speed) = (0.5, 0.3, 1e-4);
+    let mut tool = Tool::new(ToolShape::Sphere { radius }, 20_000.0);
+    tool.coupling = Some(defvol::solver::Coupling { stiffness: 2000.0, damping: 5.0, mass: 0.02, max_force: 50.0 });
+    tool.friction =
+        Some(defvol::solver::Friction { static_coefficient: mu_static, kinetic_coefficient: mu_kinetic, stick_speed });
+    let params = SolverParams { gravity: [0.0; 3], dt: 1e-3, cg_tolerance: 1e-9, ..Default::default() };
+    let mut sim = Simulation::<f64>::new(&model, params, vec![tool]).unwrap();
+    let mut run = |x: f64, steps: usize| {
+        sim.tool_mut(0).unwrap().world_from_tool = Isometry3::translation(x, 0.058, radius - 0.003);
+        let reports: Vec<_> = (0..steps).map(|_| sim.step().unwrap()).collect();
+        let at = sim.simulated_pose(0).unwrap().translation.vector;
+        let contact: Vector3<f64> = sim.contacts().iter().map(|c| c.force()).sum();
+        (reports, at, contact)
+    };
+    let (pressed, _, _) = run(0.043, 400);
+    let normal = pressed[399].reaction(0).force[2];
+    assert!(normal > 1.0, "pressed in: {normal} N");
+    // A third of the static limit sideways: it sticks, and static friction carries the pull.
+    let offset = mu_static * normal / 3.0 / 2000.0;
+    let (_, before, _) = run(0.043 + offset, 300);
+    let (held, after, contact) = run(0.043 + offset, 100);
+    let reaction = held[99].reaction(0);
+    let (pull, friction) = (-Vector3::from(reaction.force), Vector3::from(reaction.friction));
+    // At rest the tool's forces balance: the pull, the contact's push and the friction.
+    let balance = pull - contact + friction;
+    assert!(balance.norm() < 0.01 * pull.norm(), "pull {pull} N, push {} N, friction {friction} N", -contact);
+    assert!(friction.norm() < mu_static * contact.norm(), "within the static limit: {friction} N, normal {contact} N");
+    let creep = (after.x - before.x).abs() / 0.1;
+    assert!(creep < stick_speed, "sticking, it creeps at {creep} m/s");
+    // Dragged: it slides, braked by μ_k N, now and then sticking a moment (stick-slip, as
+    // μ_s > μ_k makes it where the surface under it stiffens), never held past μ_s N.
+    let mut ratios = Vec::new();
+    for k in 1..=600 {
+        let (slid, _, contact) = run(0.043 + offset + 0.02 * k as f64 * 1e-3, 1);
+        let friction = Vector3::from(slid[0].reaction(0).friction);
+        if k > 200 {
+            ratios.push(friction.norm() / contact.norm());
+            assert!(friction.x < 0.0, "step {k}: friction {friction} N brakes the +x slide");
+        }
+    }
+    assert!(ratios.iter().all(|r| *r < 1.01 * mu_static), "held past μ_s N: {ratios:?}");
+    ratios.sort_by(f64::total_cmp);
+    let median = ratios[ratios.len() / 2];
+    assert!((median - mu_kinetic).abs() < 0.01 * mu_kinetic, "braked by {median} N per N of contact, μ_k {mu_kinetic}");
+}
+
 /// An uncoupled thin tool put deeper than a spacing into the body meets no face: nothing
 /// holds it, and the step says it went through, rather than passing silently. Above the
 /// surface, or held by it, it did not.
@@ -513,6 +568,7 @@ fn a_contact_too_soft_for_its_coupling_is_said_so_and_the_centre_goes_in() {
             spread_radius: 0.01,
             contact: defvol::solver::ContactModel::Surface,
             coupling: Some(coupling),
+            friction: None,
             path: None,
             pose_topic: None,
             wrench_topic: None,

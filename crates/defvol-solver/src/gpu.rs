@@ -432,7 +432,7 @@ impl GpuSimulation {
     }
 
     /// The step's system beyond the springs, uploaded: the simulated tools' rows and the
-    /// active contacts' terms, gathered per touched row. Returns the terms and the
+    /// active contacts' and their friction's terms, gathered per touched row. Returns the terms and the
     /// counts the shader's `system` takes.
     fn upload_system(&mut self) -> (Vec<ContactTerms>, [u32; 4]) {
         let (n, tools) = (self.nodes as usize, self.mirror.proxy_count());
@@ -445,8 +445,7 @@ impl GpuSimulation {
             queue.write_buffer(&self.buffers.precond, row * 48, bytemuck::cast_slice(&mat3_columns(&inverse)));
             queue.write_buffer(&self.buffers.rhs, row * 16, bytemuck::cast_slice(&vec4s(&[rhs.map(|c| c as f32)])));
         }
-        let terms: Vec<ContactTerms> =
-            self.mirror.active_contacts().iter().map(|c| self.mirror.contact_terms(c)).collect();
+        let terms = self.mirror.system_terms();
         let mut by_row: BTreeMap<usize, Vec<[u32; 2]>> = BTreeMap::new();
         for (c, t) in terms.iter().enumerate() {
             for (slot, row) in t.rows.iter().enumerate().filter(|(_, row)| **row != usize::MAX) {
@@ -574,7 +573,9 @@ impl GpuSimulation {
         let mut releases = 0;
         let proxy_dv = loop {
             let (proxy_dv, end_rates) = self.outcome(&terms, system)?;
-            if releases == 4 || !self.mirror.release_contacts(&end_rates) {
+            let contacts = self.mirror.active_contacts().len();
+            if releases == 4 || !self.mirror.release_contacts(&end_rates[..contacts]) {
+                self.mirror.record_friction(&end_rates[contacts..]);
                 break proxy_dv;
             }
             releases += 1;
@@ -709,7 +710,7 @@ fn contact_buffers(ctx: &GpuContext, capacity: usize) -> [wgpu::Buffer; 5] {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::{Coupling, FixedNodes, Material, ToolShape};
+    use crate::{Coupling, FixedNodes, Friction, Material, ToolShape};
     use defvol_core::mesh::generate::{self, CellSplit};
     use nalgebra::Isometry3;
 
@@ -732,27 +733,34 @@ mod tests {
     }
 
     /// Steps a 2 mm tool on surface contact down from 3 mm above the slab to 3 mm into it
-    /// (over `steps / 2` steps, then held) on the CPU and the GPU (both f32): the largest
-    /// node and reaction differences over the run, relative to the largest displacement and
-    /// force, and the largest force (N).
-    fn surface_contact_run(params: SolverParams, coupling: Option<Coupling>, steps: usize) -> (f64, f64, f64) {
+    /// (over `steps / 2` steps, then held) and 10 mm sideways on the CPU and the GPU (both
+    /// f32): the largest node and reaction differences over the run, relative to the largest
+    /// displacement and force, and the largest force (N).
+    fn surface_contact_run(
+        params: SolverParams,
+        coupling: Option<Coupling>,
+        friction: Option<Friction>,
+        steps: usize,
+    ) -> (f64, f64, f64) {
         let ctx = defvol_gpu::gpu::test_context().expect("checked by the caller");
         let mut tool = Tool::new(ToolShape::Sphere { radius: 0.001 }, 20_000.0);
-        tool.coupling = coupling;
+        (tool.coupling, tool.friction) = (coupling, friction);
         let model = slab();
         let mut cpu = Simulation::<f32>::new(&model, params.clone(), vec![tool.clone()]).unwrap();
         let mut gpu = GpuSimulation::new(ctx, &model, params, vec![tool]).unwrap();
         let (mut node_gap, mut force_gap, mut largest, mut moved) = (0.0f64, 0.0f64, 0.0f64, 0.0f64);
-        let mut touched = 0;
+        let (mut touched, mut rubbed) = (0, 0.0f64);
         for k in 0..steps {
             let z = 0.003 - 0.006 * (2.0 * k as f64 / steps as f64).min(1.0);
-            let pose = Isometry3::translation(0.043, 0.058, z);
+            let pose = Isometry3::translation(0.043 + 0.01 * k as f64 / steps as f64, 0.058, z);
             cpu.tool_mut(0).unwrap().world_from_tool = pose;
             gpu.tool_mut(0).unwrap().world_from_tool = pose;
             let (rc, rg) = (cpu.step().unwrap(), gpu.step().unwrap());
             let (fc, fg) = (Vector3::from(rc.reaction(0).force), Vector3::from(rg.reaction(0).force));
-            force_gap = force_gap.max((fc - fg).norm());
+            let (tc, tg) = (Vector3::from(rc.reaction(0).friction), Vector3::from(rg.reaction(0).friction));
+            force_gap = force_gap.max((fc - fg).norm()).max((tc - tg).norm());
             largest = largest.max(fc.norm());
+            rubbed = rubbed.max(tc.norm());
             moved = moved.max(rc.max_displacement);
             touched += usize::from(!cpu.contacts().is_empty());
             let worst = (cpu.displacements().iter().zip(gpu.mirror().displacements()))
@@ -763,11 +771,13 @@ mod tests {
             node_gap = node_gap.max((pc.translation.vector - pg.translation.vector).norm());
         }
         assert!(touched > steps / 3 && moved > 5e-4, "the tool pressed: {touched} steps in contact, moved {moved} m");
+        assert_eq!(rubbed > 0.1, friction.is_some(), "friction felt: {rubbed} N");
         (node_gap / moved, force_gap / largest, largest)
     }
 
-    /// A coupled tool on surface contact (simulated tool's row, contact terms, releases):
-    /// the GPU's nodes, simulated tool and felt force follow the CPU's.
+    /// A coupled tool on surface contact with friction (simulated tool's row, contact and
+    /// friction terms, releases): the GPU's nodes, simulated tool and felt force follow the
+    /// CPU's.
     #[test]
     fn gpu_matches_cpu_with_a_coupled_tool_on_surface_contact() {
         if defvol_gpu::gpu::test_context().is_none() {
@@ -775,7 +785,8 @@ mod tests {
         }
         let coupling = Coupling { stiffness: 2000.0, damping: 5.0, mass: 0.02, max_force: 5.0 };
         let params = SolverParams { gravity: [0.0; 3], dt: 1e-3, cg_tolerance: 1e-6, ..Default::default() };
-        let (nodes, force, largest) = surface_contact_run(params, Some(coupling), 300);
+        let friction = Friction { static_coefficient: 0.5, kinetic_coefficient: 0.3, stick_speed: 1e-4 };
+        let (nodes, force, largest) = surface_contact_run(params, Some(coupling), Some(friction), 300);
         assert!(largest > 1.0, "the coupling pulled the tool in: {largest} N");
         // lavapipe: 3e-7 / 2e-7; hardware FMA rounding differs more.
         assert!(nodes <= 1e-4 && force <= 1e-4, "GPU departs from CPU: nodes {nodes:e}, force {force:e} (relative)");
@@ -831,7 +842,7 @@ mod tests {
         for (integrator, dt, steps) in [(Integrator::ImplicitEuler, 1e-3, 200), (Integrator::ExplicitEuler, 1e-4, 1000)]
         {
             let params = SolverParams { integrator, gravity: [0.0; 3], dt, cg_tolerance: 1e-6, ..Default::default() };
-            let (nodes, force, _) = surface_contact_run(params, None, steps);
+            let (nodes, force, _) = surface_contact_run(params, None, None, steps);
             // lavapipe: 2e-7 / 2e-6.
             assert!(
                 nodes <= 1e-4 && force <= 1e-4,

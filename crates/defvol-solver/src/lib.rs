@@ -23,7 +23,7 @@ pub use cpu::Simulation;
 pub use engine::{SolverEngine, SolverEngineError};
 pub use haptic::{LocalAnswer, LocalContact, LocalModel};
 pub use model::{FixedNodes, MassSpringModel, Material, TissueRow};
-pub use tool::{ContactModel, Coupling, Tool, ToolShape};
+pub use tool::{ContactModel, Coupling, Friction, Tool, ToolShape};
 
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
@@ -169,6 +169,9 @@ impl StepReport {
 pub struct Reaction {
     pub force: [f64; 3],
     pub torque: [f64; 3],
+    /// The surface's friction on the tool (N, world), part of `force` for a tool without a
+    /// coupling (a coupled tool's device feels the coupling, which carries it).
+    pub friction: [f64; 3],
     /// The coupling held the device back with its largest force this step (the device's
     /// pose ran away from the tool: a dropped packet, a teleport through the organ).
     pub coupling_saturated: bool,

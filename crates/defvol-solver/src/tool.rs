@@ -98,6 +98,61 @@ impl Coupling {
     }
 }
 
+/// Coulomb friction between a tool and the surface it touches, regularised as the implicit
+/// step needs it (after IPC's lagged friction): the normal force and the sliding speed are
+/// those at the step's start, and the tangential force is a damper on the sliding velocity
+/// at the step's end, μ N / max(speed, stick_speed). Below `stick_speed` the tool sticks,
+/// held up to μ_s N; sliding, it is braked by μ_k N.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Friction {
+    /// μ_s: the largest tangential force while sticking, per unit normal force.
+    #[serde(rename = "static")]
+    pub static_coefficient: f64,
+    /// μ_k: the tangential force while sliding, per unit normal force (at most μ_s).
+    #[serde(rename = "kinetic")]
+    pub kinetic_coefficient: f64,
+    /// Sliding speeds below this count as sticking (m/s).
+    #[serde(default = "Friction::default_stick_speed")]
+    pub stick_speed: f64,
+}
+
+impl Friction {
+    /// 0.1 mm/s: a tool held against a sideways load at a third of the static limit creeps
+    /// at a third of it.
+    fn default_stick_speed() -> f64 {
+        1e-4
+    }
+
+    /// The damping coefficient (N·s/m) of the tangential damper at normal force `normal` (N)
+    /// and sliding speed `speed` (m/s): sticking below `stick_speed`, sliding above.
+    pub fn damping(&self, normal: f64, speed: f64) -> f64 {
+        match speed < self.stick_speed {
+            true => self.static_coefficient * normal / self.stick_speed,
+            false => self.kinetic_coefficient * normal / speed,
+        }
+    }
+
+    pub fn validate(&self, index: usize) -> Result<(), super::SolverError> {
+        let (s, k) = (self.static_coefficient, self.kinetic_coefficient);
+        let checks = [
+            ("kinetic", k, k >= 0.0, "must be finite and not negative"),
+            ("static", s, s >= k, "must be finite and at least the kinetic coefficient"),
+            ("stick_speed", self.stick_speed, self.stick_speed > 0.0, "must be finite and positive (m/s)"),
+        ];
+        for (name, value, ok, why) in checks {
+            if !(value.is_finite() && ok) {
+                return Err(super::SolverError::BadParameter {
+                    name: format!("tools[{index}].friction.{name}"),
+                    value,
+                    why: why.into(),
+                });
+            }
+        }
+        Ok(())
+    }
+}
+
 /// A tool's state for one step, in world coordinates.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Tool {
@@ -112,6 +167,8 @@ pub struct Tool {
     /// With a coupling, `world_from_tool` is the device's pose and the simulated tool
     /// follows it; without one, the tool is where the device is.
     pub coupling: Option<Coupling>,
+    /// Friction against the surface (surface contact); none: frictionless.
+    pub friction: Option<Friction>,
 }
 
 impl Tool {
@@ -124,6 +181,7 @@ impl Tool {
             contact_stiffness,
             contact: ContactModel::Surface,
             coupling: None,
+            friction: None,
         }
     }
 
@@ -187,6 +245,25 @@ mod tests {
         // Beyond the tip: hemispherical cap around the tip.
         let (_, n) = c.contact(&Vector3::new(0.0, 0.0, 0.045)).unwrap();
         assert!((n + Vector3::z()).norm() < 1e-12);
+    }
+
+    /// Impossible friction is refused naming the field; sticking and sliding follow
+    /// Coulomb: μ_s N at the stick speed, μ_k N sliding faster.
+    #[test]
+    fn friction_is_checked_and_follows_coulomb() {
+        let friction = Friction { static_coefficient: 0.5, kinetic_coefficient: 0.3, stick_speed: 1e-4 };
+        assert!(friction.validate(0).is_ok());
+        for (bad, field) in [
+            (Friction { static_coefficient: 0.2, ..friction }, "tools[2].friction.static"),
+            (Friction { kinetic_coefficient: f64::NAN, ..friction }, "tools[2].friction.kinetic"),
+            (Friction { stick_speed: 0.0, ..friction }, "tools[2].friction.stick_speed"),
+        ] {
+            let e = bad.validate(2).unwrap_err().to_string();
+            assert!(e.contains(field), "{e}");
+        }
+        let normal = 4.0;
+        assert!((friction.damping(normal, 0.5e-4) * 1e-4 - 0.5 * normal).abs() < 1e-12);
+        assert!((friction.damping(normal, 0.02) * 0.02 - 0.3 * normal).abs() < 1e-12);
     }
 
     #[test]

@@ -12,6 +12,23 @@ impl<T: Real> Simulation<T> {
             if !(c.a.iter().chain(c.b.iter()).all(|v| v.is_finite())) {
                 return Err(SolverError::NonFiniteToolInput { index, what: "pose" });
             }
+            if let Some(friction) = &tool.friction {
+                friction.validate(index)?;
+                let why = if tool.contact != ContactModel::Surface {
+                    Some("friction needs surface contact")
+                } else if self.params.integrator != Integrator::ImplicitEuler {
+                    Some("friction needs the implicit_euler integrator (its damper is stiff while sticking)")
+                } else {
+                    None
+                };
+                if let Some(why) = why {
+                    return Err(SolverError::BadParameter {
+                        name: format!("tools[{index}].friction"),
+                        value: friction.static_coefficient,
+                        why: why.into(),
+                    });
+                }
+            }
             if let Some(coupling) = &tool.coupling {
                 coupling.validate(index)?;
                 let why = if tool.contact != ContactModel::Surface {
@@ -88,6 +105,13 @@ impl<T: Real> Simulation<T> {
             let tip = self.tools[p.tool].tip();
             p.device_velocity = (tip - p.device) / dt;
             p.device = tip;
+        }
+        self.tool_tips.resize(self.tools.len(), None);
+        self.tool_velocities.resize(self.tools.len(), Vector3::zeros());
+        for (k, tool) in self.tools.iter().enumerate() {
+            let tip = tool.tip();
+            self.tool_velocities[k] = self.tool_tips[k].map_or_else(Vector3::zeros, |last| (tip - last) / dt);
+            self.tool_tips[k] = Some(tip);
         }
     }
 
@@ -199,7 +223,7 @@ impl<T: Real> Simulation<T> {
     /// A contact of depth φ has energy ½kφ² and gradient g_r on its rows (minus a node's
     /// share of the push, the push on a simulated tool), hence b_r -= h k (φ + h φ̇) g_r
     /// with φ̇ = Σ g·v, and A += h² k g gᵀ.
-    pub(crate) fn contact_terms(&self, c: &SurfaceContact) -> ContactTerms {
+    fn contact_terms(&self, c: &SurfaceContact) -> ContactTerms {
         let n = self.u.len();
         let h = self.params.dt;
         let mut rows = [usize::MAX; CONTACT_NODES + 1];
@@ -226,12 +250,79 @@ impl<T: Real> Simulation<T> {
         }
     }
 
+    /// The terms of the system beyond the springs for both backends: the active contacts'
+    /// (in their order), then their friction's (kept in `frictions` for its forces).
+    pub(crate) fn system_terms(&mut self) -> Vec<ContactTerms> {
+        let contacts = self.active_contacts.clone();
+        self.frictions = contacts.iter().flat_map(|c| self.friction_terms(c)).collect();
+        let mut terms: Vec<ContactTerms> = contacts.iter().map(|c| self.contact_terms(c)).collect();
+        terms.extend(self.frictions.iter().map(|f| f.terms));
+        terms
+    }
+
+    /// A pressing contact's friction: two rank-one dampers along its tangents on the
+    /// sliding velocity w = v_tool - Σ w_i v_i (w_i its nodes' barycentric weights), their
+    /// coefficient from the tool's `Friction` at the contact's force and w at the step's
+    /// start. The force on a row is -c g (t·w), g = ∂(t·w)/∂v of the row.
+    fn friction_terms(&self, c: &SurfaceContact) -> Vec<FrictionTerm> {
+        let Some(friction) = self.tools[c.tool].friction else { return Vec::new() };
+        if c.joins_previous || c.depth <= 0.0 {
+            return Vec::new();
+        }
+        let mut rows = [usize::MAX; CONTACT_NODES + 1];
+        let mut weights = [0.0; CONTACT_NODES + 1];
+        let mut sliding = Vector3::zeros();
+        for (k, (&node, share)) in c.nodes.iter().zip(&c.shares).enumerate().filter(|(_, (n, _))| **n != u32::MAX) {
+            let w = share.dot(&c.push);
+            sliding -= self.v[node as usize].map(T::to_f64) * w;
+            if !self.fixed[node as usize] {
+                (rows[k], weights[k]) = (node as usize, -w);
+            }
+        }
+        match self.proxies.iter().position(|p| p.tool == c.tool) {
+            Some(k) => {
+                (rows[CONTACT_NODES], weights[CONTACT_NODES]) = (self.u.len() + k, 1.0);
+                sliding += self.proxies[k].v;
+            }
+            None => sliding += self.tool_velocities.get(c.tool).copied().unwrap_or_else(Vector3::zeros),
+        }
+        let tangential = sliding - c.push * c.push.dot(&sliding);
+        let damping = friction.damping(c.stiffness * c.depth, tangential.norm());
+        let h = self.params.dt;
+        tangents(&c.push)
+            .into_iter()
+            .map(|tangent| {
+                let speed = tangent.dot(&sliding);
+                let terms = ContactTerms {
+                    rows,
+                    gradients: weights.map(|w| tangent * w),
+                    h2k: h * damping,
+                    rhs_scale: h * damping * speed,
+                    normal_speed: speed,
+                };
+                FrictionTerm { tool: c.tool, at: c.at, tangent, damping, terms }
+            })
+            .collect()
+    }
+
+    /// The friction forces at the step's end, from each friction term's speed there
+    /// (t·w + Σ g·Δv, in `frictions`' order).
+    pub(crate) fn record_friction(&mut self, end_speeds: &[f64]) {
+        let n = self.u.len();
+        self.friction_forces = (self.frictions.iter().zip(end_speeds))
+            .map(|(f, speed)| {
+                let along = -f.damping * speed;
+                let on_nodes = f.terms.touched().filter(|(row, _)| *row < n).map(|(row, g)| (row, g * along)).collect();
+                FrictionForce { tool: f.tool, at: f.at, on_tool: f.tangent * along, on_nodes }
+            })
+            .collect();
+    }
+
     /// Adds the contacts' terms to the assembled rows, keeping each touched row as it was.
     pub(super) fn add_contacts(&mut self) {
         let n = self.u.len();
         let mut blocks: Vec<(usize, Matrix3<f64>)> = Vec::new();
-        for c in &self.active_contacts {
-            let terms = self.contact_terms(c);
+        for terms in self.system_terms() {
             for (row, gradient) in terms.touched() {
                 if !self.rows_before_contacts.iter().any(|(r, _, _)| *r == row) {
                     self.rows_before_contacts.push((row, self.rhs[row], self.precond[row]));
@@ -260,15 +351,8 @@ impl<T: Real> Simulation<T> {
     /// end penetration φ + h φ̇ comes out ≤ 0 would pull the surface, so it leaves the active
     /// set and the step is solved again from the rows as they were (a few rounds at most).
     pub(super) fn release_separating_contacts(&mut self) -> bool {
-        let end_rates: Vec<f64> = (self.contact_rows.iter())
-            .map(|rows| {
-                let moved = (rows.rows.iter().zip(&rows.gradients))
-                    .filter(|(row, _)| **row != usize::MAX)
-                    .fold(T::zero(), |rate, (&row, gradient)| rate + gradient.dot(&self.dv[row]));
-                rows.normal_speed + moved.to_f64()
-            })
-            .collect();
-        if !self.release_contacts(&end_rates) {
+        let end_rates = self.end_rates();
+        if !self.release_contacts(&end_rates[..self.active_contacts.len()]) {
             return false;
         }
         for (row, rhs, precond) in self.rows_before_contacts.drain(..) {
@@ -298,6 +382,19 @@ impl<T: Real> Simulation<T> {
         let mut k = keep.iter();
         self.active_contacts.retain(|_| k.next().copied().unwrap_or(false));
         true
+    }
+
+    /// Each contact row's rate at the step's end, Σ g·(v + Δv): the contacts' φ̇, then the
+    /// friction terms' sliding speeds.
+    pub(super) fn end_rates(&self) -> Vec<f64> {
+        (self.contact_rows.iter())
+            .map(|rows| {
+                let moved = (rows.rows.iter().zip(&rows.gradients))
+                    .filter(|(row, _)| **row != usize::MAX)
+                    .fold(T::zero(), |rate, (&row, gradient)| rate + gradient.dot(&self.dv[row]));
+                rows.normal_speed + moved.to_f64()
+            })
+            .collect()
     }
 
     /// out += the surface contacts' part of A p (rank one per contact).
@@ -406,4 +503,11 @@ impl<T: Real> Simulation<T> {
         (self.dv, self.rhs) = (dv, rhs);
         compliance
     }
+}
+
+/// Two unit tangents of the plane normal to `n`, orthogonal to each other.
+fn tangents(n: &Vector3<f64>) -> [Vector3<f64>; 2] {
+    let away = if n.x.abs() < 0.9 { Vector3::x() } else { Vector3::y() };
+    let t1 = n.cross(&away).normalize();
+    [t1, n.cross(&t1)]
 }

@@ -82,6 +82,8 @@ impl<T: Real> Simulation<T> {
             self.last_cg = self.solve();
             self.last_cg.iterations += first;
         }
+        let end_rates = self.end_rates();
+        self.record_friction(&end_rates[self.active_contacts.len()..]);
         self.dv_previous = last;
         self.solves += 1;
         let h = T::of(self.params.dt);

@@ -76,6 +76,28 @@ pub(crate) struct ContactTerms {
     pub normal_speed: f64,
 }
 
+/// A contact's friction in the step being solved: one rank-one damper along a tangent of
+/// the contact (`terms`, h·damping in `h2k`), braking the tool's sliding on the surface.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct FrictionTerm {
+    tool: usize,
+    /// Where it acts (the contact point) and its tangent.
+    at: Vector3<f64>,
+    tangent: Vector3<f64>,
+    /// The damper's coefficient (N·s/m).
+    damping: f64,
+    terms: ContactTerms,
+}
+
+/// The friction a step left: on the tool and on the rows of the nodes it brakes (N).
+#[derive(Debug, Clone)]
+struct FrictionForce {
+    tool: usize,
+    at: Vector3<f64>,
+    on_tool: Vector3<f64>,
+    on_nodes: Vec<(usize, Vector3<f64>)>,
+}
+
 impl ContactTerms {
     /// The rows the contact touches, with the gradient on each.
     pub(crate) fn touched(&self) -> impl Iterator<Item = (usize, &Vector3<f64>)> {
@@ -125,6 +147,12 @@ pub struct Simulation<T: Real> {
     proxies: Vec<Proxy>,
     /// Diagonal blocks of the proxies' rows (after the nodes' in every solver vector).
     proxy_diag: Vec<Matrix3<T>>,
+    /// Each tool's tip at the last step and its velocity since (friction of uncoupled tools).
+    tool_tips: Vec<Option<Vector3<f64>>>,
+    tool_velocities: Vec<Vector3<f64>>,
+    /// The friction terms of the system being solved, and the forces of the last step's.
+    frictions: Vec<FrictionTerm>,
+    friction_forces: Vec<FrictionForce>,
     step: u64,
     time: f64,
     // Workspace of the implicit solve.
@@ -190,6 +218,10 @@ impl<T: Real> Simulation<T> {
             rows_before_contacts: Vec::new(),
             proxies: Vec::new(),
             proxy_diag: Vec::new(),
+            tool_tips: Vec::new(),
+            tool_velocities: Vec::new(),
+            frictions: Vec::new(),
+            friction_forces: Vec::new(),
             step: 0,
             time: 0.0,
             terms: vec![
@@ -300,6 +332,9 @@ impl<T: Real> Simulation<T> {
     pub fn contact_forces_on_nodes(&self) -> Vec<Vector3<f64>> {
         let mut forces = vec![Vector3::zeros(); self.u.len()];
         add_contact_forces(&self.contacts, &mut forces);
+        for (node, force) in self.friction_forces.iter().flat_map(|f| &f.on_nodes) {
+            forces[*node] += force;
+        }
         forces
     }
 
@@ -357,6 +392,7 @@ impl<T: Real> Simulation<T> {
             // The mesh pushes back the tool's own commanded force, and every contact force.
             let mut force = -tool.applied_force;
             let mut torque = Vector3::zeros();
+            let mut friction = Vector3::zeros();
             let tip = self.simulated_pose(index).map_or_else(|| tool.tip(), |pose| pose.translation.vector);
             match tool.contact {
                 ContactModel::Nodes => {
@@ -379,6 +415,11 @@ impl<T: Real> Simulation<T> {
                         force -= c.force();
                         torque -= (c.at - tip).cross(&c.force());
                     }
+                    for f in self.friction_forces.iter().filter(|f| f.tool == index) {
+                        friction += f.on_tool;
+                        force += f.on_tool;
+                        torque += (f.at - tip).cross(&f.on_tool);
+                    }
                 }
             }
             let mut coupling_saturated = false;
@@ -393,6 +434,7 @@ impl<T: Real> Simulation<T> {
             reactions.push(Reaction {
                 force: force.into(),
                 torque: torque.into(),
+                friction: friction.into(),
                 coupling_saturated,
                 passed_through: self.passed_through(index),
             });
