@@ -3,7 +3,9 @@
 //! coupling's saturation.
 
 use defvol::mesh::generate::{self, CellSplit};
-use defvol::solver::{Coupling, FixedNodes, MassSpringModel, Material, Simulation, SolverParams, Tool, ToolShape};
+use defvol::solver::{
+    Coupling, FixedNodes, Friction, MassSpringModel, Material, Simulation, SolverParams, Tool, ToolShape,
+};
 use nalgebra::{Isometry3, Vector3};
 
 /// A slab whose boundary spacing is 15-17 mm, fixed at the bottom, top at z = 0.
@@ -17,31 +19,37 @@ fn coarse_slab() -> MassSpringModel {
 
 const COUPLING: Coupling = Coupling { stiffness: 2000.0, damping: 5.0, mass: 0.02, max_force: 5.0 };
 
-/// A coupled 2 mm probe over the slab, stepping every `dt`.
-fn coupled_probe(dt: f64) -> Simulation<f64> {
+/// A coupled 2 mm probe over the slab, stepping every `dt`, with `friction`.
+fn coupled_probe(dt: f64, friction: Option<Friction>) -> Simulation<f64> {
     let mut tool = Tool::new(ToolShape::Sphere { radius: 0.001 }, 20_000.0);
-    tool.coupling = Some(COUPLING);
+    (tool.coupling, tool.friction) = (Some(COUPLING), friction);
     let params = SolverParams { gravity: [0.0; 3], dt, cg_tolerance: 1e-10, ..Default::default() };
     Simulation::<f64>::new(&coarse_slab(), params, vec![tool]).unwrap()
 }
 
-/// The device's path: down from 2 mm above the surface to `bottom` over 0.3 s, then held.
-fn device_at(t: f64, bottom: f64) -> Vector3<f64> {
-    Vector3::new(0.043, 0.058, 0.003 + (bottom - 0.003) * (t / 0.3).min(1.0))
+/// The device's path: down from 2 mm above the surface to `bottom` over 0.3 s, then held,
+/// and from then on sideways at `drag` (m/s).
+fn device_at(t: f64, bottom: f64, drag: f64) -> Vector3<f64> {
+    let x = 0.043 + drag * (t - 0.3).max(0.0);
+    Vector3::new(x, 0.058, 0.003 + (bottom - 0.003) * (t / 0.3).min(1.0))
+}
+
+/// `local_against_full_on` for the frictionless probe pressing down to `bottom`, 500 poses.
+fn local_against_full(every: usize, bottom: f64) -> (f64, f64) {
+    local_against_full_on(coupled_probe(1e-3, None), every, bottom, 0.0, 500)
 }
 
 /// Answers each 1 ms pose from a local model refreshed by a full solve every `every` poses,
-/// beside the full solve of every pose: the largest difference between the two forces (N),
-/// and the largest force of the full solve (N).
-fn local_against_full(every: usize, bottom: f64) -> (f64, f64) {
+/// beside the full solve of every pose, over `poses`: the largest difference between the
+/// two forces (N), and the largest force of the full solve (N).
+fn local_against_full_on(mut full: Simulation<f64>, every: usize, bottom: f64, drag: f64, poses: usize) -> (f64, f64) {
     let dt = 1e-3;
-    let mut full = coupled_probe(dt);
     full.tool_mut(0).unwrap().world_from_tool = Isometry3::translation(0.043, 0.058, 0.003);
     full.step().unwrap();
     let mut model = full.local_models().remove(0);
     let (mut worst, mut largest) = (0.0f64, 0.0f64);
-    for k in 1..=500 {
-        let device = device_at(k as f64 * dt, bottom);
+    for k in 1..=poses {
+        let device = device_at(k as f64 * dt, bottom, drag);
         let answer = model.answer(device, dt);
         full.tool_mut(0).unwrap().world_from_tool = Isometry3::from_parts(device.into(), Default::default());
         let felt = Vector3::from(full.step().unwrap().reaction(0).force);
@@ -80,11 +88,23 @@ fn local_model_follows_the_full_solve_while_pressing_within_a_bound() {
     }
 }
 
+/// With friction, pressed 3 mm in and dragged sideways at 20 mm/s: the local model carries
+/// the contact's friction (its damper on the sliding velocity), so refreshed by every solve
+/// it answers within 3 % of the largest force while the tool sticks and slides (measured
+/// 2.1 %; without the friction in the local model, 11.9 %).
+#[test]
+fn local_model_with_friction_follows_the_full_solve_while_sliding() {
+    let friction = Friction { static_coefficient: 0.5, kinetic_coefficient: 0.3, stick_speed: 1e-4 };
+    let (worst, largest) = local_against_full_on(coupled_probe(1e-3, Some(friction)), 1, -0.003, 0.02, 900);
+    assert!(largest > 1.0, "the probe pressed: {largest} N");
+    assert!(worst < 0.03 * largest, "the local model departs by {worst} N (forces up to {largest} N)");
+}
+
 /// A device pose far through the organ: the local model pulls with the coupling's largest
 /// force at most, and says it saturated.
 #[test]
 fn local_model_never_pulls_harder_than_the_coupling_saturates() {
-    let mut full = coupled_probe(1e-3);
+    let mut full = coupled_probe(1e-3, None);
     full.tool_mut(0).unwrap().world_from_tool = Isometry3::translation(0.043, 0.058, 0.001);
     full.step().unwrap();
     let mut model = full.local_models().remove(0);

@@ -9,7 +9,7 @@
 
 use nalgebra::{Matrix3, Vector3};
 
-use crate::tool::Coupling;
+use crate::tool::{Coupling, Friction};
 
 /// The contact a coupled tool presses, as the force loop sees it between two solves.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -23,6 +23,9 @@ pub struct LocalContact {
     /// How fast the surface there moves along `normal` at the solve (m/s): a dent deepening
     /// under the tool moves away from it.
     pub surface_speed: f64,
+    /// The tool's friction against the surface (its damper on the sliding velocity, the
+    /// surface held still between solves).
+    pub friction: Option<Friction>,
 }
 
 /// One coupled tool's model between two solves.
@@ -61,6 +64,7 @@ pub(crate) struct LocalQuery {
 pub(crate) struct PendingContact {
     pub normal: Vector3<f64>,
     pub surface_speed: f64,
+    pub friction: Option<Friction>,
     /// Rows and directions b of the system whose bᵀA⁻¹b the stiffness needs (none: it
     /// needs nothing).
     pub along: Vec<(usize, Vector3<f64>)>,
@@ -115,6 +119,7 @@ impl LocalQuery {
                 depth,
                 stiffness,
                 surface_speed: c.surface_speed,
+                friction: c.friction,
             })
         });
         model
@@ -151,11 +156,15 @@ impl LocalModel {
             let free = (pull - self.velocity * (h * stiffness)) * h;
             let mut dv = base.try_inverse().unwrap_or_else(Matrix3::zeros) * free;
             if let Some(c) = self.contact {
-                // The contact's row, kept only if the tool still presses at the step's end.
+                // The contact's row, kept only if the tool still presses at the step's end,
+                // with its friction's damper on the sliding velocity (lagged, as in the solve).
                 let depth = self.depth_at(&c, &self.position, self.elapsed);
                 let rate = c.surface_speed - c.normal.dot(&self.velocity);
-                let a = base + c.normal * c.normal.transpose() * (h * h * c.stiffness);
-                let b = free + c.normal * (h * c.stiffness * (depth + h * rate));
+                let across = Matrix3::identity() - c.normal * c.normal.transpose();
+                let sliding = across * self.velocity;
+                let brake = c.friction.map_or(0.0, |f| f.damping(c.stiffness * depth.max(0.0), sliding.norm()));
+                let a = base + c.normal * c.normal.transpose() * (h * h * c.stiffness) + across * (h * brake);
+                let b = free + c.normal * (h * c.stiffness * (depth + h * rate)) - sliding * (h * brake);
                 let pressed = a.try_inverse().unwrap_or_else(Matrix3::zeros) * b;
                 if depth + h * (c.surface_speed - c.normal.dot(&(self.velocity + pressed))) > 0.0 {
                     dv = pressed;

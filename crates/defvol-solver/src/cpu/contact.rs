@@ -452,7 +452,8 @@ impl<T: Real> Simulation<T> {
             // The mesh's compliance there (h² gᵀA⁻¹g, g the contact's shares) in series.
             let along = c.node_forces().map(|(n, _)| n as usize).zip(c.shares.iter().copied()).collect();
             let rule = StiffnessRule::InSeries { depth: c.depth, penalty: c.stiffness };
-            return Some(PendingContact { normal: -c.push, surface_speed, along, rule });
+            let friction = self.tools[tool].friction;
+            return Some(PendingContact { normal: -c.push, surface_speed, friction, along, rule });
         };
         let penalty: f64 = self.contacts.iter().filter(|c| c.tool == tool).map(|c| c.stiffness).fold(0.0, f64::max);
         let row = self.u.len() + k;
@@ -467,7 +468,7 @@ impl<T: Real> Simulation<T> {
             }
             false => (Vec::new(), StiffnessRule::Penalty { force: force.norm(), penalty }),
         };
-        Some(PendingContact { normal, surface_speed, along, rule })
+        Some(PendingContact { normal, surface_speed, friction: self.tools[tool].friction, along, rule })
     }
 
     /// How fast the surface under `contacts` moves along their normal (out of the body):
