@@ -308,6 +308,7 @@ impl<T: Real> Simulation<T> {
         self.history_valid = false;
         self.solves = 0;
         self.proxies.clear();
+        self.tool_tips.clear();
     }
 
     /// Where tool `index` is in the simulation: the device's pose, or for a coupled tool
@@ -348,6 +349,7 @@ impl<T: Real> Simulation<T> {
         self.step = 0;
         self.time = 0.0;
         self.proxies.clear();
+        self.tool_tips.clear();
     }
 
     /// Advances one step with the configured integrator.
