@@ -13,7 +13,8 @@ use crate::io::{self, IoError};
 use crate::mesh::generate::{self, CellSplit};
 use crate::mesh::{MeshError, TetMesh};
 use crate::solver::{
-    ContactModel, Coupling, FixedNodes, Friction, MassSpringModel, Material, SolverError, SolverParams, Tool, ToolShape,
+    ContactModel, Coupling, FixedNodes, Friction, MassSpringModel, Material, RotationalCoupling, SolverError,
+    SolverParams, Tool, ToolShape,
 };
 use crate::volume::{phantom, Volume, VolumeError};
 
@@ -104,6 +105,10 @@ pub struct ToolConfig {
     /// contact): none, frictionless.
     #[serde(default)]
     pub friction: Option<Friction>,
+    /// With a `coupling`, a torsional one too (`{stiffness, damping, inertia, max_torque}`):
+    /// the simulated tool turns, and the device feels the torque that holds it.
+    #[serde(default)]
+    pub rotational_coupling: Option<RotationalCoupling>,
     #[serde(default)]
     pub path: Option<ToolPath>,
     /// Input topics (relative to the node's namespace); `tool_pose` and `tool_wrench` for
@@ -308,6 +313,7 @@ impl ToolConfig {
         tool.contact = self.contact;
         tool.coupling = self.coupling;
         tool.friction = self.friction;
+        tool.rotational_coupling = self.rotational_coupling;
         tool
     }
 

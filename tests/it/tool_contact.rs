@@ -464,6 +464,45 @@ fn friction_holds_below_the_static_limit_and_brakes_sliding_at_the_kinetic_one()
     assert!((median - mu_kinetic).abs() < 0.01 * mu_kinetic, "braked by {median} N per N of contact, μ_k {mu_kinetic}");
 }
 
+/// A coupled needle with a rotational coupling, held by its device tilted down so its far
+/// end presses into the slab: the contacts along it turn the simulated needle about its tip
+/// until the coupling's torque balances theirs, and the device feels that torque. At rest:
+/// the torque felt is Σ (at - tip) × (each contact's force on the needle), within 1 %
+/// (measured: 0.030 N·m, to 1e-8), the force felt is the contacts' sum, and the needle has
+/// turned up away from the device.
+#[test]
+fn a_needle_pressed_at_its_far_end_turns_and_its_torque_is_felt() {
+    let (_, model) = coarse_slab();
+    let (radius, length) = (0.001, 0.04);
+    let mut tool = Tool::new(ToolShape::Capsule { radius, length }, 20_000.0);
+    tool.coupling = Some(defvol::solver::Coupling { stiffness: 2000.0, damping: 5.0, mass: 0.02, max_force: 50.0 });
+    tool.rotational_coupling =
+        Some(defvol::solver::RotationalCoupling { stiffness: 2.0, damping: 0.02, inertia: 1e-5, max_torque: 5.0 });
+    let params = SolverParams { gravity: [0.0; 3], dt: 1e-3, cg_tolerance: 1e-10, ..Default::default() };
+    let mut sim = Simulation::<f64>::new(&model, params, vec![tool]).unwrap();
+    // The shaft (the tool's +z) along +x tilted 0.1 rad down: the far end 4 mm lower.
+    let tilt = nalgebra::UnitQuaternion::from_axis_angle(&Vector3::y_axis(), std::f64::consts::FRAC_PI_2 + 0.1);
+    let device = Isometry3::from_parts(nalgebra::Translation3::new(0.03, 0.058, 0.002 + radius), tilt);
+    sim.tool_mut(0).unwrap().world_from_tool =
+        Isometry3::from_parts(nalgebra::Translation3::new(0.03, 0.058, 0.05), tilt);
+    sim.step().unwrap();
+    let report = settle(&mut sim, device);
+    let pose = sim.simulated_pose(0).unwrap();
+    let tip = pose.translation.vector;
+    let (mut force, mut torque) = (Vector3::zeros(), Vector3::zeros());
+    for c in sim.contacts() {
+        force -= c.force();
+        torque -= (c.at - tip).cross(&c.force());
+    }
+    let reaction = report.reaction(0);
+    let (felt_force, felt_torque) = (Vector3::from(reaction.force), Vector3::from(reaction.torque));
+    assert!(torque.norm() > 1e-3, "the contacts turn the needle: {torque} N·m");
+    assert!((felt_torque - torque).norm() < 0.01 * torque.norm(), "felt {felt_torque} N·m, contacts {torque} N·m");
+    assert!((felt_force - force).norm() < 0.01 * force.norm(), "felt {felt_force} N, contacts {force} N");
+    let (shaft, commanded) = (pose.rotation * Vector3::z(), device.rotation * Vector3::z());
+    assert!(shaft.z > commanded.z + 0.01, "the far end turned up: shaft {shaft}, device {commanded}");
+}
+
 /// An uncoupled thin tool put deeper than a spacing into the body meets no face: nothing
 /// holds it, and the step says it went through, rather than passing silently. Above the
 /// surface, or held by it, it did not.
@@ -569,6 +608,7 @@ fn a_contact_too_soft_for_its_coupling_is_said_so_and_the_centre_goes_in() {
             contact: defvol::solver::ContactModel::Surface,
             coupling: Some(coupling),
             friction: None,
+            rotational_coupling: None,
             path: None,
             pose_topic: None,
             wrench_topic: None,

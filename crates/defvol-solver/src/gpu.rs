@@ -42,6 +42,8 @@ pub enum GpuSolverError {
     Gpu(#[from] GpuError),
     #[error("{0} tools given; the GPU solver takes at most {MAX_TOOLS}")]
     TooManyTools(usize),
+    #[error("tool {0} turns through a rotational coupling, which the GPU solver does not take yet")]
+    RotationalCoupling(usize),
 }
 
 #[repr(C)]
@@ -75,7 +77,7 @@ impl GpuContactTerm {
     fn new(terms: &ContactTerms) -> Self {
         let mut rows = [[u32::MAX; 4]; 5];
         let mut gradients = [[0.0; 4]; CONTACT_ROWS];
-        for (k, (row, g)) in terms.rows.iter().zip(&terms.gradients).enumerate() {
+        for (k, (row, g)) in terms.rows.iter().zip(&terms.gradients).enumerate().take(CONTACT_ROWS) {
             if *row != usize::MAX {
                 rows[k / 4][k % 4] = *row as u32;
                 gradients[k] = [g.x as f32, g.y as f32, g.z as f32, 0.0];
@@ -265,6 +267,9 @@ impl GpuSimulation {
         if tools.len() > MAX_TOOLS {
             return Err(GpuSolverError::TooManyTools(tools.len()));
         }
+        if let Some(index) = tools.iter().position(|t| t.rotational_coupling.is_some()) {
+            return Err(GpuSolverError::RotationalCoupling(index));
+        }
         ctx.require_storage_buffers("the solver", STORAGE_BUFFERS)?;
         let mirror = Simulation::<f32>::new(model, params, tools)?;
         let n = model.node_count();
@@ -438,9 +443,9 @@ impl GpuSimulation {
         let (n, tools) = (self.nodes as usize, self.mirror.proxy_count());
         let queue = &self.ctx.queue;
         for k in 0..tools {
-            let Some((diag, rhs)) = self.mirror.proxy_row(k) else { continue };
+            let Some((row, diag, rhs)) = self.mirror.proxy_row(k) else { continue };
             let inverse = diag.try_inverse().unwrap_or_else(nalgebra::Matrix3::zeros);
-            let row = (n + k) as u64;
+            let row = row as u64;
             queue.write_buffer(&self.buffers.diag, row * 48, bytemuck::cast_slice(&mat3_columns(&diag)));
             queue.write_buffer(&self.buffers.precond, row * 48, bytemuck::cast_slice(&mat3_columns(&inverse)));
             queue.write_buffer(&self.buffers.rhs, row * 16, bytemuck::cast_slice(&vec4s(&[rhs.map(|c| c as f32)])));

@@ -23,7 +23,7 @@ pub use cpu::Simulation;
 pub use engine::{SolverEngine, SolverEngineError};
 pub use haptic::{LocalAnswer, LocalContact, LocalModel};
 pub use model::{FixedNodes, MassSpringModel, Material, TissueRow};
-pub use tool::{ContactModel, Coupling, Friction, Tool, ToolShape};
+pub use tool::{ContactModel, Coupling, Friction, RotationalCoupling, Tool, ToolShape};
 
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]

@@ -98,6 +98,48 @@ impl Coupling {
     }
 }
 
+/// A torsional spring-damper between the device's orientation and the simulated tool's,
+/// beside a `Coupling`: contacts along the tool turn it about its tip, and the device feels
+/// the torque that holds it, never more than `max_torque`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RotationalCoupling {
+    /// N·m/rad.
+    pub stiffness: f64,
+    /// N·m·s/rad.
+    pub damping: f64,
+    /// The simulated tool's moment of inertia about its tip (kg·m²).
+    pub inertia: f64,
+    /// Largest coupling torque (N·m).
+    pub max_torque: f64,
+}
+
+impl RotationalCoupling {
+    /// The torque on the simulated tool for the device turned `error` (axis times angle)
+    /// from it and `relative_omega` faster, with the stiffness and damping that make it,
+    /// scaled down together past `max_torque` (which the last element says).
+    pub fn twist(&self, error: Vector3<f64>, relative_omega: Vector3<f64>) -> (Vector3<f64>, f64, f64, bool) {
+        Coupling { stiffness: self.stiffness, damping: self.damping, mass: self.inertia, max_force: self.max_torque }
+            .pull(error, relative_omega)
+    }
+
+    pub fn validate(&self, index: usize) -> Result<(), super::SolverError> {
+        Coupling { stiffness: self.stiffness, damping: self.damping, mass: self.inertia, max_force: self.max_torque }
+            .validate(index)
+            .map_err(|e| match e {
+                super::SolverError::BadParameter { name, value, why } => super::SolverError::BadParameter {
+                    name: name
+                        .replace(".coupling.mass", ".rotational_coupling.inertia")
+                        .replace(".coupling.max_force", ".rotational_coupling.max_torque")
+                        .replace(".coupling.", ".rotational_coupling."),
+                    value,
+                    why,
+                },
+                other => other,
+            })
+    }
+}
+
 /// Coulomb friction between a tool and the surface it touches, regularised as the implicit
 /// step needs it (after IPC's lagged friction): the normal force and the sliding speed are
 /// those at the step's start, and the tangential force is a damper on the sliding velocity
@@ -169,6 +211,8 @@ pub struct Tool {
     pub coupling: Option<Coupling>,
     /// Friction against the surface (surface contact); none: frictionless.
     pub friction: Option<Friction>,
+    /// With a `coupling`, the simulated tool also turns, held to the device's orientation.
+    pub rotational_coupling: Option<RotationalCoupling>,
 }
 
 impl Tool {
@@ -182,6 +226,7 @@ impl Tool {
             contact: ContactModel::Surface,
             coupling: None,
             friction: None,
+            rotational_coupling: None,
         }
     }
 

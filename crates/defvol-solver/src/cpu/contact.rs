@@ -29,6 +29,16 @@ impl<T: Real> Simulation<T> {
                     });
                 }
             }
+            if let Some(rotational) = &tool.rotational_coupling {
+                rotational.validate(index)?;
+                if tool.coupling.is_none() {
+                    return Err(SolverError::BadParameter {
+                        name: format!("tools[{index}].rotational_coupling"),
+                        value: rotational.stiffness,
+                        why: "turns a coupled tool: give the tool a coupling too".into(),
+                    });
+                }
+            }
             if let Some(coupling) = &tool.coupling {
                 coupling.validate(index)?;
                 let why = if tool.contact != ContactModel::Surface {
@@ -85,26 +95,42 @@ impl<T: Real> Simulation<T> {
     pub(super) fn follow_devices(&mut self) {
         let coupled: Vec<usize> = (0..self.tools.len()).filter(|&i| self.tools[i].coupling.is_some()).collect();
         if !self.proxies.iter().map(|p| p.tool).eq(coupled.iter().copied()) {
+            let mut turning_row = self.u.len() + coupled.len();
             self.proxies = coupled
                 .iter()
                 .map(|&tool| {
-                    let tip = self.tools[tool].tip();
-                    Proxy { tool, x: tip, v: Vector3::zeros(), device: tip, device_velocity: Vector3::zeros() }
+                    let pose = self.tools[tool].world_from_tool;
+                    let tip = pose.translation.vector;
+                    let turning = self.tools[tool].rotational_coupling.map(|_| {
+                        turning_row += 1;
+                        Turning {
+                            orientation: pose.rotation,
+                            omega: Vector3::zeros(),
+                            device: pose.rotation,
+                            device_omega: Vector3::zeros(),
+                            row: turning_row - 1,
+                        }
+                    });
+                    Proxy { tool, x: tip, v: Vector3::zeros(), device: tip, device_velocity: Vector3::zeros(), turning }
                 })
                 .collect();
-            let rows = self.u.len() + self.proxies.len();
+            let rows = turning_row;
             self.rhs.resize(rows, Vector3::zeros());
             self.precond.resize(rows, Matrix3::zeros());
             for w in [&mut self.dv, &mut self.dv_previous, &mut self.r, &mut self.z, &mut self.p, &mut self.q] {
                 w.resize(rows, Vector3::zeros());
             }
-            self.proxy_diag = vec![Matrix3::zeros(); self.proxies.len()];
+            self.proxy_diag = vec![Matrix3::zeros(); rows - self.u.len()];
         }
         let dt = self.params.dt;
         for p in &mut self.proxies {
-            let tip = self.tools[p.tool].tip();
-            p.device_velocity = (tip - p.device) / dt;
-            p.device = tip;
+            let pose = self.tools[p.tool].world_from_tool;
+            p.device_velocity = (pose.translation.vector - p.device) / dt;
+            p.device = pose.translation.vector;
+            if let Some(turning) = &mut p.turning {
+                turning.device_omega = (pose.rotation * turning.device.inverse()).scaled_axis() / dt;
+                turning.device = pose.rotation;
+            }
         }
         self.tool_tips.resize(self.tools.len(), None);
         self.tool_velocities.resize(self.tools.len(), Vector3::zeros());
@@ -128,8 +154,11 @@ impl<T: Real> Simulation<T> {
                 let mut core = tool.contact_params();
                 let mut travel = 0.0;
                 if let (Some(p), Some(coupling)) = (self.proxies.iter().find(|p| p.tool == index), tool.coupling) {
-                    let shift = p.x - core.a;
-                    (core.a, core.b) = (core.a + shift, core.b + shift);
+                    // The simulated tool's core: at its tip, turned as it is.
+                    let turn = p.turning.as_ref().map_or_else(nalgebra::UnitQuaternion::identity, |t| {
+                        t.orientation * tool.world_from_tool.rotation.inverse()
+                    });
+                    (core.a, core.b) = (p.x, p.x + turn * (core.b - core.a));
                     travel = p.v.norm() * h + coupling.max_force / coupling.mass * h * h;
                 }
                 (ToolCore { tool: index, core }, travel)
@@ -188,11 +217,11 @@ impl<T: Real> Simulation<T> {
     /// The simulated tools' rows and the surface contacts' terms (few: sequential, so the
     /// sums keep their order).
     pub(super) fn assemble_tools(&mut self) {
-        let n = self.u.len();
         for k in 0..self.proxies.len() {
-            let Some((diag, rhs)) = self.proxy_row(k) else { continue };
-            self.rhs[n + k] = rhs.map(T::of);
-            self.precond[n + k] = diag.try_inverse().unwrap_or_else(Matrix3::zeros).map(T::of);
+            for (row, diag, rhs) in self.proxy_row(k).into_iter().chain(self.turning_row(k)) {
+                self.rhs[row] = rhs.map(T::of);
+                self.precond[row] = diag.try_inverse().unwrap_or_else(Matrix3::zeros).map(T::of);
+            }
         }
         self.contact_rows.clear();
         self.rows_before_contacts.clear();
@@ -201,7 +230,7 @@ impl<T: Real> Simulation<T> {
 
     /// Simulated tool k's row, (M + hD + h²K) Δv = h (f - h K v): its diagonal block (kept
     /// for the local model) and right-hand side (both backends assemble it so).
-    pub(crate) fn proxy_row(&mut self, k: usize) -> Option<(Matrix3<f64>, Vector3<f64>)> {
+    pub(crate) fn proxy_row(&mut self, k: usize) -> Option<(usize, Matrix3<f64>, Vector3<f64>)> {
         let proxy = self.proxies.get(k)?;
         let tool = &self.tools[proxy.tool];
         let coupling = tool.coupling?;
@@ -210,7 +239,21 @@ impl<T: Real> Simulation<T> {
         let diag = Matrix3::identity() * (coupling.mass + h * damping + h * h * stiffness);
         let rhs = (force - proxy.v * (h * stiffness)) * h;
         self.proxy_diag[k] = diag.map(T::of);
-        Some((diag, rhs))
+        Some((self.u.len() + k, diag, rhs))
+    }
+
+    /// The row simulated tool k turns on (a rotational coupling), (I + hC + h²K) Δω =
+    /// h (τ - h K ω), as its translational row.
+    fn turning_row(&mut self, k: usize) -> Option<(usize, Matrix3<f64>, Vector3<f64>)> {
+        let proxy = self.proxies.get(k)?;
+        let (tool, turning) = (&self.tools[proxy.tool], proxy.turning.as_ref()?);
+        let rotational = tool.rotational_coupling?;
+        let h = self.params.dt;
+        let (torque, stiffness, damping, _) = twisting(tool, turning);
+        let diag = Matrix3::identity() * (rotational.inertia + h * damping + h * h * stiffness);
+        let rhs = (torque - turning.omega * (h * stiffness)) * h;
+        self.proxy_diag[turning.row - self.u.len()] = diag.map(T::of);
+        Some((turning.row, diag, rhs))
     }
 
     /// Whether row `row` of the system is a fixed node's (the simulated tools' are free).
@@ -226,8 +269,8 @@ impl<T: Real> Simulation<T> {
     fn contact_terms(&self, c: &SurfaceContact) -> ContactTerms {
         let n = self.u.len();
         let h = self.params.dt;
-        let mut rows = [usize::MAX; CONTACT_NODES + 1];
-        let mut gradients = [Vector3::zeros(); CONTACT_NODES + 1];
+        let mut rows = [usize::MAX; TERM_ROWS];
+        let mut gradients = [Vector3::zeros(); TERM_ROWS];
         let mut normal_speed = 0.0;
         for (k, (&node, share)) in c.nodes.iter().zip(&c.shares).enumerate() {
             if node != u32::MAX && !self.fixed[node as usize] {
@@ -237,9 +280,17 @@ impl<T: Real> Simulation<T> {
             }
         }
         if let Some(k) = self.proxies.iter().position(|p| p.tool == c.tool) {
+            let proxy = &self.proxies[k];
             rows[CONTACT_NODES] = n + k;
             gradients[CONTACT_NODES] = c.push;
-            normal_speed += c.push.dot(&self.proxies[k].v);
+            normal_speed += c.push.dot(&proxy.v);
+            if let Some(turning) = &proxy.turning {
+                // Turning about its tip moves the contact by ω × (at - tip): exact, as the
+                // contact point lies from the core's sample along the push.
+                let lever = (c.at - proxy.x).cross(&c.push);
+                (rows[CONTACT_NODES + 1], gradients[CONTACT_NODES + 1]) = (turning.row, lever);
+                normal_speed += lever.dot(&turning.omega);
+            }
         }
         ContactTerms {
             rows,
@@ -269,8 +320,8 @@ impl<T: Real> Simulation<T> {
         if c.joins_previous || c.depth <= 0.0 {
             return Vec::new();
         }
-        let mut rows = [usize::MAX; CONTACT_NODES + 1];
-        let mut weights = [0.0; CONTACT_NODES + 1];
+        let mut rows = [usize::MAX; TERM_ROWS];
+        let mut weights = [0.0; TERM_ROWS];
         let mut sliding = Vector3::zeros();
         for (k, (&node, share)) in c.nodes.iter().zip(&c.shares).enumerate().filter(|(_, (n, _))| **n != u32::MAX) {
             let w = share.dot(&c.push);
@@ -279,10 +330,18 @@ impl<T: Real> Simulation<T> {
                 (rows[k], weights[k]) = (node as usize, -w);
             }
         }
+        let mut turning = None;
         match self.proxies.iter().position(|p| p.tool == c.tool) {
             Some(k) => {
+                let proxy = &self.proxies[k];
                 (rows[CONTACT_NODES], weights[CONTACT_NODES]) = (self.u.len() + k, 1.0);
-                sliding += self.proxies[k].v;
+                sliding += proxy.v;
+                if let Some(t) = &proxy.turning {
+                    let lever = c.at - proxy.x;
+                    rows[CONTACT_NODES + 1] = t.row;
+                    sliding += t.omega.cross(&lever);
+                    turning = Some(lever);
+                }
             }
             None => sliding += self.tool_velocities.get(c.tool).copied().unwrap_or_else(Vector3::zeros),
         }
@@ -293,9 +352,13 @@ impl<T: Real> Simulation<T> {
             .into_iter()
             .map(|tangent| {
                 let speed = tangent.dot(&sliding);
+                let mut gradients = weights.map(|w| tangent * w);
+                if let Some(lever) = turning {
+                    gradients[CONTACT_NODES + 1] = lever.cross(&tangent);
+                }
                 let terms = ContactTerms {
                     rows,
-                    gradients: weights.map(|w| tangent * w),
+                    gradients,
                     h2k: h * damping,
                     rhs_scale: h * damping * speed,
                     normal_speed: speed,

@@ -100,11 +100,18 @@ impl<T: Real> Simulation<T> {
         self.advance_proxies(&proxy_dv);
     }
 
-    /// Moves the simulated tools by their rows of Δv.
+    /// Moves the simulated tools by their rows of Δv (after the nodes': each tool's, then
+    /// the rows they turn on).
     pub(super) fn advance_proxies(&mut self, dv: &[Vector3<f64>]) {
-        for (proxy, dv) in self.proxies.iter_mut().zip(dv) {
-            proxy.v += dv;
-            proxy.x += proxy.v * self.params.dt;
+        let (n, h) = (self.u.len(), self.params.dt);
+        for (proxy, step) in self.proxies.iter_mut().zip(dv) {
+            proxy.v += step;
+            proxy.x += proxy.v * h;
+            if let Some(turning) = &mut proxy.turning {
+                turning.omega += dv.get(turning.row - n).copied().unwrap_or_else(Vector3::zeros);
+                turning.orientation =
+                    nalgebra::UnitQuaternion::from_scaled_axis(turning.omega * h) * turning.orientation;
+            }
         }
     }
 

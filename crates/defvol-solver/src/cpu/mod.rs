@@ -50,14 +50,31 @@ struct Proxy {
     /// The device's tip at the last step, for its velocity.
     device: Vector3<f64>,
     device_velocity: Vector3<f64>,
+    /// With a rotational coupling: the simulated tool's orientation and angular velocity,
+    /// the device's at the last step and its angular velocity, and the row of the system
+    /// the tool turns on.
+    turning: Option<Turning>,
 }
+
+/// The rotational state of a simulated tool (`RotationalCoupling`).
+#[derive(Debug, Clone)]
+struct Turning {
+    orientation: nalgebra::UnitQuaternion<f64>,
+    omega: Vector3<f64>,
+    device: nalgebra::UnitQuaternion<f64>,
+    device_omega: Vector3<f64>,
+    row: usize,
+}
+
+/// Rows a contact's terms span: its nodes', its simulated tool's, and the row it turns on.
+pub(crate) const TERM_ROWS: usize = CONTACT_NODES + 2;
 
 /// A surface contact as the implicit system uses it: rows (nodes, then the proxy's) with
 /// the penetration's gradient on each (∇φ), and h² k.
 #[derive(Debug, Clone, Copy)]
 struct ContactRows<T: Real> {
-    rows: [usize; CONTACT_NODES + 1],
-    gradients: [Vector3<T>; CONTACT_NODES + 1],
+    rows: [usize; TERM_ROWS],
+    gradients: [Vector3<T>; TERM_ROWS],
     h2k: T,
     /// φ̇ at the step's start, Σ g·v over the rows.
     normal_speed: f64,
@@ -68,8 +85,8 @@ struct ContactRows<T: Real> {
 /// penetration φ on each, h² k, and the right-hand side's factor h k (φ + h φ̇).
 #[derive(Debug, Clone, Copy)]
 pub(crate) struct ContactTerms {
-    pub rows: [usize; CONTACT_NODES + 1],
-    pub gradients: [Vector3<f64>; CONTACT_NODES + 1],
+    pub rows: [usize; TERM_ROWS],
+    pub gradients: [Vector3<f64>; TERM_ROWS],
     pub h2k: f64,
     pub rhs_scale: f64,
     /// φ̇ at the step's start, Σ g·v over the rows.
@@ -110,6 +127,19 @@ impl ContactTerms {
 fn coupling_force(tool: &Tool, proxy: &Proxy) -> (Vector3<f64>, f64, f64, bool) {
     tool.coupling
         .map_or((Vector3::zeros(), 0.0, 0.0, false), |c| c.pull(tool.tip() - proxy.x, proxy.device_velocity - proxy.v))
+}
+
+/// The device's orientation relative to the simulated tool's, as axis times angle.
+fn turn_error(turning: &Turning) -> Vector3<f64> {
+    (turning.device * turning.orientation.inverse()).scaled_axis()
+}
+
+/// The rotational coupling's torque on the simulated tool, with its stiffness and damping
+/// scaled down when it saturates (`RotationalCoupling::twist`).
+fn twisting(tool: &Tool, turning: &Turning) -> (Vector3<f64>, f64, f64, bool) {
+    tool.rotational_coupling.map_or((Vector3::zeros(), 0.0, 0.0, false), |r| {
+        r.twist(turn_error(turning), turning.device_omega - turning.omega)
+    })
 }
 
 /// A running mass-spring simulation on the CPU in precision `T`.
@@ -295,9 +325,14 @@ impl<T: Real> Simulation<T> {
     /// device whose first pose arrives after the simulation started (the tool had been
     /// waiting at its configured pose, maybe inside the organ).
     pub fn seat_simulated_tool(&mut self, index: usize) {
-        let tip = self.tools.get(index).map(|t| t.tip());
-        if let (Some(proxy), Some(tip)) = (self.proxies.iter_mut().find(|p| p.tool == index), tip) {
+        let Some(pose) = self.tools.get(index).map(|t| t.world_from_tool) else { return };
+        if let Some(proxy) = self.proxies.iter_mut().find(|p| p.tool == index) {
+            let tip = pose.translation.vector;
             (proxy.x, proxy.v, proxy.device, proxy.device_velocity) = (tip, Vector3::zeros(), tip, Vector3::zeros());
+            if let Some(turning) = &mut proxy.turning {
+                (turning.orientation, turning.device) = (pose.rotation, pose.rotation);
+                (turning.omega, turning.device_omega) = (Vector3::zeros(), Vector3::zeros());
+            }
         }
     }
 
@@ -318,6 +353,9 @@ impl<T: Real> Simulation<T> {
         let mut pose = tool.world_from_tool;
         if let Some(p) = self.proxies.iter().find(|p| p.tool == index) {
             pose.translation.vector = p.x;
+            if let Some(turning) = &p.turning {
+                pose.rotation = turning.orientation;
+            }
         }
         Some(pose)
     }
@@ -432,6 +470,14 @@ impl<T: Real> Simulation<T> {
                 coupling_saturated = saturated;
                 kinetic += 0.5 * coupling.mass * proxy.v.norm_squared();
                 contact_energy += 0.5 * coupling.stiffness * (tool.tip() - proxy.x).norm_squared();
+                if let (Some(turning), Some(rotational)) = (&proxy.turning, tool.rotational_coupling) {
+                    // The device feels the torque that holds the tool's orientation.
+                    let (twist, _, _, saturated) = twisting(tool, turning);
+                    torque = -twist;
+                    coupling_saturated |= saturated;
+                    kinetic += 0.5 * rotational.inertia * turning.omega.norm_squared();
+                    contact_energy += 0.5 * rotational.stiffness * turn_error(turning).norm_squared();
+                }
             }
             reactions.push(Reaction {
                 force: force.into(),
