@@ -18,14 +18,14 @@ struct Params {
     counts: vec4<u32>,     // nodes, springs, tools, partial-sum slots
     cg: vec4<f32>,         // tolerance^2, max iterations, -, -
     tools: array<Tool, 4>,
-    system: vec4<u32>,     // rows (nodes + simulated tools), contacts, touched rows, simulated tools
+    system: vec4<u32>,     // rows (nodes + simulated tools' rows), contacts, touched rows, simulated tools' rows
 }
 
 // A surface contact's terms (cpu::ContactTerms): rows (NO_ROW where none), the gradient
 // of its penetration on each, and h²k, h k (φ + h φ̇).
 struct ContactTerm {
     rows: array<vec4<u32>, 5>,
-    gradients: array<vec4<f32>, 17>,
+    gradients: array<vec4<f32>, 18>,
     scale: vec4<f32>,
 }
 
@@ -73,7 +73,7 @@ struct CgScalars {
 @group(0) @binding(29) var<storage, read_write> contact_y: array<vec4<f32>>; // h²k g·p per contact
 @group(0) @binding(30) var<storage, read_write> outcome: array<vec4<f32>>;   // simulated tools' Δv, then contacts' g·Δv
 
-const CONTACT_ROWS: u32 = 17u;
+const CONTACT_ROWS: u32 = 18u;
 const NO_ROW: u32 = 0xffffffffu;
 
 const WG: u32 = 256u;

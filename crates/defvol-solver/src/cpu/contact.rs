@@ -244,7 +244,7 @@ impl<T: Real> Simulation<T> {
 
     /// The row simulated tool k turns on (a rotational coupling), (I + hC + h²K) Δω =
     /// h (τ - h K ω), as its translational row.
-    fn turning_row(&mut self, k: usize) -> Option<(usize, Matrix3<f64>, Vector3<f64>)> {
+    pub(crate) fn turning_row(&mut self, k: usize) -> Option<(usize, Matrix3<f64>, Vector3<f64>)> {
         let proxy = self.proxies.get(k)?;
         let (tool, turning) = (&self.tools[proxy.tool], proxy.turning.as_ref()?);
         let rotational = tool.rotational_coupling?;
