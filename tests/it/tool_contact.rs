@@ -503,6 +503,18 @@ fn a_needle_pressed_at_its_far_end_turns_and_its_torque_is_felt() {
     assert!(shaft.z > commanded.z + 0.01, "the far end turned up: shaft {shaft}, device {commanded}");
 }
 
+/// A rotational coupling without the translational one it turns is refused by name.
+#[test]
+fn a_rotational_coupling_without_a_coupling_is_refused_by_name() {
+    let (_, model) = coarse_slab();
+    let mut tool = Tool::new(ToolShape::Capsule { radius: 0.001, length: 0.04 }, 20_000.0);
+    tool.rotational_coupling =
+        Some(defvol::solver::RotationalCoupling { stiffness: 2.0, damping: 0.02, inertia: 1e-5, max_torque: 5.0 });
+    let mut sim = Simulation::<f64>::new(&model, SolverParams::default(), vec![tool]).unwrap();
+    let e = sim.step().unwrap_err().to_string();
+    assert!(e.contains("tools[0].rotational_coupling") && e.contains("coupling too"), "{e}");
+}
+
 /// An uncoupled thin tool put deeper than a spacing into the body meets no face: nothing
 /// holds it, and the step says it went through, rather than passing silently. Above the
 /// surface, or held by it, it did not.

@@ -311,6 +311,22 @@ mod tests {
         assert!((friction.damping(normal, 0.02) * 0.02 - 0.3 * normal).abs() < 1e-12);
     }
 
+    /// Impossible rotational coupling is refused naming its own fields.
+    #[test]
+    fn rotational_coupling_is_checked_by_its_own_names() {
+        let good = RotationalCoupling { stiffness: 2.0, damping: 0.02, inertia: 1e-5, max_torque: 1.0 };
+        assert!(good.validate(0).is_ok());
+        for (bad, field) in [
+            (RotationalCoupling { inertia: 0.0, ..good }, "tools[1].rotational_coupling.inertia"),
+            (RotationalCoupling { max_torque: -1.0, ..good }, "tools[1].rotational_coupling.max_torque"),
+            (RotationalCoupling { stiffness: f64::INFINITY, ..good }, "tools[1].rotational_coupling.stiffness"),
+            (RotationalCoupling { damping: -0.1, ..good }, "tools[1].rotational_coupling.damping"),
+        ] {
+            let e = bad.validate(1).unwrap_err().to_string();
+            assert!(e.contains(field), "{e}");
+        }
+    }
+
     #[test]
     fn spread_weights_sum_to_one() {
         let nodes: Vec<_> = (0..10).map(|i| Vector3::new(i as f64 * 0.01, 0.0, 0.0)).collect();
