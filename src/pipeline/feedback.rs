@@ -426,11 +426,11 @@ impl FeedbackLoop {
     pub fn answer_locally(&mut self, index: usize) -> Option<WrenchStamped> {
         let state = self.tools.get(index)?;
         let stamp = state.last_pose?;
-        let device = state.tool.tip();
+        let device = state.tool.world_from_tool;
         let (model, answered) = self.local.iter_mut().find(|(model, _)| model.tool == index)?;
         let dt = answered.map_or(0.0, |last| (stamp.as_secs() - last.as_secs()).clamp(0.0, LOCAL_STEP_MAX));
         *answered = Some(stamp);
-        let answer = model.answer(device, dt);
+        let answer = model.answer(&device, dt);
         Some(outputs::local_feedback(&answer, stamp, &self.frame_id))
     }
 }

@@ -20,13 +20,15 @@ pub(super) fn feedback(report: &StepReport, index: usize, stamp: Time, frame: &s
     }
 }
 
-/// A tool's feedback answered from its local model between steps (no torque: the local
-/// model couples translation only).
+/// A tool's feedback answered from its local model between steps.
 pub(super) fn local_feedback(answer: &crate::solver::LocalAnswer, stamp: Time, frame: &str) -> WrenchStamped {
-    let f = answer.force;
+    let (f, t) = (answer.force, answer.torque);
     WrenchStamped {
         header: header(stamp, frame),
-        wrench: Wrench { force: msgs::Vector3 { x: f.x, y: f.y, z: f.z }, torque: msgs::Vector3::default() },
+        wrench: Wrench {
+            force: msgs::Vector3 { x: f.x, y: f.y, z: f.z },
+            torque: msgs::Vector3 { x: t.x, y: t.y, z: t.z },
+        },
     }
 }
 

@@ -4,9 +4,10 @@
 
 use defvol::mesh::generate::{self, CellSplit};
 use defvol::solver::{
-    Coupling, FixedNodes, Friction, MassSpringModel, Material, Simulation, SolverParams, Tool, ToolShape,
+    Coupling, FixedNodes, Friction, MassSpringModel, Material, RotationalCoupling, Simulation, SolverParams, Tool,
+    ToolShape,
 };
-use nalgebra::{Isometry3, Vector3};
+use nalgebra::{Isometry3, UnitQuaternion, Vector3};
 
 /// A slab whose boundary spacing is 15-17 mm, fixed at the bottom, top at z = 0.
 fn coarse_slab() -> MassSpringModel {
@@ -50,7 +51,7 @@ fn local_against_full_on(mut full: Simulation<f64>, every: usize, bottom: f64, d
     let (mut worst, mut largest) = (0.0f64, 0.0f64);
     for k in 1..=poses {
         let device = device_at(k as f64 * dt, bottom, drag);
-        let answer = model.answer(device, dt);
+        let answer = model.answer(&Isometry3::translation(device.x, device.y, device.z), dt);
         full.tool_mut(0).unwrap().world_from_tool = Isometry3::from_parts(device.into(), Default::default());
         let felt = Vector3::from(full.step().unwrap().reaction(0).force);
         worst = worst.max((answer.force - felt).norm());
@@ -100,6 +101,56 @@ fn local_model_with_friction_follows_the_full_solve_while_sliding() {
     assert!(worst < 0.03 * largest, "the local model departs by {worst} N (forces up to {largest} N)");
 }
 
+/// A coupled needle turning with its device (a rotational coupling), refreshed every
+/// `every` poses: the largest torque difference between the local model's answers and the
+/// full solve's (N·m), and the largest torque (N·m). The device comes down tilted 0.1 rad
+/// so the needle's far end ends `depth` into the slab, then turns about z at 1 rad/s.
+fn turning_needle_against_full(every: usize, depth: f64) -> (f64, f64) {
+    let mut tool = Tool::new(ToolShape::Capsule { radius: 0.001, length: 0.04 }, 20_000.0);
+    tool.coupling = Some(COUPLING);
+    tool.rotational_coupling =
+        Some(RotationalCoupling { stiffness: 2.0, damping: 0.02, inertia: 1e-5, max_torque: 5.0 });
+    let params = SolverParams { gravity: [0.0; 3], dt: 1e-3, cg_tolerance: 1e-10, ..Default::default() };
+    let mut full = Simulation::<f64>::new(&coarse_slab(), params, vec![tool]).unwrap();
+    let tilt = UnitQuaternion::from_axis_angle(&Vector3::y_axis(), std::f64::consts::FRAC_PI_2 + 0.1);
+    // The far end is 0.04 sin 0.1 = 4 mm below the tip.
+    let device = |t: f64| {
+        let z = 0.02 + (0.001 + 0.004 - depth - 0.02) * (t / 0.3).min(1.0);
+        let turn = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), (t - 0.3).max(0.0));
+        Isometry3::from_parts(nalgebra::Translation3::new(0.03, 0.058, z), turn * tilt)
+    };
+    full.tool_mut(0).unwrap().world_from_tool = device(0.0);
+    full.step().unwrap();
+    let mut model = full.local_models().remove(0);
+    let (mut worst, mut largest) = (0.0f64, 0.0f64);
+    for k in 1..=500 {
+        let pose = device(k as f64 * 1e-3);
+        let answer = model.answer(&pose, 1e-3);
+        full.tool_mut(0).unwrap().world_from_tool = pose;
+        let felt = Vector3::from(full.step().unwrap().reaction(0).torque);
+        worst = worst.max((answer.torque - felt).norm());
+        largest = largest.max(felt.norm());
+        if k % every == 0 {
+            model = full.local_models().remove(0);
+        }
+    }
+    (worst, largest)
+}
+
+/// Turning in free space the local model's torque is the full solve's own, never
+/// refreshed (1e-9); with the far end pressed 2 mm in, refreshed every solve, it answers
+/// within 20 % of the largest torque (measured 16.7 %: the contacts' torque is held between
+/// solves, their rotational stiffness left to the next solve; before, no torque at all).
+#[test]
+fn local_model_turns_with_the_device_and_feels_its_torque() {
+    let (worst, largest) = turning_needle_against_full(usize::MAX, -0.005);
+    assert!(largest > 1e-3, "the coupling turned the needle: {largest} N·m");
+    assert!(worst < 1e-9 * largest, "free: the local torque departs by {worst} N·m of {largest} N·m");
+    let (worst, largest) = turning_needle_against_full(1, 0.002);
+    assert!(largest > 1e-2, "pressed: {largest} N·m");
+    assert!(worst < 0.2 * largest, "pressed: the local torque departs by {worst} N·m of {largest} N·m");
+}
+
 /// A device pose far through the organ: the local model pulls with the coupling's largest
 /// force at most, and says it saturated.
 #[test]
@@ -109,7 +160,7 @@ fn local_model_never_pulls_harder_than_the_coupling_saturates() {
     full.step().unwrap();
     let mut model = full.local_models().remove(0);
     for k in 0..200 {
-        let answer = model.answer(Vector3::new(0.043, 0.058, -0.2), 1e-3);
+        let answer = model.answer(&Isometry3::translation(0.043, 0.058, -0.2), 1e-3);
         assert!(answer.force.norm() <= COUPLING.max_force * (1.0 + 1e-12), "pose {k}: {} N", answer.force.norm());
         assert!(answer.saturated, "pose {k} is reported saturated");
     }

@@ -7,9 +7,9 @@
 //! its own rate, with the coupling's law and implicit step, so its cost does not grow with
 //! the mesh; the next solve, which receives the same poses, brings it back in line.
 
-use nalgebra::{Matrix3, Vector3};
+use nalgebra::{Isometry3, Matrix3, UnitQuaternion, Vector3};
 
-use crate::tool::{Coupling, Friction};
+use crate::tool::{Coupling, Friction, RotationalCoupling};
 
 /// The contact a coupled tool presses, as the force loop sees it between two solves.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -39,15 +39,54 @@ pub struct LocalModel {
     /// The device's last position, for its velocity.
     pub device: Vector3<f64>,
     pub contact: Option<LocalContact>,
+    /// With a rotational coupling, how the simulated tool turns between solves.
+    pub turning: Option<LocalTurning>,
     /// Where the simulated tool was when the contact was linearised, and the time since.
     anchor: Vector3<f64>,
     elapsed: f64,
 }
 
-/// What the device feels: the coupling's pull on it (N), and whether it saturated.
+/// A simulated tool's turning between two solves (a rotational coupling): advanced with the
+/// coupling's law and the full solve's implicit step, the contacts' torque of the last solve
+/// held (the contacts' rotational stiffness is left to the next solve).
+#[derive(Debug, Clone, PartialEq)]
+pub struct LocalTurning {
+    pub coupling: RotationalCoupling,
+    pub orientation: UnitQuaternion<f64>,
+    pub omega: Vector3<f64>,
+    /// The device's last orientation, for its angular velocity.
+    pub device: UnitQuaternion<f64>,
+    /// The contacts' torque on the tool about its tip at the solve (N·m).
+    pub contact_torque: Vector3<f64>,
+}
+
+impl LocalTurning {
+    /// Advances by `dt` towards the device at `device`; the torque the device feels and
+    /// whether the coupling saturated.
+    fn answer(&mut self, device: UnitQuaternion<f64>, dt: f64) -> (Vector3<f64>, bool) {
+        let device_omega =
+            if dt > 0.0 { (device * self.device.inverse()).scaled_axis() / dt } else { Vector3::zeros() };
+        self.device = device;
+        let twist =
+            |t: &Self| t.coupling.twist((t.device * t.orientation.inverse()).scaled_axis(), device_omega - t.omega);
+        if dt > 0.0 {
+            let (torque, stiffness, damping, _) = twist(self);
+            let h = dt;
+            let diag = self.coupling.inertia + h * damping + h * h * stiffness;
+            self.omega += (torque + self.contact_torque - self.omega * (h * stiffness)) * (h / diag);
+            self.orientation = UnitQuaternion::from_scaled_axis(self.omega * h) * self.orientation;
+        }
+        let (torque, _, _, saturated) = twist(self);
+        (-torque, saturated)
+    }
+}
+
+/// What the device feels: the coupling's pull on it (N) and, with a rotational coupling,
+/// its torque (N·m), and whether either saturated.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct LocalAnswer {
     pub force: Vector3<f64>,
+    pub torque: Vector3<f64>,
     pub saturated: bool,
 }
 
@@ -91,8 +130,11 @@ impl LocalQuery {
         velocity: Vector3<f64>,
         device: Vector3<f64>,
         contact: Option<PendingContact>,
+        turning: Option<LocalTurning>,
     ) -> Self {
-        Self { model: LocalModel::new(tool, coupling, position, velocity, device, None), contact }
+        let mut model = LocalModel::new(tool, coupling, position, velocity, device, None);
+        model.turning = turning;
+        Self { model, contact }
     }
 
     /// The rows and directions b whose bᵀA⁻¹b `finish` needs, if any.
@@ -135,7 +177,7 @@ impl LocalModel {
         device: Vector3<f64>,
         contact: Option<LocalContact>,
     ) -> Self {
-        Self { tool, coupling, position, velocity, device, contact, anchor: position, elapsed: 0.0 }
+        Self { tool, coupling, position, velocity, device, contact, turning: None, anchor: position, elapsed: 0.0 }
     }
 
     /// The contact's penetration with the simulated tool at `x`, `elapsed` after the solve.
@@ -144,9 +186,19 @@ impl LocalModel {
     }
 
     /// Advances the simulated tool by `dt` towards the device at `device` (the implicit
-    /// Euler step the full solve takes for it, the mesh condensed into the contact plane)
-    /// and returns what the device feels.
-    pub fn answer(&mut self, device: Vector3<f64>, dt: f64) -> LocalAnswer {
+    /// Euler step the full solve takes for it, the mesh condensed into the contact plane;
+    /// turning too with a rotational coupling) and returns what the device feels.
+    pub fn answer(&mut self, device: &Isometry3<f64>, dt: f64) -> LocalAnswer {
+        let (torque, twisted) = match &mut self.turning {
+            Some(turning) => turning.answer(device.rotation, dt),
+            None => (Vector3::zeros(), false),
+        };
+        let answer = self.follow(device.translation.vector, dt);
+        LocalAnswer { torque, saturated: answer.saturated || twisted, ..answer }
+    }
+
+    /// The translational part of `answer`.
+    fn follow(&mut self, device: Vector3<f64>, dt: f64) -> LocalAnswer {
         let device_velocity = if dt > 0.0 { (device - self.device) / dt } else { Vector3::zeros() };
         self.device = device;
         if dt > 0.0 {
@@ -175,7 +227,7 @@ impl LocalModel {
             self.elapsed += h;
         }
         let (pull, _, _, saturated) = self.pull(&device_velocity);
-        LocalAnswer { force: -pull, saturated }
+        LocalAnswer { force: -pull, torque: Vector3::zeros(), saturated }
     }
 
     /// The coupling's pull on the simulated tool (the full solve's law, `Coupling::pull`).

@@ -21,7 +21,7 @@ use serde::{Deserialize, Serialize};
 
 pub use cpu::Simulation;
 pub use engine::{SolverEngine, SolverEngineError};
-pub use haptic::{LocalAnswer, LocalContact, LocalModel};
+pub use haptic::{LocalAnswer, LocalContact, LocalModel, LocalTurning};
 pub use model::{FixedNodes, MassSpringModel, Material, TissueRow};
 pub use tool::{ContactModel, Coupling, Friction, RotationalCoupling, Tool, ToolShape};
 

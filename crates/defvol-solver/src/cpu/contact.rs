@@ -498,9 +498,26 @@ impl<T: Real> Simulation<T> {
             let proxy = self.proxies[k].clone();
             let Some(coupling) = self.tools[proxy.tool].coupling else { continue };
             let contact = self.local_contact(k);
-            queries.push(LocalQuery::new(proxy.tool, coupling, proxy.x, proxy.v, proxy.device, contact));
+            let turning = self.local_turning(&proxy);
+            queries.push(LocalQuery::new(proxy.tool, coupling, proxy.x, proxy.v, proxy.device, contact, turning));
         }
         queries
+    }
+
+    /// A turning tool's part of its local model: its state and the contacts' torque on it
+    /// about its tip at the end of the step (pushes and friction).
+    fn local_turning(&self, proxy: &Proxy) -> Option<LocalTurning> {
+        let (turning, coupling) = (proxy.turning.as_ref()?, self.tools[proxy.tool].rotational_coupling?);
+        let mine = |tool: usize| tool == proxy.tool;
+        let pushes = self.contacts.iter().filter(|c| mine(c.tool)).map(|c| (c.at - proxy.x).cross(&-c.force()));
+        let rubs = self.friction_forces.iter().filter(|f| mine(f.tool)).map(|f| (f.at - proxy.x).cross(&f.on_tool));
+        Some(LocalTurning {
+            coupling,
+            orientation: turning.orientation,
+            omega: turning.omega,
+            device: turning.device,
+            contact_torque: pushes.chain(rubs).sum(),
+        })
     }
 
     fn local_contact(&mut self, k: usize) -> Option<PendingContact> {

@@ -11,7 +11,7 @@ mod recovery;
 
 use crate::amg::{Amg, Csr};
 use crate::contact::{Surface, SurfaceContact, ToolCore, CONTACT_NODES};
-use crate::haptic::{LocalModel, LocalQuery, PendingContact, StiffnessRule};
+use crate::haptic::{LocalModel, LocalQuery, LocalTurning, PendingContact, StiffnessRule};
 use crate::kernels::{self, ContactTool, SpringTerms};
 use crate::model::MassSpringModel;
 use crate::tool::{spread_weights, ContactModel, Tool};
