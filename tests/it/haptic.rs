@@ -139,8 +139,9 @@ fn turning_needle_against_full(every: usize, depth: f64) -> (f64, f64) {
 
 /// Turning in free space the local model's torque is the full solve's own, never
 /// refreshed (1e-9); with the far end pressed 2 mm in, refreshed every solve, it answers
-/// within 20 % of the largest torque (measured 16.7 %: the contacts' torque is held between
-/// solves, their rotational stiffness left to the next solve; before, no torque at all).
+/// within 5 % of the largest torque (measured 2.8 %, as the needle first touches: the
+/// contact plane's row spans the tool's turning through its lever; holding the contacts'
+/// torque instead gave 16.7 %, and before, no torque at all).
 #[test]
 fn local_model_turns_with_the_device_and_feels_its_torque() {
     let (worst, largest) = turning_needle_against_full(usize::MAX, -0.005);
@@ -148,7 +149,7 @@ fn local_model_turns_with_the_device_and_feels_its_torque() {
     assert!(worst < 1e-9 * largest, "free: the local torque departs by {worst} N·m of {largest} N·m");
     let (worst, largest) = turning_needle_against_full(1, 0.002);
     assert!(largest > 1e-2, "pressed: {largest} N·m");
-    assert!(worst < 0.2 * largest, "pressed: the local torque departs by {worst} N·m of {largest} N·m");
+    assert!(worst < 0.05 * largest, "pressed: the local torque departs by {worst} N·m of {largest} N·m");
 }
 
 /// A device pose far through the organ: the local model pulls with the coupling's largest

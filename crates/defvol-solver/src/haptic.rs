@@ -7,7 +7,7 @@
 //! its own rate, with the coupling's law and implicit step, so its cost does not grow with
 //! the mesh; the next solve, which receives the same poses, brings it back in line.
 
-use nalgebra::{Isometry3, Matrix3, UnitQuaternion, Vector3};
+use nalgebra::{Isometry3, Matrix3, Matrix6, UnitQuaternion, Vector3, Vector6};
 
 use crate::tool::{Coupling, Friction, RotationalCoupling};
 
@@ -16,6 +16,8 @@ use crate::tool::{Coupling, Friction, RotationalCoupling};
 pub struct LocalContact {
     /// Unit normal out of the surface (the direction the contact pushes the tool).
     pub normal: Vector3<f64>,
+    /// (contact point - tip) × normal: how turning the tool moves it along the normal.
+    pub lever: Vector3<f64>,
     /// Penetration at the solve (m); negative for a surface the tool is about to touch.
     pub depth: f64,
     /// Stiffness the tool feels along `normal` (N/m).
@@ -41,14 +43,16 @@ pub struct LocalModel {
     pub contact: Option<LocalContact>,
     /// With a rotational coupling, how the simulated tool turns between solves.
     pub turning: Option<LocalTurning>,
-    /// Where the simulated tool was when the contact was linearised, and the time since.
+    /// Where the simulated tool was when the contact was linearised, how far it turned
+    /// since (axis times angle), and the time since.
     anchor: Vector3<f64>,
+    turned: Vector3<f64>,
     elapsed: f64,
 }
 
 /// A simulated tool's turning between two solves (a rotational coupling): advanced with the
-/// coupling's law and the full solve's implicit step, the contacts' torque of the last solve
-/// held (the contacts' rotational stiffness is left to the next solve).
+/// coupling's law and the full solve's implicit step, the contact plane's row spanning it
+/// through its lever; the rest of the contacts' torque (friction's, other points') held.
 #[derive(Debug, Clone, PartialEq)]
 pub struct LocalTurning {
     pub coupling: RotationalCoupling,
@@ -61,23 +65,17 @@ pub struct LocalTurning {
 }
 
 impl LocalTurning {
-    /// Advances by `dt` towards the device at `device`; the torque the device feels and
-    /// whether the coupling saturated.
-    fn answer(&mut self, device: UnitQuaternion<f64>, dt: f64) -> (Vector3<f64>, bool) {
-        let device_omega =
-            if dt > 0.0 { (device * self.device.inverse()).scaled_axis() / dt } else { Vector3::zeros() };
-        self.device = device;
-        let twist =
-            |t: &Self| t.coupling.twist((t.device * t.orientation.inverse()).scaled_axis(), device_omega - t.omega);
-        if dt > 0.0 {
-            let (torque, stiffness, damping, _) = twist(self);
-            let h = dt;
-            let diag = self.coupling.inertia + h * damping + h * h * stiffness;
-            self.omega += (torque + self.contact_torque - self.omega * (h * stiffness)) * (h / diag);
-            self.orientation = UnitQuaternion::from_scaled_axis(self.omega * h) * self.orientation;
-        }
-        let (torque, _, _, saturated) = twist(self);
-        (-torque, saturated)
+    /// The coupling's torque at the device's angular velocity `device_omega`, with its
+    /// stiffness and damping (scaled when it saturates) and whether it did.
+    fn twist(&self, device_omega: &Vector3<f64>) -> (Vector3<f64>, f64, f64, bool) {
+        self.coupling.twist((self.device * self.orientation.inverse()).scaled_axis(), device_omega - self.omega)
+    }
+
+    /// Its row of the local step: (I + hC + h²K) Δω = h (τ + τ_held - h K ω).
+    fn row(&self, device_omega: &Vector3<f64>, h: f64) -> (Matrix3<f64>, Vector3<f64>) {
+        let (torque, stiffness, damping, _) = self.twist(device_omega);
+        let diag = Matrix3::identity() * (self.coupling.inertia + h * damping + h * h * stiffness);
+        (diag, (torque + self.contact_torque - self.omega * (h * stiffness)) * h)
     }
 }
 
@@ -102,6 +100,7 @@ pub(crate) struct LocalQuery {
 #[derive(Debug, Clone)]
 pub(crate) struct PendingContact {
     pub normal: Vector3<f64>,
+    pub lever: Vector3<f64>,
     pub surface_speed: f64,
     pub friction: Option<Friction>,
     /// Rows and directions b of the system whose bᵀA⁻¹b the stiffness needs (none: it
@@ -158,12 +157,17 @@ impl LocalQuery {
             };
             (stiffness > 0.0).then_some(LocalContact {
                 normal: c.normal,
+                lever: c.lever,
                 depth,
                 stiffness,
                 surface_speed: c.surface_speed,
                 friction: c.friction,
             })
         });
+        // The plane now carries its own torque; the rest of the contacts' is held.
+        if let (Some(turning), Some(c)) = (&mut model.turning, &model.contact) {
+            turning.contact_torque -= c.lever * (c.stiffness * c.depth.max(0.0));
+        }
         model
     }
 }
@@ -177,57 +181,96 @@ impl LocalModel {
         device: Vector3<f64>,
         contact: Option<LocalContact>,
     ) -> Self {
-        Self { tool, coupling, position, velocity, device, contact, turning: None, anchor: position, elapsed: 0.0 }
+        Self {
+            tool,
+            coupling,
+            position,
+            velocity,
+            device,
+            contact,
+            turning: None,
+            anchor: position,
+            turned: Vector3::zeros(),
+            elapsed: 0.0,
+        }
     }
 
-    /// The contact's penetration with the simulated tool at `x`, `elapsed` after the solve.
+    /// The contact's penetration with the simulated tool at `x` (turned by `turned` since
+    /// the solve), `elapsed` after the solve.
     fn depth_at(&self, contact: &LocalContact, x: &Vector3<f64>, elapsed: f64) -> f64 {
-        contact.depth - contact.normal.dot(&(x - self.anchor)) + contact.surface_speed * elapsed
+        let turned = if self.turning.is_some() { contact.lever.dot(&self.turned) } else { 0.0 };
+        contact.depth - contact.normal.dot(&(x - self.anchor)) - turned + contact.surface_speed * elapsed
     }
 
     /// Advances the simulated tool by `dt` towards the device at `device` (the implicit
     /// Euler step the full solve takes for it, the mesh condensed into the contact plane;
     /// turning too with a rotational coupling) and returns what the device feels.
     pub fn answer(&mut self, device: &Isometry3<f64>, dt: f64) -> LocalAnswer {
-        let (torque, twisted) = match &mut self.turning {
-            Some(turning) => turning.answer(device.rotation, dt),
-            None => (Vector3::zeros(), false),
-        };
-        let answer = self.follow(device.translation.vector, dt);
-        LocalAnswer { torque, saturated: answer.saturated || twisted, ..answer }
+        let step = |now: Vector3<f64>, last: Vector3<f64>| if dt > 0.0 { (now - last) / dt } else { Vector3::zeros() };
+        let device_velocity = step(device.translation.vector, self.device);
+        self.device = device.translation.vector;
+        let device_omega = self.turning.as_mut().map_or_else(Vector3::zeros, |t| {
+            let omega = step((device.rotation * t.device.inverse()).scaled_axis(), Vector3::zeros());
+            t.device = device.rotation;
+            omega
+        });
+        if dt > 0.0 {
+            let dx = self.local_step(&device_velocity, &device_omega, dt);
+            self.velocity += dx.fixed_rows::<3>(0);
+            self.position += self.velocity * dt;
+            if let Some(t) = &mut self.turning {
+                t.omega += dx.fixed_rows::<3>(3);
+                t.orientation = UnitQuaternion::from_scaled_axis(t.omega * dt) * t.orientation;
+                self.turned += t.omega * dt;
+            }
+            self.elapsed += dt;
+        }
+        let (pull, _, _, pulled) = self.pull(&device_velocity);
+        let (torque, twisted) = self.turning.as_ref().map_or((Vector3::zeros(), false), |t| {
+            let (torque, _, _, saturated) = t.twist(&device_omega);
+            (-torque, saturated)
+        });
+        LocalAnswer { force: -pull, torque, saturated: pulled || twisted }
     }
 
-    /// The translational part of `answer`.
-    fn follow(&mut self, device: Vector3<f64>, dt: f64) -> LocalAnswer {
-        let device_velocity = if dt > 0.0 { (device - self.device) / dt } else { Vector3::zeros() };
-        self.device = device;
-        if dt > 0.0 {
-            let (pull, stiffness, damping, _) = self.pull(&device_velocity);
-            let h = dt;
-            let base = Matrix3::identity() * (self.coupling.mass + h * damping + h * h * stiffness);
-            let free = (pull - self.velocity * (h * stiffness)) * h;
-            let mut dv = base.try_inverse().unwrap_or_else(Matrix3::zeros) * free;
-            if let Some(c) = self.contact {
-                // The contact's row, kept only if the tool still presses at the step's end,
-                // with its friction's damper on the sliding velocity (lagged, as in the solve).
-                let depth = self.depth_at(&c, &self.position, self.elapsed);
-                let rate = c.surface_speed - c.normal.dot(&self.velocity);
-                let across = Matrix3::identity() - c.normal * c.normal.transpose();
-                let sliding = across * self.velocity;
-                let brake = c.friction.map_or(0.0, |f| f.damping(c.stiffness * depth.max(0.0), sliding.norm()));
-                let a = base + c.normal * c.normal.transpose() * (h * h * c.stiffness) + across * (h * brake);
-                let b = free + c.normal * (h * c.stiffness * (depth + h * rate)) - sliding * (h * brake);
-                let pressed = a.try_inverse().unwrap_or_else(Matrix3::zeros) * b;
-                if depth + h * (c.surface_speed - c.normal.dot(&(self.velocity + pressed))) > 0.0 {
-                    dv = pressed;
-                }
-            }
-            self.velocity += dv;
-            self.position += self.velocity * h;
-            self.elapsed += h;
+    /// The implicit Euler step the full solve takes for the tool, its (Δv, Δω): the
+    /// coupling's rows, and the contact plane's row over both (gradient (n, lever)), kept
+    /// only if the tool still presses at the step's end, with its friction's damper on the
+    /// sliding velocity (lagged, as in the solve).
+    fn local_step(&self, device_velocity: &Vector3<f64>, device_omega: &Vector3<f64>, h: f64) -> Vector6<f64> {
+        let (pull, stiffness, damping, _) = self.pull(device_velocity);
+        let mut a = Matrix6::identity();
+        let mut b = Vector6::zeros();
+        a.fixed_view_mut::<3, 3>(0, 0)
+            .copy_from(&(Matrix3::identity() * (self.coupling.mass + h * damping + h * h * stiffness)));
+        b.fixed_rows_mut::<3>(0).copy_from(&((pull - self.velocity * (h * stiffness)) * h));
+        let omega = self.turning.as_ref().map_or_else(Vector3::zeros, |t| t.omega);
+        if let Some(t) = &self.turning {
+            let (diag, rhs) = t.row(device_omega, h);
+            a.fixed_view_mut::<3, 3>(3, 3).copy_from(&diag);
+            b.fixed_rows_mut::<3>(3).copy_from(&rhs);
         }
-        let (pull, _, _, saturated) = self.pull(&device_velocity);
-        LocalAnswer { force: -pull, torque: Vector3::zeros(), saturated }
+        let free = a.try_inverse().unwrap_or_else(Matrix6::zeros) * b;
+        let Some(c) = self.contact else { return free };
+        let lever = if self.turning.is_some() { c.lever } else { Vector3::zeros() };
+        let gradient = Vector6::new(c.normal.x, c.normal.y, c.normal.z, lever.x, lever.y, lever.z);
+        let velocity = Vector6::new(self.velocity.x, self.velocity.y, self.velocity.z, omega.x, omega.y, omega.z);
+        let depth = self.depth_at(&c, &self.position, self.elapsed);
+        let rate = c.surface_speed - gradient.dot(&velocity);
+        let across = Matrix3::identity() - c.normal * c.normal.transpose();
+        let sliding = across * self.velocity;
+        let brake = c.friction.map_or(0.0, |f| f.damping(c.stiffness * depth.max(0.0), sliding.norm()));
+        let mut a = a + gradient * gradient.transpose() * (h * h * c.stiffness);
+        let mut b = b + gradient * (h * c.stiffness * (depth + h * rate));
+        let mut braked = a.fixed_view_mut::<3, 3>(0, 0);
+        braked += across * (h * brake);
+        let mut braking = b.fixed_rows_mut::<3>(0);
+        braking -= sliding * (h * brake);
+        let pressed = a.try_inverse().unwrap_or_else(Matrix6::zeros) * b;
+        match depth + h * (c.surface_speed - gradient.dot(&(velocity + pressed))) > 0.0 {
+            true => pressed,
+            false => free,
+        }
     }
 
     /// The coupling's pull on the simulated tool (the full solve's law, `Coupling::pull`).

@@ -533,7 +533,8 @@ impl<T: Real> Simulation<T> {
             let along = c.node_forces().map(|(n, _)| n as usize).zip(c.shares.iter().copied()).collect();
             let rule = StiffnessRule::InSeries { depth: c.depth, penalty: c.stiffness };
             let friction = self.tools[tool].friction;
-            return Some(PendingContact { normal: -c.push, surface_speed, friction, along, rule });
+            let lever = (c.at - self.proxies[k].x).cross(&-c.push);
+            return Some(PendingContact { normal: -c.push, lever, surface_speed, friction, along, rule });
         };
         let penalty: f64 = self.contacts.iter().filter(|c| c.tool == tool).map(|c| c.stiffness).fold(0.0, f64::max);
         let row = self.u.len() + k;
@@ -541,6 +542,9 @@ impl<T: Real> Simulation<T> {
         let pressed = self.active_contacts.iter().any(|c| c.tool == tool);
         let mine: Vec<SurfaceContact> = self.contacts.iter().filter(|c| c.tool == tool).copied().collect();
         let surface_speed = self.surface_speed(&mine);
+        // Where the push acts (its force-weighted point), for the lever that turns the tool.
+        let at = mine.iter().map(|c| c.at * c.force().norm()).sum::<Vector3<f64>>() / force.norm();
+        let lever = (at - self.proxies[k].x).cross(&normal);
         let (along, rule) = match pressed {
             true => {
                 let own = normal.dot(&(self.proxy_diag[k].map(T::to_f64) * normal));
@@ -548,7 +552,7 @@ impl<T: Real> Simulation<T> {
             }
             false => (Vec::new(), StiffnessRule::Penalty { force: force.norm(), penalty }),
         };
-        Some(PendingContact { normal, surface_speed, friction: self.tools[tool].friction, along, rule })
+        Some(PendingContact { normal, lever, surface_speed, friction: self.tools[tool].friction, along, rule })
     }
 
     /// How fast the surface under `contacts` moves along their normal (out of the body):
