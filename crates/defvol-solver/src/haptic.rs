@@ -60,7 +60,8 @@ pub struct LocalTurning {
     pub omega: Vector3<f64>,
     /// The device's last orientation, for its angular velocity.
     pub device: UnitQuaternion<f64>,
-    /// The contacts' torque on the tool about its tip at the solve (N·m).
+    /// The contacts' torque on the tool about its tip at the solve that the contact plane
+    /// does not carry (N·m), held.
     pub contact_torque: Vector3<f64>,
 }
 
