@@ -68,33 +68,53 @@ impl Coupling {
     /// away from the device, with the stiffness and damping that make it: scaled down
     /// together when the pull would pass `max_force`, which the last element says.
     pub fn pull(&self, offset: Vector3<f64>, relative_velocity: Vector3<f64>) -> (Vector3<f64>, f64, f64, bool) {
-        let raw = offset * self.stiffness + relative_velocity * self.damping;
-        let magnitude = raw.norm();
-        if magnitude > self.max_force {
-            let scale = self.max_force / magnitude;
-            (raw * scale, self.stiffness * scale, self.damping * scale, true)
-        } else {
-            (raw, self.stiffness, self.damping, false)
-        }
+        saturating(offset, relative_velocity, self.stiffness, self.damping, self.max_force)
     }
 
     pub fn validate(&self, index: usize) -> Result<(), super::SolverError> {
-        let checks = [
-            ("stiffness", self.stiffness, self.stiffness > 0.0),
-            ("damping", self.damping, self.damping >= 0.0),
-            ("mass", self.mass, self.mass > 0.0),
-            ("max_force", self.max_force, self.max_force > 0.0),
-        ];
-        for (name, value, ok) in checks {
-            if !(value.is_finite() && ok) {
-                return Err(super::SolverError::BadParameter {
-                    name: format!("tools[{index}].coupling.{name}"),
-                    value,
-                    why: "must be finite and positive (damping may be 0)".into(),
-                });
-            }
-        }
-        Ok(())
+        let why = "must be finite and positive (damping may be 0)";
+        check_fields(
+            index,
+            "coupling",
+            &[
+                ("stiffness", self.stiffness, self.stiffness > 0.0, why),
+                ("damping", self.damping, self.damping >= 0.0, why),
+                ("mass", self.mass, self.mass > 0.0, why),
+                ("max_force", self.max_force, self.max_force > 0.0, why),
+            ],
+        )
+    }
+}
+
+/// A spring-damper's response k·offset + c·rate, with k and c scaled down together when it
+/// would pass `limit` (which the last element says): the law of both couplings.
+fn saturating(
+    offset: Vector3<f64>,
+    rate: Vector3<f64>,
+    stiffness: f64,
+    damping: f64,
+    limit: f64,
+) -> (Vector3<f64>, f64, f64, bool) {
+    let raw = offset * stiffness + rate * damping;
+    let magnitude = raw.norm();
+    if magnitude > limit {
+        let scale = limit / magnitude;
+        (raw * scale, stiffness * scale, damping * scale, true)
+    } else {
+        (raw, stiffness, damping, false)
+    }
+}
+
+/// The first of `checks` (field, value, whether it is allowed, why) whose value is not
+/// finite or not allowed, as an error naming `tools[index].section.field`.
+fn check_fields(index: usize, section: &str, checks: &[(&str, f64, bool, &str)]) -> Result<(), super::SolverError> {
+    match checks.iter().find(|(_, value, ok, _)| !(value.is_finite() && *ok)) {
+        Some((field, value, _, why)) => Err(super::SolverError::BadParameter {
+            name: format!("tools[{index}].{section}.{field}"),
+            value: *value,
+            why: (*why).into(),
+        }),
+        None => Ok(()),
     }
 }
 
@@ -119,24 +139,21 @@ impl RotationalCoupling {
     /// from it and `relative_omega` faster, with the stiffness and damping that make it,
     /// scaled down together past `max_torque` (which the last element says).
     pub fn twist(&self, error: Vector3<f64>, relative_omega: Vector3<f64>) -> (Vector3<f64>, f64, f64, bool) {
-        Coupling { stiffness: self.stiffness, damping: self.damping, mass: self.inertia, max_force: self.max_torque }
-            .pull(error, relative_omega)
+        saturating(error, relative_omega, self.stiffness, self.damping, self.max_torque)
     }
 
     pub fn validate(&self, index: usize) -> Result<(), super::SolverError> {
-        Coupling { stiffness: self.stiffness, damping: self.damping, mass: self.inertia, max_force: self.max_torque }
-            .validate(index)
-            .map_err(|e| match e {
-                super::SolverError::BadParameter { name, value, why } => super::SolverError::BadParameter {
-                    name: name
-                        .replace(".coupling.mass", ".rotational_coupling.inertia")
-                        .replace(".coupling.max_force", ".rotational_coupling.max_torque")
-                        .replace(".coupling.", ".rotational_coupling."),
-                    value,
-                    why,
-                },
-                other => other,
-            })
+        let why = "must be finite and positive (damping may be 0)";
+        check_fields(
+            index,
+            "rotational_coupling",
+            &[
+                ("stiffness", self.stiffness, self.stiffness > 0.0, why),
+                ("damping", self.damping, self.damping >= 0.0, why),
+                ("inertia", self.inertia, self.inertia > 0.0, why),
+                ("max_torque", self.max_torque, self.max_torque > 0.0, why),
+            ],
+        )
     }
 }
 
@@ -177,21 +194,15 @@ impl Friction {
 
     pub fn validate(&self, index: usize) -> Result<(), super::SolverError> {
         let (s, k) = (self.static_coefficient, self.kinetic_coefficient);
-        let checks = [
-            ("kinetic", k, k >= 0.0, "must be finite and not negative"),
-            ("static", s, s >= k, "must be finite and at least the kinetic coefficient"),
-            ("stick_speed", self.stick_speed, self.stick_speed > 0.0, "must be finite and positive (m/s)"),
-        ];
-        for (name, value, ok, why) in checks {
-            if !(value.is_finite() && ok) {
-                return Err(super::SolverError::BadParameter {
-                    name: format!("tools[{index}].friction.{name}"),
-                    value,
-                    why: why.into(),
-                });
-            }
-        }
-        Ok(())
+        check_fields(
+            index,
+            "friction",
+            &[
+                ("kinetic", k, k >= 0.0, "must be finite and not negative"),
+                ("static", s, s >= k, "must be finite and at least the kinetic coefficient"),
+                ("stick_speed", self.stick_speed, self.stick_speed > 0.0, "must be finite and positive (m/s)"),
+            ],
+        )
     }
 }
 

@@ -14,20 +14,7 @@ impl<T: Real> Simulation<T> {
             }
             if let Some(friction) = &tool.friction {
                 friction.validate(index)?;
-                let why = if tool.contact != ContactModel::Surface {
-                    Some("friction needs surface contact")
-                } else if self.params.integrator != Integrator::ImplicitEuler {
-                    Some("friction needs the implicit_euler integrator (its damper is stiff while sticking)")
-                } else {
-                    None
-                };
-                if let Some(why) = why {
-                    return Err(SolverError::BadParameter {
-                        name: format!("tools[{index}].friction"),
-                        value: friction.static_coefficient,
-                        why: why.into(),
-                    });
-                }
+                self.surface_and_implicit(index, "friction", friction.static_coefficient)?;
             }
             if let Some(rotational) = &tool.rotational_coupling {
                 rotational.validate(index)?;
@@ -41,20 +28,7 @@ impl<T: Real> Simulation<T> {
             }
             if let Some(coupling) = &tool.coupling {
                 coupling.validate(index)?;
-                let why = if tool.contact != ContactModel::Surface {
-                    Some("a coupled tool needs surface contact")
-                } else if self.params.integrator != Integrator::ImplicitEuler {
-                    Some("a coupled tool needs the implicit_euler integrator")
-                } else {
-                    None
-                };
-                if let Some(why) = why {
-                    return Err(SolverError::BadParameter {
-                        name: format!("tools[{index}].coupling"),
-                        value: coupling.stiffness,
-                        why: why.into(),
-                    });
-                }
+                self.surface_and_implicit(index, "coupling", coupling.stiffness)?;
             }
         }
         self.tools
@@ -70,6 +44,19 @@ impl<T: Real> Simulation<T> {
                 })
             })
             .collect()
+    }
+
+    /// An error unless tool `index` is on surface contact and the integrator implicit Euler:
+    /// what its `field` (coupling, friction: rows of the implicit system) needs.
+    fn surface_and_implicit(&self, index: usize, field: &str, value: f64) -> Result<(), SolverError> {
+        let why = if self.tools[index].contact != ContactModel::Surface {
+            "needs surface contact"
+        } else if self.params.integrator != Integrator::ImplicitEuler {
+            "needs the implicit_euler integrator (its rows are in the implicit system)"
+        } else {
+            return Ok(());
+        };
+        Err(SolverError::BadParameter { name: format!("tools[{index}].{field}"), value, why: format!("{field} {why}") })
     }
 
     /// Spreads every tool's commanded force over the nodes near its tip.
