@@ -12,8 +12,11 @@
 //! so a large probe dents a patch rather than one point.
 //!
 //! The broad phase is a bounding-volume hierarchy over the boundary faces, built once on
-//! the rest shape and refitted to the deformed one: a query touches the few faces near the
-//! tool, whatever the mesh's size.
+//! the rest shape. It is refitted to the deformed shape only once the nodes may have
+//! drifted half a spacing from where its boxes were fitted; until then every box is read
+//! grown by that drift, which keeps it conservative. Positions are read one node at a time
+//! (`Positions`), so a query touches the few faces near the tool and copies nothing,
+//! whatever the mesh's size.
 
 use std::collections::HashMap;
 
@@ -42,6 +45,22 @@ impl ContactParams {
         Some((n * (self.stiffness * (self.radius - dist)), n))
     }
 }
+
+/// Node positions read one at a time, so that a query near the tool reads the nodes near
+/// it and never copies the whole mesh's.
+pub trait Positions {
+    fn at(&self, node: u32) -> Vector3<f64>;
+}
+
+impl Positions for [Vector3<f64>] {
+    fn at(&self, node: u32) -> Vector3<f64> {
+        self[node as usize]
+    }
+}
+
+/// The hierarchy is refitted once the nodes may have drifted this many spacings from where
+/// its boxes were fitted: queries grow with the drift, refits are whole-surface passes.
+const REFIT_DRIFT: f64 = 0.5;
 
 /// Faces per leaf of the hierarchy.
 const LEAF: usize = 4;
@@ -146,6 +165,9 @@ pub struct Surface {
     bvh: Vec<BvhNode>,
     order: Vec<u32>,
     spacing: f64,
+    /// How far any node may have moved since the boxes were fitted (m): every box is read
+    /// grown by it.
+    drift: f64,
 }
 
 impl Surface {
@@ -183,6 +205,7 @@ impl Surface {
             bvh: Vec::new(),
             order: (0..faces.len() as u32).collect(),
             spacing,
+            drift: 0.0,
         };
         if !faces.is_empty() {
             let centroids: Vec<Vector3<f64>> =
@@ -220,8 +243,17 @@ impl Surface {
         index
     }
 
+    /// The nodes moved by at most `distance` (m) since the last call: the boxes are read
+    /// grown by the sum, or refitted to `positions` once it passes `REFIT_DRIFT` spacings.
+    pub fn moved<P: Positions + ?Sized>(&mut self, distance: f64, positions: &P) {
+        self.drift += distance;
+        if self.drift.is_nan() || self.drift > REFIT_DRIFT * self.spacing {
+            self.refit(positions);
+        }
+    }
+
     /// Boxes around the faces at `positions` (children come after their parent).
-    pub fn refit(&mut self, positions: &[Vector3<f64>]) {
+    pub fn refit<P: Positions + ?Sized>(&mut self, positions: &P) {
         for n in (0..self.bvh.len()).rev() {
             let node = self.bvh[n];
             let (lo, hi) = if node.count > 0 {
@@ -230,8 +262,8 @@ impl Surface {
                 let mut lo = Vector3::repeat(f64::INFINITY);
                 let mut hi = Vector3::repeat(f64::NEG_INFINITY);
                 for i in corners {
-                    lo = lo.inf(&positions[i as usize]);
-                    hi = hi.sup(&positions[i as usize]);
+                    lo = lo.inf(&positions.at(i));
+                    hi = hi.sup(&positions.at(i));
                 }
                 (lo, hi)
             } else {
@@ -241,6 +273,13 @@ impl Surface {
             self.bvh[n].lo = lo;
             self.bvh[n].hi = hi;
         }
+        self.drift = 0.0;
+    }
+
+    /// Node `n`'s box as it may be now: grown by the drift since it was fitted.
+    fn node_box(&self, n: usize) -> (Vector3<f64>, Vector3<f64>) {
+        let grow = Vector3::repeat(self.drift);
+        (self.bvh[n].lo - grow, self.bvh[n].hi + grow)
     }
 
     /// Calls `visit` for every face whose box comes within `reach` of the box [lo, hi].
@@ -251,7 +290,8 @@ impl Surface {
         let mut stack = vec![0usize];
         while let Some(n) = stack.pop() {
             let node = &self.bvh[n];
-            if (0..3).any(|a| node.hi[a] < lo[a] || node.lo[a] > hi[a]) {
+            let (node_lo, node_hi) = self.node_box(n);
+            if (0..3).any(|a| node_hi[a] < lo[a] || node_lo[a] > hi[a]) {
                 continue;
             }
             if node.count > 0 {
@@ -265,39 +305,62 @@ impl Surface {
         }
     }
 
-    fn face_normal(&self, f: u32, x: &[Vector3<f64>]) -> Vector3<f64> {
-        let [a, b, c] = self.faces[f as usize].map(|i| x[i as usize]);
+    fn face_normal<P: Positions + ?Sized>(&self, f: u32, x: &P) -> Vector3<f64> {
+        let [a, b, c] = self.faces[f as usize].map(|i| x.at(i));
         (b - a).cross(&(c - a)).try_normalize(0.0).unwrap_or_else(Vector3::zeros)
     }
 
-    /// Whether `p` lies inside the closed surface with node positions `position(i)` (the
-    /// hierarchy refitted to them): its generalised winding number (the faces' solid angles
-    /// seen from `p`, over 4π; Jacobson et al. 2013) is near 1 inside and 0 outside, with no
-    /// ray to graze an edge. A point outside the surface's box costs nothing more.
-    pub fn encloses(&self, p: &Vector3<f64>, position: impl Fn(u32) -> Vector3<f64>) -> bool {
-        let (lo, hi) = self.bvh.first().map_or((*p, *p), |root| (root.lo, root.hi));
-        if (0..3).any(|k| p[k] < lo[k] || p[k] > hi[k]) {
-            return false;
-        }
-        let solid_angle = |face: &[u32; 3]| {
-            let [a, b, c] = face.map(|i| position(i) - p);
-            let (la, lb, lc) = (a.norm(), b.norm(), c.norm());
-            let below = la * lb * lc + a.dot(&b) * lc + a.dot(&c) * lb + b.dot(&c) * la;
-            2.0 * a.dot(&b.cross(&c)).atan2(below)
+    /// Whether `p` lies inside the closed surface at `x` (the boxes fitted as `moved`
+    /// keeps them): the side of its nearest feature that feature's pseudo-normal says
+    /// (Bærentzen & Aanæs 2005), exact for a closed manifold surface, as the contacts
+    /// decide it. The nearest face costs a descent of the hierarchy, not a pass over it.
+    pub fn encloses<P: Positions + ?Sized>(&self, p: &Vector3<f64>, x: &P) -> bool {
+        self.nearest_face(p, x).is_some_and(|f| (p - f.at).dot(&self.feature_normal(f.face, &f.weights, x)) < 0.0)
+    }
+
+    /// The face nearest `p` (ties to the lowest face): best first down the hierarchy, a
+    /// box skipped once its distance (less the drift) passes the nearest face found.
+    fn nearest_face<P: Positions + ?Sized>(&self, p: &Vector3<f64>, x: &P) -> Option<NearFace> {
+        let box_distance = |n: usize| {
+            let (lo, hi) = self.node_box(n);
+            (lo - p).sup(&(p - hi)).sup(&Vector3::zeros()).norm()
         };
-        let winding: f64 = self.faces.iter().map(solid_angle).sum::<f64>() / (4.0 * std::f64::consts::PI);
-        winding > 0.5
+        let mut best: Option<NearFace> = None;
+        let mut stack = if self.bvh.is_empty() { Vec::new() } else { vec![(0usize, box_distance(0))] };
+        while let Some((n, lower)) = stack.pop() {
+            if best.as_ref().is_some_and(|b| lower > b.distance) {
+                continue;
+            }
+            let node = self.bvh[n];
+            if node.count == 0 {
+                let (left, right) = (n + 1, node.start as usize);
+                let (dl, dr) = (box_distance(left), box_distance(right));
+                // The nearer child on top of the stack, searched first.
+                stack.extend(if dl <= dr { [(right, dr), (left, dl)] } else { [(left, dl), (right, dr)] });
+                continue;
+            }
+            for &face in &self.order[node.start as usize..(node.start + node.count) as usize] {
+                let [a, b, c] = self.faces[face as usize].map(|i| x.at(i));
+                let (at, weights) = closest_on_triangle(p, &a, &b, &c);
+                let distance = (p - at).norm();
+                let nearer = best.as_ref().is_none_or(|b| (distance, face) < (b.distance, b.face));
+                if nearer {
+                    best = Some(NearFace { face, at, weights, distance });
+                }
+            }
+        }
+        best
     }
 
     /// Angle-weighted normal of node i: the sign of (p - x_i)·N tells inside from outside
     /// for points whose nearest surface point is the node.
-    fn node_normal(&self, i: u32, x: &[Vector3<f64>]) -> Vector3<f64> {
+    fn node_normal<P: Positions + ?Sized>(&self, i: u32, x: &P) -> Vector3<f64> {
         let range = self.node_offsets[i as usize] as usize..self.node_offsets[i as usize + 1] as usize;
         let mut sum = Vector3::zeros();
         for &f in &self.node_faces[range] {
             let face = self.faces[f as usize];
             let k = face.iter().position(|&n| n == i).unwrap_or(0);
-            let (p, q, r) = (x[face[k] as usize], x[face[(k + 1) % 3] as usize], x[face[(k + 2) % 3] as usize]);
+            let (p, q, r) = (x.at(face[k]), x.at(face[(k + 1) % 3]), x.at(face[(k + 2) % 3]));
             let angle = (q - p).angle(&(r - p));
             sum += self.face_normal(f, x) * angle;
         }
@@ -305,7 +368,7 @@ impl Surface {
     }
 
     /// The pseudo-normal of the nearest feature of face `f` at barycentric `w`.
-    fn feature_normal(&self, f: u32, w: &[f64; 3], x: &[Vector3<f64>]) -> Vector3<f64> {
+    fn feature_normal<P: Positions + ?Sized>(&self, f: u32, w: &[f64; 3], x: &P) -> Vector3<f64> {
         let face = self.faces[f as usize];
         let zero: Vec<usize> = (0..3).filter(|&k| w[k] <= ON_FEATURE).collect();
         match zero.as_slice() {
@@ -333,7 +396,7 @@ impl Surface {
     /// tool at least
     /// as wide as the spacing always has nodes inside it before anything passes between
     /// them: it pushes each boundary node inside it.
-    pub fn detect(&self, tools: &[ToolCore], positions: &[Vector3<f64>], margin: f64) -> Vec<SurfaceContact> {
+    pub fn detect<P: Positions + ?Sized>(&self, tools: &[ToolCore], positions: &P, margin: f64) -> Vec<SurfaceContact> {
         let mut contacts = Vec::new();
         // A sample up to one spacing past the surface still finds it and is pushed back;
         // one about to touch finds what lies within its margin.
@@ -356,7 +419,7 @@ impl Surface {
         contacts
     }
 
-    fn node_contacts(&self, tool: &ToolCore, x: &[Vector3<f64>], margin: f64, out: &mut Vec<SurfaceContact>) {
+    fn node_contacts<P: Positions + ?Sized>(&self, tool: &ToolCore, x: &P, margin: f64, out: &mut Vec<SurfaceContact>) {
         let ContactParams { a, b, radius, .. } = tool.core;
         let lo = a.inf(&b) - Vector3::repeat(radius + margin);
         let hi = a.sup(&b) + Vector3::repeat(radius + margin);
@@ -365,7 +428,7 @@ impl Surface {
         near.sort_unstable();
         near.dedup();
         for i in near {
-            let p = x[i as usize];
+            let p = x.at(i);
             let d = p - closest_on_segment(&a, &b, &p);
             let dist = d.norm();
             if dist >= radius + margin {
@@ -388,13 +451,13 @@ impl Surface {
     /// of the body is the side the nearest feature's pseudo-normal says; a centre already
     /// past the surface is pushed on through by that feature alone, never out of the far
     /// side (from inside, no other face's plane separates).
-    fn sample_contacts(
+    fn sample_contacts<P: Positions + ?Sized>(
         &self,
         tool: &ToolCore,
         centre: &Vector3<f64>,
         reach: f64,
         margin: f64,
-        x: &[Vector3<f64>],
+        x: &P,
     ) -> Vec<SurfaceContact> {
         let radius = tool.core.radius;
         let near = self.near_faces(centre, radius + reach, x);
@@ -432,11 +495,11 @@ impl Surface {
 
     /// The faces within `search` of `centre`, nearest first (ties to the lowest face:
     /// deterministic).
-    fn near_faces(&self, centre: &Vector3<f64>, search: f64, x: &[Vector3<f64>]) -> Vec<NearFace> {
+    fn near_faces<P: Positions + ?Sized>(&self, centre: &Vector3<f64>, search: f64, x: &P) -> Vec<NearFace> {
         let mut near = Vec::new();
         let r = Vector3::repeat(search);
         self.faces_near(centre - r, centre + r, |face| {
-            let [a, b, c] = self.faces[face as usize].map(|i| x[i as usize]);
+            let [a, b, c] = self.faces[face as usize].map(|i| x.at(i));
             let (at, weights) = closest_on_triangle(centre, &a, &b, &c);
             let distance = (centre - at).norm();
             if distance <= search {
@@ -699,7 +762,75 @@ mod tests {
                 .fold(f64::INFINITY, f64::min);
             let nearest = found.iter().map(|c| (p - c.at).norm()).fold(f64::INFINITY, f64::min);
             assert_relative_eq!(nearest, scan, epsilon = 1e-12);
+            assert_eq!(surface.nearest_face(&p, x).map(|f| f.distance), Some(scan));
         }
+    }
+
+    /// The slab with its nodes pushed by a dent of `depth` under (0.05, 0.05, 0): a smooth
+    /// field, largest at the top's middle.
+    fn dented(mesh: &defvol_core::mesh::TetMesh, depth: f64) -> Vec<Vector3<f64>> {
+        let centre = Vector3::new(0.05, 0.05, 0.0);
+        (mesh.nodes().iter())
+            .map(|p| p - Vector3::z() * depth * (-(p - centre).norm_squared() / (2.0 * 0.02f64.powi(2))).exp())
+            .collect()
+    }
+
+    /// Between refits the hierarchy's boxes, grown by the drift, find every contact a
+    /// hierarchy refitted to the moved nodes finds: the same contacts, bit for bit.
+    #[test]
+    fn drifted_boxes_find_what_refitted_boxes_find() {
+        let (mesh, mut drifted) = slab();
+        let depth = 0.4 * REFIT_DRIFT * drifted.spacing();
+        let x = dented(&mesh, depth);
+        drifted.moved(depth, &x[..]);
+        assert_eq!(drifted.drift, depth, "the move was small enough to keep the old boxes");
+        let mut refitted = drifted.clone();
+        refitted.refit(&x[..]);
+        let mut found = 0;
+        for (i, p) in [[0.05, 0.05, 0.0], [0.047, 0.052, -0.004], [0.06, 0.04, 0.002], [0.02, 0.08, -0.001]]
+            .into_iter()
+            .enumerate()
+        {
+            let p = Vector3::from(p);
+            let tool = ToolCore { tool: i, core: ContactParams { a: p, b: p, radius: 0.002, stiffness: 1.0 } };
+            let near = drifted.detect(&[tool], &x[..], 0.003);
+            assert_eq!(near, refitted.detect(&[tool], &x[..], 0.003), "tool at {p}");
+            found += near.len();
+        }
+        assert!(found >= 4, "the tools touch the dent: {found} contacts");
+        for (i, j) in (0..21).flat_map(|i| (0..21).map(move |j| (i, j))) {
+            let p = Vector3::new(0.03 + 0.002 * i as f64, 0.03 + 0.002 * j as f64, 0.0005 * (i + j) as f64 - 0.01);
+            let (a, b) = (drifted.nearest_face(&p, &x[..]), refitted.nearest_face(&p, &x[..]));
+            assert_eq!(a.map(|f| (f.face, f.distance)), b.map(|f| (f.face, f.distance)), "nearest to {p}");
+        }
+    }
+
+    /// Inside or outside by the nearest feature's pseudo-normal agrees with the generalised
+    /// winding number (the faces' solid angles over 4π; Jacobson et al. 2013), on a grid
+    /// through a dented slab: inside, outside and just past the surface.
+    #[test]
+    fn inside_by_the_nearest_feature_agrees_with_the_winding_number() {
+        let (mesh, mut surface) = slab();
+        let x = dented(&mesh, 0.008);
+        surface.refit(&x[..]);
+        let winding = |p: &Vector3<f64>| {
+            let solid_angle = |face: &[u32; 3]| {
+                let [a, b, c] = face.map(|i| x[i as usize] - p);
+                let (la, lb, lc) = (a.norm(), b.norm(), c.norm());
+                let below = la * lb * lc + a.dot(&b) * lc + a.dot(&c) * lb + b.dot(&c) * la;
+                2.0 * a.dot(&b.cross(&c)).atan2(below)
+            };
+            mesh.boundary().iter().map(solid_angle).sum::<f64>() / (4.0 * std::f64::consts::PI)
+        };
+        let mut inside = 0;
+        for (i, j, k) in (0..13).flat_map(|i| (0..13).flat_map(move |j| (0..11).map(move |k| (i, j, k)))) {
+            let p = Vector3::new(-0.006 + 0.0093 * i as f64, -0.004 + 0.0091 * j as f64, -0.066 + 0.0071 * k as f64);
+            let w = winding(&p);
+            assert!((w - 0.5).abs() > 0.1, "{p} lies on the surface (winding {w})");
+            assert_eq!(surface.encloses(&p, &x[..]), w > 0.5, "{p}: winding {w}");
+            inside += usize::from(w > 0.5);
+        }
+        assert!(inside > 300 && inside < 13 * 13 * 11 - 300, "{inside} of the grid inside");
     }
 
     /// A sample below the top face (inside the body) is pushed down past it, not up out of
@@ -778,7 +909,7 @@ mod tests {
         let (radius, height, stiffness) = (0.2, 0.15, 1000.0);
         let centre = Vector3::new(0.0, 0.0, height);
         let tool = ToolCore { tool: 0, core: ContactParams { a: centre, b: centre, radius, stiffness } };
-        let contacts = surface.detect(&[tool], &rest, 0.0);
+        let contacts = surface.detect(&[tool], &rest[..], 0.0);
         let force: Vector3<f64> = contacts.iter().map(|c| c.force()).sum();
         let on_nodes: Vector3<f64> = contacts.iter().flat_map(|c| c.node_forces()).map(|(_, f)| f).sum();
         let lift = radius / theta.cos() - height;

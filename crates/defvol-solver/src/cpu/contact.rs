@@ -154,8 +154,7 @@ impl<T: Real> Simulation<T> {
         if cores.is_empty() {
             return Vec::new();
         }
-        let x = self.positions_f64();
-        self.surface.refit(&x);
+        let x = Displaced { rest: &self.rest, u: &self.u };
         let spacing = self.surface.spacing();
         (cores.iter())
             .flat_map(|(core, travel)| {
@@ -167,15 +166,14 @@ impl<T: Real> Simulation<T> {
 
     /// Whether tool `index` went through the surface: a surface-contact tool that touches
     /// nothing while its tip lies inside the body (a teleport, or a step too long for its
-    /// samples to meet a face). Nothing holds it there, and the report says so. Call after
-    /// `detect_contacts` refitted the surface to the current positions.
+    /// samples to meet a face). Nothing holds it there, and the report says so.
     pub(super) fn passed_through(&self, index: usize) -> bool {
         let tool = &self.tools[index];
         if tool.contact != ContactModel::Surface || self.contacts.iter().any(|c| c.tool == index) {
             return false;
         }
         let tip = self.proxies.iter().find(|p| p.tool == index).map_or_else(|| tool.tip(), |p| p.x);
-        self.surface.encloses(&tip, |i| self.world(i as usize).map(T::to_f64))
+        self.surface.encloses(&tip, &Displaced { rest: &self.rest, u: &self.u })
     }
 
     /// The forces a GPU step takes as given: the commanded ones spread on the nodes, and

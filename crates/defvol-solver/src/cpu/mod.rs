@@ -10,7 +10,7 @@ mod implicit;
 mod recovery;
 
 use crate::amg::{Amg, Csr};
-use crate::contact::{Surface, SurfaceContact, ToolCore, CONTACT_NODES};
+use crate::contact::{Positions, Surface, SurfaceContact, ToolCore, CONTACT_NODES};
 use crate::haptic::{LocalModel, LocalQuery, LocalTurning, PendingContact, StiffnessRule};
 use crate::kernels::{self, ContactTool, SpringTerms};
 use crate::model::MassSpringModel;
@@ -64,6 +64,18 @@ struct Turning {
     device: nalgebra::UnitQuaternion<f64>,
     device_omega: Vector3<f64>,
     row: usize,
+}
+
+/// The nodes' world positions as the contact queries read them, one node at a time.
+struct Displaced<'a, T: Real> {
+    rest: &'a [Vector3<f64>],
+    u: &'a [Vector3<T>],
+}
+
+impl<T: Real> Positions for Displaced<'_, T> {
+    fn at(&self, node: u32) -> Vector3<f64> {
+        self.rest[node as usize] + self.u[node as usize].map(T::to_f64)
+    }
 }
 
 /// Rows a contact's terms span: its nodes', its simulated tool's, and the row it turns on.
@@ -344,6 +356,7 @@ impl<T: Real> Simulation<T> {
         self.solves = 0;
         self.proxies.clear();
         self.tool_tips.clear();
+        self.surface.moved(f64::INFINITY, &Displaced { rest: &self.rest, u: &self.u });
     }
 
     /// Where tool `index` is in the simulation: the device's pose, or for a coupled tool
@@ -388,6 +401,7 @@ impl<T: Real> Simulation<T> {
         self.time = 0.0;
         self.proxies.clear();
         self.tool_tips.clear();
+        self.surface.moved(f64::INFINITY, &Displaced { rest: &self.rest, u: &self.u });
     }
 
     /// Advances one step with the configured integrator.
