@@ -260,6 +260,42 @@ fn needle_dragged_across_the_surface_deforms_it_continuously() {
     assert!(largest_change < 0.15 * high, "the reaction jumped by {largest_change} N (range {low}..{high} N)");
 }
 
+/// A needle pressed across the slab's top edge, the edge halfway between two of its
+/// samples (farther from each than its radius), is held there as the capsule itself would
+/// be: it settles, the mesh receives what the needle feels (the supports' load), and that is
+/// k_c times how deep the capsule's core reaches into the deformed surface.
+#[test]
+fn a_needle_across_the_slabs_edge_between_its_samples_is_held_as_a_capsule() {
+    use defvol::solver::contact::{segment_triangle_nearest, Surface};
+    let (mesh, model) = coarse_slab();
+    let (radius, length, stiffness) = (0.0008, 0.04, 20_000.0);
+    let spacing = Surface::new(mesh.boundary(), mesh.nodes()).spacing();
+    let gap = length / (2.0 * length / spacing).ceil();
+    assert!(0.5 * gap > 2.0 * radius, "the edge lies beyond every sample's reach");
+    // Tilted 30° down past the edge (x = 0.1, z = 0); the core passes 0.5 mm inside it.
+    let tilt = std::f64::consts::FRAC_PI_6;
+    let (along, out) = (Vector3::new(tilt.cos(), 0.0, -tilt.sin()), Vector3::new(tilt.sin(), 0.0, tilt.cos()));
+    let turn = nalgebra::UnitQuaternion::rotation_between(&Vector3::z(), &along).unwrap();
+    let tip = Vector3::new(0.1, 0.05, 0.0) + out * (radius - 0.0005) - along * (2.5 * gap);
+    let params = SolverParams { gravity: [0.0; 3], dt: 0.01, cg_tolerance: 1e-10, ..Default::default() };
+    let tool = Tool::new(ToolShape::Capsule { radius, length }, stiffness);
+    let mut sim = Simulation::<f64>::new(&model, params, vec![tool]).unwrap();
+    let report = settle(&mut sim, Isometry3::from_parts(tip.into(), turn));
+    let felt = Vector3::from(report.reaction(0).force);
+    let x = sim.positions_f64();
+    let support = support_load(&model, &x);
+    assert!(felt.dot(&out) > 0.05, "the needle is pushed back out over the edge: {felt} N");
+    assert!((felt + support).norm() < 1e-3 * felt.norm(), "felt {felt} N, the supports carry {support} N");
+    let reach = (mesh.boundary().iter())
+        .map(|f| {
+            let [a, b, c] = f.map(|i| x[i as usize]);
+            segment_triangle_nearest(&tip, &(tip + along * length), &a, &b, &c).1
+        })
+        .fold(f64::INFINITY, f64::min);
+    let depth = radius - reach;
+    assert!((felt.norm() - stiffness * depth).abs() < 0.02 * felt.norm(), "felt {felt} N at depth {depth} m");
+}
+
 /// The simulated tool follows its device through the virtual coupling, and over a stiff
 /// press and release the system never holds more energy than the device put in.
 #[test]

@@ -392,10 +392,11 @@ impl Surface {
     /// the implicit step, which evaluates it at the step's end).
     ///
     /// A tool thinner than the spacing is sampled along its core at most half the spacing
-    /// apart; each sample is held beyond the faces near it (`sample_contacts`). A
-    /// tool at least
-    /// as wide as the spacing always has nodes inside it before anything passes between
-    /// them: it pushes each boundary node inside it.
+    /// apart; each sample is held beyond the faces near it (`sample_contacts`), and where
+    /// the core reaches deeper than its samples (a ridge between two of them) the rest is
+    /// pushed too (`gap_contacts`). A tool at least as wide as the spacing
+    /// always has nodes inside it before anything passes between them: it pushes each
+    /// boundary node inside it.
     pub fn detect<P: Positions + ?Sized>(&self, tools: &[ToolCore], positions: &P, margin: f64) -> Vec<SurfaceContact> {
         let mut contacts = Vec::new();
         // A sample up to one spacing past the surface still finds it and is pushed back;
@@ -410,13 +411,88 @@ impl Surface {
             let (a, b) = (tool.core.a, tool.core.b);
             let length = (b - a).norm();
             let samples = if length > 0.0 { (2.0 * length / reach).ceil() as usize + 1 } else { 1 };
-            for s in 0..samples {
-                let t = if samples > 1 { s as f64 / (samples - 1) as f64 } else { 0.0 };
-                let centre = a + (b - a) * t;
-                contacts.extend(self.sample_contacts(tool, &centre, search, margin, positions));
+            let centres: Vec<Vector3<f64>> = (0..samples)
+                .map(|s| a + (b - a) * if samples > 1 { s as f64 / (samples - 1) as f64 } else { 0.0 })
+                .collect();
+            for centre in &centres {
+                contacts.extend(self.sample_contacts(tool, centre, search, margin, positions));
+            }
+            if length > 0.0 {
+                contacts.extend(self.gap_contacts(tool, &centres, positions));
             }
         }
         contacts
+    }
+
+    /// Where a sampled core reaches deeper than its samples account for (a ridge or a node
+    /// between two samples): for each face the core comes within its radius of, from
+    /// outside, the core's depth there r - d less what the two samples either side push
+    /// along the same direction, Σ (r - s_j)⁺ (n_j·n)⁺. On a plane, a slope or a flat
+    /// trough the samples cover it all and nothing is added; over a ridge the rest is, as a
+    /// contact on that face (those within a radius of core blended: `GapBlend`), which comes
+    /// and goes with no jump in force. None is speculative: a row about to begin, its
+    /// samples' share not in its gradient, would push again what they already push.
+    fn gap_contacts<P: Positions + ?Sized>(
+        &self,
+        tool: &ToolCore,
+        samples: &[Vector3<f64>],
+        x: &P,
+    ) -> Vec<SurfaceContact> {
+        let ContactParams { a, b, radius, .. } = tool.core;
+        let pushes: Vec<(f64, Vector3<f64>)> = samples.iter().map(|s| self.sample_push(s, radius, x)).collect();
+        let intervals = (samples.len() - 1) as f64;
+        let mut candidates: Vec<(f64, f64, SurfaceContact)> = Vec::new(); // depth, parameter, contact
+        let reach = Vector3::repeat(radius);
+        self.faces_near(a.inf(&b) - reach, a.sup(&b) + reach, |f| {
+            let face = self.faces[f as usize];
+            let [p, q, r] = face.map(|i| x.at(i));
+            let (t, distance) = segment_triangle_nearest(&a, &b, &p, &q, &r);
+            if distance >= radius || distance <= 1e-12 {
+                return;
+            }
+            let core = a + (b - a) * t;
+            let (at, weights) = closest_on_triangle(&core, &p, &q, &r);
+            let out = (core - at) / distance;
+            if out.dot(&self.feature_normal(f, &weights, x)) <= 0.0 {
+                return; // The core is inside there: its samples are pushed on through.
+            }
+            let i = ((t * intervals).floor() as usize).min(samples.len() - 2);
+            let covered: f64 = pushes[i..i + 2].iter().map(|(depth, n)| depth * n.dot(&out).max(0.0)).sum();
+            let depth = radius - covered - distance;
+            if depth > 0.0 {
+                let mut contact = SurfaceContact::on_feature(tool, &face, &weights, -out, depth);
+                contact.at = at;
+                candidates.push((depth, t, contact));
+            }
+        });
+        candidates.sort_unstable_by(|g, h| h.0.total_cmp(&g.0).then(g.1.total_cmp(&h.1)));
+        let length = (b - a).norm();
+        let mut gaps: Vec<(f64, GapBlend)> = Vec::new();
+        for (depth, t, contact) in candidates {
+            let weight = depth;
+            match gaps.iter_mut().find(|(u, _)| (t - u).abs() * length < radius) {
+                Some((_, blend)) => blend.add(&contact, weight),
+                None => gaps.push((t, GapBlend::new(contact, weight))),
+            }
+        }
+        gaps.into_iter().map(|(_, blend)| blend.contact()).collect()
+    }
+
+    /// How deep a sample sphere of `radius` at `centre` is in the surface, and the way it
+    /// is pushed out (from the nearest feature to the centre; through, for a centre past
+    /// the surface); no depth when it does not touch.
+    fn sample_push<P: Positions + ?Sized>(&self, centre: &Vector3<f64>, radius: f64, x: &P) -> (f64, Vector3<f64>) {
+        let Some(nearest) = self.nearest_face(centre, x) else { return (0.0, Vector3::zeros()) };
+        let outward = self.feature_normal(nearest.face, &nearest.weights, x);
+        let away = match nearest.distance > 1e-12 {
+            true => (centre - nearest.at) / nearest.distance,
+            false => outward,
+        };
+        if away.dot(&outward) < 0.0 {
+            (radius + nearest.distance, -away)
+        } else {
+            ((radius - nearest.distance).max(0.0), away)
+        }
     }
 
     fn node_contacts<P: Positions + ?Sized>(&self, tool: &ToolCore, x: &P, margin: f64, out: &mut Vec<SurfaceContact>) {
@@ -508,6 +584,47 @@ impl Surface {
         });
         near.sort_unstable_by(|a, b| a.distance.total_cmp(&b.distance).then(a.face.cmp(&b.face)));
         near
+    }
+}
+
+/// The gap contacts of faces within a radius of each other along the core, as one: as deep
+/// as the deepest, its push and shares the members' weighted by their depths, so that where two faces are about as deep (either side of a node) the push
+/// does not flip from one to the other, and a member comes in with no weight.
+struct GapBlend {
+    contact: SurfaceContact,
+    total: f64,
+}
+
+impl GapBlend {
+    fn new(mut contact: SurfaceContact, weight: f64) -> Self {
+        contact.push *= weight;
+        contact.at *= weight;
+        contact.shares.iter_mut().for_each(|s| *s *= weight);
+        Self { contact, total: weight }
+    }
+
+    /// Adds `member` with `weight`, unless its nodes would not fit.
+    fn add(&mut self, member: &SurfaceContact, weight: f64) {
+        let members = member.nodes.iter().take_while(|&&n| n != u32::MAX);
+        let new = members.clone().filter(|n| !self.contact.nodes.contains(n)).count();
+        let used = self.contact.nodes.iter().take_while(|&&n| n != u32::MAX).count();
+        if used + new > CONTACT_NODES {
+            return;
+        }
+        for (&node, share) in members.zip(&member.shares) {
+            self.contact.add_share(node, share * weight);
+        }
+        self.contact.push += member.push * weight;
+        self.contact.at += member.at * weight;
+        self.total += weight;
+    }
+
+    fn contact(mut self) -> SurfaceContact {
+        let scale = 1.0 / self.total;
+        self.contact.push *= scale;
+        self.contact.at *= scale;
+        self.contact.shares.iter_mut().for_each(|s| *s *= scale);
+        self.contact
     }
 }
 
@@ -648,6 +765,68 @@ pub fn beyond_planes(c: &Vector3<f64>, planes: &[(Vector3<f64>, f64)]) -> (Vecto
         }
     }
     (p, mu)
+}
+
+/// The point of segment [a, b] nearest triangle (p, q, r), as its parameter on the segment,
+/// and the distance (0 where the segment pierces the triangle).
+pub fn segment_triangle_nearest(
+    a: &Vector3<f64>,
+    b: &Vector3<f64>,
+    p: &Vector3<f64>,
+    q: &Vector3<f64>,
+    r: &Vector3<f64>,
+) -> (f64, f64) {
+    let normal = (q - p).cross(&(r - p));
+    let (da, db) = (normal.dot(&(a - p)), normal.dot(&(b - p)));
+    if da * db <= 0.0 && da != db {
+        let t = da / (da - db);
+        let crossing = a + (b - a) * t;
+        let (on, _) = closest_on_triangle(&crossing, p, q, r);
+        if (on - crossing).norm() <= 1e-12 * (1.0 + crossing.norm()) {
+            return (t, 0.0);
+        }
+    }
+    let to_triangle = |t: f64| {
+        let point = a + (b - a) * t;
+        (t, (point - closest_on_triangle(&point, p, q, r).0).norm())
+    };
+    let edges = [(p, q), (q, r), (r, p)].map(|(u, v)| {
+        let (t, s) = closest_between_segments(a, b, u, v);
+        (t, ((a + (b - a) * t) - (u + (v - u) * s)).norm())
+    });
+    [to_triangle(0.0), to_triangle(1.0)]
+        .into_iter()
+        .chain(edges)
+        .min_by(|g, h| g.1.total_cmp(&h.1).then(g.0.total_cmp(&h.0)))
+        .unwrap_or((0.0, f64::INFINITY))
+}
+
+/// The parameters (s on [p1, q1], t on [p2, q2]) of the two segments' nearest points
+/// (Ericson, *Real-Time Collision Detection*, 5.1.9).
+fn closest_between_segments(p1: &Vector3<f64>, q1: &Vector3<f64>, p2: &Vector3<f64>, q2: &Vector3<f64>) -> (f64, f64) {
+    let (d1, d2, r) = (q1 - p1, q2 - p2, p1 - p2);
+    let (a, e, f) = (d1.norm_squared(), d2.norm_squared(), d2.dot(&r));
+    if a <= f64::MIN_POSITIVE && e <= f64::MIN_POSITIVE {
+        return (0.0, 0.0);
+    }
+    if a <= f64::MIN_POSITIVE {
+        return (0.0, (f / e).clamp(0.0, 1.0));
+    }
+    let c = d1.dot(&r);
+    if e <= f64::MIN_POSITIVE {
+        return ((-c / a).clamp(0.0, 1.0), 0.0);
+    }
+    let b = d1.dot(&d2);
+    let denom = a * e - b * b;
+    let s = if denom > 0.0 { ((b * f - c * e) / denom).clamp(0.0, 1.0) } else { 0.0 };
+    let t = (b * s + f) / e;
+    if t < 0.0 {
+        ((-c / a).clamp(0.0, 1.0), 0.0)
+    } else if t > 1.0 {
+        (((b - c) / a).clamp(0.0, 1.0), 1.0)
+    } else {
+        (s, t)
+    }
 }
 
 /// The point of segment [a, b] nearest to p.
@@ -886,6 +1065,62 @@ mod tests {
                 sum += n * *m;
             }
             assert!((p - c - sum).norm() < 1e-12, "case {case}: p - c = {} but Σμn = {sum}", p - c);
+        }
+    }
+
+    /// The segment's nearest point to a triangle is the minimiser over the segment: no point
+    /// of a fine grid along it is nearer, crossing and parallel cases included.
+    #[test]
+    fn nearest_point_of_a_segment_to_a_triangle_beats_every_grid_point() {
+        let (p, q, r) = (Vector3::new(0.0, 0.0, 0.0), Vector3::new(1.0, 0.2, 0.0), Vector3::new(0.3, 0.9, 0.1));
+        let segments = [
+            ([0.2, 0.2, 1.0], [0.3, 0.3, -1.0]), // pierces
+            ([-1.0, -1.0, 0.5], [2.0, 2.0, 0.5]),
+            ([2.0, 0.0, 0.3], [2.0, 1.0, -0.3]),
+            ([-0.5, 0.5, 0.0], [-0.5, 0.5, 0.0]), // a point
+            ([0.0, -0.3, 0.0], [1.0, -0.1, 0.0]), // parallel to an edge, in the plane
+            ([0.4, 0.4, 0.2], [0.6, 0.5, 0.25]),  // above the face
+        ];
+        for (a, b) in segments {
+            let (a, b) = (Vector3::from(a), Vector3::from(b));
+            let (t, distance) = segment_triangle_nearest(&a, &b, &p, &q, &r);
+            let at = a + (b - a) * t;
+            assert_relative_eq!(distance, (at - closest_on_triangle(&at, &p, &q, &r).0).norm(), epsilon = 1e-12);
+            let best = (0..=10_000)
+                .map(|k| a + (b - a) * (k as f64 / 10_000.0))
+                .map(|s| (s - closest_on_triangle(&s, &p, &q, &r).0).norm())
+                .fold(f64::INFINITY, f64::min);
+            assert!(distance <= best + 1e-12 && distance > best - 1e-3, "{a} {b}: {distance} vs grid {best}");
+        }
+    }
+
+    /// A needle slid along its axis across a steep ridge, from the ridge halfway between two
+    /// samples to the ridge under one: at every position the ridge is pushed down as deep as
+    /// the capsule reaches it, k (r - h) for its core h above the ridge, with no dip between
+    /// samples (the samples' share and the gap sample's add up to it).
+    #[test]
+    fn a_needle_slid_over_a_ridge_is_pushed_as_deep_as_its_core_reaches_everywhere() {
+        let (slope, half) = (1.2f64, 0.02);
+        let drop = half * slope.tan();
+        let rest = vec![
+            Vector3::new(0.0, -0.05, 0.0),
+            Vector3::new(0.0, 0.05, 0.0),
+            Vector3::new(half, -0.05, -drop),
+            Vector3::new(half, 0.05, -drop),
+            Vector3::new(-half, -0.05, -drop),
+            Vector3::new(-half, 0.05, -drop),
+        ];
+        let surface = Surface::new(&[[0, 2, 3], [0, 3, 1], [0, 1, 5], [0, 5, 4]], &rest);
+        let (radius, height, stiffness) = (0.001, 0.0004, 1000.0);
+        let step = 0.5 * surface.spacing();
+        assert!(0.5 * step > radius, "at first the ridge is out of every sample's reach");
+        for k in 0..=40 {
+            let from = -(2.5 * step) + step * k as f64 / 80.0;
+            let (a, b) = (Vector3::new(from, 0.003, height), Vector3::new(from + 6.0 * step, 0.003, height));
+            let tool = ToolCore { tool: 0, core: ContactParams { a, b, radius, stiffness } };
+            let contacts = surface.detect(&[tool], &rest[..], 0.0);
+            let down: f64 = contacts.iter().map(|c| c.force().z).sum();
+            assert_relative_eq!(down, -stiffness * (radius - height), max_relative = 1e-9);
         }
     }
 
