@@ -71,8 +71,10 @@ pub fn context(domain: u16, discovery: Discovery) -> Result<ros2_client::Context
             builder
         }
     };
-    let participant = builder.build().map_err(|e| DdsError::Participant(e.to_string()))?;
-    ros2_client::Context::from_domain_participant(participant).map_err(|e| DdsError::Participant(e.to_string()))
+    crate::pipeline::priority::at_force_loop_priority("the DDS participant", || {
+        let participant = builder.build().map_err(|e| DdsError::Participant(e.to_string()))?;
+        ros2_client::Context::from_domain_participant(participant).map_err(|e| DdsError::Participant(e.to_string()))
+    })
 }
 
 #[cfg(test)]

@@ -121,9 +121,7 @@ impl FeedbackThread {
         let handle = std::thread::Builder::new()
             .name("defvol-feedback".into())
             .spawn(move || {
-                if let Err(e) = priority::set_thread_nice(priority::FORCE_LOOP_NICE) {
-                    tracing::debug!("the force loop keeps the default priority ({e}); CAP_SYS_NICE would raise it");
-                }
+                priority::into_force_loop("the force loop");
                 worker.run()
             })
             .map_err(|e| failed(&e))?;
