@@ -107,7 +107,8 @@ pub fn into_background(what: &str) {
 
 #[cfg(all(test, target_os = "linux"))]
 mod tests {
-    use super::*;
+    // By its full path: `super` would read, to the layer check, as the pipeline's module.
+    use crate::pipeline::priority::*;
 
     /// A thread run at the force loop's priority is put back as it was, whichever of
     /// real-time, a raised nice value or nothing the process was allowed; the threads it
