@@ -240,8 +240,11 @@ mod dds {
     use crate::session::RecordOptions;
 
     pub struct FeedbackRun {
-        /// Milliseconds from each answered pose's stamp to the device holding its answer.
+        /// Milliseconds from each pose's stamp to the device holding an answer to it or to a
+        /// later pose (one coalesced with a later pose is answered by that one's answer).
         latencies: Vec<f64>,
+        /// Poses answered by an answer of their own.
+        own_answers: usize,
         poses: usize,
         /// Feedback messages the device took, and the seconds it listened.
         feedback: usize,
@@ -256,10 +259,11 @@ mod dds {
         pub fn row(self, case: String, backend: &str, device: &str, tets: usize, everything: bool) -> BenchRow {
             let rate = self.feedback as f64 / self.seconds.max(1e-9);
             let note = format!(
-                "DDS loop, 1 kHz poses, coupled 2 mm tool, surface contact, local model; feedback at {rate:.0} Hz, {} of {} poses answered, solver at {:.0} \
-                 steps/s ({:.2} ms a step){}; goal p99 < 1 ms",
-                self.latencies.len(),
+                "DDS loop, 1 kHz poses, coupled 2 mm tool, surface contact, local model; feedback at {rate:.0} Hz, {} of {} poses answered by their own answer, {} by it or a \
+                 later one's, solver at {:.0} steps/s ({:.2} ms a step){}; goal p99 < 1 ms",
+                self.own_answers,
                 self.poses,
+                self.latencies.len(),
                 self.simulation_hz,
                 self.step_ms,
                 if everything { "; warp, raycast and DPCM beside" } else { "" }
@@ -269,7 +273,7 @@ mod dds {
                 case,
                 backend: backend.into(),
                 device: device.into(),
-                params: json!({"input_hz": 1000, "dt": 1e-3, "p99_ms": percentile(&self.latencies, 0.99), "sustained_hz": rate, "answered": self.latencies.len(), "poses": self.poses, "simulation_hz": self.simulation_hz, "solver_step_ms": self.step_ms, "note": note}),
+                params: json!({"input_hz": 1000, "dt": 1e-3, "p99_ms": percentile(&self.latencies, 0.99), "sustained_hz": rate, "answered": self.own_answers, "answered_or_superseded": self.latencies.len(), "poses": self.poses, "simulation_hz": self.simulation_hz, "solver_step_ms": self.step_ms, "note": note}),
                 runs: self.latencies.len(),
                 time_ms: time_stats(self.latencies),
                 error: None,
@@ -408,7 +412,9 @@ mod dds {
         }
         let period = Duration::from_millis(1);
         let total = opts.settle + opts.steps;
-        let (mut latencies, mut answered_up_to, mut taken, mut listened) = (Vec::new(), Time::from_nanos(0), 0, 0.0);
+        let (mut latencies, mut own_answers, mut taken, mut listened) = (Vec::new(), 0, 0, 0.0);
+        // The timed poses not yet answered, oldest first.
+        let mut waiting: std::collections::VecDeque<Time> = std::collections::VecDeque::new();
         let mut next = Instant::now();
         let mut timed_from = None;
         for k in 0..total {
@@ -419,6 +425,9 @@ mod dds {
             // centre 2 mm under the organ's top (at 6 cm), in contact throughout.
             let t = k as f64 * 1e-3;
             let sent = Time::now();
+            if k >= opts.settle {
+                waiting.push_back(sent);
+            }
             let _ = poses.publish(pose(sent, 0.07 - 0.012 * (t / 0.5).min(1.0)));
             next += period;
             loop {
@@ -437,11 +446,12 @@ mod dds {
                     if k >= opts.settle {
                         taken += 1;
                     }
-                    // The first answer to a pose; later ones repeat it (a step without a new pose).
-                    if msg.header.stamp > answered_up_to {
-                        answered_up_to = msg.header.stamp;
-                        if k >= opts.settle {
-                            latencies.push((arrived.as_secs() - msg.header.stamp.as_secs()) * 1e3);
+                    // An answer answers its pose and every earlier one still waiting (coalesced
+                    // into it); later answers to the same pose repeat it.
+                    own_answers += usize::from(waiting.contains(&msg.header.stamp));
+                    while waiting.front().is_some_and(|&stamp| stamp <= msg.header.stamp) {
+                        if let Some(stamp) = waiting.pop_front() {
+                            latencies.push((arrived.as_secs() - stamp.as_secs()) * 1e3);
                         }
                     }
                 }
@@ -455,7 +465,15 @@ mod dds {
             _ => f64::NAN,
         };
         let step_ms = percentile(&solver_steps.iter().map(|s| s.2).collect::<Vec<_>>(), 0.5);
-        Ok(FeedbackRun { latencies, poses: opts.steps, feedback: taken, seconds: listened, simulation_hz, step_ms })
+        Ok(FeedbackRun {
+            latencies,
+            own_answers,
+            poses: opts.steps,
+            feedback: taken,
+            seconds: listened,
+            simulation_hz,
+            step_ms,
+        })
     }
 
     /// The solver's step count and step time in a diagnostics message.
