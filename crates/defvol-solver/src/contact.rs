@@ -243,10 +243,15 @@ impl Surface {
         index
     }
 
-    /// The nodes moved by at most `distance` (m) since the last call: the boxes are read
-    /// grown by the sum, or refitted to `positions` once it passes `REFIT_DRIFT` spacings.
-    pub fn moved<P: Positions + ?Sized>(&mut self, distance: f64, positions: &P) {
+    /// The nodes moved by at most `distance` (m) since the last call (infinite: unknown);
+    /// the boxes are read grown by the sum until `keep_fitted` refits them.
+    pub fn moved(&mut self, distance: f64) {
         self.drift += distance;
+    }
+
+    /// Refits the boxes to `positions` once the drift has passed `REFIT_DRIFT` spacings;
+    /// called before queries, so a mesh no query reads is never refitted.
+    pub fn keep_fitted<P: Positions + ?Sized>(&mut self, positions: &P) {
         if self.drift.is_nan() || self.drift > REFIT_DRIFT * self.spacing {
             self.refit(positions);
         }
@@ -961,7 +966,8 @@ mod tests {
         let (mesh, mut drifted) = slab();
         let depth = 0.4 * REFIT_DRIFT * drifted.spacing();
         let x = dented(&mesh, depth);
-        drifted.moved(depth, &x[..]);
+        drifted.moved(depth);
+        drifted.keep_fitted(&x[..]);
         assert_eq!(drifted.drift, depth, "the move was small enough to keep the old boxes");
         let mut refitted = drifted.clone();
         refitted.refit(&x[..]);
@@ -1094,6 +1100,20 @@ mod tests {
         }
     }
 
+    /// Two planes folded along the y axis, their far edges `half` either side in x at height
+    /// `lift` (up: a groove, down: a ridge), `width` either side in y.
+    fn fold(half: f64, lift: f64, width: f64) -> (Vec<Vector3<f64>>, [[u32; 3]; 4]) {
+        let rest = vec![
+            Vector3::new(0.0, -width, 0.0),
+            Vector3::new(0.0, width, 0.0),
+            Vector3::new(half, -width, lift),
+            Vector3::new(half, width, lift),
+            Vector3::new(-half, -width, lift),
+            Vector3::new(-half, width, lift),
+        ];
+        (rest, [[0, 2, 3], [0, 3, 1], [0, 1, 5], [0, 5, 4]])
+    }
+
     /// A needle slid along its axis across a steep ridge, from the ridge halfway between two
     /// samples to the ridge under one: at every position the ridge is pushed down as deep as
     /// the capsule reaches it, k (r - h) for its core h above the ridge, with no dip between
@@ -1101,16 +1121,8 @@ mod tests {
     #[test]
     fn a_needle_slid_over_a_ridge_is_pushed_as_deep_as_its_core_reaches_everywhere() {
         let (slope, half) = (1.2f64, 0.02);
-        let drop = half * slope.tan();
-        let rest = vec![
-            Vector3::new(0.0, -0.05, 0.0),
-            Vector3::new(0.0, 0.05, 0.0),
-            Vector3::new(half, -0.05, -drop),
-            Vector3::new(half, 0.05, -drop),
-            Vector3::new(-half, -0.05, -drop),
-            Vector3::new(-half, 0.05, -drop),
-        ];
-        let surface = Surface::new(&[[0, 2, 3], [0, 3, 1], [0, 1, 5], [0, 5, 4]], &rest);
+        let (rest, faces) = fold(half, -half * slope.tan(), 0.05);
+        let surface = Surface::new(&faces, &rest);
         let (radius, height, stiffness) = (0.001, 0.0004, 1000.0);
         let step = 0.5 * surface.spacing();
         assert!(0.5 * step > radius, "at first the ridge is out of every sample's reach");
@@ -1130,16 +1142,7 @@ mod tests {
     #[test]
     fn a_sphere_in_a_groove_is_pushed_out_once_not_once_per_wall() {
         let (theta, length) = (0.3f64, 1.0);
-        let rise = length * theta.tan();
-        let rest = vec![
-            Vector3::new(0.0, -1.0, 0.0),
-            Vector3::new(0.0, 1.0, 0.0),
-            Vector3::new(length, -1.0, rise),
-            Vector3::new(length, 1.0, rise),
-            Vector3::new(-length, -1.0, rise),
-            Vector3::new(-length, 1.0, rise),
-        ];
-        let faces = [[0, 2, 3], [0, 3, 1], [0, 1, 5], [0, 5, 4]];
+        let (rest, faces) = fold(length, length * theta.tan(), 1.0);
         let surface = Surface::new(&faces, &rest);
         let (radius, height, stiffness) = (0.2, 0.15, 1000.0);
         let centre = Vector3::new(0.0, 0.0, height);

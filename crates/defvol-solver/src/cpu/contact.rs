@@ -151,6 +151,9 @@ impl<T: Real> Simulation<T> {
                 (ToolCore { tool: index, core }, travel)
             })
             .collect();
+        if self.touches_surface() {
+            self.surface.keep_fitted(&Displaced { rest: &self.rest, u: &self.u });
+        }
         if cores.is_empty() {
             return Vec::new();
         }
@@ -162,6 +165,12 @@ impl<T: Real> Simulation<T> {
                 self.surface.detect(std::slice::from_ref(core), &x, margin)
             })
             .collect()
+    }
+
+    /// Whether a tool meets the boundary surface (surface contact), so that its hierarchy
+    /// is queried and kept fitted.
+    pub(super) fn touches_surface(&self) -> bool {
+        self.tools.iter().any(|tool| tool.contact == ContactModel::Surface)
     }
 
     /// Whether tool `index` went through the surface: a surface-contact tool that touches

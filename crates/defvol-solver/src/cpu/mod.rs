@@ -356,7 +356,7 @@ impl<T: Real> Simulation<T> {
         self.solves = 0;
         self.proxies.clear();
         self.tool_tips.clear();
-        self.surface.moved(f64::INFINITY, &Displaced { rest: &self.rest, u: &self.u });
+        self.surface.moved(f64::INFINITY);
     }
 
     /// Where tool `index` is in the simulation: the device's pose, or for a coupled tool
@@ -401,7 +401,7 @@ impl<T: Real> Simulation<T> {
         self.time = 0.0;
         self.proxies.clear();
         self.tool_tips.clear();
-        self.surface.moved(f64::INFINITY, &Displaced { rest: &self.rest, u: &self.u });
+        self.surface.moved(f64::INFINITY);
     }
 
     /// Advances one step with the configured integrator.

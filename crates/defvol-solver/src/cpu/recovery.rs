@@ -35,11 +35,15 @@ impl<T: Real> Simulation<T> {
     pub(super) fn finish_step(&mut self, saved: Snapshot<T>) -> Result<StepReport, SolverError> {
         self.step += 1;
         self.time += self.params.dt;
-        // The farthest any node moved: the contact hierarchy's boxes stay conservative.
-        let moved = (self.u.par_iter().zip(saved.u.par_iter()))
-            .map(|(now, before)| (now.map(T::to_f64) - before.map(T::to_f64)).norm())
-            .reduce(|| 0.0, f64::max);
-        self.surface.moved(moved, &Displaced { rest: &self.rest, u: &self.u });
+        // The farthest any node moved, which keeps the contact hierarchy's boxes
+        // conservative; measured only where a tool touches the surface.
+        let moved = match self.touches_surface() {
+            true => (self.u.par_iter().zip(saved.u.par_iter()))
+                .map(|(now, before)| (now.map(T::to_f64) - before.map(T::to_f64)).norm())
+                .reduce(|| 0.0, f64::max),
+            false => f64::INFINITY,
+        };
+        self.surface.moved(moved);
         self.contacts = self.detect_contacts(false).into_iter().filter(|c| !c.joins_previous).collect();
         let report = self.report();
         if let Some(reason) = self.divergence(&report) {
@@ -49,7 +53,7 @@ impl<T: Real> Simulation<T> {
             self.history = saved.history;
             self.history_valid = saved.history_valid;
             self.proxies = saved.proxies;
-            self.surface.moved(moved, &Displaced { rest: &self.rest, u: &self.u });
+            self.surface.moved(moved);
             self.step -= 1;
             self.time -= self.params.dt;
             return Err(SolverError::Diverged { step: failed.0, time: failed.1, reason });
