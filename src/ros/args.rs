@@ -172,9 +172,6 @@ fn flatten(prefix: &str, value: &Value, out: &mut BTreeMap<String, Value>) {
 /// Parameters that configure the node itself rather than the scene.
 pub const NODE_PARAMETERS: [&str; 4] = ["scene_file", "dds.open_discovery", "record", "rerun"];
 
-/// Scene parameters chosen once per run: a running node refuses to change them.
-pub const RUN_PARAMETERS: [&str; 2] = ["backend", "allow_software_gpu"];
-
 /// The scene the parameters describe: `scene_file` (or the embedded default) with every
 /// other dotted parameter written into it, then checked as a whole.
 pub fn scene_from_parameters(parameters: &BTreeMap<String, Value>) -> Result<Scene, ArgsError> {
@@ -234,7 +231,7 @@ pub fn check_scene(parameters: &BTreeMap<String, Value>) -> Result<Scene, String
 }
 
 /// Writes `value` at the dotted `path` (numeric segments index sequences).
-fn set_path(node: &mut Value, path: &str, value: Value) -> Result<(), String> {
+pub(crate) fn set_path(node: &mut Value, path: &str, value: Value) -> Result<(), String> {
     let (segment, rest) = match path.split_once('.') {
         Some((segment, rest)) => (segment, Some(rest)),
         None => (path, None),

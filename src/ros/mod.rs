@@ -5,6 +5,7 @@
 pub mod args;
 #[cfg(feature = "ros")]
 pub mod dds;
+pub mod descriptors;
 #[cfg(feature = "ros")]
 mod error;
 #[cfg(feature = "ros")]

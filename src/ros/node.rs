@@ -2,6 +2,7 @@
 //! services served, the session recorded. All computing is in [`crate::pipeline`]; this
 //! file only moves messages.
 
+use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -15,7 +16,7 @@ use super::args::{self, RosArgs};
 use super::dds::{self, Discovery};
 use super::error::{ros_err, NodeError};
 use super::feedback_thread::{Command, Event, FeedbackIo, FeedbackThread, ToolSubscriptions};
-use super::parameters::Parameters;
+use super::parameters::{ParameterServices, Parameters};
 use crate::msgs::{
     DeformedMesh, DiagnosticArray, Image, LoadSceneRequest, Marker, Message, PoseStamped, Time, TriggerRequest,
     TriggerResponse, WarpedVolumeInfo, WrenchStamped,
@@ -214,6 +215,7 @@ struct DefvolNode {
     publishers: Publishers,
     services: Services,
     parameters: Parameters,
+    parameter_services: ParameterServices,
     feedback: FeedbackThread,
     session: Session,
     #[cfg(feature = "shm")]
@@ -240,7 +242,16 @@ impl DefvolNode {
 
         // Every scene field is a declared parameter; a change is checked, then reloads the scene.
         let mut declared = args::scene_parameters(pipeline.scene());
-        declared.extend(settings.ros.parameters.clone());
+        for (name, value) in &settings.ros.parameters {
+            let value = match (declared.get(name), value) {
+                // `-p solver.dt:=1` means 1.0: a real number of the scene stays a double.
+                (Some(Value::Number(scene)), Value::Number(given)) if scene.is_f64() && !given.is_f64() => {
+                    given.as_f64().map_or_else(|| value.clone(), Value::from)
+                }
+                _ => value.clone(),
+            };
+            declared.insert(name.clone(), value);
+        }
         // The command line's choices are the ones in force.
         if let Some(choice) = settings.backend.backend {
             declared.insert("backend".into(), Value::String(choice.name().into()));
@@ -248,9 +259,12 @@ impl DefvolNode {
         if settings.backend.allow_software_gpu {
             declared.insert("allow_software_gpu".into(), Value::Bool(true));
         }
-        let options = ros2_client::NodeOptions::new().enable_rosout(true).start_parameter_services(true);
+        declared.extend(node_parameters(settings));
+        // Served by `ParameterServices`, which describe each parameter fully.
+        let options = ros2_client::NodeOptions::new().enable_rosout(true).start_parameter_services(false);
         let (options, parameters) = Parameters::declare(options, declared);
         let mut node = context.new_node(node_name, options).map_err(|e| NodeError::Ros(format!("node: {e:?}")))?;
+        let parameter_services = ParameterServices::create(&mut node)?;
         let spinner = node.spinner().map_err(ros_err("spinner"))?;
         let (spinner_done, spinner_stopped) = std::sync::mpsc::channel();
         std::thread::spawn(move || {
@@ -296,6 +310,7 @@ impl DefvolNode {
             publishers,
             services,
             parameters,
+            parameter_services,
             feedback,
             session,
             #[cfg(feature = "shm")]
@@ -367,6 +382,7 @@ impl DefvolNode {
             reloaded = loaded.is_ok();
             result(loaded.map(|()| "scene loaded".into()).map_err(|e| format!("kept the running scene: {e}")))
         });
+        self.parameter_services.serve(&self.node, &self.parameters);
         let changed = self.parameters.apply(pipeline);
         reloaded || changed
     }
@@ -438,13 +454,25 @@ impl DefvolNode {
     /// The feedback thread stops first; dropping the node stops its spinner; the
     /// recording is closed.
     fn close(self) -> Result<(), NodeError> {
-        let Self { feedback, context, spinner_stopped, node, session, publishers, services, parameters, .. } = self;
+        let Self {
+            feedback,
+            context,
+            spinner_stopped,
+            node,
+            session,
+            publishers,
+            services,
+            parameters,
+            parameter_services,
+            ..
+        } = self;
         drop(feedback);
         // Writers and servers go before the node that made them, and the node (with its own
         // parameter services and rosout) before the participant: an entity dropped after the
         // participant has no one to remove it and DDS logs an error for each at shutdown.
         drop(publishers);
         drop(services);
+        drop(parameter_services);
         drop(parameters);
         drop(node);
         // Dropping the node stops its spinner, whose thread then drops the parameter services.
@@ -473,6 +501,20 @@ fn shm_publisher(pipeline: &mut Pipeline) -> Option<Arc<crate::shm::WarpedVolume
             None
         }
     }
+}
+
+/// The node's own parameters as they stand (`ros2 param list` shows them; each is
+/// read-only: the command line and the start decide them).
+fn node_parameters(settings: &NodeSettings) -> BTreeMap<String, Value> {
+    let path =
+        |p: &Option<std::path::PathBuf>| Value::String(p.as_ref().map(|p| p.display().to_string()).unwrap_or_default());
+    let scene_file = settings.ros.parameters.get("scene_file").cloned().unwrap_or_else(|| Value::String(String::new()));
+    BTreeMap::from([
+        ("scene_file".to_owned(), scene_file),
+        ("record".to_owned(), path(&settings.record.mcap)),
+        ("rerun".to_owned(), path(&settings.record.rerun_file)),
+        ("dds.open_discovery".to_owned(), Value::Bool(settings.open_discovery)),
+    ])
 }
 
 /// One `tool_feedback` publisher per tool (`<tool>/tool_feedback` after the first).

@@ -1,14 +1,24 @@
 //! The node's parameters: every scene field declared as one, each change checked against
-//! the whole scene before it is accepted, then handed to the node's loop to reload the
-//! scene; the run's choices (backend) are refused once running.
+//! its descriptor (range, read-only) and then the whole scene before it is accepted, then
+//! handed to the node's loop to reload the scene. The six `rcl_interfaces` parameter
+//! services are served here rather than by ros2-client, whose `describe_parameters` knows
+//! only a parameter's type: ours answers with [`descriptors`](super::descriptors).
 
 use std::collections::BTreeMap;
 use std::sync::{mpsc, Arc, Mutex};
 
-use ros2_client::{NodeOptions, ParameterValue};
+use ros2_client::parameters::raw;
+use ros2_client::rcl_interfaces::{
+    DescribeParametersRequest, DescribeParametersResponse, GetParameterTypesRequest, GetParameterTypesResponse,
+    GetParametersRequest, GetParametersResponse, ListParametersRequest, ListParametersResponse, ListParametersResult,
+    SetParametersAtomicallyResponse, SetParametersRequest, SetParametersResponse,
+};
+use ros2_client::{Name, Node, NodeOptions, ParameterValue, QosProfile, Server, ServiceMapping, ServiceTypeName};
 use serde_yaml_ng::Value;
 
 use super::args;
+use super::descriptors::{self, Descriptor, Range};
+use super::error::{ros_err, NodeError};
 use crate::pipeline::Pipeline;
 
 /// The values in force and the changes accepted since the last look.
@@ -28,15 +38,10 @@ impl Parameters {
         let in_force = Arc::new(Mutex::new(declared));
         let validator_parameters = in_force.clone();
         options = options.parameter_validator(Box::new(move |name, value| {
-            let Ok(mut candidate) = validator_parameters.lock().map(|p| p.clone()) else {
+            let Ok(in_force) = validator_parameters.lock().map(|p| p.clone()) else {
                 return Err("parameter store poisoned".into());
             };
-            let in_force = candidate.get(name).map_or(ParameterValue::NotSet, parameter_of);
-            if args::RUN_PARAMETERS.contains(&name) && in_force != *value {
-                return Err(format!("`{name}` is chosen once per run: restart the node to change it"));
-            }
-            candidate.insert(name.to_owned(), yaml_of(value));
-            args::check_scene(&candidate).map(drop)
+            acceptable(in_force, &[(name, value)])
         }));
         let changes = Mutex::new(changes);
         options = options.parameter_set_action(Box::new(move |name, value| {
@@ -73,6 +78,180 @@ impl Parameters {
             }
         }
         reloaded
+    }
+}
+
+/// Whether `changes` may be set together over the values `in_force`: each within its
+/// descriptor (range, read-only), then the scene they make checked as a whole.
+fn acceptable(mut candidate: BTreeMap<String, Value>, changes: &[(&str, &ParameterValue)]) -> Result<(), String> {
+    for (name, value) in changes {
+        let in_force = candidate.get(*name).map_or(ParameterValue::NotSet, parameter_of);
+        let refusal = descriptors::describe(name).and_then(|d| d.refuses(name, &yaml_of(value), in_force != **value));
+        if let Some(reason) = refusal {
+            return Err(reason);
+        }
+        candidate.insert((*name).to_owned(), yaml_of(value));
+    }
+    args::check_scene(&candidate).map(drop)
+}
+
+/// The six parameter services of a ROS 2 node (`~/get_parameters`, …), answered from the
+/// node's parameter store with rclcpp's semantics.
+pub(super) struct ParameterServices {
+    get: Server<GetParametersRequest, GetParametersResponse>,
+    get_types: Server<GetParameterTypesRequest, GetParameterTypesResponse>,
+    set: Server<SetParametersRequest, SetParametersResponse>,
+    set_atomically: Server<SetParametersRequest, SetParametersAtomicallyResponse>,
+    list: Server<ListParametersRequest, ListParametersResponse>,
+    describe: Server<DescribeParametersRequest, DescribeParametersResponse>,
+}
+
+impl ParameterServices {
+    pub(super) fn create(node: &mut Node) -> Result<Self, NodeError> {
+        Ok(Self {
+            get: server(node, "get_parameters", "GetParameters")?,
+            get_types: server(node, "get_parameter_types", "GetParameterTypes")?,
+            set: server(node, "set_parameters", "SetParameters")?,
+            set_atomically: server(node, "set_parameters_atomically", "SetParametersAtomically")?,
+            list: server(node, "list_parameters", "ListParameters")?,
+            describe: server(node, "describe_parameters", "DescribeParameters")?,
+        })
+    }
+
+    /// Answers every waiting request; a set goes through the node's store (its validator,
+    /// its set action and the `/parameter_events` it publishes).
+    pub(super) fn serve(&self, node: &Node, parameters: &Parameters) {
+        answer(&self.get, |request| GetParametersResponse {
+            values: known(node, &request.names)
+                .map(|values| values.into_iter().map(raw::ParameterValue::from).collect())
+                .unwrap_or_default(),
+        });
+        answer(&self.get_types, |request| GetParameterTypesResponse {
+            values: known(node, &request.names)
+                .map(|values| values.iter().map(ParameterValue::to_parameter_type_raw).collect())
+                .unwrap_or_default(),
+        });
+        answer(&self.set, |request| SetParametersResponse {
+            results: request
+                .parameter
+                .into_iter()
+                .map(|p| outcome(node.set_parameter(&p.name, p.value.into())))
+                .collect(),
+        });
+        answer(&self.set_atomically, |request| SetParametersAtomicallyResponse {
+            result: outcome(set_atomically(node, parameters, request)),
+        });
+        answer(&self.list, |request| ListParametersResponse {
+            result: list(&node.list_parameters(), &request.prefixes, request.depth),
+        });
+        answer(&self.describe, |request| DescribeParametersResponse {
+            values: known(node, &request.names)
+                .map(|values| request.names.iter().zip(&values).map(|(name, value)| descriptor(name, value)).collect())
+                .unwrap_or_default(),
+        });
+    }
+}
+
+fn server<Req, Resp>(node: &mut Node, service: &str, ty: &str) -> Result<Server<Req, Resp>, NodeError>
+where
+    Req: ros2_client::Message + Clone + 'static,
+    Resp: ros2_client::Message + 'static,
+{
+    let full = format!("{}/{service}", node.fully_qualified_name());
+    let name = Name::parse(&full).map_err(|e| NodeError::Ros(format!("service {full}: {e:?}")))?;
+    // rmw's services profile: reliable, volatile, the last 10.
+    let qos = QosProfile::publisher_default().history(ros2_client::qos::History::KeepLast { depth: 10 });
+    let ty = ServiceTypeName::new("rcl_interfaces", ty);
+    node.create_server(ServiceMapping::Enhanced, &name, &ty, qos.clone(), qos).map_err(ros_err(&full))
+}
+
+fn answer<Req: ros2_client::Message + Clone + 'static, Resp: ros2_client::Message + 'static>(
+    server: &Server<Req, Resp>,
+    mut handle: impl FnMut(Req) -> Resp,
+) {
+    while let Ok(Some((id, request))) = server.receive_request() {
+        if let Err(e) = server.send_response(id, handle(request)) {
+            tracing::warn!("parameter service reply not sent: {e:?}");
+        }
+    }
+}
+
+/// The values of `names`, or none when one is not declared (rclcpp then answers with an
+/// empty list).
+fn known(node: &Node, names: &[String]) -> Option<Vec<ParameterValue>> {
+    names.iter().map(|name| node.get_parameter(name)).collect()
+}
+
+fn outcome(result: Result<(), String>) -> raw::SetParametersResult {
+    match result {
+        Ok(()) => raw::SetParametersResult { successful: true, reason: String::new() },
+        Err(reason) => raw::SetParametersResult { successful: false, reason },
+    }
+}
+
+/// All or none: every name declared and of its type, the changes acceptable together;
+/// then each set through the store.
+fn set_atomically(node: &Node, parameters: &Parameters, request: SetParametersRequest) -> Result<(), String> {
+    let changes: Vec<(String, ParameterValue)> =
+        request.parameter.into_iter().map(|p| (p.name, ParameterValue::from(p.value))).collect();
+    for (name, value) in &changes {
+        let Some(in_force) = node.get_parameter(name) else {
+            return Err(format!("Setting undeclared parameter '{name}' is not allowed."));
+        };
+        if in_force.to_parameter_type() != value.to_parameter_type() {
+            return Err(format!("Wrong parameter type, parameter {{{name}}} cannot change its type"));
+        }
+    }
+    let in_force = parameters.in_force.lock().map_err(|_| "parameter store poisoned".to_owned())?.clone();
+    let borrowed: Vec<(&str, &ParameterValue)> = changes.iter().map(|(n, v)| (n.as_str(), v)).collect();
+    acceptable(in_force, &borrowed)?;
+    changes.into_iter().try_for_each(|(name, value)| node.set_parameter(&name, value))
+}
+
+/// `list_parameters` as rclcpp answers it: with no prefixes, the names with fewer than
+/// `depth` dots (0: any); else the names equal to a prefix or under `prefix.` within
+/// `depth` more levels; and the namespaces of the names listed.
+fn list(names: &[String], prefixes: &[String], depth: u64) -> ListParametersResult {
+    let within = |rest: &str| depth == 0 || (rest.matches('.').count() as u64) < depth;
+    let mut result = ListParametersResult { names: vec![], prefixes: vec![] };
+    for name in names {
+        let under = |prefix: &String| {
+            name == prefix || name.strip_prefix(prefix.as_str()).and_then(|r| r.strip_prefix('.')).is_some_and(within)
+        };
+        if (prefixes.is_empty() && within(name)) || prefixes.iter().any(under) {
+            result.names.push(name.clone());
+            if let Some((namespace, _)) = name.rsplit_once('.') {
+                if !result.prefixes.iter().any(|p| p == namespace) {
+                    result.prefixes.push(namespace.to_owned());
+                }
+            }
+        }
+    }
+    result
+}
+
+/// The wire descriptor of `name`: the table's, else (a parameter the table does not know)
+/// its type alone.
+fn descriptor(name: &str, value: &ParameterValue) -> raw::ParameterDescriptor {
+    const UNKNOWN: Descriptor =
+        Descriptor { description: "", range: Range::Unbounded, read_only: false, additional_constraints: "" };
+    let d = descriptors::describe(name).unwrap_or(&UNKNOWN);
+    let (floating_point_range, integer_range) = match d.range {
+        Range::Unbounded => (vec![], vec![]),
+        Range::Float { from, to, step } => {
+            (vec![raw::FloatingPointRange { from_value: from, to_value: to, step }], vec![])
+        }
+        Range::Integer { from, to, step } => (vec![], vec![raw::IntegerRange { from_value: from, to_value: to, step }]),
+    };
+    raw::ParameterDescriptor {
+        name: name.to_owned(),
+        r#type: ParameterValue::to_parameter_type_raw(value),
+        description: d.description.to_owned(),
+        additional_constraints: d.additional_constraints.to_owned(),
+        read_only: d.read_only,
+        dynamic_typing: false,
+        floating_point_range,
+        integer_range,
     }
 }
 

@@ -246,7 +246,7 @@ fn a_second_participant_drives_the_node_and_receives_every_output() {
         assert_eq!(results.len(), 2);
         assert!(!results[0].successful && results[0].reason.contains("dt"), "{:?}", results[0]);
         // The backend is the run's: a running node refuses to change it.
-        assert!(!results[1].successful && results[1].reason.contains("once per run"), "{:?}", results[1]);
+        assert!(!results[1].successful && results[1].reason.contains("read-only"), "{:?}", results[1]);
         // The node's recording holds what went over the wire.
         let recorded =
             bag::read_messages(&dir.path().join("node.mcap"), &["/robot/tool_pose", "/robot/deformed_mesh"]).unwrap();
@@ -323,14 +323,7 @@ fn a_coupled_tool_is_answered_at_the_pose_rate_not_the_solver_rate() {
 #[test]
 fn a_cyclone_dds_peer_sees_ros2_types() {
     isolated("a_cyclone_dds_peer_sees_ros2_types", || {
-        let have =
-            Command::new("python3").args(["-c", "import cyclonedds.domain"]).output().is_ok_and(|o| o.status.success());
-        if !have {
-            assert!(
-                std::env::var_os("DEFVOL_REQUIRE_INTEROP").is_none(),
-                "python3 cyclonedds is missing (tests/run.sh installs it)"
-            );
-            eprintln!("skipped: python3 cyclonedds is not installed");
+        if !python_has("cyclonedds.domain") {
             return;
         }
         let dir = tempfile::tempdir().unwrap();
@@ -360,5 +353,67 @@ fn a_cyclone_dds_peer_sees_ros2_types() {
         assert!(poses.len() > 50, "{} poses recorded", poses.len());
         let last = msgs::decode::<PoseStamped>(&poses.last().unwrap().data, "recorded").unwrap();
         assert!((last.pose.position.z - 0.07).abs() < 1e-9, "{last:?}");
+    });
+}
+
+/// Whether `module` imports in the interop venv's python3; missing it fails the suite when
+/// tests/run.sh runs it (it installs the module), and skips the test otherwise.
+fn python_has(module: &str) -> bool {
+    let have =
+        Command::new("python3").args(["-c", &format!("import {module}")]).output().is_ok_and(|o| o.status.success());
+    assert!(
+        have || std::env::var_os("DEFVOL_REQUIRE_INTEROP").is_none(),
+        "python3 {module} is missing (tests/run.sh installs it)"
+    );
+    if !have {
+        eprintln!("skipped: python3 {module} is not installed");
+    }
+    have
+}
+
+#[test]
+fn rclpy_sees_each_parameter_described_and_out_of_range_values_refused() {
+    isolated("rclpy_sees_each_parameter_described_and_out_of_range_values_refused", || {
+        if !python_has("rclpy") {
+            return;
+        }
+        let dir = tempfile::tempdir().unwrap();
+        let node_process = start_node(dir.path(), 20, "rclpy_parameters");
+        let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/interop/rclpy_parameters.py");
+        let out = Command::new("python3").arg(script).arg("/robot/defvol").env("ROS_DOMAIN_ID", "17").output().unwrap();
+        let text = String::from_utf8_lossy(&out.stdout);
+        assert!(out.status.success(), "{text}{}", String::from_utf8_lossy(&out.stderr));
+        let exit = node_process.wait_with_output().unwrap();
+        assert!(exit.status.success(), "{}", String::from_utf8_lossy(&exit.stderr));
+        let got: serde_json::Value = serde_json::from_str(text.lines().last().unwrap()).unwrap();
+        eprintln!("{got}");
+        let names: Vec<&str> = got["names"].as_array().unwrap().iter().filter_map(|n| n.as_str()).collect();
+        for name in ["solver.dt", "camera.width", "tools.0.shape.radius", "backend", "record", "use_sim_time"] {
+            assert!(names.contains(&name), "`ros2 param list` shows {name}: {names:?}");
+        }
+        // rclpy decodes the descriptors as ROS 2 defines them (ParameterType DOUBLE = 3, INTEGER = 2).
+        let dt = &got["solver.dt"];
+        assert_eq!((dt["type"].as_u64(), dt["read_only"].as_bool()), (Some(3), Some(false)), "{dt}");
+        assert_eq!(dt["floating_point_range"], serde_json::json!([[1e-6, 0.1, 0.0]]));
+        assert!(dt["description"].as_str().unwrap().contains("time step"), "{dt}");
+        assert_eq!(got["camera.width"]["integer_range"], serde_json::json!([[1, 16384, 1]]));
+        assert_eq!(got["backend"]["read_only"], true);
+        assert_eq!(got["unknown"], 0, "an undeclared name is described by an empty reply, as rclcpp's");
+        // 1e9 s, NaN, a negative step and a string are refused, each saying why; a good one is taken.
+        let set = &got["set"];
+        for case in ["huge", "nan", "negative"] {
+            assert_eq!(set[case]["successful"], false, "{case}: {set}");
+            assert!(set[case]["reason"].as_str().unwrap().contains("floating point range"), "{case}: {set}");
+        }
+        assert_eq!(set["string"]["successful"], false, "{set}");
+        assert!(set["backend"]["reason"].as_str().unwrap().contains("read-only"), "{set}");
+        assert_eq!(
+            (&set["good"]["successful"], &got["dt_after"]),
+            (&serde_json::json!(true), &serde_json::json!(0.005))
+        );
+        // All or none: a good height beside an impossible width leaves the height as it was.
+        assert_eq!(got["atomically"]["successful"], false, "{got}");
+        assert!(got["atomically"]["reason"].as_str().unwrap().contains("camera.width"), "{got}");
+        assert_eq!(got["height_after"], 48);
     });
 }

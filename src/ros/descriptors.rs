@@ -1,0 +1,278 @@
+//! What each parameter is, as ROS 2 describes one (`rcl_interfaces/ParameterDescriptor`):
+//! a description, the numeric range a value must lie in, whether only a restart can change
+//! it, and the constraints no range can say. `ros2 param describe` and rqt_reconfigure show
+//! these; a value outside its range is refused before the scene is even checked.
+
+use serde_yaml_ng::Value;
+
+/// The numeric range of a parameter, both ends included (as `FloatingPointRange` and
+/// `IntegerRange` are); a step of 0 allows any value between them.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Range {
+    Unbounded,
+    Float { from: f64, to: f64, step: f64 },
+    Integer { from: i64, to: i64, step: i64 },
+}
+
+/// One parameter's description.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Descriptor {
+    pub description: &'static str,
+    pub range: Range,
+    /// Set once when the node starts; `set_parameters` refuses a change.
+    pub read_only: bool,
+    pub additional_constraints: &'static str,
+}
+
+const fn text(description: &'static str) -> Descriptor {
+    Descriptor { description, range: Range::Unbounded, read_only: false, additional_constraints: "" }
+}
+
+const fn float(description: &'static str, from: f64, to: f64) -> Descriptor {
+    Descriptor { range: Range::Float { from, to, step: 0.0 }, ..text(description) }
+}
+
+const fn integer(description: &'static str, from: i64, to: i64) -> Descriptor {
+    Descriptor { range: Range::Integer { from, to, step: 1 }, ..text(description) }
+}
+
+const fn constrained(descriptor: Descriptor, additional_constraints: &'static str) -> Descriptor {
+    Descriptor { additional_constraints, ..descriptor }
+}
+
+const fn read_only(descriptor: Descriptor) -> Descriptor {
+    Descriptor { read_only: true, ..descriptor }
+}
+
+/// Parameter names (dotted scene paths; `#` stands for a list index) and their descriptions.
+const TABLE: &[(&str, Descriptor)] = &[
+    ("scene_file", text("Scene YAML the other parameters are written into (empty: the embedded default scene)")),
+    ("use_sim_time", text("ROS 2's simulated-time switch (defvol stamps its outputs with the system clock)")),
+    ("record", read_only(text("MCAP file (rosbag2's format) recording every input and output topic"))),
+    ("rerun", read_only(text("rerun file (.rrd) logging the session"))),
+    ("dds.open_discovery", read_only(text("Let DDS discovery reach other hosts (default: loopback only)"))),
+    ("lifecycle.managed", read_only(text("Run as a managed (lifecycle) node: outputs only while active"))),
+    ("backend", read_only(constrained(text("Where every stage runs"), "one of auto, cpu, gpu; chosen once per run"))),
+    ("allow_software_gpu", read_only(text("Let a software Vulkan adapter (lavapipe, llvmpipe) count as a GPU"))),
+    ("volume", text("Source volume: `phantom` or a .nii/.nii.gz/.nrrd/.nhdr/.mha/.mhd file")),
+    ("file_to_world", float("World units (m) per file unit (0.001: millimetre files)", 1e-9, 1e3)),
+    ("density", float("Tissue density (kg/m³) giving the nodes' masses", 1.0, 1e5)),
+    ("frame_id", text("World frame of the tool poses and every output")),
+    (
+        "mesh.kind",
+        constrained(text("Where the mesh comes from"), "one of file, volume_lattice, lattice, bar, ellipsoid"),
+    ),
+    ("mesh.path", text("Mesh file (.vtk, .vtu, .msh, .mesh, .node/.ele)")),
+    ("mesh.scale", float("World units per mesh-file unit (overrides the file's own unit)", 1e-9, 1e3)),
+    ("mesh.target_tets", integer("About how many tetrahedra the lattice has", 5, 20_000_000)),
+    ("mesh.split", constrained(text("Tetrahedra per lattice cell"), "five or six")),
+    ("mesh.min", text("Lattice box corner (m), [x, y, z]")),
+    ("mesh.max", text("Lattice box corner (m), [x, y, z]")),
+    ("mesh.length", float("Bar length (m)", 1e-6, 1e3)),
+    ("mesh.centre", text("Ellipsoid centre (m), [x, y, z]")),
+    ("mesh.radii", text("Ellipsoid semi-axes (m), [x, y, z]")),
+    ("mesh.cells_per_axis", integer("Ellipsoid lattice cells along each axis", 1, 1000)),
+    ("material.kind", constrained(text("Where spring stiffness comes from"), "uniform or table")),
+    ("material.stiffness", float("Stiffness of every spring (N/m)", 0.0, 1e9)),
+    ("material.damping", float("Damping along every spring (N·s/m)", 0.0, 1e6)),
+    ("material.rows.#.intensity", text("Tissue table: the volume intensity of this row")),
+    ("material.rows.#.stiffness", float("Tissue table: spring stiffness at this intensity (N/m)", 0.0, 1e9)),
+    ("material.rows.#.damping", float("Tissue table: spring damping at this intensity (N·s/m)", 0.0, 1e6)),
+    ("fixed.kind", constrained(text("Which nodes are held"), "one of indices, box, plane, lowest")),
+    ("fixed.nodes", text("Held node indices")),
+    ("fixed.min", text("Held box corner (m), [x, y, z]")),
+    ("fixed.max", text("Held box corner (m), [x, y, z]")),
+    ("fixed.normal", text("Clamp plane normal: nodes with normal·x <= offset are held")),
+    ("fixed.offset", text("Clamp plane offset (m)")),
+    ("fixed.fraction", float("Held fraction of the mesh's height above its lowest node", 0.0, 1.0)),
+    (
+        "solver.integrator",
+        constrained(text("Time integrator"), "one of implicit_euler, explicit_euler, verlet, velocity_verlet"),
+    ),
+    (
+        "solver.dt",
+        constrained(
+            float("Solver time step (s); the node ticks once per step", 1e-6, 0.1),
+            "explicit integrators need dt below their stability limit, about sqrt(mass / stiffness)",
+        ),
+    ),
+    ("solver.gravity", text("Gravity (m/s²), [x, y, z]")),
+    ("solver.cg_tolerance", float("Implicit solve: relative residual at which CG stops", 1e-12, 0.5)),
+    ("solver.cg_max_iterations", integer("Implicit solve: most CG iterations per step", 1, 1_000_000)),
+    ("solver.cg_check_interval", integer("Implicit solve: CG iterations between residual checks (GPU)", 1, 1000)),
+    (
+        "solver.preconditioner",
+        constrained(text("CG preconditioner"), "one of auto, block_jacobi, amg (CPU); the GPU uses block_jacobi"),
+    ),
+    ("tools.#.name", text("Tool name (its topics are <name>/tool_pose … after the first tool)")),
+    ("tools.#.shape.kind", constrained(text("Tool shape"), "sphere or capsule")),
+    ("tools.#.shape.radius", float("Tool radius (m)", 1e-5, 1.0)),
+    ("tools.#.shape.length", float("Capsule shaft length (m)", 0.0, 10.0)),
+    ("tools.#.contact", constrained(text("What the tool pushes"), "surface (faces, edges, nodes) or nodes")),
+    ("tools.#.contact_stiffness", float("Penalty stiffness of the tool's contact (N/m)", 0.0, 1e9)),
+    ("tools.#.spread_radius", float("Radius over which a wrench on the tool is spread (m)", 0.0, 10.0)),
+    ("tools.#.coupling", text("Haptic coupling {stiffness, damping, mass, max_force} (empty: none)")),
+    ("tools.#.coupling.stiffness", float("Haptic coupling stiffness (N/m)", 0.0, 1e7)),
+    ("tools.#.coupling.damping", float("Haptic coupling damping (N·s/m)", 0.0, 1e5)),
+    ("tools.#.coupling.mass", float("Simulated tool mass (kg)", 1e-6, 100.0)),
+    ("tools.#.coupling.max_force", float("Largest force the device is sent (N)", 0.0, 1e4)),
+    ("tools.#.rotational_coupling", text("Torsional coupling {stiffness, damping, inertia, max_torque} (empty: none)")),
+    ("tools.#.rotational_coupling.stiffness", float("Torsional coupling stiffness (N·m/rad)", 0.0, 1e5)),
+    ("tools.#.rotational_coupling.damping", float("Torsional coupling damping (N·m·s/rad)", 0.0, 1e4)),
+    (
+        "tools.#.rotational_coupling.inertia",
+        float("Simulated tool's moment of inertia about its tip (kg·m²)", 1e-12, 10.0),
+    ),
+    ("tools.#.rotational_coupling.max_torque", float("Largest torque the device is sent (N·m)", 0.0, 1e3)),
+    ("tools.#.friction", text("Coulomb friction {static, kinetic, stick_speed} (empty: frictionless)")),
+    ("tools.#.friction.static", float("Static friction coefficient", 0.0, 10.0)),
+    (
+        "tools.#.friction.kinetic",
+        constrained(float("Kinetic friction coefficient", 0.0, 10.0), "at most the static coefficient"),
+    ),
+    ("tools.#.friction.stick_speed", float("Sliding speed below which the tool sticks (m/s)", 0.0, 1.0)),
+    ("tools.#.path", text("Scripted path {from, to, duration} (simulate, demo; empty: none)")),
+    ("tools.#.path.from", text("Scripted path start (m), [x, y, z]")),
+    ("tools.#.path.to", text("Scripted path end (m), [x, y, z]")),
+    ("tools.#.path.duration", float("Scripted path duration (s), then held", 0.0, 1e6)),
+    ("tools.#.pose_topic", text("Pose input topic (empty: tool_pose, or <name>/tool_pose)")),
+    ("tools.#.wrench_topic", text("Wrench input topic (empty: tool_wrench, or <name>/tool_wrench)")),
+    ("tools.#.feedback_topic", text("Reaction output topic (empty: tool_feedback, or <name>/tool_feedback)")),
+    ("stages.solver", text("Run the solver")),
+    ("stages.warp", text("Warp the source volume through the deformed mesh")),
+    ("stages.dpcm", text("Run the DPCM surface")),
+    ("stages.raycast", text("Render raycast images")),
+    ("warp.rate_hz", float("Most warps per simulated second", 0.01, 1e4)),
+    ("warp.tolerance", float("Node motion (m) below which a tet is not re-warped", 0.0, 1.0)),
+    ("warp.service", text("iceoryx2 service carrying the warped volumes")),
+    ("dpcm.preset", text("DPCM preset (water, sand, loose_soil, fossil, oil_painting) or a DPCM YAML file")),
+    ("dpcm.size", text("Phyxels along x and y, [nx, ny] (empty: the preset's)")),
+    ("dpcm.spacing", float("Metres between phyxels (empty: the preset's)", 1e-6, 1.0)),
+    ("dpcm.origin", text("World position of phyxel (0, 0) (m), [x, y, z]")),
+    ("dpcm.rate_hz", float("Most DPCM images per simulated second", 0.01, 1e4)),
+    ("camera.eye", text("Raycast camera position (m), [x, y, z]")),
+    ("camera.target", text("Point the camera looks at (m), [x, y, z]")),
+    ("camera.up", text("Camera up direction, [x, y, z]")),
+    ("camera.fov_y_deg", float("Vertical field of view (degrees)", 1.0, 179.0)),
+    ("camera.width", integer("Image width (pixels)", 1, 16384)),
+    ("camera.height", integer("Image height (pixels)", 1, 16384)),
+    ("camera.transfer_function", constrained(text("Transfer function preset"), "one of ct_soft_tissue, ct_bone, mri")),
+    ("camera.shows", constrained(text("What the camera shows"), "one of volume, mesh, source")),
+    ("camera.step", float("Ray step, in the volume's file units", 1e-3, 1e3)),
+    ("camera.rate_hz", float("Most frames per simulated second", 0.01, 1e4)),
+];
+
+/// The description of the parameter called `name`, if it is one defvol knows.
+pub fn describe(name: &str) -> Option<&'static Descriptor> {
+    TABLE.iter().find(|(pattern, _)| matches(pattern, name)).map(|(_, descriptor)| descriptor)
+}
+
+/// Whether `name` fits `pattern`, segment by segment (`#` matches a list index).
+fn matches(pattern: &str, name: &str) -> bool {
+    let (mut p, mut n) = (pattern.split('.'), name.split('.'));
+    loop {
+        match (p.next(), n.next()) {
+            (None, None) => return true,
+            (Some("#"), Some(segment)) if segment.parse::<usize>().is_ok() => {}
+            (Some(a), Some(b)) if a == b => {}
+            _ => return false,
+        }
+    }
+}
+
+impl Descriptor {
+    /// Why `value` cannot be set, as rclcpp words it; `changes` tells a new value from the
+    /// one in force (a read-only parameter takes only the latter).
+    pub fn refuses(&self, name: &str, value: &Value, changes: bool) -> Option<String> {
+        if self.read_only && changes {
+            return Some(format!("parameter '{name}' cannot be set because it is read-only"));
+        }
+        match (self.range, value) {
+            (Range::Float { from, to, .. }, Value::Number(n)) => {
+                let x = n.as_f64().unwrap_or(f64::NAN);
+                // NaN lies in no range.
+                (!(from..=to).contains(&x))
+                    .then(|| format!("Parameter {{{name}}} doesn't comply with floating point range [{from}, {to}]"))
+            }
+            (Range::Integer { from, to, step }, Value::Number(n)) => {
+                let i = n.as_i64()?;
+                let off_step = step > 0 && (i - from) % step != 0;
+                (!(from..=to).contains(&i) || off_step)
+                    .then(|| format!("Parameter {{{name}}} doesn't comply with integer range [{from}, {to}]"))
+            }
+            _ => None,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::ros::args::{scene_parameters, set_path};
+    use crate::scene::Scene;
+
+    /// Scenes between them holding every kind of mesh, material, clamp and tool option.
+    fn scenes() -> Vec<Scene> {
+        let with = |changes: &[(&str, &str)]| {
+            let mut tree: Value = serde_yaml_ng::from_str(crate::scene::DEFAULT_SCENE).unwrap();
+            for (path, yaml) in changes {
+                set_path(&mut tree, path, serde_yaml_ng::from_str(yaml).unwrap()).unwrap();
+            }
+            serde_yaml_ng::from_value::<Scene>(tree).unwrap()
+        };
+        vec![
+            with(&[]),
+            with(&[
+                ("mesh", "{kind: lattice, min: [0, 0, 0], max: [1, 1, 1], target_tets: 100, split: six}"),
+                ("material", "{kind: table, rows: [{intensity: 0, stiffness: 1, damping: 0}]}"),
+                ("fixed", "{kind: box, min: [0, 0, 0], max: [1, 1, 1]}"),
+                ("tools.0.shape", "{kind: capsule, radius: 0.002, length: 0.05}"),
+                ("tools.0.friction", "{static: 0.5, kinetic: 0.3}"),
+                ("tools.0.rotational_coupling", "{stiffness: 2.0, damping: 0.02, inertia: 1.0e-5, max_torque: 1.0}"),
+            ]),
+            with(&[
+                ("mesh", "{kind: ellipsoid, centre: [0, 0, 0], radii: [1, 1, 1], cells_per_axis: 4}"),
+                ("fixed", "{kind: lowest, fraction: 0.1}"),
+            ]),
+            with(&[("mesh", "{kind: bar, length: 0.1}"), ("fixed", "{kind: indices, nodes: [0, 1]}")]),
+            with(&[("mesh", "{kind: file, path: organ.vtk, scale: 0.001}")]),
+        ]
+    }
+
+    #[test]
+    fn every_parameter_of_every_kind_of_scene_is_described() {
+        for scene in scenes() {
+            for (name, value) in scene_parameters(&scene) {
+                let descriptor = describe(&name).unwrap_or_else(|| panic!("`{name}` has no descriptor"));
+                assert_eq!(descriptor.refuses(&name, &value, false), None, "`{name}` = {value:?} in a valid scene");
+            }
+        }
+        for name in crate::ros::args::NODE_PARAMETERS {
+            assert!(describe(name).is_some(), "{name}");
+        }
+        for name in ["record", "rerun", "dds.open_discovery", "backend", "allow_software_gpu"] {
+            assert!(describe(name).is_some_and(|d| d.read_only), "{name}");
+        }
+    }
+
+    #[test]
+    fn values_outside_the_declared_range_are_refused_as_rclcpp_words_it() {
+        let dt = describe("solver.dt").unwrap();
+        assert_eq!(dt.refuses("solver.dt", &Value::from(0.005), true), None);
+        let huge = dt.refuses("solver.dt", &Value::from(1e9), true).unwrap();
+        assert_eq!(huge, "Parameter {solver.dt} doesn't comply with floating point range [0.000001, 0.1]");
+        assert!(dt.refuses("solver.dt", &Value::from(f64::NAN), true).is_some());
+        assert!(dt.refuses("solver.dt", &Value::from(-0.01), true).is_some());
+        let width = describe("camera.width").unwrap();
+        assert!(width.refuses("camera.width", &Value::from(0), true).unwrap().contains("integer range [1, 16384]"));
+        let radius = describe("tools.3.shape.radius").unwrap();
+        assert_eq!(radius.range, Range::Float { from: 1e-5, to: 1.0, step: 0.0 });
+        assert!(describe("tools.x.shape.radius").is_none() && describe("solver.dtt").is_none());
+        let backend = describe("backend").unwrap();
+        assert_eq!(backend.refuses("backend", &Value::from("auto"), false), None);
+        assert_eq!(
+            backend.refuses("backend", &Value::from("gpu"), true).unwrap(),
+            "parameter 'backend' cannot be set because it is read-only"
+        );
+    }
+}
