@@ -57,6 +57,29 @@ pub struct RecordOptions {
     pub rerun_connect: Option<String>,
 }
 
+impl RecordOptions {
+    /// The files of the `n`th recording of one run (`n` > 0: `session_n.mcap`, …), so
+    /// that a managed node configured again never overwrites what it recorded before.
+    pub fn numbered(&self, n: u32) -> Self {
+        let number = |path: &PathBuf| {
+            if n == 0 {
+                return path.clone();
+            }
+            let stem = path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
+            let name = match path.extension() {
+                Some(ext) => format!("{stem}_{n}.{}", ext.to_string_lossy()),
+                None => format!("{stem}_{n}"),
+            };
+            path.with_file_name(name)
+        };
+        Self {
+            mcap: self.mcap.as_ref().map(number),
+            rerun_file: self.rerun_file.as_ref().map(number),
+            rerun_connect: self.rerun_connect.clone(),
+        }
+    }
+}
+
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
 pub enum SessionError {

@@ -51,7 +51,7 @@ fi
 # Python binding, and the field's file tools (meshio, VTK, Gmsh, SimpleITK, nibabel, pynrrd). Versions are pinned to what the Rust side speaks;
 # the venv is named by their hash and marked complete only once every package installed, so
 # a venv half-written by a killed run is made anew.
-requirements="mcap==1.6.0 mcap-ros2-support==0.6.0 rerun-sdk==0.36.3 cyclonedds==11.0.1 iceoryx2==0.10.0 SimpleITK==2.5.3 numpy==2.4.6 meshio==5.3.5 vtk==9.7.2 gmsh==4.15.2 nibabel==5.4.2 pynrrd==1.1.3 ros-rclpy==9.1.2 ros-rmw-fastrtps-cpp==9.3.3 ros-lifecycle-msgs==2.3.0"
+requirements="mcap==1.6.0 mcap-ros2-support==0.6.0 rerun-sdk==0.36.3 cyclonedds==11.0.1 iceoryx2==0.10.0 SimpleITK==2.5.3 numpy==2.4.6 meshio==5.3.5 vtk==9.7.2 gmsh==4.15.2 nibabel==5.4.2 pynrrd==1.1.3 ros-rclpy==9.1.2 ros-rmw-fastrtps-cpp==9.3.3 ros-lifecycle-msgs==2.3.0 ros-diagnostic-msgs==5.5.1 ros-sensor-msgs==5.5.1"
 venv="$cache/interop-venv-$(echo "$requirements" | sha256sum | cut -c1-12)"
 if [ "$(cat "$venv/.requirements" 2>/dev/null)" != "$requirements" ]; then
     if ! python3 -m venv --help >/dev/null 2>&1 || ! python3 -c 'import ensurepip' >/dev/null 2>&1; then

@@ -320,6 +320,7 @@ mod dds {
                 allow_software_gpu: opts.allow_software_gpu,
             },
             open_discovery: false,
+            managed: false,
             run_for: Some(Duration::from_secs(900)),
             stop: Some(stop.clone()),
         };

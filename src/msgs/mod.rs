@@ -23,7 +23,7 @@ pub enum MsgError {
 }
 
 /// The `.msg` texts of `msg/`, by full name.
-pub const DEFINITIONS: [(&str, &str); 21] = [
+pub const DEFINITIONS: [(&str, &str); 25] = [
     ("builtin_interfaces/msg/Time", include_str!("../../msg/builtin_interfaces/msg/Time.msg")),
     ("builtin_interfaces/msg/Duration", include_str!("../../msg/builtin_interfaces/msg/Duration.msg")),
     ("std_msgs/msg/Header", include_str!("../../msg/std_msgs/msg/Header.msg")),
@@ -45,12 +45,26 @@ pub const DEFINITIONS: [(&str, &str); 21] = [
     ("diagnostic_msgs/msg/DiagnosticArray", include_str!("../../msg/diagnostic_msgs/msg/DiagnosticArray.msg")),
     ("defvol/msg/DeformedMesh", include_str!("../../msg/defvol/msg/DeformedMesh.msg")),
     ("defvol/msg/WarpedVolumeInfo", include_str!("../../msg/defvol/msg/WarpedVolumeInfo.msg")),
+    ("lifecycle_msgs/msg/State", include_str!("../../msg/lifecycle_msgs/msg/State.msg")),
+    ("lifecycle_msgs/msg/Transition", include_str!("../../msg/lifecycle_msgs/msg/Transition.msg")),
+    (
+        "lifecycle_msgs/msg/TransitionDescription",
+        include_str!("../../msg/lifecycle_msgs/msg/TransitionDescription.msg"),
+    ),
+    ("lifecycle_msgs/msg/TransitionEvent", include_str!("../../msg/lifecycle_msgs/msg/TransitionEvent.msg")),
 ];
 
 /// The `.srv` texts of `msg/`, by full name.
-pub const SERVICES: [(&str, &str); 2] = [
+pub const SERVICES: [(&str, &str); 6] = [
     ("std_srvs/srv/Trigger", include_str!("../../msg/std_srvs/srv/Trigger.srv")),
     ("defvol/srv/LoadScene", include_str!("../../msg/defvol/srv/LoadScene.srv")),
+    ("lifecycle_msgs/srv/ChangeState", include_str!("../../msg/lifecycle_msgs/srv/ChangeState.srv")),
+    ("lifecycle_msgs/srv/GetState", include_str!("../../msg/lifecycle_msgs/srv/GetState.srv")),
+    ("lifecycle_msgs/srv/GetAvailableStates", include_str!("../../msg/lifecycle_msgs/srv/GetAvailableStates.srv")),
+    (
+        "lifecycle_msgs/srv/GetAvailableTransitions",
+        include_str!("../../msg/lifecycle_msgs/srv/GetAvailableTransitions.srv"),
+    ),
 ];
 
 /// A message type with its ROS 2 name.
@@ -137,14 +151,15 @@ mod tests {
     use super::*;
     use serde_reflection::{ContainerFormat, Format, Tracer, TracerConfig};
 
-    /// (type, name) of each field line of a `.msg` text; constants left out.
+    /// (type, name) of each field line of a `.msg` text; constants (`uint8 NAME = 1`,
+    /// `NAME=1`) left out.
     fn msg_fields(text: &str) -> Vec<(String, String)> {
         text.lines()
             .filter_map(|line| {
                 let line = line.split('#').next()?.trim();
                 let mut parts = line.split_whitespace();
                 let (ty, name) = (parts.next()?, parts.next()?);
-                (!name.contains('=')).then(|| (ty.to_owned(), name.to_owned()))
+                (!line.contains('=')).then(|| (ty.to_owned(), name.to_owned()))
             })
             .collect()
     }
@@ -202,7 +217,7 @@ mod tests {
     #[test]
     fn every_struct_matches_its_msg_text() {
         let mut tracer = Tracer::new(TracerConfig::default());
-        let traces: [fn(&mut Tracer) -> serde_reflection::Result<()>; 10] = [
+        let traces: [fn(&mut Tracer) -> serde_reflection::Result<()>; 16] = [
             |t: &mut Tracer| t.trace_simple_type::<PoseStamped>().map(drop),
             |t: &mut Tracer| t.trace_simple_type::<WrenchStamped>().map(drop),
             |t: &mut Tracer| t.trace_simple_type::<Image>().map(drop),
@@ -213,6 +228,12 @@ mod tests {
             |t: &mut Tracer| t.trace_simple_type::<TriggerRequest>().map(drop),
             |t: &mut Tracer| t.trace_simple_type::<TriggerResponse>().map(drop),
             |t: &mut Tracer| t.trace_simple_type::<LoadSceneRequest>().map(drop),
+            |t: &mut Tracer| t.trace_simple_type::<TransitionEvent>().map(drop),
+            |t: &mut Tracer| t.trace_simple_type::<ChangeStateRequest>().map(drop),
+            |t: &mut Tracer| t.trace_simple_type::<ChangeStateResponse>().map(drop),
+            |t: &mut Tracer| t.trace_simple_type::<GetStateResponse>().map(drop),
+            |t: &mut Tracer| t.trace_simple_type::<GetAvailableStatesResponse>().map(drop),
+            |t: &mut Tracer| t.trace_simple_type::<GetAvailableTransitionsResponse>().map(drop),
         ];
         for trace in traces {
             trace(&mut tracer).unwrap();
@@ -239,6 +260,10 @@ mod tests {
         check::<DiagnosticArray>(&registry);
         check::<DeformedMesh>(&registry);
         check::<WarpedVolumeInfo>(&registry);
+        check::<LifecycleState>(&registry);
+        check::<LifecycleTransition>(&registry);
+        check::<TransitionDescription>(&registry);
+        check::<TransitionEvent>(&registry);
         // Services: each half against its side of the `---`.
         let halves = |name: &str| {
             let text = SERVICES.iter().find(|(n, _)| *n == name).unwrap().1;
@@ -251,8 +276,20 @@ mod tests {
         let (request, response) = halves("defvol/srv/LoadScene");
         check_fields(&registry, "LoadSceneRequest", "LoadScene request", &request);
         check_fields(&registry, "TriggerResponse", "LoadScene response", &response);
-        // Every traced struct has a text: the 21 messages and the 3 service halves.
-        assert_eq!(registry.len(), DEFINITIONS.len() + 3);
+        let (request, response) = halves("lifecycle_msgs/srv/ChangeState");
+        check_fields(&registry, "ChangeStateRequest", "ChangeState request", &request);
+        check_fields(&registry, "ChangeStateResponse", "ChangeState response", &response);
+        for (service, rust) in [
+            ("GetState", "GetStateResponse"),
+            ("GetAvailableStates", "GetAvailableStatesResponse"),
+            ("GetAvailableTransitions", "GetAvailableTransitionsResponse"),
+        ] {
+            let (request, response) = halves(&format!("lifecycle_msgs/srv/{service}"));
+            assert!(msg_fields(&request).is_empty(), "{service}'s request is empty: TriggerRequest's placeholder");
+            check_fields(&registry, rust, service, &response);
+        }
+        // Every traced struct has a text: the 25 messages and the 8 service halves.
+        assert_eq!(registry.len(), DEFINITIONS.len() + 8);
     }
 
     #[test]

@@ -279,6 +279,71 @@ pub struct LoadSceneRequest {
 /// The response half of defvol/srv/LoadScene (the same fields as Trigger's).
 pub type LoadSceneResponse = TriggerResponse;
 
+/// lifecycle_msgs/msg/State: a managed node's state (the ids are the `.msg` constants).
+#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename = "State")]
+pub struct LifecycleState {
+    pub id: u8,
+    pub label: String,
+}
+
+/// lifecycle_msgs/msg/Transition.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename = "Transition")]
+pub struct LifecycleTransition {
+    pub id: u8,
+    pub label: String,
+}
+
+/// lifecycle_msgs/msg/TransitionDescription: one edge of the state machine.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct TransitionDescription {
+    pub transition: LifecycleTransition,
+    pub start_state: LifecycleState,
+    pub goal_state: LifecycleState,
+}
+
+/// lifecycle_msgs/msg/TransitionEvent: what `~/transition_event` says at each state change.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct TransitionEvent {
+    /// Nanoseconds since the epoch.
+    pub timestamp: u64,
+    pub transition: LifecycleTransition,
+    pub start_state: LifecycleState,
+    pub goal_state: LifecycleState,
+}
+
+/// The request half of lifecycle_msgs/srv/ChangeState.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct ChangeStateRequest {
+    pub transition: LifecycleTransition,
+}
+
+/// The response half of lifecycle_msgs/srv/ChangeState.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct ChangeStateResponse {
+    pub success: bool,
+}
+
+/// The response half of lifecycle_msgs/srv/GetState (its request is empty: a
+/// [`TriggerRequest`]'s placeholder byte, as for every empty request).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct GetStateResponse {
+    pub current_state: LifecycleState,
+}
+
+/// The response half of lifecycle_msgs/srv/GetAvailableStates.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct GetAvailableStatesResponse {
+    pub available_states: Vec<LifecycleState>,
+}
+
+/// The response half of lifecycle_msgs/srv/GetAvailableTransitions.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct GetAvailableTransitionsResponse {
+    pub available_transitions: Vec<TransitionDescription>,
+}
+
 macro_rules! named {
     ($($ty:ty => $name:literal),* $(,)?) => {
         $(impl Message for $ty {
@@ -309,4 +374,8 @@ named! {
     DiagnosticArray => "diagnostic_msgs/msg/DiagnosticArray",
     DeformedMesh => "defvol/msg/DeformedMesh",
     WarpedVolumeInfo => "defvol/msg/WarpedVolumeInfo",
+    LifecycleState => "lifecycle_msgs/msg/State",
+    LifecycleTransition => "lifecycle_msgs/msg/Transition",
+    TransitionDescription => "lifecycle_msgs/msg/TransitionDescription",
+    TransitionEvent => "lifecycle_msgs/msg/TransitionEvent",
 }

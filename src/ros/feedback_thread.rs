@@ -43,6 +43,11 @@ pub(super) struct FeedbackIo {
 pub(super) enum Command {
     Pause,
     Resume,
+    /// A managed node's activation: the loop steps and publishes again.
+    Activate,
+    /// A managed node's deactivation: the loop holds its state and publishes nothing (as
+    /// an rclcpp `LifecyclePublisher` drops what an inactive node publishes).
+    Deactivate,
     /// A new loop (after a reset or a new scene), with new topics when they changed.
     Replace {
         feedback: Box<FeedbackLoop>,
@@ -95,8 +100,17 @@ pub(super) struct FeedbackThread {
 }
 
 impl FeedbackThread {
-    /// Starts the loop: `period` is the solver's time step.
-    pub fn spawn(mut feedback: FeedbackLoop, io: FeedbackIo, period: Duration) -> Result<Self, NodeError> {
+    /// Starts the loop: `period` is the solver's time step; an inactive loop (a managed
+    /// node's, once configured) waits for [`Command::Activate`].
+    pub fn spawn(
+        mut feedback: FeedbackLoop,
+        io: FeedbackIo,
+        period: Duration,
+        active: bool,
+    ) -> Result<Self, NodeError> {
+        if !active {
+            feedback.pause();
+        }
         let failed = |e: &dyn std::fmt::Display| NodeError::Ros(format!("feedback thread: {e}"));
         let poll = Poll::new().map_err(|e| failed(&e))?;
         let waker = Arc::new(Waker::new(poll.registry(), WAKER).map_err(|e| failed(&e))?);
@@ -117,6 +131,7 @@ impl FeedbackThread {
             period,
             solver,
             busy: false,
+            active,
         };
         let handle = std::thread::Builder::new()
             .name("defvol-feedback".into())
@@ -172,6 +187,8 @@ struct Worker {
     solver: SolverThread,
     /// A step of this generation is on the solver's thread.
     busy: bool,
+    /// Publishing (not a deactivated managed node's loop).
+    active: bool,
 }
 
 /// Sent to the solver's thread.
@@ -331,6 +348,9 @@ impl Worker {
 
     /// Publishes one tool's feedback and hands it to the node to record.
     fn send_one(&self, index: usize, msg: WrenchStamped) {
+        if !self.active {
+            return;
+        }
         if let Some((topic, publisher)) = self.io.feedback.get(index) {
             if let Err(e) = publisher.publish(msg.clone()) {
                 tracing::debug!("{topic}: not sent ({e:?})");
@@ -341,6 +361,9 @@ impl Worker {
 
     /// Publishes each tool's feedback and hands it to the node to record.
     fn send_feedback(&self, msgs: Vec<WrenchStamped>) {
+        if !self.active {
+            return;
+        }
         for (publisher, msg) in self.io.feedback.iter().zip(&msgs) {
             if let Err(e) = publisher.1.publish(msg.clone()) {
                 tracing::debug!("{}: not sent ({e:?})", publisher.0);
@@ -405,9 +428,20 @@ impl Worker {
             match command {
                 Command::Pause => self.feedback.pause(),
                 Command::Resume => self.feedback.resume(),
+                Command::Activate => {
+                    self.active = true;
+                    self.feedback.resume();
+                }
+                Command::Deactivate => {
+                    self.active = false;
+                    self.feedback.pause();
+                }
                 Command::Replace { mut feedback, io } => {
                     let _ = self.solver.jobs.send(Job::Engine(feedback.take_engine().map(Box::new)));
                     self.feedback = *feedback;
+                    if !self.active {
+                        self.feedback.pause();
+                    }
                     self.generation += 1;
                     self.busy = false;
                     if let Some(io) = io {

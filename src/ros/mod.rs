@@ -4,16 +4,23 @@
 
 pub mod args;
 #[cfg(feature = "ros")]
+mod configured;
+#[cfg(feature = "ros")]
 pub mod dds;
 pub mod descriptors;
 #[cfg(feature = "ros")]
 mod error;
 #[cfg(feature = "ros")]
 mod feedback_thread;
+pub mod lifecycle;
+#[cfg(feature = "ros")]
+mod managed;
 #[cfg(feature = "ros")]
 pub mod node;
 #[cfg(feature = "ros")]
 mod parameters;
+#[cfg(feature = "ros")]
+pub mod wire;
 
 #[cfg(feature = "ros")]
 pub use error::NodeError;

@@ -13,12 +13,13 @@ use ros2_client::rcl_interfaces::{
     GetParametersRequest, GetParametersResponse, ListParametersRequest, ListParametersResponse, ListParametersResult,
     SetParametersAtomicallyResponse, SetParametersRequest, SetParametersResponse,
 };
-use ros2_client::{Name, Node, NodeOptions, ParameterValue, QosProfile, Server, ServiceMapping, ServiceTypeName};
+use ros2_client::{Node, NodeOptions, ParameterValue, Server};
 use serde_yaml_ng::Value;
 
 use super::args;
 use super::descriptors::{self, Descriptor, Range};
-use super::error::{ros_err, NodeError};
+use super::error::NodeError;
+use super::wire::{answer, own_server};
 use crate::pipeline::Pipeline;
 
 /// The values in force and the changes accepted since the last look.
@@ -52,6 +53,23 @@ impl Parameters {
             sent.map_err(|_| "the node is stopping".to_owned())
         }));
         (options, Self { in_force, changed })
+    }
+
+    /// Takes the accepted changes into the values in force, with no scene to reload (a
+    /// managed node not configured yet: its configure reads them).
+    pub(super) fn absorb(&self) {
+        while let Ok((name, value)) = self.changed.try_recv() {
+            if let Ok(mut store) = self.in_force.lock() {
+                store.insert(name, value);
+            }
+        }
+    }
+
+    /// The scene the values in force describe.
+    pub(super) fn scene(&self) -> Result<crate::scene::Scene, String> {
+        self.absorb();
+        let store = self.in_force.lock().map_err(|_| "parameter store poisoned".to_owned())?;
+        args::scene_from_parameters(&store).map_err(|e| e.to_string())
     }
 
     /// Applies the accepted changes to `pipeline` (a scene reload each); true when one
@@ -109,12 +127,12 @@ pub(super) struct ParameterServices {
 impl ParameterServices {
     pub(super) fn create(node: &mut Node) -> Result<Self, NodeError> {
         Ok(Self {
-            get: server(node, "get_parameters", "GetParameters")?,
-            get_types: server(node, "get_parameter_types", "GetParameterTypes")?,
-            set: server(node, "set_parameters", "SetParameters")?,
-            set_atomically: server(node, "set_parameters_atomically", "SetParametersAtomically")?,
-            list: server(node, "list_parameters", "ListParameters")?,
-            describe: server(node, "describe_parameters", "DescribeParameters")?,
+            get: own_server(node, "get_parameters", "rcl_interfaces", "GetParameters")?,
+            get_types: own_server(node, "get_parameter_types", "rcl_interfaces", "GetParameterTypes")?,
+            set: own_server(node, "set_parameters", "rcl_interfaces", "SetParameters")?,
+            set_atomically: own_server(node, "set_parameters_atomically", "rcl_interfaces", "SetParametersAtomically")?,
+            list: own_server(node, "list_parameters", "rcl_interfaces", "ListParameters")?,
+            describe: own_server(node, "describe_parameters", "rcl_interfaces", "DescribeParameters")?,
         })
     }
 
@@ -149,30 +167,6 @@ impl ParameterServices {
                 .map(|values| request.names.iter().zip(&values).map(|(name, value)| descriptor(name, value)).collect())
                 .unwrap_or_default(),
         });
-    }
-}
-
-fn server<Req, Resp>(node: &mut Node, service: &str, ty: &str) -> Result<Server<Req, Resp>, NodeError>
-where
-    Req: ros2_client::Message + Clone + 'static,
-    Resp: ros2_client::Message + 'static,
-{
-    let full = format!("{}/{service}", node.fully_qualified_name());
-    let name = Name::parse(&full).map_err(|e| NodeError::Ros(format!("service {full}: {e:?}")))?;
-    // rmw's services profile: reliable, volatile, the last 10.
-    let qos = QosProfile::publisher_default().history(ros2_client::qos::History::KeepLast { depth: 10 });
-    let ty = ServiceTypeName::new("rcl_interfaces", ty);
-    node.create_server(ServiceMapping::Enhanced, &name, &ty, qos.clone(), qos).map_err(ros_err(&full))
-}
-
-fn answer<Req: ros2_client::Message + Clone + 'static, Resp: ros2_client::Message + 'static>(
-    server: &Server<Req, Resp>,
-    mut handle: impl FnMut(Req) -> Resp,
-) {
-    while let Ok(Some((id, request))) = server.receive_request() {
-        if let Err(e) = server.send_response(id, handle(request)) {
-            tracing::warn!("parameter service reply not sent: {e:?}");
-        }
     }
 }
 

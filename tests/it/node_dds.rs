@@ -417,3 +417,81 @@ fn rclpy_sees_each_parameter_described_and_out_of_range_values_refused() {
         assert_eq!(got["height_after"], 48);
     });
 }
+
+/// The events, states and answers of one node in one step of the rclpy script, the events'
+/// stamps left out (rcl_lifecycle leaves them 0; defvol stamps them).
+fn unstamped(answer: &serde_json::Value) -> serde_json::Value {
+    let mut answer = answer.clone();
+    for event in answer["events"].as_array_mut().unwrap() {
+        event.as_object_mut().unwrap().remove("stamped");
+    }
+    answer
+}
+
+#[test]
+fn a_managed_node_answers_every_lifecycle_request_as_rclpys_own_lifecycle_node() {
+    isolated("a_managed_node_answers_every_lifecycle_request_as_rclpys_own_lifecycle_node", || {
+        if !python_has("rclpy.lifecycle") || !python_has("diagnostic_msgs.msg") {
+            return;
+        }
+        let dir = tempfile::tempdir().unwrap();
+        // A scene whose volume file is missing: it parses, so the node comes up; it does not load.
+        let text = std::fs::read_to_string(scene()).unwrap().replace("volume: phantom", "volume: /nonexistent/ct.nii");
+        let broken = dir.path().join("broken.yaml");
+        std::fs::write(&broken, text).unwrap();
+        let node_process = Command::new(env!("CARGO_BIN_EXE_defvol_node"))
+            .args(["--backend", "cpu", "--managed", "--seconds", "90", "--record"])
+            .arg(dir.path().join("node.mcap"))
+            .args(["--ros-args", "-r", "__ns:=/robot", "-p"])
+            .arg(format!("scene_file:={}", broken.display()))
+            .arg("-p")
+            .arg(format!("warp.service:=defvol/lifecycle_{}", std::process::id()))
+            .env("ROS_DOMAIN_ID", "17")
+            .env_remove("RUST_LOG")
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/interop/rclpy_lifecycle.py");
+        let out = Command::new("python3").arg(script).arg("/robot/defvol").env("ROS_DOMAIN_ID", "17").output().unwrap();
+        let text = String::from_utf8_lossy(&out.stdout);
+        // Ctrl-C: a finalized node stays up (as rclcpp's) until stopped.
+        Command::new("kill").args(["-INT", &node_process.id().to_string()]).status().unwrap();
+        let exit = node_process.wait_with_output().unwrap();
+        let log = String::from_utf8_lossy(&exit.stderr);
+        assert!(out.status.success(), "{text}{}{log}", String::from_utf8_lossy(&out.stderr));
+        assert!(exit.status.success(), "{log}");
+        let got: serde_json::Value = serde_json::from_str(text.lines().last().unwrap()).unwrap();
+        let (reference, defvol) = ("/reference", "/robot/defvol");
+        assert_eq!(got["states"][defvol], got["states"][reference], "get_available_states");
+        assert_eq!(got["graph"][defvol], got["graph"][reference], "get_transition_graph");
+        assert_eq!(got["graph"][defvol].as_array().unwrap().len(), 25);
+        assert_eq!(got["initial"][defvol], got["initial"][reference]);
+        // Each request, a refused one too, answered and evented as rcl_lifecycle does.
+        for step in got["steps"].as_array().unwrap() {
+            let (name, answers) = (&step[0], &step[1]);
+            assert_eq!(unstamped(&answers[defvol]), unstamped(&answers[reference]), "{name}");
+            let events = answers[defvol]["events"].as_array().unwrap();
+            assert!(events.iter().all(|e| e["stamped"] == true), "{name}: {events:?}");
+        }
+        let step = |name: &str| &got["steps"].as_array().unwrap().iter().find(|s| s[0] == name).unwrap()[1][defvol];
+        // A scene that does not load fails configure, names why, and leaves the node unconfigured.
+        assert_eq!(step("configure a scene that does not load")["success"], false);
+        assert_eq!(step("configure a scene that does not load")["state"], serde_json::json!([1, "unconfigured"]));
+        assert!(log.contains("/nonexistent/ct.nii: No such file"), "{log}");
+        assert_eq!(got["volume_set"], true);
+        assert_eq!(step("configure")["state"], serde_json::json!([2, "inactive"]));
+        assert_eq!(step("shutdown by its label")["state"], serde_json::json!([4, "finalized"]));
+        // Outputs flow only while active.
+        let outputs = &got["outputs"];
+        for quiet in ["unconfigured", "inactive", "deactivated", "cleaned_up"] {
+            assert_eq!(outputs[quiet], 0, "{quiet}: {outputs}");
+        }
+        assert!(
+            outputs["active"].as_u64().unwrap() >= 2 && outputs["active_again"].as_u64().unwrap() >= 1,
+            "{outputs}"
+        );
+        // The recording, closed at cleanup, holds what the active node published.
+        let recorded = bag::read_messages(&dir.path().join("node.mcap"), &["/robot/diagnostics"]).unwrap();
+        assert!(!recorded.is_empty());
+    });
+}
