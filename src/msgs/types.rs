@@ -232,7 +232,7 @@ pub struct DiagnosticArray {
     pub status: Vec<DiagnosticStatus>,
 }
 
-/// defvol/msg/DeformedMesh.
+/// defvol_interfaces/msg/DeformedMesh.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct DeformedMesh {
     pub header: Header,
@@ -243,7 +243,7 @@ pub struct DeformedMesh {
     pub step: u64,
 }
 
-/// defvol/msg/WarpedVolumeInfo.
+/// defvol_interfaces/msg/WarpedVolumeInfo.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct WarpedVolumeInfo {
     pub header: Header,
@@ -270,13 +270,13 @@ pub struct TriggerResponse {
     pub message: String,
 }
 
-/// The request half of defvol/srv/LoadScene.
+/// The request half of defvol_interfaces/srv/LoadScene.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct LoadSceneRequest {
     pub scene: String,
 }
 
-/// The response half of defvol/srv/LoadScene (the same fields as Trigger's).
+/// The response half of defvol_interfaces/srv/LoadScene (the same fields as Trigger's).
 pub type LoadSceneResponse = TriggerResponse;
 
 /// lifecycle_msgs/msg/State: a managed node's state (the ids are the `.msg` constants).
@@ -372,8 +372,8 @@ named! {
     KeyValue => "diagnostic_msgs/msg/KeyValue",
     DiagnosticStatus => "diagnostic_msgs/msg/DiagnosticStatus",
     DiagnosticArray => "diagnostic_msgs/msg/DiagnosticArray",
-    DeformedMesh => "defvol/msg/DeformedMesh",
-    WarpedVolumeInfo => "defvol/msg/WarpedVolumeInfo",
+    DeformedMesh => "defvol_interfaces/msg/DeformedMesh",
+    WarpedVolumeInfo => "defvol_interfaces/msg/WarpedVolumeInfo",
     LifecycleState => "lifecycle_msgs/msg/State",
     LifecycleTransition => "lifecycle_msgs/msg/Transition",
     TransitionDescription => "lifecycle_msgs/msg/TransitionDescription",

@@ -79,7 +79,7 @@ impl Configured {
             reset: topics.server(node, "reset", "std_srvs", "Trigger")?,
             pause: topics.server(node, "pause", "std_srvs", "Trigger")?,
             resume: topics.server(node, "resume", "std_srvs", "Trigger")?,
-            load: topics.server(node, "load_scene", "defvol", "LoadScene")?,
+            load: topics.server(node, "load_scene", "defvol_interfaces", "LoadScene")?,
         };
         #[cfg(feature = "shm")]
         let shm = shm_publisher(&mut pipeline);

@@ -80,7 +80,7 @@ class WrenchStamped(IdlStruct, typename="geometry_msgs::msg::dds_::WrenchStamped
 
 
 @dataclass
-class DeformedMesh(IdlStruct, typename="defvol::msg::dds_::DeformedMesh_"):
+class DeformedMesh(IdlStruct, typename="defvol_interfaces::msg::dds_::DeformedMesh_"):
     header: Header
     positions: t.sequence[t.float32]
     triangles: t.sequence[t.uint32]

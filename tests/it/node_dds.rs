@@ -134,7 +134,7 @@ fn a_second_participant_drives_the_node_and_receives_every_output() {
             .create_client::<LoadSceneRequest, TriggerResponse>(
                 ServiceMapping::Enhanced,
                 &Name::parse("/robot/load_scene").unwrap(),
-                &ServiceTypeName::new("defvol", "LoadScene"),
+                &ServiceTypeName::new("defvol_interfaces", "LoadScene"),
                 qos(Qos::Reliable),
                 qos(Qos::Reliable),
             )
@@ -493,5 +493,99 @@ fn a_managed_node_answers_every_lifecycle_request_as_rclpys_own_lifecycle_node()
         // The recording, closed at cleanup, holds what the active node published.
         let recorded = bag::read_messages(&dir.path().join("node.mcap"), &["/robot/diagnostics"]).unwrap();
         assert!(!recorded.is_empty());
+    });
+}
+
+/// Builds defvol_interfaces with the ROS 2 generators of the interop venv (rosidl, ament_cmake
+/// and CMake from PyPI) into `prefix`; the environment a Python node needs to import it.
+fn build_interfaces(prefix: &Path) -> Vec<(String, String)> {
+    let python = |code: &str| {
+        let out = Command::new("python3").args(["-c", code]).output().unwrap();
+        String::from_utf8(out.stdout).unwrap().trim().to_owned()
+    };
+    let (venv, executable) = (python("import sys; print(sys.prefix)"), python("import sys; print(sys.executable)"));
+    let source = Path::new(env!("CARGO_MANIFEST_DIR")).join("defvol_interfaces");
+    let build = prefix.join("build");
+    let install = prefix.join("install");
+    let run = |args: &[&str]| {
+        let out = Command::new("cmake").args(args).env("AMENT_PREFIX_PATH", &venv).output().unwrap();
+        let log = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+        assert!(out.status.success(), "cmake {args:?}:\n{log}");
+    };
+    run(&[
+        "-S",
+        source.to_str().unwrap(),
+        "-B",
+        build.to_str().unwrap(),
+        &format!("-DCMAKE_PREFIX_PATH={venv}"),
+        &format!("-DCMAKE_INSTALL_PREFIX={}", install.display()),
+        &format!("-DPython3_EXECUTABLE={executable}"),
+        "-DBUILD_TESTING=OFF",
+    ]);
+    run(&["--build", build.to_str().unwrap(), "-j2"]);
+    run(&["--install", build.to_str().unwrap()]);
+    let site = python("import sysconfig; print(sysconfig.get_path('purelib', vars={'base': ''}).lstrip('/'))");
+    vec![
+        ("PYTHONPATH".into(), install.join(site).display().to_string()),
+        ("LD_LIBRARY_PATH".into(), install.join("lib").display().to_string()),
+        ("AMENT_PREFIX_PATH".into(), format!("{}:{venv}", install.display())),
+    ]
+}
+
+#[test]
+fn a_python_node_built_against_defvol_interfaces_reads_what_the_node_publishes() {
+    isolated("a_python_node_built_against_defvol_interfaces_reads_what_the_node_publishes", || {
+        let have_cmake = Command::new("cmake").arg("--version").output().is_ok_and(|o| o.status.success());
+        assert!(
+            have_cmake || std::env::var_os("DEFVOL_REQUIRE_INTEROP").is_none(),
+            "cmake is missing (tests/run.sh installs it)"
+        );
+        if !have_cmake || !python_has("rosidl_generator_py") {
+            return;
+        }
+        let dir = tempfile::tempdir().unwrap();
+        let environment = build_interfaces(dir.path());
+        let node_process = start_node(dir.path(), 20, "interfaces");
+        let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/interop/rclpy_interfaces.py");
+        let out = Command::new("python3")
+            .arg(script)
+            .arg("/robot")
+            .env("ROS_DOMAIN_ID", "17")
+            .envs(environment)
+            .output()
+            .unwrap();
+        let text = String::from_utf8_lossy(&out.stdout);
+        assert!(out.status.success(), "{text}{}", String::from_utf8_lossy(&out.stderr));
+        let exit = node_process.wait_with_output().unwrap();
+        assert!(exit.status.success(), "{}", String::from_utf8_lossy(&exit.stderr));
+        let got: serde_json::Value = serde_json::from_str(text.lines().last().unwrap()).unwrap();
+        // The mesh the Python node decoded is the one the node recorded at that step, value for value.
+        let mesh = &got["mesh"];
+        let recorded = bag::read_messages(&dir.path().join("node.mcap"), &["/robot/deformed_mesh"]).unwrap();
+        let same = recorded
+            .iter()
+            .map(|m| msgs::decode::<DeformedMesh>(&m.data, "recorded").unwrap())
+            .find(|m| {
+                serde_json::json!([m.header.stamp.sec, m.header.stamp.nanosec]) == mesh["stamp"]
+                    && serde_json::json!(m.step) == mesh["step"]
+            })
+            .expect("the mesh received is in the recording");
+        let positions: Vec<f32> =
+            mesh["positions"].as_array().unwrap().iter().map(|p| p.as_f64().unwrap() as f32).collect();
+        let triangles: Vec<u32> =
+            mesh["triangles"].as_array().unwrap().iter().map(|t| t.as_u64().unwrap() as u32).collect();
+        assert_eq!((positions, triangles), (same.positions.clone(), same.triangles.clone()));
+        assert_eq!(
+            (mesh["frame_id"].as_str(), mesh["scalar_name"].as_str()),
+            (Some("world"), Some(same.scalar_name.as_str()))
+        );
+        assert!(got["meshes"].as_u64().unwrap() >= 3, "{got}");
+        let info = &got["info"];
+        assert!(info["service_name"].as_str().unwrap().starts_with("defvol/interfaces_"), "{info}");
+        assert_eq!(info["dims"], serde_json::json!([256, 160, 122]));
+        assert_eq!(info["direction"], serde_json::json!([1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]));
+        // Its load_scene call is answered: a broken scene is refused by name, the running one kept.
+        assert_eq!(got["load_scene"]["success"], false);
+        assert!(got["load_scene"]["message"].as_str().unwrap().contains("kept the running scene"), "{got}");
     });
 }
