@@ -76,7 +76,7 @@ if ! command -v g++ >/dev/null 2>&1 || [ ! -f "$py_include/Python.h" ]; then
     as_root env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq g++ python3-dev >/dev/null
 fi
 np_include=$("$venv/bin/python" -c 'import numpy; print(numpy.get_include())')
-grep -rl '/opt/python/' "$venv/share" --include='*.cmake' 2>/dev/null | xargs -r sed -i \
+{ grep -rl '/opt/python/' "$venv/share" --include='*.cmake' || true; } | xargs -r sed -i \
     -e "s|/opt/python/[^/;\"]*/lib/python3[.0-9]*/site-packages/numpy/_core/include|$np_include|g" \
     -e "s|/opt/python/[^/;\"]*/include/python3[.0-9]*|$py_include|g"
 rerun analytics disable >/dev/null 2>&1 || true
