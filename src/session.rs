@@ -55,6 +55,8 @@ pub struct RecordOptions {
     pub mcap: Option<PathBuf>,
     pub rerun_file: Option<PathBuf>,
     pub rerun_connect: Option<String>,
+    /// How the MCAP recording splits (when `mcap` is a bag directory) and flushes.
+    pub bag: crate::record::BagOptions,
 }
 
 impl RecordOptions {
@@ -76,6 +78,7 @@ impl RecordOptions {
             mcap: self.mcap.as_ref().map(number),
             rerun_file: self.rerun_file.as_ref().map(number),
             rerun_connect: self.rerun_connect.clone(),
+            bag: self.bag,
         }
     }
 }
@@ -98,7 +101,7 @@ pub struct Session {
     #[cfg_attr(not(feature = "mcap"), allow(dead_code))]
     names: TopicNames,
     #[cfg(feature = "mcap")]
-    bag: Option<crate::record::bag::BagThread>,
+    bag: Option<crate::record::bag_thread::BagThread>,
     #[cfg(feature = "rerun")]
     rerun: Option<crate::record::rerun_log::RerunLog>,
     /// The first recording error, for diagnostics.
@@ -120,7 +123,11 @@ impl Session {
         Ok(Self {
             names: names.clone(),
             #[cfg(feature = "mcap")]
-            bag: options.mcap.as_deref().map(crate::record::bag::BagThread::create).transpose()?,
+            bag: options
+                .mcap
+                .as_deref()
+                .map(|path| crate::record::bag_thread::BagThread::create(path, options.bag))
+                .transpose()?,
             #[cfg(feature = "rerun")]
             rerun: {
                 let log = match (&options.rerun_file, &options.rerun_connect) {

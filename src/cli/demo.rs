@@ -66,6 +66,7 @@ pub fn run(args: DemoArgs) -> Result<()> {
         mcap: cfg!(feature = "mcap").then(|| args.out.join("demo.mcap")),
         rerun_file: (!args.no_rerun).then(|| args.out.join("demo.rrd")),
         rerun_connect: None,
+        ..Default::default()
     };
     let mut session = Session::open(&TopicNames::under("/"), &records, &pipeline)?;
     let dt_ns = (pipeline.scene().solver.dt * 1e9).round() as u64;

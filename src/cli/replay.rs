@@ -92,7 +92,7 @@ pub fn run(args: ReplayArgs) -> Result<()> {
         .backend(&BackendArgs { backend: Some(args.backend.backend.unwrap_or(BackendChoice::Cpu)), ..args.backend })?;
     let mut pipeline =
         Pipeline::new(scene, &backend, replay_limits(), FrameMode::Lockstep).context("starting the pipeline")?;
-    let records = RecordOptions { mcap: args.out.clone(), rerun_file: args.rerun.clone(), rerun_connect: None };
+    let records = RecordOptions { mcap: args.out.clone(), rerun_file: args.rerun.clone(), ..Default::default() };
     let mut session = Session::open(&TopicNames::under(&args.namespace), &records, &pipeline)?;
     let dt_ns = (pipeline.scene().solver.dt * 1e9).round() as u64;
     let (first, last) = (inputs.first().map_or(0, |i| i.0), inputs.last().map_or(0, |i| i.0));

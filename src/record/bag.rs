@@ -7,9 +7,6 @@ use std::collections::{BTreeMap, HashMap};
 use std::fs::File;
 use std::io::{BufWriter, Seek, Write};
 use std::path::{Path, PathBuf};
-use std::sync::mpsc::{self, SyncSender};
-use std::sync::{Arc, Mutex};
-use std::thread::JoinHandle;
 
 use mcap::records::MessageHeader;
 
@@ -171,6 +168,13 @@ impl<W: Write + Seek> Recorder<W> {
         Ok(())
     }
 
+    /// Closes the open chunk and writes it out: a crash after this keeps it.
+    pub fn flush(&mut self) -> Result<(), RecordError> {
+        let Some(writer) = self.writer.as_mut() else { return Ok(()) };
+        let flushed = writer.flush();
+        flushed.map_err(|e| self.fail_with(&e))
+    }
+
     /// Writes the summary; after an error, reports what was kept.
     pub fn finish(mut self) -> Result<RecordSummary, RecordError> {
         let summary = RecordSummary { messages: self.messages, channels: self.channels.len() };
@@ -194,96 +198,6 @@ impl<W: Write + Seek> Drop for Recorder<W> {
             if let Err(e) = writer.finish() {
                 tracing::warn!("{}: closing the recording: {e}", self.path.display());
             }
-        }
-    }
-}
-
-/// A recorder on its own thread: the caller only encodes CDR and hands the bytes over,
-/// so chunk compression and disk writes never stall the loop that records.
-pub struct BagThread {
-    path: PathBuf,
-    queue: Option<SyncSender<Entry>>,
-    thread: Option<JoinHandle<Result<RecordSummary, RecordError>>>,
-    failure: Arc<Mutex<Option<String>>>,
-}
-
-struct Entry {
-    topic: String,
-    type_name: &'static str,
-    qos: Qos,
-    data: Vec<u8>,
-    log_time_ns: u64,
-}
-
-/// Messages waiting for the writer thread before `write` waits for it.
-const QUEUE: usize = 4096;
-
-impl BagThread {
-    pub fn create(path: &Path) -> Result<Self, RecordError> {
-        let mut recorder = Recorder::create(path)?;
-        let failure = Arc::new(Mutex::new(None));
-        let (queue, entries) = mpsc::sync_channel::<Entry>(QUEUE);
-        let failed = failure.clone();
-        let thread = std::thread::Builder::new()
-            .name("defvol-record".into())
-            .spawn(move || {
-                crate::pipeline::priority::into_background("the recorder");
-                for e in entries {
-                    if recorder.failure().is_some() {
-                        continue;
-                    }
-                    if let (Err(error), Ok(mut slot)) =
-                        (recorder.write_encoded(&e.topic, e.type_name, e.qos, &e.data, e.log_time_ns), failed.lock())
-                    {
-                        *slot = Some(error.to_string());
-                    }
-                }
-                recorder.finish()
-            })
-            .map_err(|e| RecordError::File { path: path.to_owned(), message: format!("recording thread: {e}") })?;
-        Ok(Self { path: path.to_owned(), queue: Some(queue), thread: Some(thread), failure })
-    }
-
-    pub fn path(&self) -> &Path {
-        &self.path
-    }
-
-    /// The error that stopped the recording, if one did.
-    pub fn failure(&self) -> Option<String> {
-        self.failure.lock().ok().and_then(|f| f.clone())
-    }
-
-    pub fn write<T: Message>(&self, topic: &str, qos: Qos, msg: &T, log_time_ns: u64) -> Result<(), RecordError> {
-        if let Some(first) = self.failure() {
-            return Err(RecordError::Stopped { path: self.path.clone(), first });
-        }
-        let entry = Entry { topic: topic.to_owned(), type_name: T::NAME, qos, data: msgs::encode(msg)?, log_time_ns };
-        let sent = self.queue.as_ref().map(|q| q.send(entry));
-        match sent {
-            Some(Ok(())) => Ok(()),
-            _ => Err(RecordError::Stopped { path: self.path.clone(), first: "the recording thread ended".into() }),
-        }
-    }
-
-    /// Waits for the writer to drain the queue, then closes the file.
-    pub fn finish(mut self) -> Result<RecordSummary, RecordError> {
-        drop(self.queue.take());
-        let Some(thread) = self.thread.take() else {
-            return Err(RecordError::Stopped { path: self.path.clone(), first: "finished twice".into() });
-        };
-        thread.join().map_err(|_| RecordError::File {
-            path: self.path.clone(),
-            message: "the recording thread panicked".into(),
-        })?
-    }
-}
-
-impl Drop for BagThread {
-    fn drop(&mut self) {
-        // Dropped without `finish` (an error path): the file is still closed properly.
-        drop(self.queue.take());
-        if let Some(thread) = self.thread.take() {
-            let _ = thread.join();
         }
     }
 }
@@ -498,20 +412,6 @@ mod tests {
         };
         msg.pose.position.x = x;
         msg
-    }
-
-    #[test]
-    fn the_recording_thread_writes_what_it_is_handed_in_order() {
-        let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join("t.mcap");
-        let rec = BagThread::create(&path).unwrap();
-        for i in 0..2000u64 {
-            rec.write("/tool_pose", Qos::SensorData, &pose(i as f64 * 1e-3, i as f64), i * 1_000_000).unwrap();
-        }
-        assert_eq!(rec.finish().unwrap(), RecordSummary { messages: 2000, channels: 1 });
-        let read = read_messages(&path, &[]).unwrap();
-        assert_eq!(read.len(), 2000);
-        assert_eq!(msgs::decode::<PoseStamped>(&read[1234].data, "t").unwrap(), pose(1.234, 1234.0));
     }
 
     #[test]

@@ -3,8 +3,31 @@
 
 #[cfg(feature = "mcap")]
 pub mod bag;
+#[cfg(feature = "mcap")]
+pub mod bag_dir;
+#[cfg(feature = "mcap")]
+pub mod bag_thread;
 #[cfg(feature = "rerun")]
 pub mod rerun_log;
+
+use std::time::Duration;
+
+/// How a recording splits and how often it reaches the disk.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BagOptions {
+    /// A bag directory starts a new split once a split spans this long (message times).
+    pub max_duration: Option<Duration>,
+    /// … or once its file reaches this many bytes.
+    pub max_bytes: Option<u64>,
+    /// The open chunk is closed and written at least this often.
+    pub flush_interval: Duration,
+}
+
+impl Default for BagOptions {
+    fn default() -> Self {
+        Self { max_duration: None, max_bytes: None, flush_interval: Duration::from_millis(500) }
+    }
+}
 
 /// The QoS a topic is offered with, as rosbag2 records it (and as the node publishes).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -170,7 +170,16 @@ fn flatten(prefix: &str, value: &Value, out: &mut BTreeMap<String, Value>) {
 }
 
 /// Parameters that configure the node itself rather than the scene.
-pub const NODE_PARAMETERS: [&str; 5] = ["scene_file", "dds.open_discovery", "record", "rerun", "lifecycle.managed"];
+pub const NODE_PARAMETERS: [&str; 8] = [
+    "scene_file",
+    "dds.open_discovery",
+    "record",
+    "record.max_bag_duration",
+    "record.max_bag_size",
+    "record.flush_interval",
+    "rerun",
+    "lifecycle.managed",
+];
 
 /// The scene the parameters describe: `scene_file` (or the embedded default) with every
 /// other dotted parameter written into it, then checked as a whole.

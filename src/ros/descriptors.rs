@@ -48,7 +48,16 @@ const fn read_only(descriptor: Descriptor) -> Descriptor {
 const TABLE: &[(&str, Descriptor)] = &[
     ("scene_file", text("Scene YAML the other parameters are written into (empty: the embedded default scene)")),
     ("use_sim_time", text("ROS 2's simulated-time switch (defvol stamps its outputs with the system clock)")),
-    ("record", read_only(text("MCAP file (rosbag2's format) recording every input and output topic"))),
+    (
+        "record",
+        read_only(text("Recording of every input and output topic: an .mcap file, else a rosbag2 bag directory")),
+    ),
+    ("record.max_bag_duration", read_only(float("Seconds a split of the bag directory spans (0: no limit)", 0.0, 1e7))),
+    ("record.max_bag_size", read_only(integer("Bytes a split of the bag directory holds (0: no limit)", 0, i64::MAX))),
+    (
+        "record.flush_interval",
+        read_only(float("Seconds between writes of the open chunk (what a crash may lose)", 1e-3, 10.0)),
+    ),
     ("rerun", read_only(text("rerun file (.rrd) logging the session"))),
     ("dds.open_discovery", read_only(text("Let DDS discovery reach other hosts (default: loopback only)"))),
     ("lifecycle.managed", read_only(text("Run as a managed (lifecycle) node: outputs only while active"))),

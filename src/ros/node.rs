@@ -26,6 +26,7 @@ use crate::msgs::{
 };
 use crate::pipeline::inputs::InputLimits;
 use crate::pipeline::{Demand, FrameMode, Pipeline};
+use crate::record::BagOptions;
 use crate::scene::BackendArgs;
 use crate::scene::Scene;
 use crate::session::{RecordOptions, Session, TopicNames};
@@ -337,18 +338,43 @@ fn declared_parameters(scene: &Scene, settings: &NodeSettings) -> BTreeMap<Strin
     declared
 }
 
+/// How the recording splits and flushes: the options, else the `record.*` parameters.
+fn bag_options(cli: &NodeCli, parameters: &BTreeMap<String, Value>) -> Result<BagOptions, NodeError> {
+    let number = |name: &str| parameters.get(name).and_then(Value::as_f64).filter(|v| *v > 0.0);
+    let seconds = |given: Option<f64>, name: &str| -> Result<Option<Duration>, NodeError> {
+        match given.or_else(|| number(name)) {
+            Some(s) if s.is_finite() && s > 0.0 => Ok(Some(Duration::from_secs_f64(s))),
+            Some(s) => Err(NodeError::Ros(format!("`{name}` = {s}: a positive number of seconds"))),
+            None => Ok(None),
+        }
+    };
+    let defaults = BagOptions::default();
+    Ok(BagOptions {
+        max_duration: seconds(cli.max_bag_duration, "record.max_bag_duration")?,
+        max_bytes: cli.max_bag_size.or_else(|| number("record.max_bag_size").map(|b| b as u64)).filter(|b| *b > 0),
+        flush_interval: seconds(cli.flush_interval, "record.flush_interval")?.unwrap_or(defaults.flush_interval),
+    })
+}
+
 /// The node's own parameters as they stand (`ros2 param list` shows them; each is
 /// read-only: the command line and the start decide them).
 fn node_parameters(settings: &NodeSettings) -> BTreeMap<String, Value> {
     let path =
         |p: &Option<std::path::PathBuf>| Value::String(p.as_ref().map(|p| p.display().to_string()).unwrap_or_default());
     let scene_file = settings.ros.parameters.get("scene_file").cloned().unwrap_or_else(|| Value::String(String::new()));
+    let bag = &settings.record.bag;
     BTreeMap::from([
         ("scene_file".to_owned(), scene_file),
         ("record".to_owned(), path(&settings.record.mcap)),
         ("rerun".to_owned(), path(&settings.record.rerun_file)),
         ("dds.open_discovery".to_owned(), Value::Bool(settings.open_discovery)),
         ("lifecycle.managed".to_owned(), Value::Bool(settings.managed)),
+        ("record.max_bag_duration".to_owned(), Value::from(bag.max_duration.map_or(0.0, |d| d.as_secs_f64()))),
+        (
+            "record.max_bag_size".to_owned(),
+            Value::from(bag.max_bytes.map_or(0, |b| i64::try_from(b).unwrap_or(i64::MAX))),
+        ),
+        ("record.flush_interval".to_owned(), Value::from(bag.flush_interval.as_secs_f64())),
     ])
 }
 
@@ -362,9 +388,19 @@ fn node_parameters(settings: &NodeSettings) -> BTreeMap<String, Value> {
                   parameter (`-p solver.dt:=0.005`, `-p scene_file:=organ.yaml`); `ros2 param list` shows them."
 )]
 struct NodeCli {
-    /// Record every input and output topic to this MCAP file (rosbag2's format).
+    /// Record every input and output topic: to this MCAP file (`x.mcap`), or to a rosbag2
+    /// bag directory (`DIR/DIR_0.mcap`, … and `metadata.yaml`) for any other path.
     #[arg(long)]
     record: Option<std::path::PathBuf>,
+    /// Start a new split of the bag directory once one spans this many seconds.
+    #[arg(long, value_name = "SECONDS")]
+    max_bag_duration: Option<f64>,
+    /// Start a new split of the bag directory once one holds this many bytes.
+    #[arg(long, value_name = "BYTES")]
+    max_bag_size: Option<u64>,
+    /// Write the open chunk out at least this often, in seconds (what a crash may lose).
+    #[arg(long, value_name = "SECONDS")]
+    flush_interval: Option<f64>,
     /// Log the session to this rerun file (.rrd).
     #[arg(long)]
     rerun: Option<std::path::PathBuf>,
@@ -418,11 +454,13 @@ pub fn settings_from_args(args: &[String]) -> Result<NodeSettings, NodeError> {
         Some(s) => return Err(NodeError::Ros(format!("--seconds {s} must be positive"))),
         None => None,
     };
+    let bag = bag_options(&cli, &ros.parameters)?;
     Ok(NodeSettings {
         record: RecordOptions {
             mcap: cli.record.or_else(|| text("record").map(Into::into)),
             rerun_file: cli.rerun.or_else(|| text("rerun").map(Into::into)),
             rerun_connect: cli.rerun_connect,
+            bag,
         },
         backend: cli.backend,
         open_discovery: cli.open_discovery || flag("dds.open_discovery"),

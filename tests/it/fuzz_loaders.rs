@@ -320,7 +320,7 @@ fn no_bag_crashes_the_bag_reader() {
     use defvol::record::{bag, Qos};
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("seed.mcap");
-    let recorder = bag::BagThread::create(&path).unwrap();
+    let recorder = defvol::record::bag_thread::BagThread::create(&path, defvol::record::BagOptions::default()).unwrap();
     for k in 0..6u64 {
         let mut pose = PoseStamped {
             header: Header { stamp: Time::from_nanos(k * 1000), frame_id: "world".into() },

@@ -589,3 +589,55 @@ fn a_python_node_built_against_defvol_interfaces_reads_what_the_node_publishes()
         assert!(got["load_scene"]["message"].as_str().unwrap().contains("kept the running scene"), "{got}");
     });
 }
+
+#[test]
+fn the_node_records_a_rosbag2_bag_directory_split_by_duration_that_rosbags_opens_whole() {
+    isolated("the_node_records_a_rosbag2_bag_directory_split_by_duration_that_rosbags_opens_whole", || {
+        if !python_has("rosbags.rosbag2") {
+            return;
+        }
+        let dir = tempfile::tempdir().unwrap();
+        let bag = dir.path().join("organ");
+        let exit = Command::new(env!("CARGO_BIN_EXE_defvol_node"))
+            .args(["--backend", "cpu", "--seconds", "7", "--max-bag-duration", "2", "--record"])
+            .arg(&bag)
+            .args(["--ros-args", "-r", "__ns:=/robot", "-p"])
+            .arg(format!("scene_file:={}", scene().display()))
+            .arg("-p")
+            .arg(format!("warp.service:=defvol/bag_dir_{}", std::process::id()))
+            .env("ROS_DOMAIN_ID", "17")
+            .output()
+            .unwrap();
+        assert!(exit.status.success(), "{}", String::from_utf8_lossy(&exit.stderr));
+        let metadata: serde_yaml_ng::Value =
+            serde_yaml_ng::from_str(&std::fs::read_to_string(bag.join("metadata.yaml")).unwrap()).unwrap();
+        let info = &metadata["rosbag2_bagfile_information"];
+        let files = info["files"].as_sequence().unwrap();
+        // Seven seconds of outputs in splits of two: three closed at 2, 4 and 6 s, and the last.
+        assert_eq!(files.len(), 4, "{info:?}");
+        let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/interop/read_bag_dir.py");
+        let out = Command::new("python3").arg(script).arg(&bag).output().unwrap();
+        let text = String::from_utf8_lossy(&out.stdout);
+        assert!(out.status.success(), "{text}{}", String::from_utf8_lossy(&out.stderr));
+        let got: serde_json::Value = serde_json::from_str(text.lines().last().unwrap()).unwrap();
+        let total = info["message_count"].as_u64().unwrap();
+        let rosbags = &got["rosbags"];
+        assert_eq!((rosbags["message_count"].as_u64(), rosbags["decoded"].as_u64()), (Some(total), Some(total)));
+        let names: Vec<String> = (0..4).map(|i| format!("organ_{i}.mcap")).collect();
+        assert_eq!(info["relative_file_paths"], serde_yaml_ng::to_value(&names).unwrap());
+        for file in files {
+            let (name, count) = (file["path"].as_str().unwrap(), file["message_count"].as_u64().unwrap());
+            // Each split alone: Foxglove's reader and defvol's agree with metadata.yaml.
+            assert_eq!(got["splits"][name].as_u64(), Some(count), "{name}");
+            let ours = bag::read_messages(&bag.join(name), &[]).unwrap();
+            assert_eq!(ours.len() as u64, count, "{name}");
+            let span = ours.last().unwrap().log_time_ns - ours[0].log_time_ns;
+            assert!(span < 2_000_000_000, "{name} spans {span} ns");
+        }
+        let topics = info["topics_with_message_count"].as_sequence().unwrap();
+        for topic in topics {
+            let name = topic["topic_metadata"]["name"].as_str().unwrap();
+            assert_eq!(rosbags["topics"][name].as_u64(), topic["message_count"].as_u64(), "{name}");
+        }
+    });
+}
