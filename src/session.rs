@@ -60,8 +60,19 @@ pub struct RecordOptions {
 }
 
 impl RecordOptions {
-    /// The files of the `n`th recording of one run (`n` > 0: `session_n.mcap`, …), so
-    /// that a managed node configured again never overwrites what it recorded before.
+    /// The first of the `n`th, `n + 1`th, … recordings whose files do not exist yet, and
+    /// its number: a restarted node, or a managed one configured again, never records over
+    /// what is there.
+    pub fn unused_from(&self, n: u32) -> (Self, u32) {
+        let taken = |o: &Self| o.mcap.iter().chain(&o.rerun_file).any(|p| p.exists());
+        let mut n = n;
+        while taken(&self.numbered(n)) && n < u32::MAX {
+            n += 1;
+        }
+        (self.numbered(n), n)
+    }
+
+    /// The files of the `n`th recording of one run (`n` > 0: `session_n.mcap`, …).
     pub fn numbered(&self, n: u32) -> Self {
         let number = |path: &PathBuf| {
             if n == 0 {
@@ -296,4 +307,34 @@ pub fn warped_info(pipeline: &Pipeline, stamp: Time) -> Option<crate::msgs::Warp
         origin: grid.origin,
         direction: [d[(0, 0)], d[(0, 1)], d[(0, 2)], d[(1, 0)], d[(1, 1)], d[(1, 2)], d[(2, 0)], d[(2, 1)], d[(2, 2)]],
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use crate::session::RecordOptions;
+
+    #[test]
+    fn a_recording_whose_files_exist_is_numbered_past_them() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("k.mcap");
+        let bag = dir.path().join("organ");
+        let asked = RecordOptions {
+            mcap: Some(file.clone()),
+            rerun_file: Some(dir.path().join("k.rrd")),
+            ..Default::default()
+        };
+        assert_eq!(asked.unused_from(0).1, 0);
+        std::fs::write(&file, b"earlier").unwrap();
+        std::fs::write(dir.path().join("k_1.rrd"), b"earlier").unwrap();
+        // k.mcap is taken, and k_1's rerun log: the recording goes to k_2.
+        let (unused, n) = asked.unused_from(0);
+        assert_eq!(
+            (unused.mcap.unwrap(), unused.rerun_file.unwrap(), n),
+            (dir.path().join("k_2.mcap"), dir.path().join("k_2.rrd"), 2)
+        );
+        std::fs::create_dir(&bag).unwrap();
+        let directory = RecordOptions { mcap: Some(bag), ..Default::default() };
+        assert_eq!(directory.unused_from(0).0.mcap.unwrap(), dir.path().join("organ_1"));
+        assert_eq!(std::fs::read(&file).unwrap(), b"earlier");
+    }
 }

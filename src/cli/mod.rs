@@ -1,6 +1,8 @@
 //! The `defvol` subcommands: their arguments, the mapping onto the library's types
 //! (`choices.rs`), and their bodies, one file each.
 
+#[cfg(feature = "mcap")]
+mod bag;
 mod bench;
 mod checks;
 mod choices;
@@ -43,6 +45,12 @@ enum Command {
     /// Run the pipeline from the tool poses and wrenches of a recorded bag.
     #[cfg(feature = "mcap")]
     Replay(replay::ReplayArgs),
+    /// Work on recorded bags: `defvol bag recover PATH` rebuilds one cut short.
+    #[cfg(feature = "mcap")]
+    Bag {
+        #[command(subcommand)]
+        command: bag::BagCommand,
+    },
     /// The ROS 2 node (as `defvol_node`): `defvol node [--record F.mcap] --ros-args -p …`.
     #[cfg(feature = "ros")]
     #[command(disable_help_flag = true)]
@@ -123,6 +131,8 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Demo(args) => demo::run(args),
         #[cfg(feature = "mcap")]
         Command::Replay(args) => replay::run(args),
+        #[cfg(feature = "mcap")]
+        Command::Bag { command } => bag::run(command),
         #[cfg(feature = "ros")]
         Command::Node { args } => Ok(defvol::ros::node::run_from_args(&args)?),
         Command::Bench { stage } => bench::run(stage),

@@ -224,17 +224,14 @@ pub fn read_messages(path: &Path, topics: &[&str]) -> Result<Vec<BagMessage>, Re
 /// damaged or hostile file), and it is refused before anything is allocated for it.
 const MAX_CHUNK_EXPANSION: u64 = 4096;
 
-/// [`read_messages`] on a bag's bytes (`path` names it in errors). The records are walked
-/// here (chunks checked before they are decompressed), so no header in the file decides
-/// how much memory is taken.
+/// [`read_messages`] on a bag's bytes (`path` names it in errors).
 pub fn parse_messages(path: &Path, bytes: &[u8], topics: &[&str]) -> Result<Vec<BagMessage>, RecordError> {
     use mcap::records::Record;
-    let bad = |message: String| RecordError::Read { path: path.to_owned(), message };
     let mut schemas: HashMap<u16, String> = HashMap::new();
     let mut channels: HashMap<u16, (String, u16, String)> = HashMap::new();
     let mut out = Vec::new();
     // One record: a schema, a channel or a message (the rest of the data section is skipped).
-    let mut take = |record: Record, out: &mut Vec<BagMessage>| -> Result<(), String> {
+    walk_records(path, bytes, |record| {
         match record {
             Record::Schema { header, .. } => {
                 schemas.insert(header.id, header.name.clone());
@@ -261,16 +258,52 @@ pub fn parse_messages(path: &Path, bytes: &[u8], topics: &[&str]) -> Result<Vec<
             _ => {}
         }
         Ok(())
-    };
+    })?;
+    out.sort_by_key(|m| m.log_time_ns);
+    Ok(out)
+}
+
+/// How a walk through a bag ended.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Walked {
+    /// Messages handed over.
+    pub messages: u64,
+    /// The bag stops short of its data section's end (a crash or a full disk while
+    /// recording): what was handed over is what came before its last whole record.
+    pub cut: bool,
+}
+
+/// Walks a bag's data section record by record, handing each to `visit` (the header, then
+/// schemas, channels and messages, those inside chunks too). The records are walked here
+/// (chunks checked before they are decompressed), so no header in the file decides how much
+/// memory is taken. A bag cut short is walked up to its last whole record; cut inside its
+/// header, or damaged, it is an error naming what was wrong.
+pub fn walk_records(
+    path: &Path,
+    bytes: &[u8],
+    mut visit: impl FnMut(mcap::records::Record<'_>) -> Result<(), String>,
+) -> Result<Walked, RecordError> {
+    use mcap::records::Record;
+    let bad = |message: String| RecordError::Read { path: path.to_owned(), message };
+    if bytes.is_empty() {
+        return Err(bad("an empty file, not an MCAP file".into()));
+    }
     if !bytes.starts_with(mcap::MAGIC) {
         return Err(bad("not an MCAP file (it does not begin with MCAP's magic bytes)".into()));
     }
     let records = mcap::read::LinearReader::new_with_options(bytes, mcap::read::Options::IgnoreEndMagic.into())
         .map_err(|e| bad(format!("not a readable MCAP file: {e}")))?;
+    let mut walked = Walked { messages: 0, cut: true };
+    let mut visit = |record: Record<'_>, walked: &mut Walked| {
+        walked.messages += u64::from(matches!(record, Record::Message { .. }));
+        visit(record).map_err(bad)
+    };
+    let mut header_seen = false;
     for record in records {
         // A truncated tail is where the recording stopped; what came before counts.
         let record = match record {
             Ok(record) => record,
+            Err(e) if !header_seen => return Err(bad(format!("cut or damaged inside its header record: {e}"))),
             // The writer leaves a chunk's length unset until the chunk is closed, so a cut-short
             // chunk reads as a record longer than the whole file.
             Err(
@@ -278,16 +311,17 @@ pub fn parse_messages(path: &Path, bytes: &[u8], topics: &[&str]) -> Result<Vec<
                 | mcap::McapError::UnexpectedEoc
                 | mcap::McapError::RecordTooLarge { .. }
                 | mcap::McapError::BadChunkLength { .. },
-            ) if !out.is_empty() => {
+            ) => {
                 tracing::warn!(
                     "{}: the bag ends mid-record (recording cut short); read {} messages",
                     path.display(),
-                    out.len()
+                    walked.messages
                 );
                 break;
             }
             Err(e) => return Err(bad(e.to_string())),
         };
+        header_seen = true;
         match record {
             Record::Chunk { header, data } => {
                 let plausible = (data.len() as u64).saturating_mul(MAX_CHUNK_EXPANSION).saturating_add(1 << 16);
@@ -302,16 +336,18 @@ pub fn parse_messages(path: &Path, bytes: &[u8], topics: &[&str]) -> Result<Vec<
                 let mut at = 0;
                 while at < records.len() {
                     let (record, next) = chunk_record(&records, at).map_err(|e| bad(format!("damaged chunk: {e}")))?;
-                    take(record, &mut out).map_err(bad)?;
+                    visit(record, &mut walked)?;
                     at = next;
                 }
             }
-            Record::DataEnd(_) => break,
-            other => take(other, &mut out).map_err(bad)?,
+            Record::DataEnd(_) => {
+                walked.cut = false;
+                break;
+            }
+            other => visit(other, &mut walked)?,
         }
     }
-    out.sort_by_key(|m| m.log_time_ns);
-    Ok(out)
+    Ok(walked)
 }
 
 /// A chunk's records, decompressed into exactly the size its header gives (already checked

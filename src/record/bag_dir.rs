@@ -259,7 +259,8 @@ pub struct FileEntry {
 }
 
 impl FileEntry {
-    fn new(path: String, full_path: &Path) -> Self {
+    /// A split at `full_path`, listed as `path`, with no message yet.
+    pub fn new(path: String, full_path: &Path) -> Self {
         Self {
             path,
             starting_time: SinceEpoch { nanoseconds_since_epoch: 0 },
@@ -306,12 +307,17 @@ pub struct TopicMetadata {
 
 impl TopicEntry {
     pub fn new(topic: &str, type_name: &str, qos: Qos) -> Self {
+        Self::with_profiles(topic, type_name, qos.offered_profiles_yaml())
+    }
+
+    /// A topic offered with `profiles` (rosbag2's YAML, as a channel's metadata holds it).
+    pub fn with_profiles(topic: &str, type_name: &str, profiles: String) -> Self {
         Self {
             topic_metadata: TopicMetadata {
                 name: topic.to_owned(),
                 type_name: type_name.to_owned(),
                 serialization_format: "cdr".into(),
-                offered_qos_profiles: qos.offered_profiles_yaml(),
+                offered_qos_profiles: profiles,
                 type_description_hash: String::new(),
             },
             message_count: 0,

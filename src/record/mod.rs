@@ -7,6 +7,8 @@ pub mod bag;
 pub mod bag_dir;
 #[cfg(feature = "mcap")]
 pub mod bag_thread;
+#[cfg(feature = "mcap")]
+pub mod recover;
 #[cfg(feature = "rerun")]
 pub mod rerun_log;
 

@@ -182,8 +182,8 @@ impl DefvolNode {
         let declared = declared_parameters(pipeline.as_ref().map_or(&scene, Pipeline::scene), settings);
         let mut ros = RosNode::open(settings, declared)?;
         let managed = if settings.managed { Some(Managed::create(&mut ros.node)?) } else { None };
-        let configured =
-            pipeline.map(|p| Configured::wire(p, &mut ros.node, topics, &settings.record, true)).transpose()?;
+        let (record, number) = unused_record(&settings.record, 0);
+        let configured = pipeline.map(|p| Configured::wire(p, &mut ros.node, topics, &record, true)).transpose()?;
         match &configured {
             Some(c) => {
                 let poses: Vec<String> =
@@ -195,7 +195,7 @@ impl DefvolNode {
                 ros.node.fully_qualified_name()
             ),
         }
-        Ok(Self { ros, managed, configures: u32::from(configured.is_some()), configured })
+        Ok(Self { ros, managed, configures: if configured.is_some() { number + 1 } else { 0 }, configured })
     }
 
     fn active(&self) -> bool {
@@ -263,6 +263,17 @@ impl DefvolNode {
     }
 }
 
+/// The recording's files, numbered from `n` past any that exist, saying so when renamed.
+fn unused_record(record: &RecordOptions, n: u32) -> (RecordOptions, u32) {
+    let (unused, number) = record.unused_from(n);
+    if number > 0 {
+        if let (Some(asked), Some(used)) = (&record.mcap, &unused.mcap) {
+            tracing::warn!("{} exists: recording to {} instead", asked.display(), used.display());
+        }
+    }
+    (unused, number)
+}
+
 /// The pipeline of `scene` on the run's backend (the command line's over the scene's).
 fn load(scene: Scene, settings: &NodeSettings) -> Result<Pipeline, NodeError> {
     let backend = scene.backend(&settings.backend)?;
@@ -288,11 +299,11 @@ fn transition(
                 Ok(pipeline) => pipeline,
                 Err(e) => return Outcome::Failure(format!("configure: {e}")),
             };
-            let record = settings.record.numbered(*configures);
+            let (record, number) = unused_record(&settings.record, *configures);
             match Configured::wire(pipeline, &mut ros.node, topics, &record, false) {
                 Ok(c) => {
                     *configured = Some(c);
-                    *configures += 1;
+                    *configures = number + 1;
                     Outcome::Success
                 }
                 Err(e) => Outcome::Error(format!("configure: {e}")),

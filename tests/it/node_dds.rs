@@ -641,3 +641,103 @@ fn the_node_records_a_rosbag2_bag_directory_split_by_duration_that_rosbags_opens
         }
     });
 }
+
+/// Nanoseconds since the epoch.
+fn now_ns() -> u64 {
+    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_nanos() as u64
+}
+
+#[test]
+fn a_node_killed_at_random_leaves_closed_splits_whole_and_the_open_one_recoverable() {
+    isolated("a_node_killed_at_random_leaves_closed_splits_whole_and_the_open_one_recoverable", || {
+        if !python_has("rosbags.rosbag2") {
+            return;
+        }
+        let dir = tempfile::tempdir().unwrap();
+        let context = dds::context(17, Discovery::Localhost).unwrap();
+        let mut peer = context.new_node(NodeName::new("/", "killer").unwrap(), NodeOptions::new()).unwrap();
+        let topic = peer
+            .create_topic(&Name::parse("/robot/tool_pose").unwrap(), type_name::<PoseStamped>(), &qos(Qos::Reliable))
+            .unwrap();
+        let poses = peer.create_publisher::<PoseStamped>(&topic, Some(qos(Qos::Reliable))).unwrap();
+        // A fixed seed: "random" moments that a failure can be re-run with.
+        let mut seed = 0x9e37_79b9_7f4a_7c15u64;
+        let mut figures = Vec::new();
+        for kill in 0..5 {
+            seed = seed.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1_442_695_040_888_963_407);
+            let alive = Duration::from_millis(2_500 + (seed >> 33) % 2_500);
+            let bag = dir.path().join(format!("kill_{kill}"));
+            let mut node = Command::new(env!("CARGO_BIN_EXE_defvol_node"))
+                .args(["--backend", "cpu", "--seconds", "60", "--max-bag-duration", "1", "--flush-interval", "0.2"])
+                .arg("--record")
+                .arg(&bag)
+                .args(["--ros-args", "-r", "__ns:=/robot", "-p"])
+                .arg(format!("scene_file:={}", scene().display()))
+                .arg("-p")
+                .arg(format!("warp.service:=defvol/kill_{kill}_{}", std::process::id()))
+                .env("ROS_DOMAIN_ID", "17")
+                .stderr(std::process::Stdio::null())
+                .spawn()
+                .unwrap();
+            // Poses at 200 Hz, well above the organ, from the recording's start until the kill.
+            let waiting = Instant::now();
+            while !bag.join("metadata.yaml").exists() {
+                assert!(waiting.elapsed() < Duration::from_secs(30), "kill {kill}: the recording never started");
+                std::thread::sleep(Duration::from_millis(10));
+            }
+            let start = Instant::now();
+            while start.elapsed() < alive {
+                poses.publish(pose_at(0.2)).unwrap();
+                std::thread::sleep(Duration::from_millis(5));
+            }
+            node.kill().unwrap();
+            let killed_at = now_ns();
+            node.wait().unwrap();
+            let metadata = |bag: &Path| -> serde_yaml_ng::Value {
+                serde_yaml_ng::from_str(&std::fs::read_to_string(bag.join("metadata.yaml")).unwrap()).unwrap()
+            };
+            let closed: Vec<(String, Vec<u8>)> = metadata(&bag)["rosbag2_bagfile_information"]["relative_file_paths"]
+                .as_sequence()
+                .unwrap()
+                .iter()
+                .map(|p| p.as_str().unwrap().to_owned())
+                .map(|p| (p.clone(), std::fs::read(bag.join(&p)).unwrap()))
+                .collect();
+            assert!(!closed.is_empty(), "kill {kill} after {alive:?}: no closed split");
+            let recovering = Instant::now();
+            let out = Command::new(env!("CARGO_BIN_EXE_defvol")).args(["bag", "recover"]).arg(&bag).output().unwrap();
+            let recover_time = recovering.elapsed();
+            assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+            for (name, bytes) in &closed {
+                assert_eq!(&std::fs::read(bag.join(name)).unwrap(), bytes, "kill {kill}: {name} untouched");
+            }
+            // The standard readers open the whole bag, the rebuilt split too.
+            let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/interop/read_bag_dir.py");
+            let read = Command::new("python3").arg(script).arg(&bag).output().unwrap();
+            let text = String::from_utf8_lossy(&read.stdout);
+            assert!(read.status.success(), "kill {kill}: {text}{}", String::from_utf8_lossy(&read.stderr));
+            let got: serde_json::Value = serde_json::from_str(text.lines().last().unwrap()).unwrap();
+            let info = metadata(&bag);
+            let info = &info["rosbag2_bagfile_information"];
+            assert_eq!(got["rosbags"]["message_count"].as_u64(), info["message_count"].as_u64(), "kill {kill}");
+            assert_eq!(got["splits"].as_object().unwrap().len(), closed.len() + 1, "kill {kill}: {got}");
+            // What was lost: the poses after the last one recorded, at most the flush interval's.
+            let recorded: Vec<u64> = info["files"]
+                .as_sequence()
+                .unwrap()
+                .iter()
+                .flat_map(|f| {
+                    bag::read_messages(&bag.join(f["path"].as_str().unwrap()), &["/robot/tool_pose"]).unwrap()
+                })
+                .map(|m| m.log_time_ns)
+                .collect();
+            let last = recorded.iter().max().copied().unwrap();
+            let lost_ns = killed_at.saturating_sub(last);
+            assert!(lost_ns < 600_000_000, "kill {kill}: the last pose recorded {lost_ns} ns before the kill");
+            figures.push((alive, recorded.len(), lost_ns / 5_000_000, recover_time));
+        }
+        for (alive, recorded, lost, recover_time) in figures {
+            eprintln!("killed after {alive:?}: {recorded} poses recorded, ~{lost} lost (5 ms apart); recovered in {recover_time:?}");
+        }
+    });
+}
