@@ -238,14 +238,7 @@ impl Session {
         }
         if let Some(m) = &out.diagnostics {
             let mut m = m.clone();
-            if let Some(error) = &self.record_error {
-                m.status.push(crate::msgs::DiagnosticStatus {
-                    level: crate::msgs::DiagnosticStatus::ERROR,
-                    name: "defvol: recording".into(),
-                    message: error.clone(),
-                    ..Default::default()
-                });
-            }
+            self.report_failure(&mut m);
             self.bag_write(DIAGNOSTICS, Qos::Reliable, &m, stamp);
         }
         #[cfg(feature = "rerun")]
@@ -277,6 +270,19 @@ impl Session {
         }
     }
 
+    /// Adds the recording's failure, once there is one, to `diagnostics` (an ERROR status
+    /// `defvol: recording`): what is published says it, as what is recorded does.
+    pub fn report_failure(&self, diagnostics: &mut crate::msgs::DiagnosticArray) {
+        if let Some(error) = &self.record_error {
+            diagnostics.status.push(crate::msgs::DiagnosticStatus {
+                level: crate::msgs::DiagnosticStatus::ERROR,
+                name: "defvol: recording".into(),
+                message: error.clone(),
+                ..Default::default()
+            });
+        }
+    }
+
     /// Closes the records; reports what each holds.
     pub fn finish(self) -> Result<(), SessionError> {
         #[cfg(feature = "rerun")]
@@ -286,8 +292,20 @@ impl Session {
         #[cfg(feature = "mcap")]
         if let Some(bag) = self.bag {
             let path = bag.path().to_owned();
-            let summary = bag.finish()?;
-            tracing::info!("wrote {} ({} messages on {} topics)", path.display(), summary.messages, summary.channels);
+            match bag.finish() {
+                Ok(summary) => tracing::info!(
+                    "wrote {} ({} messages on {} topics)",
+                    path.display(),
+                    summary.messages,
+                    summary.channels
+                ),
+                // Reported when it happened; what came before it is kept (`defvol bag recover`
+                // makes the file whole).
+                Err(e) if self.record_error.is_some() => {
+                    tracing::warn!("{e}: the recording kept what came before (defvol bag recover makes it whole)");
+                }
+                Err(e) => return Err(e.into()),
+            }
         }
         Ok(())
     }

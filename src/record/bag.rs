@@ -7,6 +7,7 @@ use std::collections::{BTreeMap, HashMap};
 use std::fs::File;
 use std::io::{BufWriter, Seek, Write};
 use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex};
 
 use mcap::records::MessageHeader;
 
@@ -20,7 +21,8 @@ use nalgebra::Point3;
 pub enum RecordError {
     #[error("{path}: {message}")]
     File { path: PathBuf, message: String },
-    #[error("{path}: recording stopped after an earlier error: {first}")]
+    /// The recording stopped on an earlier error, `first` (its cause).
+    #[error("{path}: {first}")]
     Stopped { path: PathBuf, first: String },
     #[error(transparent)]
     Message(#[from] MsgError),
@@ -35,14 +37,47 @@ const CHUNK_BYTES: u64 = 1 << 20;
 /// by the call that met it); the node goes on without it.
 pub struct Recorder<W: Write + Seek = BufWriter<File>> {
     path: PathBuf,
-    writer: Option<mcap::Writer<W>>,
+    writer: Option<mcap::Writer<SharedSink<W>>>,
+    /// The sink the writer writes into, also held here: after a failure the writer may be
+    /// left broken (mcap 0.24 loses its sink when a chunk cannot even start, and then panics
+    /// when asked for it back), so it is forgotten and the sink kept from this handle.
+    sink: SharedSink<W>,
     schemas: HashMap<&'static str, u16>,
     channels: HashMap<String, u16>,
     sequence: u32,
     messages: u64,
     failure: Option<String>,
     /// The sink as the failure left it (no summary written onto a half-written chunk).
-    failed_sink: Option<W>,
+    failed_sink: Option<SharedSink<W>>,
+}
+
+/// A sink shared by the MCAP writer and its recorder.
+pub struct SharedSink<W>(Arc<Mutex<W>>);
+
+impl<W> SharedSink<W> {
+    fn lock(&self) -> std::io::Result<std::sync::MutexGuard<'_, W>> {
+        self.0.lock().map_err(|_| std::io::Error::other("the recording's sink was poisoned"))
+    }
+
+    /// Runs `f` on the sink (tests look at what a failure left).
+    pub fn with<R>(&self, f: impl FnOnce(&mut W) -> R) -> std::io::Result<R> {
+        self.lock().map(|mut sink| f(&mut sink))
+    }
+}
+
+impl<W: Write> Write for SharedSink<W> {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        self.lock()?.write(buf)
+    }
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.lock()?.flush()
+    }
+}
+
+impl<W: Seek> Seek for SharedSink<W> {
+    fn seek(&mut self, pos: std::io::SeekFrom) -> std::io::Result<u64> {
+        self.lock()?.seek(pos)
+    }
 }
 
 /// What a finished recording holds.
@@ -69,15 +104,17 @@ impl Recorder {
 impl<W: Write + Seek> Recorder<W> {
     /// A recording into `sink`; `path` names it in errors.
     pub fn new(path: &Path, sink: W) -> Result<Self, RecordError> {
+        let sink = SharedSink(Arc::new(Mutex::new(sink)));
         let writer = mcap::WriteOptions::new()
             .profile("ros2")
             .library(concat!("defvol ", env!("CARGO_PKG_VERSION")))
             .chunk_size(Some(CHUNK_BYTES))
-            .create(sink)
+            .create(SharedSink(sink.0.clone()))
             .map_err(|e| RecordError::File { path: path.to_owned(), message: e.to_string() })?;
         Ok(Self {
             path: path.to_owned(),
             writer: Some(writer),
+            sink,
             schemas: HashMap::new(),
             channels: HashMap::new(),
             sequence: 0,
@@ -109,8 +146,12 @@ impl<W: Write + Seek> Recorder<W> {
 
     fn fail(&mut self, message: String) -> RecordError {
         self.failure = Some(message.clone());
-        // No summary after a failed write: readers still get every finished chunk.
-        self.failed_sink = self.writer.take().map(mcap::Writer::into_inner);
+        // No summary after a failed write: readers still get every finished chunk. The writer
+        // is forgotten, not dropped: dropping a broken one panics (see `sink`).
+        if let Some(writer) = self.writer.take() {
+            std::mem::forget(writer);
+        }
+        self.failed_sink = Some(SharedSink(self.sink.0.clone()));
         RecordError::File { path: self.path.clone(), message }
     }
 
@@ -137,7 +178,10 @@ impl<W: Write + Seek> Recorder<W> {
             None => {
                 let schema_text = msgs::ros2msg_schema(type_name)?;
                 let Some(writer) = self.writer.as_mut() else {
-                    return Err(RecordError::Stopped { path: self.path.clone(), first: String::new() });
+                    return Err(RecordError::Stopped {
+                        path: self.path.clone(),
+                        first: "the recording has ended".into(),
+                    });
                 };
                 let schema = match self.schemas.get(type_name) {
                     Some(id) => Ok(*id),
@@ -161,7 +205,7 @@ impl<W: Write + Seek> Recorder<W> {
             publish_time: log_time_ns,
         };
         let Some(writer) = self.writer.as_mut() else {
-            return Err(RecordError::Stopped { path: self.path.clone(), first: String::new() });
+            return Err(RecordError::Stopped { path: self.path.clone(), first: "the recording has ended".into() });
         };
         writer.write_to_known_channel(&header, data).map_err(|e| self.fail_with(&e))?;
         self.messages += 1;
@@ -183,9 +227,10 @@ impl<W: Write + Seek> Recorder<W> {
         }
         let Some(mut writer) = self.writer.take() else { return Ok(summary) };
         writer.finish().map_err(|e| RecordError::File { path: self.path.clone(), message: e.to_string() })?;
-        writer
-            .into_inner()
-            .flush()
+        drop(writer);
+        self.sink
+            .lock()
+            .and_then(|mut sink| sink.flush())
             .map_err(|e| RecordError::File { path: self.path.clone(), message: e.to_string() })?;
         Ok(summary)
     }
@@ -525,7 +570,7 @@ mod tests {
         assert!(error.to_string().contains("full.mcap") && error.to_string().contains("space"), "{error}");
         assert!(matches!(rec.write("/raycast/image", Qos::SensorData, &big, 0), Err(RecordError::Stopped { .. })));
         // The bytes on the "disk" read back as a bag up to the last whole chunk.
-        let bytes = rec.failed_sink.take().unwrap().inner.into_inner();
+        let bytes = rec.failed_sink.take().unwrap().with(|disk| disk.inner.get_ref().clone()).unwrap();
         assert!(rec.finish().is_err());
         let dir = tempfile::tempdir().unwrap();
         let kept = dir.path().join("kept.mcap");

@@ -44,7 +44,12 @@ impl BagThread {
                 crate::pipeline::priority::into_background("the recorder");
                 let note = |outcome: Result<(), RecordError>| {
                     if let (Err(error), Ok(mut slot)) = (outcome, failed.lock()) {
-                        slot.get_or_insert(error.to_string());
+                        // The cause alone: the errors made of it name the file.
+                        let cause = match error {
+                            RecordError::File { message, .. } | RecordError::Stopped { first: message, .. } => message,
+                            other => other.to_string(),
+                        };
+                        slot.get_or_insert(cause);
                     }
                 };
                 loop {

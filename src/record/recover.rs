@@ -143,14 +143,26 @@ impl Contents {
             .library(concat!("defvol ", env!("CARGO_PKG_VERSION"), " (bag recover)"))
             .create(std::io::BufWriter::new(file))
             .map_err(|e| failed(&e))?;
+        let written = self.write_records(&mut writer);
+        if let Err(e) = written {
+            // A writer left broken by an error panics when dropped (mcap 0.24): forgotten.
+            std::mem::forget(writer);
+            return Err(failed(&e));
+        }
+        use std::io::Write as _;
+        writer.into_inner().flush().map_err(|e| failed(&e))?;
+        Ok(self.messages.len() as u64)
+    }
+
+    fn write_records<W: std::io::Write + std::io::Seek>(&self, writer: &mut mcap::Writer<W>) -> mcap::McapResult<()> {
         let mut schema_ids = BTreeMap::new();
         for (id, (name, encoding, data)) in &self.schemas {
-            schema_ids.insert(*id, writer.add_schema(name, encoding, data).map_err(|e| failed(&e))?);
+            schema_ids.insert(*id, writer.add_schema(name, encoding, data)?);
         }
         let mut channel_ids = BTreeMap::new();
         for (id, (schema, topic, encoding, metadata)) in &self.channels {
             let schema = schema_ids.get(schema).copied().unwrap_or(0);
-            channel_ids.insert(*id, writer.add_channel(schema, topic, encoding, metadata).map_err(|e| failed(&e))?);
+            channel_ids.insert(*id, writer.add_channel(schema, topic, encoding, metadata)?);
         }
         for (header, data) in &self.messages {
             let Some(channel_id) = channel_ids.get(&header.channel_id).copied() else { continue };
@@ -160,12 +172,9 @@ impl Contents {
                 log_time: header.log_time,
                 publish_time: header.publish_time,
             };
-            writer.write_to_known_channel(&header, data).map_err(|e| failed(&e))?;
+            writer.write_to_known_channel(&header, data)?;
         }
-        writer.finish().map_err(|e| failed(&e))?;
-        use std::io::Write as _;
-        writer.into_inner().flush().map_err(|e| failed(&e))?;
-        Ok(self.messages.len() as u64)
+        writer.finish().map(drop)
     }
 }
 

@@ -219,8 +219,11 @@ impl Configured {
     pub fn publish(&mut self, demand: &Demand) {
         let stamp = Time::now();
         match self.pipeline.tick(stamp, demand) {
-            Ok(out) => {
+            Ok(mut out) => {
                 self.session.record_outputs(&out, &self.pipeline, stamp);
+                if let Some(diagnostics) = out.diagnostics.as_mut() {
+                    self.session.report_failure(diagnostics);
+                }
                 let info = out.warped_volume.then(|| crate::session::warped_info(&self.pipeline, stamp)).flatten();
                 let p = &self.publishers;
                 publish(&p.mesh, out.deformed_mesh);

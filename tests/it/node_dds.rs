@@ -741,3 +741,100 @@ fn a_node_killed_at_random_leaves_closed_splits_whole_and_the_open_one_recoverab
         }
     });
 }
+
+#[test]
+fn a_full_disk_stops_the_recording_once_and_the_node_publishes_on() {
+    isolated("a_full_disk_stops_the_recording_once_and_the_node_publishes_on", || {
+        let work = tempfile::tempdir().unwrap();
+        let (disk, kept) = (work.path().join("disk"), work.path().join("kept"));
+        std::fs::create_dir_all(&disk).unwrap();
+        std::fs::create_dir_all(&kept).unwrap();
+        // A 192 KiB tmpfs in a mount namespace of the node's own (gone with it, so what it
+        // holds is copied out first), filled in a few seconds by 200 poses a second.
+        let script = r#"disk=$1 node=$2 kept=$3; shift 3
+mount -t tmpfs -o size=192k defvol-full "$disk" || exit 97
+"$node" "$@"; status=$?
+cp -r "$disk/." "$kept/"
+exit $status"#;
+        let context = dds::context(17, Discovery::Localhost).unwrap();
+        let mut peer = context.new_node(NodeName::new("/", "watcher").unwrap(), NodeOptions::new()).unwrap();
+        let t = peer
+            .create_topic(
+                &Name::parse("/robot/diagnostics").unwrap(),
+                type_name::<DiagnosticArray>(),
+                &qos(Qos::Reliable),
+            )
+            .unwrap();
+        let diagnostics = peer.create_subscription::<DiagnosticArray>(&t, Some(qos(Qos::Reliable))).unwrap();
+        let pose_topic = peer
+            .create_topic(&Name::parse("/robot/tool_pose").unwrap(), type_name::<PoseStamped>(), &qos(Qos::Reliable))
+            .unwrap();
+        let poses = peer.create_publisher::<PoseStamped>(&pose_topic, Some(qos(Qos::Reliable))).unwrap();
+        let node = Command::new("unshare")
+            .args(["--mount", "sh", "-c", script, "sh"])
+            .arg(&disk)
+            .arg(env!("CARGO_BIN_EXE_defvol_node"))
+            .arg(&kept)
+            .args(["--backend", "cpu", "--seconds", "60", "--flush-interval", "0.1", "--record"])
+            .arg(disk.join("full.mcap"))
+            .args(["--ros-args", "-r", "__ns:=/robot", "-p"])
+            .arg(format!("scene_file:={}", scene().display()))
+            .arg("-p")
+            .arg(format!("warp.service:=defvol/full_disk_{}", std::process::id()))
+            .env("ROS_DOMAIN_ID", "17")
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        let (mut before, mut after, mut reported) = (0, 0, Vec::new());
+        // Until three diagnostics have come since the failure (or 40 s, and the test fails).
+        let start = Instant::now();
+        while after < 3 && start.elapsed() < Duration::from_secs(40) {
+            poses.publish(pose_at(0.2)).unwrap();
+            while let Ok(Some((m, _))) = diagnostics.take() {
+                let failed = m.status.iter().find(|s| s.name == "defvol: recording");
+                match failed {
+                    Some(status) => {
+                        reported.push(status.message.clone());
+                        after += 1;
+                    }
+                    None if after == 0 => before += 1,
+                    None => panic!("the recording's failure was reported, then forgotten"),
+                }
+            }
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        // Ctrl-C to the node (the shell's child: unshare became the shell), then the shell
+        // copies the disk out.
+        let children = Command::new("pgrep").args(["-P", &node.id().to_string()]).output().unwrap();
+        for pid in String::from_utf8_lossy(&children.stdout).split_whitespace() {
+            Command::new("kill").args(["-INT", pid]).status().unwrap();
+        }
+        let exit = node.wait_with_output().unwrap();
+        let log = String::from_utf8_lossy(&exit.stderr);
+        assert!(exit.status.success(), "{log}");
+        assert!(reported.iter().all(|m| m.contains("No space left on device")), "{reported:?}\n{log}");
+        // One error in the log, naming the file and the cause; diagnostics before and after it.
+        let errors: Vec<&str> = log.lines().filter(|l| l.contains("MCAP recording stopped")).collect();
+        assert_eq!(errors.len(), 1, "{log}");
+        assert!(errors[0].contains("full.mcap") && errors[0].contains("No space left on device"), "{}", errors[0]);
+        // The node publishes on, each diagnostics saying the recording stopped.
+        assert!(after >= 3, "diagnostics before the failure: {before}, after: {after}");
+        // What was recorded before the disk filled is there, and whole once recovered.
+        let bag_file = kept.join("full.mcap");
+        let cut = bag::read_messages(&bag_file, &[]).unwrap();
+        assert!(!cut.is_empty());
+        let out = Command::new(env!("CARGO_BIN_EXE_defvol")).args(["bag", "recover"]).arg(&bag_file).output().unwrap();
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        let bytes = std::fs::read(&bag_file).unwrap();
+        let read_by_mcap = mcap::MessageStream::new(&bytes).unwrap().count();
+        assert_eq!(read_by_mcap, cut.len(), "mcap's own reader reads every message kept");
+        if python_has("mcap_ros2.decoder") {
+            let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/interop/read_bag.py");
+            let read = Command::new("python3").arg(script).arg(&bag_file).output().unwrap();
+            assert!(read.status.success(), "{}", String::from_utf8_lossy(&read.stderr));
+            let got: serde_json::Value = serde_json::from_str(String::from_utf8_lossy(&read.stdout).trim()).unwrap();
+            let total: u64 = got["topics"].as_object().unwrap().values().map(|c| c.as_u64().unwrap()).sum();
+            assert_eq!(total as usize, cut.len());
+        }
+    });
+}
