@@ -200,7 +200,7 @@ impl GpuSurface {
                 1,
             );
         }
-        self.ctx.queue.submit([encoder.finish()]);
+        self.ctx.submit(encoder.finish());
         self.current = (self.current + 1) % 3;
         stats
     }
@@ -287,5 +287,25 @@ mod tests {
             gpu.step(&[]);
         }
         assert!(gpu.read_heights().unwrap().iter().all(|&z| z == 0.0037_f32));
+    }
+
+    /// Today's round trips, the baseline batching is measured against: a step is one
+    /// submission and nothing comes back until asked.
+    #[test]
+    fn a_gpu_step_is_one_submission_and_reading_the_heights_one_read_back() {
+        let Some(ctx) = defvol_gpu::gpu::test_context() else { return };
+        let mut c = DpcmConfig::preset("water").unwrap();
+        (c.width, c.height) = (48, 40);
+        c.script = Script { markers: 3, pattern: Pattern::Wander, speed: 0.15, depth: 0.0015, leave_after: None };
+        let mut gpu = GpuSurface::new(ctx.clone(), &c).unwrap();
+        let start = ctx.counters();
+        for step in 0..10 {
+            gpu.step(&c.script.markers_at(&c, step as f64 * c.dt));
+        }
+        let counted = ctx.counters().since(&start);
+        assert_eq!((counted.submissions, counted.readbacks), (10, 0));
+        gpu.read_heights().unwrap();
+        let counted = ctx.counters().since(&start);
+        assert_eq!((counted.readbacks, counted.bytes_read_back), (1, 48 * 40 * 4));
     }
 }

@@ -407,7 +407,7 @@ impl GpuSimulation {
                 self.dispatch(&mut pass, *kernel, *invocations);
             }
         }
-        self.ctx.queue.submit([encoder.finish()]);
+        self.ctx.submit(encoder.finish());
     }
 
     fn upload_params(&self, tools: &[ContactTool<f32>], system: [u32; 4]) {
@@ -494,7 +494,7 @@ impl GpuSimulation {
         for (old, new) in self.buffers.bound[CONTACT_BINDINGS].iter().zip(&fresh) {
             encoder.copy_buffer_to_buffer(old, 0, new, 0, old.size());
         }
-        self.ctx.queue.submit([encoder.finish()]);
+        self.ctx.submit(encoder.finish());
         self.buffers.bound.splice(CONTACT_BINDINGS, fresh);
         self.buffers.contact_capacity = capacity;
         self.bind_group = self.ctx.bind_group("solver", &self.layout, &self.buffers.bound.iter().collect::<Vec<_>>());
@@ -539,7 +539,7 @@ impl GpuSimulation {
         let mut encoder =
             self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("cg start") });
         encoder.copy_buffer_to_buffer(&self.buffers.dv, 0, &self.buffers.p, 0, rows as u64 * 16);
-        self.ctx.queue.submit([encoder.finish()]);
+        self.ctx.submit(encoder.finish());
         // The contacts' kernels run only when there are contacts.
         let contacts = |kernels: &[(Kernel, u32)]| if touched > 0 { kernels.to_vec() } else { Vec::new() };
         let mut start = vec![(Kernel::CgStartSpmv, rows)];
@@ -620,7 +620,7 @@ impl GpuSimulation {
             self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("probe") });
         encoder.clear_buffer(&self.buffers.rhs, 0, None);
         encoder.clear_buffer(&self.buffers.dv, 0, None);
-        self.ctx.queue.submit([encoder.finish()]);
+        self.ctx.submit(encoder.finish());
         let mut rhs: BTreeMap<usize, Vector3<f64>> = BTreeMap::new();
         for (row, v) in &free {
             *rhs.entry(*row).or_insert_with(Vector3::zeros) += v;

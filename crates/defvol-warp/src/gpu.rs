@@ -195,7 +195,7 @@ impl GpuWarp {
                 pass.dispatch_workgroups(x, y, 1);
             }
         }
-        self.ctx.queue.submit([encoder.finish()]);
+        self.ctx.submit(encoder.finish());
     }
 
     /// The last warp's work (a small read-back).

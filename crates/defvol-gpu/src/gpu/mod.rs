@@ -12,6 +12,8 @@ pub mod nodes;
 
 pub use nodes::DeviceNodes;
 
+use std::sync::atomic::{AtomicU64, Ordering};
+
 use wgpu::util::DeviceExt;
 
 #[derive(Debug, thiserror::Error)]
@@ -65,11 +67,34 @@ pub enum AdapterPolicy {
     AllowSoftware,
 }
 
-/// A device and queue with the adapter's description.
+/// A device and queue with the adapter's description, counting the round trips every
+/// stage makes through it.
 pub struct GpuContext {
     pub device: wgpu::Device,
     pub queue: wgpu::Queue,
     pub adapter_info: wgpu::AdapterInfo,
+    counters: [AtomicU64; 3],
+}
+
+/// What the plumbing counted since the context was opened: queue submissions, blocking
+/// read-backs, and the bytes those brought back. A stage's cost on a real GPU is mostly
+/// these round trips, which a software adapter counts as faithfully as a GPU.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct GpuCounters {
+    pub submissions: u64,
+    pub readbacks: u64,
+    pub bytes_read_back: u64,
+}
+
+impl GpuCounters {
+    /// What happened between `earlier` and `self`.
+    pub fn since(&self, earlier: &GpuCounters) -> GpuCounters {
+        GpuCounters {
+            submissions: self.submissions - earlier.submissions,
+            readbacks: self.readbacks - earlier.readbacks,
+            bytes_read_back: self.bytes_read_back - earlier.bytes_read_back,
+        }
+    }
 }
 
 impl GpuContext {
@@ -117,7 +142,7 @@ impl GpuContext {
             })
             .await
             .map_err(|e| GpuError::Device { adapter: info.name.clone(), message: e.to_string() })?;
-        Ok(Self { device, queue, adapter_info: info })
+        Ok(Self { device, queue, adapter_info: info, counters: Default::default() })
     }
 
     /// Whether the adapter is a software one (lavapipe, llvmpipe): its timings say nothing
@@ -229,6 +254,22 @@ impl GpuContext {
         })
     }
 
+    /// Submits `commands` to the queue: every stage's work goes through here, counted.
+    pub fn submit(&self, commands: wgpu::CommandBuffer) {
+        self.counters[0].fetch_add(1, Ordering::Relaxed);
+        self.queue.submit([commands]);
+    }
+
+    /// The round trips so far.
+    pub fn counters(&self) -> GpuCounters {
+        let [submissions, readbacks, bytes] = &self.counters;
+        GpuCounters {
+            submissions: submissions.load(Ordering::Relaxed),
+            readbacks: readbacks.load(Ordering::Relaxed),
+            bytes_read_back: bytes.load(Ordering::Relaxed),
+        }
+    }
+
     /// Blocks until the queued work is done (for timing).
     pub fn wait(&self) {
         if let Err(e) = self.device.poll(wgpu::PollType::wait_indefinitely()) {
@@ -260,6 +301,8 @@ impl GpuContext {
         if size == 0 {
             return Ok(());
         }
+        self.counters[1].fetch_add(1, Ordering::Relaxed);
+        self.counters[2].fetch_add(size, Ordering::Relaxed);
         let staging = self.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("read-back"),
             size,
@@ -269,7 +312,7 @@ impl GpuContext {
         let mut encoder =
             self.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("read-back") });
         encoder.copy_buffer_to_buffer(buffer, 0, &staging, 0, size);
-        self.queue.submit([encoder.finish()]);
+        self.submit(encoder.finish());
         let (tx, rx) = std::sync::mpsc::channel();
         staging.map_async(wgpu::MapMode::Read, .., move |r| {
             let _ = tx.send(r);
@@ -310,4 +353,25 @@ pub fn test_context() -> Option<std::sync::Arc<GpuContext>> {
 
 fn desc_backends() -> wgpu::Backends {
     wgpu::Backends::VULKAN | wgpu::Backends::METAL | wgpu::Backends::DX12
+}
+
+#[cfg(test)]
+mod tests {
+    use crate::gpu::{test_context, GpuCounters};
+
+    #[test]
+    fn the_plumbing_counts_each_submission_and_each_blocking_read_back_with_its_bytes() {
+        let Some(ctx) = test_context() else { return };
+        let start = ctx.counters();
+        let buffer = ctx.storage_buffer("counted", &[7u8; 256]);
+        let encoder = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("empty") });
+        ctx.submit(encoder.finish());
+        assert_eq!(ctx.counters().since(&start), GpuCounters { submissions: 1, readbacks: 0, bytes_read_back: 0 });
+        // A read-back is one submission (its copy) and one blocking wait, of its bytes.
+        assert_eq!(ctx.read_back(&buffer, 64).unwrap(), vec![7u8; 64]);
+        assert_eq!(ctx.counters().since(&start), GpuCounters { submissions: 2, readbacks: 1, bytes_read_back: 64 });
+        // Nothing asked, nothing counted.
+        assert!(ctx.read_back(&buffer, 0).unwrap().is_empty());
+        assert_eq!(ctx.counters().since(&start).readbacks, 1);
+    }
 }

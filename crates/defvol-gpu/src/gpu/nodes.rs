@@ -104,7 +104,7 @@ impl DeviceNodes {
             let (x, y) = super::groups_2d(self.len() as u32, WORKGROUP);
             pass.dispatch_workgroups(x, y, 1);
         }
-        self.ctx.queue.submit([encoder.finish()]);
+        self.ctx.submit(encoder.finish());
         Ok(())
     }
 

@@ -233,7 +233,7 @@ impl GpuTetRaycaster {
             pass.set_bind_group(0, &bind_group, &[]);
             pass.dispatch_workgroups(self.tet_count.div_ceil(WORKGROUP).max(1), 1, 1);
         }
-        self.ctx.queue.submit([encoder.finish()]);
+        self.ctx.submit(encoder.finish());
     }
 
     /// The tools drawn into the next frames (up to [`MAX_TOOLS`]).
@@ -335,7 +335,7 @@ impl GpuTetRaycaster {
                 pass.dispatch_workgroups(w.div_ceil(8) as u32, h.div_ceil(8) as u32, 1);
             }
             encoder.copy_buffer_to_buffer(&self.tiles, (tile_count * 4) as u64, &out, image_bytes, 4);
-            self.ctx.queue.submit([encoder.finish()]);
+            self.ctx.submit(encoder.finish());
             let bytes = self.ctx.read_back(&out, image_bytes + 4)?;
             let (image, total) = bytes.split_at(image_bytes as usize);
             let total = u32::from_le_bytes([total[0], total[1], total[2], total[3]]) as usize;

@@ -223,7 +223,7 @@ impl GpuVolumeRaycaster {
             pass.set_bind_group(0, &bind_group, &[]);
             pass.dispatch_workgroups(self.cell_groups.0, self.cell_groups.1, 1);
         }
-        self.ctx.queue.submit([encoder.finish()]);
+        self.ctx.submit(encoder.finish());
     }
 
     /// The visible flag of every macro cell (tests).
@@ -269,7 +269,7 @@ impl GpuVolumeRaycaster {
             pass.set_bind_group(0, &bind_group, &[]);
             pass.dispatch_workgroups(w.div_ceil(8) as u32, h.div_ceil(8) as u32, 1);
         }
-        self.ctx.queue.submit([encoder.finish()]);
+        self.ctx.submit(encoder.finish());
         let rgba = self.ctx.read_back(&out_rgba, (w * h * 4) as u64)?;
         let depth_bytes = self.ctx.read_back(&out_depth, (w * h * 4) as u64)?;
         let depth = bytemuck::cast_slice::<u8, f32>(&depth_bytes)
