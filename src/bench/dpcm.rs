@@ -29,6 +29,8 @@ pub struct DpcmBenchOptions {
     /// Time steps of the accuracy sweep (each against dt/16).
     pub dts: Vec<f64>,
     pub gpu: Option<crate::backend::Backend>,
+    /// GPU steps per submission, a row each.
+    pub batches: Vec<usize>,
 }
 
 /// The benchmark grid: the water preset's physics, markers wandering over the grid.
@@ -48,58 +50,61 @@ pub fn bench_config(
     Ok(c)
 }
 
-/// A benchmark backend: the CPU surface or its GPU twin.
-trait Stepper {
-    fn step(&mut self, config: &DpcmConfig, t: f64) -> Result<(), DpcmError>;
+/// One CPU step under the script's markers at `t`.
+fn step_script(surface: &mut Surface, config: &DpcmConfig, t: f64) {
+    let markers = config.script.markers_at(config, t);
+    surface.step(&markers);
 }
 
-impl Stepper for Surface {
-    fn step(&mut self, config: &DpcmConfig, t: f64) -> Result<(), DpcmError> {
-        let markers = config.script.markers_at(config, t);
-        Surface::step(self, &markers);
-        Ok(())
-    }
-}
-
+/// Settles for 20 steps, then times `steps` steps in batches of up to `batch` per
+/// submission, waiting for each batch; ms per step and what the timed steps cost in round
+/// trips.
 #[cfg(feature = "gpu")]
-impl Stepper for crate::dpcm::gpu::GpuSurface {
-    fn step(&mut self, config: &DpcmConfig, t: f64) -> Result<(), DpcmError> {
-        let markers = config.script.markers_at(config, t);
-        crate::dpcm::gpu::GpuSurface::step(self, &markers);
-        Ok(())
-    }
-}
-
-/// Settles for 20 steps, then times `steps` steps one by one (the GPU waits for each).
-fn time_steps(
-    stepper: &mut (dyn Stepper + Send),
+fn time_gpu_batches(
+    surface: &mut crate::dpcm::gpu::GpuSurface,
+    ctx: &crate::gpu::GpuContext,
     config: &DpcmConfig,
     steps: usize,
-    sync: &mut (dyn FnMut() + Send),
-) -> Result<Vec<f64>, DpcmError> {
+    batch: usize,
+) -> Result<(Vec<f64>, Option<super::GpuCost>), DpcmError> {
+    let gpu_error = |e: crate::dpcm::gpu::GpuDpcmError| DpcmError::Gpu(e.to_string());
+    let run_batch = |surface: &mut crate::dpcm::gpu::GpuSurface, first: usize, n: usize| {
+        let markers: Vec<_> =
+            (first..first + n).map(|s| config.script.markers_at(config, s as f64 * config.dt)).collect();
+        surface.step_batch(&markers).map_err(gpu_error)?;
+        ctx.wait();
+        Ok::<_, DpcmError>(())
+    };
+    run_batch(surface, 0, 20)?;
+    let meter = super::GpuMeter::on(ctx);
+    let mut samples = Vec::with_capacity(steps.div_ceil(batch));
+    for first in (0..steps).step_by(batch) {
+        let n = batch.min(steps - first);
+        let start = Instant::now();
+        run_batch(surface, 20 + first, n)?;
+        samples.push(start.elapsed().as_secs_f64() * 1e3 / n as f64);
+    }
+    Ok((samples, meter.finish(steps)))
+}
+
+/// Settles for 20 steps, then times `steps` steps one by one.
+fn time_steps(surface: &mut Surface, config: &DpcmConfig, steps: usize) -> Vec<f64> {
     // On a pool worker, as a run loop should be: the stepping thread is one of the two
     // that compute, instead of a third one waking them for every step.
-    rayon::scope(|_| time_steps_on_worker(stepper, config, steps, sync))
+    rayon::scope(|_| time_steps_on_worker(surface, config, steps))
 }
 
-fn time_steps_on_worker(
-    stepper: &mut (dyn Stepper + Send),
-    config: &DpcmConfig,
-    steps: usize,
-    sync: &mut (dyn FnMut() + Send),
-) -> Result<Vec<f64>, DpcmError> {
+fn time_steps_on_worker(surface: &mut Surface, config: &DpcmConfig, steps: usize) -> Vec<f64> {
     for s in 0..20 {
-        stepper.step(config, s as f64 * config.dt)?;
+        step_script(surface, config, s as f64 * config.dt);
     }
-    sync();
     let mut samples = Vec::with_capacity(steps);
     for s in 20..20 + steps {
         let start = Instant::now();
-        stepper.step(config, s as f64 * config.dt)?;
-        sync();
+        step_script(surface, config, s as f64 * config.dt);
         samples.push(start.elapsed().as_secs_f64() * 1e3);
     }
-    Ok(samples)
+    samples
 }
 
 pub fn run(opts: &DpcmBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result<(), DpcmError> {
@@ -117,51 +122,63 @@ pub fn run(opts: &DpcmBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result<(
                 let params = json!({"topology": topology, "physics": format!("{physics:?}").to_lowercase(), "dt": config.dt, "seed_gpu_hz": seed_hz});
                 let work = json!({"phyxels": opts.size[0] * opts.size[1], "markers": markers});
                 let mut surface = Surface::new(&config)?;
-                let samples = time_steps(&mut surface, &config, opts.steps, &mut || {})?;
+                let samples = time_steps(&mut surface, &config, opts.steps);
                 #[cfg(feature = "gpu")]
                 let cpu_heights = surface.heights();
-                emit(&BenchRow {
+                let cpu_row = BenchRow {
                     stage: "dpcm",
-                    case: case.clone(),
+                    case,
                     backend: "cpu".into(),
                     device: cpu.clone(),
-                    params: params.clone(),
+                    params,
                     runs: samples.len(),
                     time_ms: time_stats(samples),
                     error: None,
-                    work: work.clone(),
-                });
+                    work,
+                    gpu: None,
+                };
+                emit(&cpu_row);
                 #[cfg(feature = "gpu")]
                 if let Some(ctx) = &gpu {
-                    let mut surface = crate::dpcm::gpu::GpuSurface::new(ctx.clone(), &config)
-                        .map_err(|e| DpcmError::Gpu(e.to_string()))?;
-                    let device = ctx.describe();
-                    let mut sync = || ctx.wait();
-                    let samples = time_steps(&mut surface, &config, opts.steps, &mut sync)?;
-                    let heights = surface.read_heights().map_err(|e| DpcmError::Gpu(e.to_string()))?;
-                    let peak = cpu_heights.iter().fold(0.0f32, |m, z| m.max(z.abs())).max(f32::MIN_POSITIVE);
-                    let worst = heights.iter().zip(&cpu_heights).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
-                    let error = Some(ErrorMeasure {
-                        metric: "max_abs_over_peak",
-                        value: f64::from(worst / peak),
-                        reference: "cpu",
-                    });
-                    emit(&BenchRow {
-                        stage: "dpcm",
-                        case: case.clone(),
-                        backend: "gpu".into(),
-                        device,
-                        params: params.clone(),
-                        runs: samples.len(),
-                        time_ms: time_stats(samples),
-                        error,
-                        work: work.clone(),
-                    });
+                    let row = BenchRow { backend: "gpu".into(), device: ctx.describe(), ..cpu_row };
+                    gpu_rows(ctx, &config, opts, &cpu_heights, &row, &mut emit)?;
                 }
             }
         }
     }
     accuracy_sweep(opts, &cpu, &mut emit)
+}
+
+/// The GPU twin's rows beside the CPU's `row`, one per batch size: ms per step, error
+/// against the CPU's heights after as many steps, round trips per step.
+#[cfg(feature = "gpu")]
+fn gpu_rows(
+    ctx: &std::sync::Arc<crate::gpu::GpuContext>,
+    config: &DpcmConfig,
+    opts: &DpcmBenchOptions,
+    cpu_heights: &[f32],
+    row: &BenchRow,
+    emit: &mut impl FnMut(&BenchRow),
+) -> Result<(), DpcmError> {
+    for &batch in &opts.batches {
+        let mut surface =
+            crate::dpcm::gpu::GpuSurface::new(ctx.clone(), config).map_err(|e| DpcmError::Gpu(e.to_string()))?;
+        let (samples, cost) = time_gpu_batches(&mut surface, ctx, config, opts.steps, batch)?;
+        let heights = surface.read_heights().map_err(|e| DpcmError::Gpu(e.to_string()))?;
+        let peak = cpu_heights.iter().fold(0.0f32, |m, z| m.max(z.abs())).max(f32::MIN_POSITIVE);
+        let worst = heights.iter().zip(cpu_heights).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+        let mut params = row.params.clone();
+        params["batch"] = json!(batch);
+        emit(&BenchRow {
+            params,
+            runs: samples.len(),
+            time_ms: time_stats(samples),
+            error: Some(ErrorMeasure { metric: "max_abs_over_peak", value: f64::from(worst / peak), reference: "cpu" }),
+            gpu: cost,
+            ..row.clone()
+        });
+    }
+    Ok(())
 }
 
 /// Run time against error over the time step: the water physics on a 256² grid for 0.2 s
@@ -179,7 +196,7 @@ fn accuracy_sweep(opts: &DpcmBenchOptions, cpu: &str, emit: &mut impl FnMut(&Ben
         let mut samples = Vec::with_capacity(steps);
         for s in 0..steps {
             let start = Instant::now();
-            Stepper::step(&mut surface, &config, s as f64 * dt)?;
+            step_script(&mut surface, &config, s as f64 * dt);
             samples.push(start.elapsed().as_secs_f64() * 1e3);
         }
         Ok((surface.heights().to_vec(), samples))
@@ -212,6 +229,7 @@ fn accuracy_sweep(opts: &DpcmBenchOptions, cpu: &str, emit: &mut impl FnMut(&Ben
                 reference: "dt/16",
             }),
             work: json!({"phyxels": 256 * 256, "markers": 1}),
+            gpu: None,
         });
     }
     Ok(())
@@ -222,8 +240,13 @@ pub const TABLE_HEADER: &str =
 
 pub fn table_row(row: &BenchRow) -> String {
     let p = &row.params;
-    let params =
-        format!("{} {} dt={}", p["topology"].as_str().unwrap_or("?"), p["physics"].as_str().unwrap_or("?"), p["dt"]);
+    let batch = p["batch"].as_u64().map_or(String::new(), |b| format!(" batch={b}"));
+    let params = format!(
+        "{} {} dt={}{batch}",
+        p["topology"].as_str().unwrap_or("?"),
+        p["physics"].as_str().unwrap_or("?"),
+        p["dt"]
+    );
     let seed = p["seed_gpu_hz"].as_f64().map_or("-".to_owned(), |hz| format!("{hz:.0}"));
     let error = row.error.as_ref().map_or("-".to_owned(), |e| format!("{:.2e}", e.value));
     format!(

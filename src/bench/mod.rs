@@ -43,6 +43,79 @@ pub struct BenchRow {
     #[serde(skip_serializing_if = "Option::is_none")]
     pub error: Option<ErrorMeasure>,
     pub work: serde_json::Value,
+    /// A GPU row's round trips per step or frame.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub gpu: Option<GpuCost>,
+}
+
+/// Where a GPU row's time went, per step or frame: GPU time by timestamp queries (where the
+/// adapter has them) and the round trips the plumbing counted.
+#[derive(Debug, Clone, Serialize)]
+pub struct GpuCost {
+    pub kernel_ms: Option<f64>,
+    pub copy_ms: Option<f64>,
+    pub submissions: f64,
+    pub readbacks: f64,
+    pub bytes_read_back: f64,
+    /// "available" or "unavailable" on this adapter.
+    pub timestamps: &'static str,
+}
+
+/// Measures a GPU row: timing on and the counters noted from start to `finish`.
+pub struct GpuMeter<'a> {
+    #[cfg(feature = "gpu")]
+    ctx: &'a crate::gpu::GpuContext,
+    #[cfg(feature = "gpu")]
+    counters: crate::gpu::GpuCounters,
+    #[cfg(not(feature = "gpu"))]
+    _backend: std::marker::PhantomData<&'a ()>,
+}
+
+impl<'a> GpuMeter<'a> {
+    /// A meter for a row whose stage runs `on` this `backend`: none unless on its GPU.
+    pub fn start(backend: &'a crate::backend::Backend, on: crate::backend::RunsOn) -> Option<Self> {
+        #[cfg(feature = "gpu")]
+        return backend.context().filter(|_| on == crate::backend::RunsOn::Gpu).map(|ctx| Self::on(ctx));
+        #[cfg(not(feature = "gpu"))]
+        {
+            let _ = (backend, on);
+            None
+        }
+    }
+
+    /// Starts measuring what `ctx` does. Times measured before are dropped; a failure to
+    /// read them is `finish`'s to report, as it reads the same queries.
+    #[cfg(feature = "gpu")]
+    pub fn on(ctx: &'a crate::gpu::GpuContext) -> Self {
+        let _ = ctx.take_times();
+        ctx.set_timing(true);
+        Self { ctx, counters: ctx.counters() }
+    }
+
+    /// What was done since the start, over `units` steps or frames (none, with a warning,
+    /// when the timestamps cannot be read).
+    pub fn finish(self, units: usize) -> Option<GpuCost> {
+        #[cfg(feature = "gpu")]
+        {
+            self.ctx.set_timing(false);
+            let counted = self.ctx.counters().since(&self.counters);
+            let times = self.ctx.take_times().map_err(|e| tracing::warn!("reading GPU timestamps failed: {e}")).ok()?;
+            let per = |x: f64| x / units.max(1) as f64;
+            Some(GpuCost {
+                kernel_ms: times.map(|t| per(t.kernel_ms)),
+                copy_ms: times.map(|t| per(t.copy_ms)),
+                submissions: per(counted.submissions as f64),
+                readbacks: per(counted.readbacks as f64),
+                bytes_read_back: per(counted.bytes_read_back as f64),
+                timestamps: self.ctx.timestamps().name(),
+            })
+        }
+        #[cfg(not(feature = "gpu"))]
+        {
+            let _ = units;
+            None
+        }
+    }
 }
 
 pub fn time_stats(mut samples: Vec<f64>) -> TimeMs {

@@ -197,6 +197,7 @@ fn feedback_rows(
         time_ms: time_stats(plain),
         error: None,
         work: json!({"tets": n, "outputs": ["tool_feedback", "deformed_mesh"]}),
+        gpu: None,
     });
     emit(&BenchRow {
         stage: "node",
@@ -208,6 +209,7 @@ fn feedback_rows(
         time_ms: time_stats(recorded),
         error: None,
         work: json!({"tets": n, "bag_bytes": std::fs::metadata(&bag).map(|m| m.len()).unwrap_or(0)}),
+        gpu: None,
     });
     let _ = std::fs::remove_file(&bag);
     Ok(())
@@ -278,6 +280,7 @@ mod dds {
                 time_ms: time_stats(self.latencies),
                 error: None,
                 work: json!({"tets": tets, "stages_beside": everything}),
+                gpu: None,
             }
         }
     }
@@ -590,6 +593,7 @@ fn pose_to_volume(backend: &Backend, device: &str, frames: usize) -> Result<Benc
         time_ms: time_stats(samples),
         error: None,
         work: json!({"voxels": grid.len(), "bytes": grid.len() * 4}),
+        gpu: None,
     })
 }
 
@@ -687,6 +691,7 @@ fn shm_delivery(mib: usize, cpu: &str) -> Result<BenchRow, NodeBenchError> {
         time_ms: time_stats(samples),
         error: None,
         work: json!({"bytes": elements * 4}),
+        gpu: None,
     })
 }
 
@@ -712,6 +717,7 @@ fn dds_delivery(mib: usize, cpu: &str) -> Result<BenchRow, NodeBenchError> {
         time_ms: time_stats(samples),
         error: None,
         work: json!({"bytes": mib << 20}),
+        gpu: None,
     };
     if !crate::ros::dds::private_network() {
         return Ok(row(Vec::new(), "skipped: run inside a private network namespace (tests/netns-run)".into()));

@@ -115,6 +115,7 @@ pub fn run(opts: &RenderBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result
                         time_ms: time_stats(samples),
                         error,
                         work: json!({"rays": size * size, "voxels": volume.len()}),
+                        gpu: None,
                     });
                     #[cfg(feature = "gpu")]
                     if let (Some(ctx), Shading::None) = (&gpu, shading) {
@@ -183,6 +184,7 @@ pub fn run(opts: &RenderBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result
                             reference: "f64 tet walk",
                         }),
                         work: json!({"rays": size * size, "tets": mesh.tets().len()}),
+                        gpu: None,
                     });
                     #[cfg(feature = "gpu")]
                     if let Some(ctx) = &gpu {
@@ -257,13 +259,14 @@ fn source_rows(
                 let prepared =
                     TetRaycaster::with_source(&rest, shared.clone(), tf, &params, &SourceSampling::default())?;
                 let mut mesh = MeshRenderer::new(backend, prepared, 1.0).map_err(|e| setup(&e))?;
+                let on = mesh.runs_on();
                 let mut frame = |k: usize| -> Result<crate::render::Rendered, RenderBenchError> {
                     mesh.update(frames[k % 2]).map_err(|e| setup(&e))?;
                     mesh.render(&[], &camera).map_err(|e| setup(&e))
                 };
-                let (image, samples) = timed(opts.runs, &mut frame)?;
-                let on = mesh.runs_on();
-                emit(&source_row(&case(size), on, device, "source_through_mesh", step, samples, &image, &reference));
+                let (image, samples, cost) = timed(opts.runs, (backend, on), &mut frame)?;
+                let row = source_row(&case(size), on, device, "source_through_mesh", step, samples, &image, &reference);
+                emit(&BenchRow { gpu: cost, ..row });
                 // Warp + volume raycast: onto the source's spacing (what the node does),
                 // and onto half of it (what it takes to come near the source's accuracy).
                 for (mode, warp_grid) in [("warp_then_raycast", &grid), ("warp_half_then_raycast", &half_grid)] {
@@ -304,6 +307,7 @@ fn source_rows(
                         Some(v) => v,
                         None => VolumeRenderer::new(&Backend::cpu(), &host, tables, &params).map_err(|e| setup(&e))?,
                     };
+                    let on = warp.runs_on();
                     let mut frame = |k: usize| -> Result<crate::render::Rendered, RenderBenchError> {
                         let u: Vec<Vector3<f64>> = frames[k % 2].iter().zip(rest.nodes()).map(|(p, r)| p - r).collect();
                         warp.advance(Some(&u)).map_err(|e| setup(&e))?;
@@ -315,9 +319,9 @@ fn source_rows(
                             volume.render(Shown::Host(&host), &[], &camera).map_err(|e| setup(&e))
                         }
                     };
-                    let (image, samples) = timed(opts.runs, &mut frame)?;
-                    let on = warp.runs_on();
-                    emit(&source_row(&case(size), on, device, mode, step, samples, &image, &reference));
+                    let (image, samples, cost) = timed(opts.runs, (backend, on), &mut frame)?;
+                    let row = source_row(&case(size), on, device, mode, step, samples, &image, &reference);
+                    emit(&BenchRow { gpu: cost, ..row });
                 }
             }
         }
@@ -325,13 +329,16 @@ fn source_rows(
     Ok(())
 }
 
-/// `2·runs` frames after one to settle, each timed; every frame moves the mesh (even k
-/// the partial bend, odd k the full one). The image is the last full bend's.
+/// `2·runs` frames after one to settle, each timed, with their GPU cost when the stage runs
+/// `on` the backend's GPU; every frame moves the mesh (even k the partial bend, odd k the
+/// full one). The image is the last full bend's.
 fn timed(
     runs: usize,
+    (backend, on): (&crate::backend::Backend, RunsOn),
     frame: &mut impl FnMut(usize) -> Result<crate::render::Rendered, RenderBenchError>,
-) -> Result<(crate::render::Rendered, Vec<f64>), RenderBenchError> {
+) -> Result<(crate::render::Rendered, Vec<f64>, Option<super::GpuCost>), RenderBenchError> {
     let mut image = frame(1)?;
+    let meter = super::GpuMeter::start(backend, on);
     let mut samples = Vec::with_capacity(2 * runs);
     for k in 2..2 * runs.max(1) + 2 {
         let start = Instant::now();
@@ -341,7 +348,8 @@ fn timed(
             image = frame_k;
         }
     }
-    Ok((image, samples))
+    let cost = meter.and_then(|m| m.finish(samples.len()));
+    Ok((image, samples, cost))
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -376,23 +384,26 @@ fn source_row(
             reference: "f64 map of each sample",
         }),
         work: json!({"rays": image.width * image.height}),
+        gpu: None,
     }
 }
 
 /// Frames timed on the GPU, read-back included, after one to settle.
 #[cfg(feature = "gpu")]
 fn gpu_frames(
+    ctx: &crate::gpu::GpuContext,
     runs: usize,
     mut frame: impl FnMut() -> Result<crate::render::Rendered, crate::render::volume::gpu::GpuRenderError>,
-) -> Result<(crate::render::Rendered, Vec<f64>), crate::render::volume::gpu::GpuRenderError> {
+) -> Result<(crate::render::Rendered, Vec<f64>, Option<super::GpuCost>), crate::render::volume::gpu::GpuRenderError> {
     let mut image = frame()?;
     let mut samples = Vec::with_capacity(runs);
+    let meter = super::GpuMeter::on(ctx);
     for _ in 0..runs {
         let start = Instant::now();
         image = frame()?;
         samples.push(start.elapsed().as_secs_f64() * 1e3);
     }
-    Ok((image, samples))
+    Ok((image, samples, meter.finish(runs)))
 }
 
 /// The GPU twin of a CPU volume row: the same prepared tables and macro cells.
@@ -414,8 +425,8 @@ fn volume_gpu_row(
             return Ok(());
         }
     };
-    let (image, samples) =
-        gpu_frames(opts.runs, || raycaster.render(camera)).map_err(|e| RenderBenchError::Gpu(e.to_string()))?;
+    let (image, samples, cost) =
+        gpu_frames(ctx, opts.runs, || raycaster.render(camera)).map_err(|e| RenderBenchError::Gpu(e.to_string()))?;
     let params = prepared.params();
     emit(&BenchRow {
         stage: "render",
@@ -427,6 +438,7 @@ fn volume_gpu_row(
         time_ms: time_stats(samples),
         error: Some(ErrorMeasure { metric: "psnr_db", value: image.psnr(reference), reference: "f64 point sampling" }),
         work: json!({"rays": camera.width * camera.height, "voxels": prepared.volume().len()}),
+        gpu: cost,
     });
     Ok(())
 }
@@ -451,7 +463,7 @@ fn mesh_gpu_row(
             return Ok(());
         }
     };
-    let (image, samples) = gpu_frames(3, || {
+    let (image, samples, cost) = gpu_frames(ctx, 3, || {
         raycaster.update(nodes)?;
         raycaster.render(camera)
     })
@@ -466,6 +478,7 @@ fn mesh_gpu_row(
         time_ms: time_stats(samples),
         error: Some(ErrorMeasure { metric: "psnr_db", value: image.psnr(reference), reference: "f64 tet walk" }),
         work: json!({"rays": camera.width * camera.height, "tets": prepared.tets().len()}),
+        gpu: cost,
     });
     Ok(())
 }

@@ -31,6 +31,7 @@ struct Run {
     cg_iterations: f64,
     backend: RunsOn,
     device: String,
+    gpu: Option<super::GpuCost>,
 }
 
 /// `backend`: the run's, or `None` for the f64 reference.
@@ -46,6 +47,7 @@ fn run(
     };
     // Settle: the first step pays for allocation, pipeline compilation and warm caches.
     engine.step()?;
+    let meter = backend.and_then(|b| super::GpuMeter::start(b, engine.runs_on()));
     let mut step_ms = Vec::with_capacity(steps);
     let mut iterations = 0u64;
     for _ in 1..steps {
@@ -54,7 +56,9 @@ fn run(
         step_ms.push(start.elapsed().as_secs_f64() * 1e3);
         iterations += report.cg_iterations as u64;
     }
+    let gpu = meter.and_then(|m| m.finish(step_ms.len()));
     Ok(Run {
+        gpu,
         positions: engine.positions(),
         step_ms,
         cg_iterations: iterations as f64 / (steps.max(2) - 1) as f64,
@@ -131,6 +135,7 @@ pub fn solver(opts: &SolverBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Res
                         reference: "f64",
                     }),
                     work: run_work(&params, &model, tets, result.cg_iterations),
+                    gpu: result.gpu,
                 });
             }
         }

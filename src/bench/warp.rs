@@ -100,6 +100,7 @@ pub fn warp(opts: &WarpBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result<
                         work: json!({"voxels": stats.voxels, "inside": stats.inside, "candidates": stats.candidates,
                             "useful_fraction": stats.inside as f64 / stats.candidates.max(1) as f64,
                             "mvoxels_per_s": stats.voxels as f64 / median / 1e3}),
+                        gpu: None,
                     });
                 }
             }
@@ -157,6 +158,7 @@ pub fn warp(opts: &WarpBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result<
                     time_ms: time_stats(times),
                     error: None,
                     work: json!({"voxels": stats.voxels, "inside": stats.inside}),
+                    gpu: None,
                 });
             }
         }
@@ -189,7 +191,11 @@ fn warp_gpu_rows(
     let (reference, _) = w::warp_samples::<f64>(source, mesh, deformed, &grid, &options)?;
     let mut times = Vec::new();
     let mut out = Vec::new();
+    let mut meter = None;
     for run in 0..=3 {
+        if run == 1 {
+            meter = Some(super::GpuMeter::on(ctx));
+        }
         let start = Instant::now();
         match warper.warp(mesh, deformed) {
             Ok((data, _)) => out = data,
@@ -202,6 +208,7 @@ fn warp_gpu_rows(
             times.push(start.elapsed().as_secs_f64() * 1e3);
         }
     }
+    let cost = meter.and_then(|m| m.finish(times.len()));
     let (vmin, vmax) = source.range();
     let error =
         out.iter().zip(&reference).map(|(a, b)| (*a as f64 - b).abs()).fold(0.0, f64::max) / (vmax - vmin) as f64;
@@ -216,6 +223,7 @@ fn warp_gpu_rows(
         time_ms: time_stats(times),
         error: Some(ErrorMeasure { metric: "max_abs_over_range", value: error, reference: "f64" }),
         work: json!({"voxels": grid.len(), "mvoxels_per_s": grid.len() as f64 / median / 1e3}),
+        gpu: cost,
     });
     Ok(())
 }
@@ -261,6 +269,7 @@ mod tests {
             time_ms: crate::bench::TimeMs { min: 1.0, median: 2.0, max: 3.0 },
             error: None,
             work: serde_json::json!({"inside": 42}),
+            gpu: None,
         };
         let line = warp_table_row(&row);
         assert!(!line.contains("NaN") && line.contains(" 42 ") && line.ends_with(" -"), "{line}");

@@ -76,6 +76,9 @@ pub enum BenchStage {
         /// Skip the accuracy sweep.
         #[arg(long)]
         no_sweep: bool,
+        /// GPU steps per submission, a GPU row each.
+        #[arg(long, value_delimiter = ',', default_value = "1,10", value_parser = clap::value_parser!(u32).range(1..=4096))]
+        batch: Vec<u32>,
         #[command(flatten)]
         gpu: GpuRows,
         #[arg(long)]
@@ -205,7 +208,7 @@ pub fn run(stage: BenchStage) -> Result<()> {
             };
             bench::render::run(&opts, row_printer(json, bench::render::TABLE_HEADER, bench::render::table_row))?;
         }
-        BenchStage::Dpcm { size, markers, topologies, physics, steps, dts, no_sweep, gpu, json } => {
+        BenchStage::Dpcm { size, markers, topologies, physics, steps, dts, no_sweep, batch, gpu, json } => {
             let [w, h] = size[..] else { bail!("--size takes two sizes") };
             let dts = if no_sweep { Vec::new() } else { dts };
             let opts = bench::dpcm::DpcmBenchOptions {
@@ -216,6 +219,7 @@ pub fn run(stage: BenchStage) -> Result<()> {
                 steps,
                 dts,
                 gpu: gpu.backend()?,
+                batches: batch.into_iter().map(|b| b as usize).collect(),
             };
             bench::dpcm::run(&opts, row_printer(json, bench::dpcm::TABLE_HEADER, bench::dpcm::table_row))?;
         }

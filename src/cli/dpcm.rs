@@ -157,7 +157,7 @@ pub fn run(args: DpcmArgs) -> Result<()> {
             Source::Motion(file, calibration) => file.markers_at(calibration, t),
             Source::Udp(udp, height) => udp.poll()?.map(|frame| frame.markers(*height)).unwrap_or_default(),
         };
-        let stats = engine.step(&markers);
+        let stats = engine.step(&markers)?;
         totals.markers_applied += stats.markers_applied;
         totals.markers_dropped += stats.markers_dropped;
         totals.markers_off_grid += stats.markers_off_grid;

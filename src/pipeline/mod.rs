@@ -105,6 +105,8 @@ struct DpcmStage {
     config: DpcmConfig,
     calibration: Calibration,
     steps_per_tick: usize,
+    /// DPCM steps per GPU submission.
+    batch: usize,
     last_image_time: f64,
     /// No marker in reach and the surface at rest: steps are skipped, and the last images
     /// repeat once a second for subscribers that join late.
@@ -316,20 +318,26 @@ impl Pipeline {
             }
             let engine = DpcmEngine::new(&config, &self.backend)?;
             let steps_per_tick = (self.scene.solver.dt / config.dt).round().max(1.0) as usize;
+            let batch = c.batch.unwrap_or(steps_per_tick);
+            if batch == 0 {
+                return Err(PipelineError::Invalid("dpcm: batch must be at least 1 step".into()));
+            }
             let origin = nalgebra::Isometry3::translation(c.origin[0], c.origin[1], c.origin[2]);
             let calibration = Calibration::new(origin, config.spacing);
             tracing::info!(
-                "DPCM: {} {}x{}, {} steps per solver step",
+                "DPCM: {} {}x{}, {} steps per solver step, {} per GPU submission",
                 engine.name(),
                 config.width,
                 config.height,
-                steps_per_tick
+                steps_per_tick,
+                batch
             );
             self.dpcm = Some(DpcmStage {
                 engine,
                 config,
                 calibration,
                 steps_per_tick,
+                batch,
                 last_image_time: f64::NEG_INFINITY,
                 asleep: false,
                 last_heights: Vec::new(),
@@ -671,9 +679,7 @@ impl Pipeline {
         let period = if d.asleep { 1.0 } else { 1.0 / self.scene.dpcm.rate_hz };
         if !d.asleep {
             let start = Instant::now();
-            for _ in 0..d.steps_per_tick {
-                d.engine.step(&markers);
-            }
+            d.engine.step_many(&markers, d.steps_per_tick, d.batch)?;
             self.times.dpcm = start.elapsed().as_secs_f64() * 1e3;
         }
         if clock - d.last_image_time < period - 1e-9 {

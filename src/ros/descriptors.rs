@@ -159,6 +159,7 @@ const TABLE: &[(&str, Descriptor)] = &[
     ("dpcm.spacing", float("Metres between phyxels (empty: the preset's)", 1e-6, 1.0)),
     ("dpcm.origin", text("World position of phyxel (0, 0) (m), [x, y, z]")),
     ("dpcm.rate_hz", float("Most DPCM images per simulated second", 0.01, 1e4)),
+    ("dpcm.batch", integer("DPCM steps per GPU submission (empty: the steps per solver step)", 1, 4096)),
     ("camera.eye", text("Raycast camera position (m), [x, y, z]")),
     ("camera.target", text("Point the camera looks at (m), [x, y, z]")),
     ("camera.up", text("Camera up direction, [x, y, z]")),

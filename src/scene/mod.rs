@@ -172,11 +172,13 @@ pub struct DpcmStageConfig {
     pub origin: [f64; 3],
     /// Most images per second of simulated time.
     pub rate_hz: f64,
+    /// Steps per GPU submission (the DPCM steps per solver step when absent).
+    pub batch: Option<usize>,
 }
 
 impl Default for DpcmStageConfig {
     fn default() -> Self {
-        Self { preset: "water".into(), size: None, spacing: None, origin: [0.0; 3], rate_hz: 10.0 }
+        Self { preset: "water".into(), size: None, spacing: None, origin: [0.0; 3], rate_hz: 10.0, batch: None }
     }
 }
 

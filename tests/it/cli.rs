@@ -672,6 +672,35 @@ fn solver_bench_cases_are_named_by_their_tets_as_the_readme_counts_them() {
     assert!(!table.contains("NaN"), "{table}");
 }
 
+/// The DPCM bench's GPU rows say what a step cost the GPU: batched, a tenth of a submission
+/// a step; nothing read back while stepping; GPU time measured by timestamps (lavapipe has
+/// them) and no longer than the step's wall time; the batched state the single steps' one.
+#[test]
+fn dpcm_bench_gpu_rows_report_the_round_trips_and_gpu_time_of_a_batched_step() {
+    let Some(_) = defvol::gpu::test_context() else { return };
+    let args = "bench dpcm --gpu --allow-software-gpu --size 64,64 --markers 3 --topologies eight --physics elastic";
+    let out = defvol()
+        .args(args.split(' '))
+        .args(["--steps", "40", "--no-sweep", "--batch", "1,10", "--json"])
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let rows: Vec<serde_json::Value> =
+        String::from_utf8_lossy(&out.stdout).lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    let gpu: Vec<&serde_json::Value> = rows.iter().filter(|r| r["backend"] == "gpu").collect();
+    assert_eq!(gpu.len(), 2, "{rows:?}");
+    for (row, batch) in gpu.iter().zip([1.0, 10.0]) {
+        let cost = &row["gpu"];
+        assert_eq!(row["params"]["batch"].as_f64(), Some(batch));
+        assert_eq!(cost["submissions"].as_f64(), Some(1.0 / batch), "{row}");
+        assert_eq!(cost["readbacks"].as_f64(), Some(0.0), "{row}");
+        assert_eq!(cost["timestamps"], "available", "{row}");
+        let kernel_ms = cost["kernel_ms"].as_f64().unwrap();
+        assert!(kernel_ms > 0.0 && kernel_ms <= row["time_ms"]["max"].as_f64().unwrap(), "{row}");
+        assert!(row["error"]["value"].as_f64().unwrap() < 1e-4, "{row}");
+    }
+}
+
 /// A PNG's pixels as RGBA bytes.
 fn image_pixels(path: &std::path::Path) -> Vec<u8> {
     let decoder = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(path).unwrap()));

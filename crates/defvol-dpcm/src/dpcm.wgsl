@@ -46,6 +46,14 @@ struct Marker {
     z_scale: f32,
 }
 
+// Which step of a batch this dispatch is: its markers' tile lists start at tile_offsets[offsets_base].
+struct BatchStep {
+    offsets_base: u32,
+    _pad0: u32,
+    _pad1: u32,
+    _pad2: u32,
+}
+
 const TILE: u32 = 16u;
 // kernels::FLUSH_BELOW: subnormal-free, as on the CPU.
 const FLUSH_BELOW: f32 = 1e-20;
@@ -60,6 +68,7 @@ const FLUSH_BELOW: f32 = 1e-20;
 @group(0) @binding(7) var<storage, read> markers: array<Marker>;
 @group(0) @binding(8) var<storage, read> tile_offsets: array<u32>;
 @group(0) @binding(9) var<storage, read> tile_indices: array<u32>;
+@group(0) @binding(10) var<uniform> batch: BatchStep;
 
 fn hash32(v: u32) -> u32 {
     var x = v;
@@ -183,7 +192,7 @@ fn step(@builtin(global_invocation_id) gid: vec3<u32>) {
     let self_b = ax.z * p.c.axial_b + dg.z * p.c.diag_b;
     let base = combine(vec4<f32>(ax.x, ax.y, dg.x, dg.y), self_a, self_b, ga, gb, r, ui, up[i]);
 
-    let tile = (gid.y / TILE) * p.tiles_x + gid.x / TILE;
+    let tile = batch.offsets_base + (gid.y / TILE) * p.tiles_x + gid.x / TILE;
     var push = 0.0;
     for (var k = tile_offsets[tile]; k < tile_offsets[tile + 1u]; k++) {
         push += marker_term(markers[tile_indices[k]], f32(gid.x), f32(gid.y), ui, vi);

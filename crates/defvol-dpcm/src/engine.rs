@@ -5,10 +5,10 @@ use crate::{DpcmConfig, DpcmError, Marker, StepStats, Surface};
 use defvol_gpu::backend::{Backend, RunsOn};
 
 pub enum DpcmEngine {
-    Cpu(Surface),
+    Cpu(Box<Surface>),
     #[cfg(feature = "gpu")]
     Gpu {
-        surface: crate::gpu::GpuSurface,
+        surface: Box<crate::gpu::GpuSurface>,
         name: String,
         /// The initial rest heights, for the displacement.
         initial: Vec<f32>,
@@ -27,12 +27,12 @@ impl DpcmEngine {
                 })
                 .map_err(|e| DpcmError::Gpu(e.to_string()))?;
             if let Some((gpu, name)) = gpu {
-                return Ok(Self::Gpu { surface: gpu, name, initial: surface.heights() });
+                return Ok(Self::Gpu { surface: Box::new(gpu), name, initial: surface.heights() });
             }
         }
         #[cfg(not(feature = "gpu"))]
         let _ = backend;
-        Ok(Self::Cpu(surface))
+        Ok(Self::Cpu(Box::new(surface)))
     }
 
     /// Where this stage runs.
@@ -52,11 +52,32 @@ impl DpcmEngine {
         }
     }
 
-    pub fn step(&mut self, markers: &[Marker]) -> StepStats {
+    pub fn step(&mut self, markers: &[Marker]) -> Result<StepStats, DpcmError> {
+        self.step_many(markers, 1, 1)
+    }
+
+    /// `steps` steps under the same markers, up to `batch` of them to a GPU submission;
+    /// the last step's stats (none for no steps).
+    pub fn step_many(&mut self, markers: &[Marker], steps: usize, batch: usize) -> Result<StepStats, DpcmError> {
+        if batch == 0 {
+            return Err(DpcmError::BadParameter {
+                name: "batch".into(),
+                value: 0.0,
+                why: "a batch is at least one step".into(),
+            });
+        }
         match self {
-            Self::Cpu(s) => s.step(markers),
+            Self::Cpu(s) => Ok((0..steps).map(|_| s.step(markers)).last().unwrap_or_default()),
             #[cfg(feature = "gpu")]
-            Self::Gpu { surface, .. } => surface.step(markers),
+            Self::Gpu { surface, .. } => {
+                let mut last = StepStats::default();
+                for start in (0..steps).step_by(batch) {
+                    let batch = vec![markers; batch.min(steps - start)];
+                    let stats = surface.step_batch(&batch).map_err(|e| DpcmError::Gpu(e.to_string()))?;
+                    last = stats.last().copied().unwrap_or_default();
+                }
+                Ok(last)
+            }
         }
     }
 

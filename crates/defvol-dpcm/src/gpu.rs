@@ -2,7 +2,8 @@
 //! on the CPU (the same [`MarkerBins`] as the CPU path) and gathered per tile.
 //!
 //! Z(n+1), Z(n) and Z(n-1) live in three buffers that rotate, so a step uploads only the
-//! markers and reads nothing back.
+//! markers and reads nothing back. A batch of steps is one upload of every step's markers
+//! and one submission: each dispatch picks its step's tile lists by a dynamic offset.
 
 use std::collections::HashMap;
 use std::sync::Arc;
@@ -11,7 +12,7 @@ use bytemuck::{Pod, Zeroable};
 
 use crate::kernels::{Coeffs, KernelMarker, TILE};
 use crate::{to_kernel_markers, DpcmConfig, DpcmError, Marker, MarkerBins, StepStats, Surface};
-use defvol_gpu::gpu::{GpuContext, GpuError, Kernels};
+use defvol_gpu::gpu::{Blocks, GpuContext, GpuError, Kernels};
 
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
@@ -20,6 +21,8 @@ pub enum GpuDpcmError {
     Dpcm(#[from] DpcmError),
     #[error(transparent)]
     Gpu(#[from] GpuError),
+    #[error("a DPCM batch needs at least one step")]
+    EmptyBatch,
 }
 
 #[repr(C)]
@@ -31,6 +34,39 @@ struct Params {
     tiles_x: u32,
     flags: u32,
     _pad: [u32; 4],
+}
+
+/// Where a dispatch's step starts in the batch's tile offsets (`BatchStep` in the shader).
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable)]
+struct BatchStep {
+    offsets_base: u32,
+    _pad: [u32; 3],
+}
+
+/// The markers of a batch's steps in one upload: each step's tile lists follow the last
+/// step's, its offsets shifted into the shared index list and its indices into the shared
+/// markers.
+#[derive(Debug, Default)]
+struct BatchBins {
+    markers: Vec<KernelMarker>,
+    offsets: Vec<u32>,
+    indices: Vec<u32>,
+}
+
+impl BatchBins {
+    fn clear(&mut self) {
+        self.markers.clear();
+        self.offsets.clear();
+        self.indices.clear();
+    }
+
+    fn push(&mut self, bins: &MarkerBins) {
+        let (marker_base, index_base) = (self.markers.len() as u32, self.indices.len() as u32);
+        self.markers.extend_from_slice(&bins.markers);
+        self.indices.extend(bins.indices.iter().map(|i| i + marker_base));
+        self.offsets.extend(bins.offsets.iter().map(|o| o + index_base));
+    }
 }
 
 const FLAG_GROUND_TEXTURE: u32 = 1;
@@ -48,12 +84,16 @@ pub struct GpuSurface {
     markers: wgpu::Buffer,
     offsets: wgpu::Buffer,
     indices: wgpu::Buffer,
+    /// Step k of a batch reads block k.
+    steps: Blocks,
     layout: wgpu::BindGroupLayout,
     pipeline: wgpu::ComputePipeline,
     bind_groups: Vec<wgpu::BindGroup>,
     bins: MarkerBins,
+    batch: BatchBins,
     marker_heights: HashMap<u32, f32>,
     phyxels: usize,
+    tiles: usize,
 }
 
 fn storage<T: Pod>(ctx: &GpuContext, label: &str, data: &[T], fallback: T) -> wgpu::Buffer {
@@ -76,11 +116,11 @@ impl GpuSurface {
         let config = surface.config().clone();
         let phyxels = config.width * config.height;
         ctx.require_binding_size("the DPCM grid", phyxels as u64 * 4)?;
-        use defvol_gpu::gpu::Binding::{Read, ReadWrite, Uniform};
+        use defvol_gpu::gpu::Binding::{DynamicUniform, Read, ReadWrite, Uniform};
         let Kernels { layout, pipelines: [pipeline] } = ctx.kernels(
             "dpcm.wgsl",
             include_str!("dpcm.wgsl"),
-            &[Uniform, Read, Read, ReadWrite, ReadWrite, Read, Read, Read, Read, Read],
+            &[Uniform, Read, Read, ReadWrite, ReadWrite, Read, Read, Read, Read, Read, DynamicUniform],
             ["step"],
         );
         let device = &ctx.device;
@@ -114,6 +154,7 @@ impl GpuSurface {
         let markers = storage(&ctx, "dpcm markers", &[], KernelMarker::zeroed());
         let offsets = storage(&ctx, "dpcm tile offsets", &vec![0u32; tiles + 1], 0u32);
         let indices = storage(&ctx, "dpcm tile indices", &[], 0u32);
+        let steps = batch_steps(&ctx, tiles, 1)?;
         let mut gpu = Self {
             ctx,
             config,
@@ -125,12 +166,15 @@ impl GpuSurface {
             markers,
             offsets,
             indices,
+            steps,
             layout,
             pipeline,
             bind_groups: Vec::new(),
             bins: MarkerBins::default(),
+            batch: BatchBins::default(),
             marker_heights: HashMap::new(),
             phyxels,
+            tiles,
         };
         gpu.rebuild_bind_groups();
         Ok(gpu)
@@ -141,22 +185,21 @@ impl GpuSurface {
         self.bind_groups = (0..3)
             .map(|r| {
                 let (z, out, zp) = (&self.heights[r], &self.heights[(r + 1) % 3], &self.heights[(r + 2) % 3]);
-                self.ctx.bind_group(
-                    "dpcm",
-                    &self.layout,
-                    &[
-                        &self.params,
-                        z,
-                        zp,
-                        out,
-                        &self.rest,
-                        &self.ground[0],
-                        &self.ground[1],
-                        &self.markers,
-                        &self.offsets,
-                        &self.indices,
-                    ],
-                )
+                let buffers = [
+                    &self.params,
+                    z,
+                    zp,
+                    out,
+                    &self.rest,
+                    &self.ground[0],
+                    &self.ground[1],
+                    &self.markers,
+                    &self.offsets,
+                    &self.indices,
+                ];
+                let mut resources: Vec<_> = buffers.iter().map(|b| b.as_entire_binding()).collect();
+                resources.push(self.steps.binding());
+                self.ctx.bind_group_of("dpcm", &self.layout, resources)
             })
             .collect();
     }
@@ -178,31 +221,69 @@ impl GpuSurface {
     }
 
     /// One step under `markers` (queued; nothing is read back).
-    pub fn step(&mut self, markers: &[Marker]) -> StepStats {
-        let (kernel_markers, mut stats) = to_kernel_markers(&self.config, &mut self.marker_heights, markers);
-        stats.markers_off_grid = self.bins.build(kernel_markers, self.config.width, self.config.height);
-        stats.markers_applied -= stats.markers_off_grid;
-        let bins = std::mem::take(&mut self.bins);
+    pub fn step(&mut self, markers: &[Marker]) -> Result<StepStats, GpuDpcmError> {
+        let stats = self.step_batch(&[markers])?;
+        Ok(stats[0])
+    }
+
+    /// `batch.len()` steps, step k under `batch[k]`, in one submission with every step's
+    /// markers uploaded at once (queued; nothing is read back). The same state as as many
+    /// single steps, bit for bit. Refused, naming the limit, when the batch's marker lists
+    /// outgrow what the adapter binds.
+    pub fn step_batch<M: AsRef<[Marker]>>(&mut self, batch: &[M]) -> Result<Vec<StepStats>, GpuDpcmError> {
+        if batch.is_empty() {
+            return Err(GpuDpcmError::EmptyBatch);
+        }
+        let stats = self.bin_batch(batch)?;
+        if self.steps.len() < batch.len() {
+            self.steps = batch_steps(&self.ctx, self.tiles, batch.len().next_power_of_two())?;
+            self.rebuild_bind_groups();
+        }
+        let bins = std::mem::take(&mut self.batch);
         self.upload(|s| &mut s.markers, "dpcm markers", &bins.markers);
         self.upload(|s| &mut s.offsets, "dpcm tile offsets", &bins.offsets);
         self.upload(|s| &mut s.indices, "dpcm tile indices", &bins.indices);
-        self.bins = bins;
+        self.batch = bins;
         let mut encoder =
-            self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("dpcm step") });
+            self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("dpcm batch") });
         {
-            let mut pass = encoder
-                .begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("dpcm step"), timestamp_writes: None });
+            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("dpcm batch"),
+                timestamp_writes: self.ctx.pass_timestamps(),
+            });
             pass.set_pipeline(&self.pipeline);
-            pass.set_bind_group(0, &self.bind_groups[self.current], &[]);
-            pass.dispatch_workgroups(
-                self.config.width.div_ceil(TILE) as u32,
-                self.config.height.div_ceil(TILE) as u32,
-                1,
-            );
+            for k in 0..batch.len() {
+                pass.set_bind_group(0, &self.bind_groups[self.current], &[self.steps.offset(k)]);
+                pass.dispatch_workgroups(
+                    self.config.width.div_ceil(TILE) as u32,
+                    self.config.height.div_ceil(TILE) as u32,
+                    1,
+                );
+                self.current = (self.current + 1) % 3;
+            }
         }
         self.ctx.submit(encoder.finish());
-        self.current = (self.current + 1) % 3;
-        stats
+        Ok(stats)
+    }
+
+    /// Bins each step's markers into the batch's lists, checking they fit one binding.
+    fn bin_batch<M: AsRef<[Marker]>>(&mut self, batch: &[M]) -> Result<Vec<StepStats>, GpuDpcmError> {
+        self.batch.clear();
+        let mut all = Vec::with_capacity(batch.len());
+        for markers in batch {
+            let (kernel_markers, mut stats) =
+                to_kernel_markers(&self.config, &mut self.marker_heights, markers.as_ref());
+            stats.markers_off_grid = self.bins.build(kernel_markers, self.config.width, self.config.height);
+            stats.markers_applied -= stats.markers_off_grid;
+            self.batch.push(&self.bins);
+            all.push(stats);
+        }
+        let bytes = |n: usize, each: usize| (n * each) as u64;
+        self.ctx.require_binding_size("a DPCM batch's tile offsets", bytes(self.batch.offsets.len(), 4))?;
+        self.ctx.require_binding_size("a DPCM batch's tile lists", bytes(self.batch.indices.len(), 4))?;
+        let marker_bytes = std::mem::size_of::<KernelMarker>();
+        self.ctx.require_binding_size("a DPCM batch's markers", bytes(self.batch.markers.len(), marker_bytes))?;
+        Ok(all)
     }
 
     /// u(n) = Z(n) - rest height, read back.
@@ -216,6 +297,14 @@ impl GpuSurface {
         let rest_height = self.config.rest_height as f32;
         Ok(self.read_deviations()?.into_iter().map(|u| u + rest_height).collect())
     }
+}
+
+/// One block per step of a batch of up to `capacity` steps: step k's tile offsets start at
+/// k (tiles + 1).
+fn batch_steps(ctx: &GpuContext, tiles: usize, capacity: usize) -> Result<Blocks, GpuError> {
+    let steps: Vec<BatchStep> =
+        (0..capacity).map(|k| BatchStep { offsets_base: (k * (tiles + 1)) as u32, _pad: [0; 3] }).collect();
+    ctx.blocks("a DPCM batch's steps", &steps)
 }
 
 /// The uniform block for `config`.
@@ -262,7 +351,7 @@ mod tests {
             for step in 0..400 {
                 let markers = c.script.markers_at(&c, step as f64 * c.dt);
                 let a = cpu.step(&markers);
-                let b = gpu.step(&markers);
+                let b = gpu.step(&markers).unwrap();
                 assert_eq!(a, b);
                 peak = cpu.heights().iter().fold(peak, |m, z| m.max(z.abs()));
             }
@@ -284,28 +373,48 @@ mod tests {
         c.rest_height = 0.0037;
         let mut gpu = GpuSurface::new(ctx, &c).unwrap();
         for _ in 0..20_000 {
-            gpu.step(&[]);
+            gpu.step(&[]).unwrap();
         }
         assert!(gpu.read_heights().unwrap().iter().all(|&z| z == 0.0037_f32));
     }
 
-    /// Today's round trips, the baseline batching is measured against: a step is one
-    /// submission and nothing comes back until asked.
+    /// A batch of steps, markers moving, is one submission and nothing read back; it leaves
+    /// the state bit for bit as the same steps submitted one by one (batches of 1 to 15, the
+    /// step buffers growing on the way), with the same marker stats.
     #[test]
-    fn a_gpu_step_is_one_submission_and_reading_the_heights_one_read_back() {
+    fn a_batch_is_one_submission_and_leaves_the_state_of_its_single_steps_bit_for_bit() {
         let Some(ctx) = defvol_gpu::gpu::test_context() else { return };
         let mut c = DpcmConfig::preset("water").unwrap();
-        (c.width, c.height) = (48, 40);
-        c.script = Script { markers: 3, pattern: Pattern::Wander, speed: 0.15, depth: 0.0015, leave_after: None };
-        let mut gpu = GpuSurface::new(ctx.clone(), &c).unwrap();
+        (c.width, c.height) = (83, 61);
+        c.script = Script { markers: 7, pattern: Pattern::Wander, speed: 0.15, depth: 0.0015, leave_after: None };
+        let markers: Vec<Vec<Marker>> = (0..40).map(|s| c.script.markers_at(&c, s as f64 * c.dt)).collect();
+        let mut single = GpuSurface::new(ctx.clone(), &c).unwrap();
+        let single_stats: Vec<StepStats> = markers.iter().map(|m| single.step(m).unwrap()).collect();
+        let mut batched = GpuSurface::new(ctx.clone(), &c).unwrap();
         let start = ctx.counters();
-        for step in 0..10 {
-            gpu.step(&c.script.markers_at(&c, step as f64 * c.dt));
+        let mut batched_stats = Vec::new();
+        let mut first = 0;
+        for n in [1, 3, 8, 13, 15] {
+            batched_stats.extend(batched.step_batch(&markers[first..first + n]).unwrap());
+            first += n;
         }
         let counted = ctx.counters().since(&start);
-        assert_eq!((counted.submissions, counted.readbacks), (10, 0));
-        gpu.read_heights().unwrap();
+        assert_eq!((counted.submissions, counted.readbacks), (5, 0));
+        assert_eq!(batched_stats, single_stats);
+        let b = batched.read_deviations().unwrap();
         let counted = ctx.counters().since(&start);
-        assert_eq!((counted.readbacks, counted.bytes_read_back), (1, 48 * 40 * 4));
+        assert_eq!((counted.readbacks, counted.bytes_read_back), (1, 83 * 61 * 4));
+        let a = single.read_deviations().unwrap();
+        assert!(a.iter().fold(0.0f32, |m, u| m.max(u.abs())) > 5e-4, "markers engraved too little");
+        assert!(a.iter().zip(&b).all(|(x, y)| x.to_bits() == y.to_bits()), "batched state differs");
+    }
+
+    #[test]
+    fn an_empty_batch_is_refused() {
+        let Some(ctx) = defvol_gpu::gpu::test_context() else { return };
+        let c = DpcmConfig::preset("water").unwrap();
+        let mut gpu = GpuSurface::new(ctx, &c).unwrap();
+        let none: [&[Marker]; 0] = [];
+        assert!(matches!(gpu.step_batch(&none), Err(GpuDpcmError::EmptyBatch)));
     }
 }

@@ -4,7 +4,10 @@
 //!
 //! CG runs `cg_check_interval` iterations per submission; the reductions and the stopping
 //! test stay on the GPU (a `done` flag makes the remaining kernels of a batch return at
-//! once), so the host reads back one small struct per batch instead of syncing every iteration.
+//! once), so the host reads back one small struct per batch instead of syncing every
+//! iteration. That read is pipelined: the next batch is queued before the host waits for
+//! the last one's scalars, so the GPU never idles on the check (the one batch queued after
+//! convergence returns at once). A step's positions and velocities come back in one read.
 //!
 //! Surface contacts and coupled tools: the mirror finds the contacts each step (the BVH is
 //! on the host) and gives their terms (`ContactTerms`) and the simulated tools' rows, which
@@ -108,6 +111,8 @@ struct CgScalars {
     done: u32,
     contact_pq: f32,
 }
+
+const CG_SCALARS_BYTES: u64 = std::mem::size_of::<CgScalars>() as u64;
 
 /// The entry points of `solver.wgsl`; the discriminant indexes the pipelines.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -400,8 +405,10 @@ impl GpuSimulation {
         let mut encoder =
             self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("solver") });
         {
-            let mut pass = encoder
-                .begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("solver"), timestamp_writes: None });
+            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("solver"),
+                timestamp_writes: self.ctx.pass_timestamps(),
+            });
             pass.set_bind_group(0, &self.bind_group, &[]);
             for (kernel, invocations) in kernels {
                 self.dispatch(&mut pass, *kernel, *invocations);
@@ -492,7 +499,7 @@ impl GpuSimulation {
         let mut encoder =
             self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("grow contacts") });
         for (old, new) in self.buffers.bound[CONTACT_BINDINGS].iter().zip(&fresh) {
-            encoder.copy_buffer_to_buffer(old, 0, new, 0, old.size());
+            self.ctx.copy_buffer(&mut encoder, old, 0, new, 0, old.size());
         }
         self.ctx.submit(encoder.finish());
         self.buffers.bound.splice(CONTACT_BINDINGS, fresh);
@@ -516,10 +523,16 @@ impl GpuSimulation {
         Ok((proxy_dv, end_rates))
     }
 
-    fn read_vec(&self, buffer: &wgpu::Buffer) -> Result<Vec<Vector3<f32>>, GpuError> {
-        let bytes = self.ctx.read_back(buffer, self.nodes as u64 * 16)?;
-        let v: &[[f32; 4]] = bytemuck::try_cast_slice(&bytes).map_err(|e| GpuError::Readback(e.to_string()))?;
-        Ok(v.iter().map(|p| Vector3::new(p[0], p[1], p[2])).collect())
+    /// Displacements and velocities, in one read-back.
+    fn read_state(&self) -> Result<[Vec<Vector3<f32>>; 2], GpuError> {
+        let bytes = self.nodes as u64 * 16;
+        let mut both = vec![0u8; 2 * bytes as usize];
+        let pending = self.ctx.read_back_later(&[(&self.buffers.x, bytes), (&self.buffers.v, bytes)]);
+        self.ctx.finish_read(pending, &mut both)?;
+        let rows: Vec<[f32; 4]> = bytemuck::pod_collect_to_vec(&both);
+        let vec3 = |p: &[f32; 4]| Vector3::new(p[0], p[1], p[2]);
+        let (x, v) = rows.split_at(self.nodes as usize);
+        Ok([x.iter().map(vec3).collect(), v.iter().map(vec3).collect()])
     }
 
     /// CG on the system assembled from the current state, warm-started from the last Δv.
@@ -538,7 +551,7 @@ impl GpuSimulation {
         q.write_buffer(&self.buffers.scalars, 0, bytemuck::bytes_of(&CgScalars::zeroed()));
         let mut encoder =
             self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("cg start") });
-        encoder.copy_buffer_to_buffer(&self.buffers.dv, 0, &self.buffers.p, 0, rows as u64 * 16);
+        self.ctx.copy_buffer(&mut encoder, &self.buffers.dv, 0, &self.buffers.p, 0, rows as u64 * 16);
         self.ctx.submit(encoder.finish());
         // The contacts' kernels run only when there are contacts.
         let contacts = |kernels: &[(Kernel, u32)]| if touched > 0 { kernels.to_vec() } else { Vec::new() };
@@ -556,14 +569,20 @@ impl GpuSimulation {
             (Kernel::CgDirection, rows),
         ]);
         let batch: Vec<(Kernel, u32)> = (0..params.cg_check_interval).flat_map(|_| iteration.clone()).collect();
+        let scalars = |ctx: &GpuContext| ctx.read_back_later(&[(&self.buffers.scalars, CG_SCALARS_BYTES)]);
+        self.run(&batch);
+        let mut checked = scalars(&self.ctx);
         loop {
-            let bytes = self.ctx.read_back(&self.buffers.scalars, std::mem::size_of::<CgScalars>() as u64)?;
+            // The next batch runs while the host waits for the last check.
+            self.run(&batch);
+            let next = scalars(&self.ctx);
+            let mut bytes = [0u8; CG_SCALARS_BYTES as usize];
+            self.ctx.finish_read(std::mem::replace(&mut checked, next), &mut bytes)?;
             let s: CgScalars = bytemuck::pod_read_unaligned(&bytes);
             if s.done != 0 || s.iterations >= params.cg_max_iterations {
                 let residual = if s.bb > 0.0 { (s.rr / s.bb).max(0.0).sqrt() as f64 } else { 0.0 };
                 return Ok(CgStats { iterations: s.iterations, relative_residual: residual });
             }
-            self.run(&batch);
         }
     }
 
@@ -679,8 +698,7 @@ impl GpuSimulation {
             }
         }
         self.history_valid = true;
-        let x = self.read_vec(&self.buffers.x)?;
-        let v = self.read_vec(&self.buffers.v)?;
+        let [x, v] = self.read_state()?;
         match self.mirror.accept_step(x, v, &proxy_dv, cg) {
             Ok(report) => Ok(report),
             Err(err) => {
@@ -964,6 +982,29 @@ mod tests {
                 let (fc, fg) = (rc.reaction(0).force[2], rg.reaction(0).force[2]);
                 assert!((fc - fg).abs() <= 1e-2 * fc.abs().max(1e-3), "reaction {fc} on the CPU, {fg} on the GPU");
             }
+        }
+    }
+
+    /// An implicit step (no contacts) reads back the CG's scalars once per window of
+    /// `cg_check_interval` iterations, the window queued behind convergence included, and
+    /// the state once: nothing else comes back.
+    #[test]
+    fn an_implicit_step_reads_back_once_per_cg_window_and_once_for_its_state() {
+        let Some(ctx) = defvol_gpu::gpu::test_context() else { return };
+        let params = SolverParams {
+            integrator: Integrator::ImplicitEuler,
+            dt: 0.005,
+            cg_tolerance: 1e-6,
+            cg_check_interval: 4,
+            ..Default::default()
+        };
+        let mut gpu = GpuSimulation::new(ctx.clone(), &cantilever(), params, Vec::new()).unwrap();
+        for _ in 0..5 {
+            let start = ctx.counters();
+            let report = gpu.step().unwrap();
+            let counted = ctx.counters().since(&start);
+            assert!(report.cg_iterations > 4, "{report:?}");
+            assert_eq!(counted.readbacks, u64::from(report.cg_iterations.div_ceil(4)) + 2, "{report:?}");
         }
     }
 }

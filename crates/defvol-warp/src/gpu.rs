@@ -187,8 +187,10 @@ impl GpuWarp {
             self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("warp") });
         encoder.clear_buffer(&self.stats, 0, None);
         {
-            let mut pass = encoder
-                .begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("warp"), timestamp_writes: None });
+            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("warp"),
+                timestamp_writes: self.ctx.pass_timestamps(),
+            });
             pass.set_bind_group(0, &self.bind_group, &[]);
             for (pipeline, (x, y)) in self.kernels.pipelines.iter().zip(self.groups) {
                 pass.set_pipeline(pipeline);

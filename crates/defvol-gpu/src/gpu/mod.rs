@@ -9,8 +9,10 @@
 //! [`GpuContext::require_binding_size`]).
 
 pub mod nodes;
+pub mod timing;
 
 pub use nodes::DeviceNodes;
+pub use timing::{GpuTimes, Timestamps};
 
 use std::sync::atomic::{AtomicU64, Ordering};
 
@@ -47,8 +49,46 @@ pub fn groups_2d(count: u32, workgroup: u32) -> (u32, u32) {
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Binding {
     Uniform,
+    /// A uniform block picked per dispatch by a dynamic offset (a [`Blocks`] buffer): the
+    /// steps of a batch share one bind group and each reads its own block.
+    DynamicUniform,
     Read,
     ReadWrite,
+}
+
+/// Uniform blocks of one type in one buffer, each at an offset the device takes as a
+/// dynamic offset, so one bind group serves every dispatch of a batch.
+pub struct Blocks {
+    pub buffer: wgpu::Buffer,
+    stride: u64,
+    block: u64,
+    len: usize,
+}
+
+impl Blocks {
+    /// The binding of one block (the dynamic offset picks which).
+    pub fn binding(&self) -> wgpu::BindingResource<'_> {
+        wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+            buffer: &self.buffer,
+            offset: 0,
+            size: wgpu::BufferSize::new(self.block),
+        })
+    }
+
+    /// The dynamic offset of block `k`.
+    pub fn offset(&self, k: usize) -> u32 {
+        debug_assert!(k < self.len);
+        // Fits: `GpuContext::blocks` refused buffers past u32 offsets.
+        (k as u64 * self.stride) as u32
+    }
+
+    pub fn len(&self) -> usize {
+        self.len
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len == 0
+    }
 }
 
 /// A WGSL module's bind-group layout (bindings 0.. of group 0) and its compute pipelines,
@@ -74,6 +114,8 @@ pub struct GpuContext {
     pub queue: wgpu::Queue,
     pub adapter_info: wgpu::AdapterInfo,
     counters: [AtomicU64; 3],
+    /// Timestamp queries, where the adapter offers them.
+    timer: Option<timing::Timer>,
 }
 
 /// What the plumbing counted since the context was opened: queue submissions, blocking
@@ -131,10 +173,11 @@ impl GpuContext {
         };
         let info = adapter.get_info();
         let limits = adapter.limits();
+        let timestamps = wgpu::Features::TIMESTAMP_QUERY | wgpu::Features::TIMESTAMP_QUERY_INSIDE_ENCODERS;
         let (device, queue) = adapter
             .request_device(&wgpu::DeviceDescriptor {
                 label: Some("defvol"),
-                required_features: wgpu::Features::empty(),
+                required_features: adapter.features() & timestamps,
                 required_limits: limits,
                 experimental_features: wgpu::ExperimentalFeatures::disabled(),
                 memory_hints: wgpu::MemoryHints::Performance,
@@ -142,7 +185,8 @@ impl GpuContext {
             })
             .await
             .map_err(|e| GpuError::Device { adapter: info.name.clone(), message: e.to_string() })?;
-        Ok(Self { device, queue, adapter_info: info, counters: Default::default() })
+        let timer = timing::Timer::new(&device, &queue);
+        Ok(Self { device, queue, adapter_info: info, counters: Default::default(), timer })
     }
 
     /// Whether the adapter is a software one (lavapipe, llvmpipe): its timings say nothing
@@ -201,11 +245,11 @@ impl GpuContext {
                 visibility: wgpu::ShaderStages::COMPUTE,
                 ty: wgpu::BindingType::Buffer {
                     ty: match b {
-                        Binding::Uniform => wgpu::BufferBindingType::Uniform,
+                        Binding::Uniform | Binding::DynamicUniform => wgpu::BufferBindingType::Uniform,
                         Binding::Read => wgpu::BufferBindingType::Storage { read_only: true },
                         Binding::ReadWrite => wgpu::BufferBindingType::Storage { read_only: false },
                     },
-                    has_dynamic_offset: false,
+                    has_dynamic_offset: *b == Binding::DynamicUniform,
                     min_binding_size: None,
                 },
                 count: None,
@@ -238,12 +282,54 @@ impl GpuContext {
         layout: &wgpu::BindGroupLayout,
         buffers: &[&wgpu::Buffer],
     ) -> wgpu::BindGroup {
-        let entries: Vec<wgpu::BindGroupEntry> = buffers
-            .iter()
+        let resources: Vec<wgpu::BindingResource> = buffers.iter().map(|b| b.as_entire_binding()).collect();
+        self.bind_group_of(label, layout, resources)
+    }
+
+    /// A bind group of `resources` at bindings 0.. of `layout` (a [`Blocks`] binding among
+    /// whole buffers).
+    pub fn bind_group_of(
+        &self,
+        label: &str,
+        layout: &wgpu::BindGroupLayout,
+        resources: Vec<wgpu::BindingResource>,
+    ) -> wgpu::BindGroup {
+        let entries: Vec<wgpu::BindGroupEntry> = resources
+            .into_iter()
             .enumerate()
-            .map(|(i, b)| wgpu::BindGroupEntry { binding: i as u32, resource: b.as_entire_binding() })
+            .map(|(i, resource)| wgpu::BindGroupEntry { binding: i as u32, resource })
             .collect();
         self.device.create_bind_group(&wgpu::BindGroupDescriptor { label: Some(label), layout, entries: &entries })
+    }
+
+    /// `blocks` as uniform blocks a dispatch picks by dynamic offset, each padded to the
+    /// device's offset alignment; an error naming the limit when they do not fit one buffer.
+    pub fn blocks<T: bytemuck::Pod>(&self, what: &'static str, blocks: &[T]) -> Result<Blocks, GpuError> {
+        let limits = self.device.limits();
+        let block = (std::mem::size_of::<T>() as u64).max(16);
+        let stride = block.next_multiple_of(u64::from(limits.min_uniform_buffer_offset_alignment));
+        let len = blocks.len().max(1);
+        let bytes = stride * len as u64;
+        let limit = limits.max_buffer_size.min(u64::from(u32::MAX));
+        if block > limits.max_uniform_buffer_binding_size || bytes > limit {
+            return Err(GpuError::BufferTooLarge {
+                adapter: self.adapter_info.name.clone(),
+                what,
+                needed_mib: bytes.div_ceil(1 << 20),
+                limit_mib: limit >> 20,
+            });
+        }
+        let mut contents = vec![0u8; bytes as usize];
+        for (k, b) in blocks.iter().enumerate() {
+            let at = k * stride as usize;
+            contents[at..at + std::mem::size_of::<T>()].copy_from_slice(bytemuck::bytes_of(b));
+        }
+        let buffer = self.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some(what),
+            contents: &contents,
+            usage: wgpu::BufferUsages::UNIFORM,
+        });
+        Ok(Blocks { buffer, stride, block, len: blocks.len() })
     }
 
     pub fn storage_buffer(&self, label: &str, contents: &[u8]) -> wgpu::Buffer {
@@ -255,9 +341,11 @@ impl GpuContext {
     }
 
     /// Submits `commands` to the queue: every stage's work goes through here, counted.
-    pub fn submit(&self, commands: wgpu::CommandBuffer) {
+    pub fn submit(&self, commands: wgpu::CommandBuffer) -> wgpu::SubmissionIndex {
         self.counters[0].fetch_add(1, Ordering::Relaxed);
-        self.queue.submit([commands]);
+        let submission = self.queue.submit([commands]);
+        self.collect_timestamps_if_half_full();
+        submission
     }
 
     /// The round trips so far.
@@ -297,35 +385,71 @@ impl GpuContext {
     /// Copies the first `out.len()` bytes of `buffer` into `out` (blocking): through one
     /// staging buffer straight into the destination, e.g. a shared-memory sample.
     pub fn read_back_into(&self, buffer: &wgpu::Buffer, out: &mut [u8]) -> Result<(), GpuError> {
-        let size = out.len() as u64;
-        if size == 0 {
+        if out.is_empty() {
             return Ok(());
         }
+        let pending = self.read_back_later(&[(buffer, out.len() as u64)]);
+        self.finish_read(pending, out)
+    }
+
+    /// Starts reading the first bytes of each buffer of `parts` back, one after another in
+    /// one staging buffer: one submission, one read-back counted. The queue runs on, and
+    /// more work may be submitted behind it, until [`GpuContext::finish_read`].
+    pub fn read_back_later(&self, parts: &[(&wgpu::Buffer, u64)]) -> PendingRead {
+        let size: u64 = parts.iter().map(|(_, bytes)| bytes).sum();
         self.counters[1].fetch_add(1, Ordering::Relaxed);
         self.counters[2].fetch_add(size, Ordering::Relaxed);
         let staging = self.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("read-back"),
-            size,
+            size: size.max(4),
             usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
         });
         let mut encoder =
             self.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("read-back") });
-        encoder.copy_buffer_to_buffer(buffer, 0, &staging, 0, size);
-        self.submit(encoder.finish());
-        let (tx, rx) = std::sync::mpsc::channel();
-        staging.map_async(wgpu::MapMode::Read, .., move |r| {
-            let _ = tx.send(r);
-        });
-        self.device.poll(wgpu::PollType::wait_indefinitely()).map_err(|e| GpuError::Readback(e.to_string()))?;
-        match rx.recv() {
+        let mut at = 0;
+        for (buffer, bytes) in parts {
+            self.copy_buffer(&mut encoder, buffer, 0, &staging, at, *bytes);
+            at += bytes;
+        }
+        let submission = self.submit(encoder.finish());
+        PendingRead::map(staging, submission)
+    }
+
+    /// Waits for `pending` (for its own submission, not for what was queued behind it)
+    /// and copies its first `out.len()` bytes into `out`.
+    pub fn finish_read(&self, pending: PendingRead, out: &mut [u8]) -> Result<(), GpuError> {
+        let PendingRead { staging, submission, mapped } = pending;
+        let wait = wgpu::PollType::Wait { submission_index: Some(submission), timeout: None };
+        self.device.poll(wait).map_err(|e| GpuError::Readback(e.to_string()))?;
+        match mapped.recv() {
             Ok(Ok(())) => {}
             Ok(Err(e)) => return Err(GpuError::Readback(e.to_string())),
             Err(e) => return Err(GpuError::Readback(e.to_string())),
         }
-        out.copy_from_slice(&staging.get_mapped_range(..).map_err(|e| GpuError::Readback(e.to_string()))?);
+        let range = staging.get_mapped_range(..).map_err(|e| GpuError::Readback(e.to_string()))?;
+        out.copy_from_slice(&range[..out.len()]);
+        drop(range);
         staging.unmap();
         Ok(())
+    }
+}
+
+/// A read-back on its way: its copy submitted and its staging buffer asked to map.
+pub struct PendingRead {
+    staging: wgpu::Buffer,
+    submission: wgpu::SubmissionIndex,
+    mapped: std::sync::mpsc::Receiver<Result<(), wgpu::BufferAsyncError>>,
+}
+
+impl PendingRead {
+    /// Asks `staging` (MAP_READ), written by `submission`, to map.
+    fn map(staging: wgpu::Buffer, submission: wgpu::SubmissionIndex) -> Self {
+        let (tx, mapped) = std::sync::mpsc::channel();
+        staging.map_async(wgpu::MapMode::Read, .., move |r| {
+            let _ = tx.send(r);
+        });
+        Self { staging, submission, mapped }
     }
 }
 

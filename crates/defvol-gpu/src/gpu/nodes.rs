@@ -97,8 +97,10 @@ impl DeviceNodes {
         let mut encoder =
             self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("nodes") });
         {
-            let mut pass = encoder
-                .begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("nodes"), timestamp_writes: None });
+            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("nodes"),
+                timestamp_writes: self.ctx.pass_timestamps(),
+            });
             pass.set_pipeline(&self.kernels.pipelines[0]);
             pass.set_bind_group(0, &bind_group, &[]);
             let (x, y) = super::groups_2d(self.len() as u32, WORKGROUP);

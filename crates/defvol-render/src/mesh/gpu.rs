@@ -227,7 +227,7 @@ impl GpuTetRaycaster {
         {
             let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
                 label: Some("tet geometry"),
-                timestamp_writes: None,
+                timestamp_writes: self.ctx.pass_timestamps(),
             });
             pass.set_pipeline(&self.kernels.pipelines[0]);
             pass.set_bind_group(0, &bind_group, &[]);
@@ -321,7 +321,7 @@ impl GpuTetRaycaster {
             {
                 let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
                     label: Some("tet raycast"),
-                    timestamp_writes: None,
+                    timestamp_writes: self.ctx.pass_timestamps(),
                 });
                 pass.set_bind_group(0, &bin_group, &[]);
                 pass.set_pipeline(&self.bin_kernels.pipelines[0]);
@@ -334,7 +334,7 @@ impl GpuTetRaycaster {
                 pass.set_pipeline(&self.kernels.pipelines[1]);
                 pass.dispatch_workgroups(w.div_ceil(8) as u32, h.div_ceil(8) as u32, 1);
             }
-            encoder.copy_buffer_to_buffer(&self.tiles, (tile_count * 4) as u64, &out, image_bytes, 4);
+            self.ctx.copy_buffer(&mut encoder, &self.tiles, (tile_count * 4) as u64, &out, image_bytes, 4);
             self.ctx.submit(encoder.finish());
             let bytes = self.ctx.read_back(&out, image_bytes + 4)?;
             let (image, total) = bytes.split_at(image_bytes as usize);

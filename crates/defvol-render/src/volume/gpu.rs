@@ -217,7 +217,7 @@ impl GpuVolumeRaycaster {
         {
             let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
                 label: Some("macro cells"),
-                timestamp_writes: None,
+                timestamp_writes: self.ctx.pass_timestamps(),
             });
             pass.set_pipeline(&self.kernels.pipelines[1]);
             pass.set_bind_group(0, &bind_group, &[]);
@@ -263,8 +263,10 @@ impl GpuVolumeRaycaster {
         let mut encoder =
             self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("raycast") });
         {
-            let mut pass = encoder
-                .begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("raycast"), timestamp_writes: None });
+            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("raycast"),
+                timestamp_writes: self.ctx.pass_timestamps(),
+            });
             pass.set_pipeline(&self.kernels.pipelines[0]);
             pass.set_bind_group(0, &bind_group, &[]);
             pass.dispatch_workgroups(w.div_ceil(8) as u32, h.div_ceil(8) as u32, 1);
