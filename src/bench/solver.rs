@@ -19,6 +19,8 @@ pub struct SolverBenchOptions {
     pub tolerances: Vec<f64>,
     pub dts: Vec<f64>,
     pub explicit_dt: f64,
+    /// Explicit steps per batch (one GPU submission where the solver can batch them).
+    pub explicit_batch: u32,
     pub preconditioners: Vec<Preconditioner>,
 }
 
@@ -34,12 +36,14 @@ struct Run {
     gpu: Option<super::GpuCost>,
 }
 
-/// `backend`: the run's, or `None` for the f64 reference.
+/// `backend`: the run's, or `None` for the f64 reference; after a settling step the rest
+/// in batches of up to `batch`, ms per step.
 fn run(
     backend: Option<&Backend>,
     model: &MassSpringModel,
     params: SolverParams,
     steps: usize,
+    batch: u32,
 ) -> Result<Run, SolverEngineError> {
     let mut engine = match backend {
         Some(backend) => SolverEngine::new(backend, model, params, Vec::new())?,
@@ -50,13 +54,14 @@ fn run(
     let meter = backend.and_then(|b| super::GpuMeter::start(b, engine.runs_on()));
     let mut step_ms = Vec::with_capacity(steps);
     let mut iterations = 0u64;
-    for _ in 1..steps {
+    for first in (1..steps).step_by(batch as usize) {
+        let n = batch.min((steps - first) as u32);
         let start = Instant::now();
-        let report = engine.step()?;
-        step_ms.push(start.elapsed().as_secs_f64() * 1e3);
+        let report = engine.step_batch(n)?;
+        step_ms.push(start.elapsed().as_secs_f64() * 1e3 / f64::from(n));
         iterations += report.cg_iterations as u64;
     }
-    let gpu = meter.and_then(|m| m.finish(step_ms.len()));
+    let gpu = meter.and_then(|m| m.finish(steps.saturating_sub(1)));
     Ok(Run {
         gpu,
         positions: engine.positions(),
@@ -101,7 +106,7 @@ pub fn solver(opts: &SolverBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Res
             let key = (params.integrator, params.dt.to_bits());
             if !references.iter().any(|(k, _)| *k == key) {
                 let tight = SolverParams { cg_tolerance: 1e-10, cg_max_iterations: 20_000, ..params.clone() };
-                match run(None, &model, tight, opts.steps) {
+                match run(None, &model, tight, opts.steps, 1) {
                     Ok(reference) => references.push((key, Some(reference.positions))),
                     Err(SolverEngineError::Solver(e)) => {
                         tracing::warn!("{case} {} h={}: unstable, skipped ({e})", params.integrator.name(), params.dt);
@@ -111,8 +116,9 @@ pub fn solver(opts: &SolverBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Res
                 }
             }
             let Some((_, Some(reference))) = references.iter().find(|(k, _)| *k == key) else { continue };
+            let batch = if params.integrator == Integrator::ImplicitEuler { 1 } else { opts.explicit_batch.max(1) };
             for backend in &backends {
-                let result = match run(Some(backend), &model, params.clone(), opts.steps) {
+                let result = match run(Some(backend), &model, params.clone(), opts.steps, batch) {
                     Ok(r) => r,
                     Err(SolverEngineError::Solver(e)) => {
                         tracing::warn!("{case} {}: {e}", params.integrator.name());
@@ -126,7 +132,7 @@ pub fn solver(opts: &SolverBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Res
                     case: case.clone(),
                     backend: result.backend.name().into(),
                     device: device_name,
-                    params: run_params(&params, result.backend, opts.steps),
+                    params: run_params(&params, result.backend, opts.steps, batch),
                     runs: result.step_ms.len(),
                     time_ms: time_stats(result.step_ms),
                     error: Some(ErrorMeasure {
@@ -144,11 +150,13 @@ pub fn solver(opts: &SolverBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Res
 }
 
 /// What a row ran: the CG settings only where a scheme solves a system.
-fn run_params(params: &SolverParams, backend: RunsOn, steps: usize) -> serde_json::Value {
+fn run_params(params: &SolverParams, backend: RunsOn, steps: usize, batch: u32) -> serde_json::Value {
     let mut out = json!({"integrator": params.integrator.name(), "dt": params.dt, "steps": steps});
     if params.integrator == Integrator::ImplicitEuler {
         out["cg_tolerance"] = json!(params.cg_tolerance);
         out["preconditioner"] = json!(preconditioner_name(backend, params));
+    } else {
+        out["batch"] = json!(batch);
     }
     out
 }

@@ -123,6 +123,10 @@ pub enum BenchStage {
         /// Time step of the explicit schemes (they diverge at the implicit one).
         #[arg(long, default_value_t = 5e-6)]
         explicit_dt: f64,
+        /// Explicit steps per batch: one GPU submission and one read-back where the solver
+        /// can batch them (no surface contact, no commanded force).
+        #[arg(long, default_value_t = 10, value_parser = clap::value_parser!(u32).range(1..=100_000))]
+        explicit_batch: u32,
         #[arg(long, value_enum, value_delimiter = ',', default_value = "amg,block-jacobi")]
         preconditioners: Vec<CliPreconditioner>,
         /// One JSON object per line instead of the table.
@@ -246,7 +250,17 @@ pub fn run(stage: BenchStage) -> Result<()> {
             };
             bench::warp(&opts, row_printer(json, bench::WARP_TABLE_HEADER, bench::warp_table_row))?;
         }
-        BenchStage::Solver { sizes, steps, backends, tolerances, dts, explicit_dt, preconditioners, json } => {
+        BenchStage::Solver {
+            sizes,
+            steps,
+            backends,
+            tolerances,
+            dts,
+            explicit_dt,
+            explicit_batch,
+            preconditioners,
+            json,
+        } => {
             let opts = bench::SolverBenchOptions {
                 sizes: sizes.unwrap_or(bench::SEED_SIZES.to_vec()),
                 steps,
@@ -255,6 +269,7 @@ pub fn run(stage: BenchStage) -> Result<()> {
                 tolerances,
                 dts,
                 explicit_dt,
+                explicit_batch,
                 preconditioners: choices::all(&preconditioners),
             };
             bench::solver(&opts, row_printer(json, bench::TABLE_HEADER, bench::table_row))?;

@@ -701,6 +701,38 @@ fn dpcm_bench_gpu_rows_report_the_round_trips_and_gpu_time_of_a_batched_step() {
     }
 }
 
+/// The solver bench's GPU rows: an explicit batch of 10 steps is one submission and one
+/// read-back (0.2 and 0.1 a step), its GPU time measured and its error that of the scheme;
+/// the implicit row reads back at most once per CG window and once for the state.
+#[test]
+fn solver_bench_gpu_rows_report_batched_explicit_steps_and_the_implicit_round_trips() {
+    let Some(_) = defvol::gpu::test_context() else { return };
+    let args = "bench solver --sizes 80 --steps 21 --tolerances 1e-4 --preconditioners block-jacobi --backends gpu";
+    let out = defvol()
+        .args(args.split(' '))
+        .args(["--allow-software-gpu", "--explicit-dt", "1e-4", "--explicit-batch", "10", "--json"])
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let rows: Vec<serde_json::Value> =
+        String::from_utf8_lossy(&out.stdout).lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    assert_eq!(rows.len(), 4, "{rows:?}");
+    for row in &rows {
+        let cost = &row["gpu"];
+        assert_eq!(cost["timestamps"], "available", "{row}");
+        assert!(cost["kernel_ms"].as_f64().unwrap() > 0.0, "{row}");
+        assert!(row["error"]["value"].as_f64().unwrap() < 1e-2, "{row}");
+        if row["params"]["integrator"] == "implicit_euler" {
+            // ceil(i / 16) + 2 a step, below i / 16 + 3 on average.
+            let windows = row["work"]["cg_iterations_mean"].as_f64().unwrap() / 16.0;
+            assert!(cost["readbacks"].as_f64().unwrap() < windows + 3.0, "{row}");
+        } else {
+            assert_eq!(row["params"]["batch"].as_u64(), Some(10), "{row}");
+            assert_eq!((cost["submissions"].as_f64(), cost["readbacks"].as_f64()), (Some(0.2), Some(0.1)), "{row}");
+        }
+    }
+}
+
 /// A PNG's pixels as RGBA bytes.
 fn image_pixels(path: &std::path::Path) -> Vec<u8> {
     let decoder = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(path).unwrap()));

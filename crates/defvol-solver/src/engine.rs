@@ -82,6 +82,22 @@ impl SolverEngine {
         })
     }
 
+    /// `steps` steps, explicit ones in one GPU submission where the GPU solver can batch
+    /// them (see [`super::gpu::GpuSimulation::step_batch`]); the last step's report.
+    pub fn step_batch(&mut self, steps: u32) -> Result<StepReport, SolverEngineError> {
+        match self {
+            #[cfg(feature = "gpu")]
+            Self::Gpu(g) => Ok(g.step_batch(steps)?),
+            _ => {
+                let mut report = Err(crate::empty_batch());
+                for _ in 0..steps {
+                    report = Ok(self.step()?);
+                }
+                Ok(report?)
+            }
+        }
+    }
+
     pub fn tool_mut(&mut self, index: usize) -> Result<&mut Tool, SolverError> {
         match self {
             Self::Cpu(s) => s.tool_mut(index),

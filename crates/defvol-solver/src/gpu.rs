@@ -660,16 +660,67 @@ impl GpuSimulation {
 
     /// Advances one step on the GPU; reads positions and velocities back for the report.
     pub fn step(&mut self) -> Result<StepReport, GpuSolverError> {
+        self.step_batch(1)
+    }
+
+    /// Advances `steps` steps. An explicit scheme whose steps need nothing from the host
+    /// (no surface contact, no commanded force) runs them in one submission and reads back
+    /// once, the state bit for bit that of as many single steps; otherwise they are taken
+    /// one by one. The last step's report; a batch that diverged is undone whole.
+    pub fn step_batch(&mut self, steps: u32) -> Result<StepReport, GpuSolverError> {
+        if steps == 0 {
+            return Err(crate::empty_batch().into());
+        }
+        let integrator = self.mirror.params().integrator;
+        let batched = integrator != Integrator::ImplicitEuler && self.mirror.steps_without_the_host();
+        let (per_submission, submissions) = if batched { (steps, 1) } else { (1, steps) };
+        let mut report = StepReport::default();
+        for _ in 0..submissions {
+            report = self.steps_in_one_submission(per_submission)?;
+        }
+        Ok(report)
+    }
+
+    /// `steps` steps (more than one only for an explicit batch) and one read-back.
+    fn steps_in_one_submission(&mut self, steps: u32) -> Result<StepReport, GpuSolverError> {
         let tools = self.mirror.prepare_step()?;
         // The implicit step rewrites `system` with its simulated tools and contacts.
         self.upload_params(&tools, [self.nodes, 0, 0, 0]);
-        let (n, e) = (self.nodes, self.springs);
         let mut cg = CgStats { iterations: 0, relative_residual: 0.0 };
         let mut proxy_dv = Vec::new();
         match self.mirror.params().integrator {
             Integrator::ImplicitEuler => (proxy_dv, cg) = self.implicit_step()?,
+            _ => {
+                let kernels = self.explicit_kernels();
+                self.run(&kernels.repeat(steps as usize));
+            }
+        }
+        self.history_valid = true;
+        let [x, v] = self.read_state()?;
+        match self.mirror.accept_steps(x, v, &proxy_dv, cg, steps) {
+            Ok(report) => Ok(report),
+            Err(err) => {
+                // Put the last stable state back on the GPU too.
+                self.ctx.queue.write_buffer(
+                    &self.buffers.x,
+                    0,
+                    bytemuck::cast_slice(&vec4s(self.mirror.displacements())),
+                );
+                self.ctx.queue.write_buffer(&self.buffers.v, 0, bytemuck::cast_slice(&vec4s(self.mirror.velocities())));
+                self.history_valid = false;
+                Err(err.into())
+            }
+        }
+    }
+
+    /// One explicit step's kernels, the scheme's history set up first where it is not valid
+    /// (none for implicit Euler, whose step is [`GpuSimulation::implicit_step`]).
+    fn explicit_kernels(&mut self) -> Vec<(Kernel, u32)> {
+        let (n, e) = (self.nodes, self.springs);
+        match self.mirror.params().integrator {
+            Integrator::ImplicitEuler => Vec::new(),
             Integrator::ExplicitEuler => {
-                self.run(&[(Kernel::SpringForces, e), (Kernel::NodeForces, n), (Kernel::ExplicitEulerUpdate, n)])
+                vec![(Kernel::SpringForces, e), (Kernel::NodeForces, n), (Kernel::ExplicitEulerUpdate, n)]
             }
             Integrator::Verlet => {
                 if !self.history_valid {
@@ -683,34 +734,18 @@ impl GpuSimulation {
                         .collect();
                     self.ctx.queue.write_buffer(&self.buffers.aux, 0, bytemuck::cast_slice(&vec4s(&prev)));
                 }
-                self.run(&[(Kernel::SpringForces, e), (Kernel::NodeForces, n), (Kernel::VerletUpdate, n)]);
+                vec![(Kernel::SpringForces, e), (Kernel::NodeForces, n), (Kernel::VerletUpdate, n)]
             }
             Integrator::VelocityVerlet => {
                 if !self.history_valid {
                     self.run(&[(Kernel::SpringForces, e), (Kernel::NodeForces, n), (Kernel::AccelerationFromForce, n)]);
                 }
-                self.run(&[
+                vec![
                     (Kernel::VelocityVerletPositions, n),
                     (Kernel::SpringForcesPredicted, e),
                     (Kernel::NodeForces, n),
                     (Kernel::VelocityVerletVelocities, n),
-                ]);
-            }
-        }
-        self.history_valid = true;
-        let [x, v] = self.read_state()?;
-        match self.mirror.accept_step(x, v, &proxy_dv, cg) {
-            Ok(report) => Ok(report),
-            Err(err) => {
-                // Put the last stable state back on the GPU too.
-                self.ctx.queue.write_buffer(
-                    &self.buffers.x,
-                    0,
-                    bytemuck::cast_slice(&vec4s(self.mirror.displacements())),
-                );
-                self.ctx.queue.write_buffer(&self.buffers.v, 0, bytemuck::cast_slice(&vec4s(self.mirror.velocities())));
-                self.history_valid = false;
-                Err(err.into())
+                ]
             }
         }
     }
@@ -1005,6 +1040,48 @@ mod tests {
             let counted = ctx.counters().since(&start);
             assert!(report.cg_iterations > 4, "{report:?}");
             assert_eq!(counted.readbacks, u64::from(report.cg_iterations.div_ceil(4)) + 2, "{report:?}");
+        }
+    }
+
+    /// Explicit steps batched, a tool dented into the nodes and gravity: after the first
+    /// batch (which sets a scheme's history up), a batch is one submission and one
+    /// read-back, and every scheme reaches the state and the report of as many single
+    /// steps, bit for bit. A commanded force (spread by where the nodes are) steps one by
+    /// one, to the same bits.
+    #[test]
+    fn an_explicit_batch_is_one_submission_and_read_back_and_steps_as_single_steps_bit_for_bit() {
+        let Some(ctx) = defvol_gpu::gpu::test_context() else { return };
+        let model = cantilever();
+        let explicit = [Integrator::ExplicitEuler, Integrator::Verlet, Integrator::VelocityVerlet];
+        for (integrator, force) in explicit.map(|i| (i, 0.0)).into_iter().chain([(Integrator::Verlet, -0.05)]) {
+            let params = SolverParams { integrator, dt: 2e-4, ..Default::default() };
+            let mut tool = Tool::new(ToolShape::Sphere { radius: 0.01 }, 500.0);
+            tool.contact = crate::ContactModel::Nodes;
+            tool.world_from_tool = Isometry3::translation(0.1, 0.015, 0.038);
+            tool.applied_force = Vector3::new(0.0, 0.0, force);
+            let mut single = GpuSimulation::new(ctx.clone(), &model, params.clone(), vec![tool.clone()]).unwrap();
+            let mut batched = GpuSimulation::new(ctx.clone(), &model, params, vec![tool]).unwrap();
+            let mut expected = StepReport::default();
+            for _ in 0..60 {
+                expected = single.step().unwrap();
+            }
+            batched.step_batch(13).unwrap();
+            let start = ctx.counters();
+            let report = batched.step_batch(47).unwrap();
+            let counted = ctx.counters().since(&start);
+            let one_by_one = if force == 0.0 { 1 } else { 47 };
+            assert_eq!(
+                (counted.submissions, counted.readbacks),
+                (2 * one_by_one, one_by_one),
+                "{integrator:?} {force}"
+            );
+            assert!(expected.max_displacement > 1e-6, "{integrator:?} moved {}", expected.max_displacement);
+            assert_eq!(report, expected, "{integrator:?}");
+            let bits = |s: &GpuSimulation| -> Vec<u32> {
+                let (x, v) = (s.mirror().displacements(), s.mirror().velocities());
+                x.iter().chain(v).flat_map(|p| p.iter().map(|c| c.to_bits()).collect::<Vec<_>>()).collect()
+            };
+            assert_eq!(bits(&batched), bits(&single), "{integrator:?}");
         }
     }
 }

@@ -139,6 +139,11 @@ impl SolverParams {
     }
 }
 
+/// The refusal of a batch of no steps.
+pub(crate) fn empty_batch() -> SolverError {
+    SolverError::BadParameter { name: "batch".into(), value: 0.0, why: "a batch is at least one step".into() }
+}
+
 /// What one step did: the CSV row of `defvol simulate` and the node's diagnostics.
 #[derive(Debug, Clone, Default, PartialEq, Serialize)]
 pub struct StepReport {

@@ -169,6 +169,14 @@ impl<T: Real> Simulation<T> {
 
     /// Whether a tool meets the boundary surface (surface contact), so that its hierarchy
     /// is queried and kept fitted.
+    /// Whether a step needs nothing the host computes from the state before it: no tool
+    /// touches the surface (its contacts are found on the host) nor has a commanded force
+    /// (spread over the nodes near its tip, weighted by where they are).
+    #[cfg_attr(not(feature = "gpu"), allow(dead_code))]
+    pub(crate) fn steps_without_the_host(&self) -> bool {
+        !self.touches_surface() && self.tools.iter().all(|tool| tool.applied_force == Vector3::zeros())
+    }
+
     pub(super) fn touches_surface(&self) -> bool {
         self.tools.iter().any(|tool| tool.contact == ContactModel::Surface)
     }

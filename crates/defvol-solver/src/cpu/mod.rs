@@ -414,7 +414,7 @@ impl<T: Real> Simulation<T> {
             Integrator::VelocityVerlet => self.velocity_verlet(&tools),
             Integrator::ImplicitEuler => self.implicit_euler(&tools),
         }
-        self.finish_step(saved)
+        self.finish_steps(saved, 1)
     }
 
     /// Validates tool inputs and spreads commanded forces; returns the contact tools.

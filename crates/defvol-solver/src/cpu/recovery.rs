@@ -14,27 +14,34 @@ impl<T: Real> Simulation<T> {
         }
     }
 
-    /// Takes a state computed elsewhere (the GPU) as this step's result, with the same
-    /// reporting and divergence check as a CPU step; `proxy_dv` moves the simulated tools.
+    /// Takes a state computed elsewhere (the GPU) as the result of `steps` steps, with the
+    /// same reporting and divergence check as a CPU step; `proxy_dv` moves the simulated
+    /// tools. A batch that diverged is undone whole.
     #[cfg_attr(not(feature = "gpu"), allow(dead_code))]
-    pub(crate) fn accept_step(
+    pub(crate) fn accept_steps(
         &mut self,
         u: Vec<Vector3<T>>,
         v: Vec<Vector3<T>>,
         proxy_dv: &[Vector3<f64>],
         cg: CgStats,
+        steps: u32,
     ) -> Result<StepReport, SolverError> {
         let saved = self.snapshot();
         self.u = u;
         self.v = v;
         self.advance_proxies(proxy_dv);
         self.last_cg = cg;
-        self.finish_step(saved)
+        self.finish_steps(saved, steps)
     }
 
-    pub(super) fn finish_step(&mut self, saved: Snapshot<T>) -> Result<StepReport, SolverError> {
-        self.step += 1;
-        self.time += self.params.dt;
+    /// Counts `steps` steps taken from `saved`, checks and reports the state they reached.
+    pub(super) fn finish_steps(&mut self, saved: Snapshot<T>, steps: u32) -> Result<StepReport, SolverError> {
+        let (step_before, time_before) = (self.step, self.time);
+        for _ in 0..steps {
+            // As single steps count time, to the bit.
+            self.step += 1;
+            self.time += self.params.dt;
+        }
         // The farthest any node moved, which keeps the contact hierarchy's boxes
         // conservative; measured only where a tool touches the surface.
         let moved = match self.touches_surface() {
@@ -54,8 +61,7 @@ impl<T: Real> Simulation<T> {
             self.history_valid = saved.history_valid;
             self.proxies = saved.proxies;
             self.surface.moved(moved);
-            self.step -= 1;
-            self.time -= self.params.dt;
+            (self.step, self.time) = (step_before, time_before);
             return Err(SolverError::Diverged { step: failed.0, time: failed.1, reason });
         }
         Ok(report)
