@@ -88,13 +88,22 @@ fn haptic_scene(tets: usize) -> Result<Scene, NodeBenchError> {
     Ok(scene)
 }
 
-/// Pose in, one solver step, feedback and mesh messages out: `steps` times, recording or not.
+/// The GPU where any of the pipeline's stages runs there.
+fn any_stage_on(pipeline: &Pipeline) -> RunsOn {
+    match pipeline.stage_backends().iter().any(|(_, on)| *on == RunsOn::Gpu) {
+        true => RunsOn::Gpu,
+        false => RunsOn::Cpu,
+    }
+}
+
+/// Pose in, one solver step, feedback and mesh messages out: `steps` times, recording or
+/// not; ms per step and, on a GPU, what a step cost it.
 fn pose_to_feedback(
     scene: Scene,
     backend: &Backend,
     opts: &NodeBenchOptions,
     record: Option<&std::path::Path>,
-) -> Result<(Vec<f64>, String, usize), NodeBenchError> {
+) -> Result<(Vec<f64>, Option<super::GpuCost>, usize), NodeBenchError> {
     let mut pipeline =
         Pipeline::new(scene, backend, InputLimits { max_age: None, ..Default::default() }, FrameMode::Lockstep)?;
     let tets = pipeline.mesh().tets().len();
@@ -102,7 +111,11 @@ fn pose_to_feedback(
     let mut session = Session::open(&TopicNames::under("/"), &records, &pipeline)?;
     let demand = Demand { tool_feedback: true, deformed_mesh: true, ..Demand::NONE };
     let mut samples = Vec::with_capacity(opts.steps);
+    let mut meter = None;
     for k in 0..opts.settle + opts.steps {
+        if k == opts.settle {
+            meter = super::GpuMeter::start(backend, any_stage_on(&pipeline));
+        }
         let t = (k + 1) as f64 * 1e-3;
         // The probe comes down over the first half second, then holds: contact throughout.
         let z = 0.07 - 0.01 * (t / 0.5).min(1.0);
@@ -118,8 +131,9 @@ fn pose_to_feedback(
             samples.push(start.elapsed().as_secs_f64() * 1e3);
         }
     }
+    let cost = meter.and_then(|m| m.finish(opts.steps));
     session.finish()?;
-    Ok((samples, backend.runs_on().name().to_owned(), tets))
+    Ok((samples, cost, tets))
 }
 
 pub fn run(opts: &NodeBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result<(), NodeBenchError> {
@@ -181,9 +195,10 @@ fn feedback_rows(
         }
         return Ok(());
     }
-    let (plain, name, n) = pose_to_feedback(haptic_scene(tets)?, backend, opts, None)?;
+    let name = backend.runs_on().name().to_owned();
+    let (plain, plain_cost, n) = pose_to_feedback(haptic_scene(tets)?, backend, opts, None)?;
     let bag = dir.join(format!("bench_{tets}.mcap"));
-    let (recorded, _, _) = pose_to_feedback(haptic_scene(tets)?, backend, opts, Some(&bag))?;
+    let (recorded, recorded_cost, _) = pose_to_feedback(haptic_scene(tets)?, backend, opts, Some(&bag))?;
     let (p50, p99) = (percentile(&plain, 0.5), percentile(&plain, 0.99));
     let overhead = percentile(&recorded, 0.5) / p50 - 1.0;
     let mean = plain.iter().sum::<f64>() / plain.len().max(1) as f64;
@@ -197,7 +212,7 @@ fn feedback_rows(
         time_ms: time_stats(plain),
         error: None,
         work: json!({"tets": n, "outputs": ["tool_feedback", "deformed_mesh"]}),
-        gpu: None,
+        gpu: plain_cost,
     });
     emit(&BenchRow {
         stage: "node",
@@ -209,7 +224,7 @@ fn feedback_rows(
         time_ms: time_stats(recorded),
         error: None,
         work: json!({"tets": n, "bag_bytes": std::fs::metadata(&bag).map(|m| m.len()).unwrap_or(0)}),
-        gpu: None,
+        gpu: recorded_cost,
     });
     let _ = std::fs::remove_file(&bag);
     Ok(())
@@ -553,7 +568,11 @@ fn pose_to_volume(backend: &Backend, device: &str, frames: usize) -> Result<Benc
         .map_err(|_| NodeBenchError::Setup(format!("iceoryx2: the subscriber did not open `{service}`")))?;
     let demand = Demand { warped_volume: true, ..Demand::NONE };
     let mut samples = Vec::with_capacity(frames);
+    let mut meter = None;
     for k in 0..frames + 2 {
+        if k == 2 {
+            meter = super::GpuMeter::start(backend, any_stage_on(&pipeline));
+        }
         let t = (k + 1) as f64 * 0.01;
         let stamp = Time::from_secs(t);
         // The probe presses in 0.5 mm a frame: every frame moves the mesh.
@@ -577,6 +596,7 @@ fn pose_to_volume(backend: &Backend, device: &str, frames: usize) -> Result<Benc
             samples.push((received - start).as_secs_f64() * 1e3);
         }
     }
+    let cost = meter.and_then(|m| m.finish(frames));
     // The reader may be idle with nothing left to take: tell it, rather than wait for a send to fail.
     timed.store(true, Ordering::Relaxed);
     drop(rx);
@@ -593,7 +613,7 @@ fn pose_to_volume(backend: &Backend, device: &str, frames: usize) -> Result<Benc
         time_ms: time_stats(samples),
         error: None,
         work: json!({"voxels": grid.len(), "bytes": grid.len() * 4}),
-        gpu: None,
+        gpu: cost,
     })
 }
 
