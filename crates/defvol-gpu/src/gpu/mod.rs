@@ -14,6 +14,8 @@ pub mod timing;
 pub use nodes::DeviceNodes;
 pub use timing::{GpuTimes, Timestamps};
 
+use timing::{SpanKind, Timer};
+
 use std::sync::atomic::{AtomicU64, Ordering};
 
 use wgpu::util::DeviceExt;
@@ -115,7 +117,7 @@ pub struct GpuContext {
     pub adapter_info: wgpu::AdapterInfo,
     counters: [AtomicU64; 3],
     /// Timestamp queries, where the adapter offers them.
-    timer: Option<timing::Timer>,
+    timer: Option<Timer>,
 }
 
 /// What the plumbing counted since the context was opened: queue submissions, blocking
@@ -185,7 +187,7 @@ impl GpuContext {
             })
             .await
             .map_err(|e| GpuError::Device { adapter: info.name.clone(), message: e.to_string() })?;
-        let timer = timing::Timer::new(&device, &queue);
+        let timer = Timer::new(&device, &queue);
         Ok(Self { device, queue, adapter_info: info, counters: Default::default(), timer })
     }
 
@@ -432,6 +434,74 @@ impl GpuContext {
         drop(range);
         staging.unmap();
         Ok(())
+    }
+}
+
+/// GPU time (see [`timing`]).
+impl GpuContext {
+    /// Whether GPU time can be measured on this adapter.
+    pub fn timestamps(&self) -> Timestamps {
+        match self.timer {
+            Some(_) => Timestamps::Available,
+            None => Timestamps::Unavailable,
+        }
+    }
+
+    /// Turns timing on or off (off: passes and copies carry no queries).
+    pub fn set_timing(&self, on: bool) {
+        if let Some(timer) = &self.timer {
+            timer.set_on(on);
+        }
+    }
+
+    /// The timestamp writes for a compute pass: a span of kernel time while timing is on.
+    pub fn pass_timestamps(&self) -> Option<wgpu::ComputePassTimestampWrites<'_>> {
+        let timer = self.timer.as_ref()?;
+        let first = timer.reserve(SpanKind::Kernel)?;
+        Some(wgpu::ComputePassTimestampWrites {
+            query_set: &timer.set,
+            beginning_of_pass_write_index: Some(first),
+            end_of_pass_write_index: Some(first + 1),
+        })
+    }
+
+    /// `encoder.copy_buffer_to_buffer`, a span of copy time while timing is on and the
+    /// adapter writes timestamps between commands.
+    pub fn copy_buffer(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        from: &wgpu::Buffer,
+        from_offset: u64,
+        to: &wgpu::Buffer,
+        to_offset: u64,
+        size: u64,
+    ) {
+        let timer = self.timer.as_ref().filter(|t| t.between_commands);
+        let span = timer.and_then(|t| Some((t, t.reserve(SpanKind::Copy)?)));
+        if let Some((timer, first)) = span {
+            encoder.write_timestamp(&timer.set, first);
+        }
+        encoder.copy_buffer_to_buffer(from, from_offset, to, to_offset, size);
+        if let Some((timer, first)) = span {
+            encoder.write_timestamp(&timer.set, first + 1);
+        }
+    }
+
+    /// The GPU time since the last call (`None` where the adapter has no timestamps).
+    /// Every span must have been submitted.
+    pub fn take_times(&self) -> Result<Option<GpuTimes>, GpuError> {
+        let Some(timer) = &self.timer else { return Ok(None) };
+        timer.collect(&self.device, &self.queue).map_err(GpuError::Readback)?;
+        timer.take_totals().map(Some).map_err(GpuError::Readback)
+    }
+
+    /// After a submission: reads the spans back once half the query set is used.
+    fn collect_timestamps_if_half_full(&self) {
+        if let Some(timer) = self.timer.as_ref().filter(|t| t.half_full()) {
+            if let Err(e) = timer.collect(&self.device, &self.queue) {
+                tracing::warn!("reading GPU timestamps failed: {e}");
+            }
+        }
     }
 }
 

@@ -1,17 +1,15 @@
 //! Where GPU time goes: when timing is on and the adapter offers timestamp queries, every
-//! compute pass a stage begins through [`GpuContext::pass_timestamps`] is bracketed by two
-//! queries, and every copy through [`GpuContext::copy_buffer`] too where the adapter writes
+//! compute pass a stage begins with the context's `pass_timestamps` is bracketed by two
+//! queries, and every copy through its `copy_buffer` too where the adapter writes
 //! timestamps between commands. The spans are summed per kind. Timing is off by default, so
 //! the node never pays for it; a benchmark turns it on around what it times.
 //!
-//! Reading the queries back is the profiler's own round trip: it is not counted in
-//! [`super::GpuCounters`], and it happens only when half the query set is used (at a
+//! Reading the queries back is the profiler's own round trip: it is not counted with the
+//! stages' round trips, and it happens only when half the query set is used (at a
 //! submission) or when the times are taken.
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Mutex;
-
-use super::{GpuContext, GpuError};
 
 /// Queries in the set: WebGPU's most (`wgpu::QUERY_SET_MAX_QUERIES`), two a span.
 const QUERIES: u32 = wgpu::QUERY_SET_MAX_QUERIES;
@@ -42,18 +40,18 @@ pub struct GpuTimes {
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-enum SpanKind {
+pub(super) enum SpanKind {
     Kernel,
     Copy,
 }
 
 /// The query set, where it resolves to, and the spans written and not yet read.
 pub(super) struct Timer {
-    set: wgpu::QuerySet,
+    pub(super) set: wgpu::QuerySet,
     resolved: wgpu::Buffer,
     staging: wgpu::Buffer,
     period_ns: f64,
-    between_commands: bool,
+    pub(super) between_commands: bool,
     on: AtomicBool,
     state: Mutex<TimerState>,
 }
@@ -98,8 +96,12 @@ impl Timer {
         })
     }
 
+    pub(super) fn set_on(&self, on: bool) {
+        self.on.store(on, Ordering::Relaxed);
+    }
+
     /// Two queries for a span of `kind`, if timing is on and the set has room.
-    fn reserve(&self, kind: SpanKind) -> Option<u32> {
+    pub(super) fn reserve(&self, kind: SpanKind) -> Option<u32> {
         if !self.on.load(Ordering::Relaxed) {
             return None;
         }
@@ -113,98 +115,38 @@ impl Timer {
         Some(first)
     }
 
-    fn half_full(&self) -> bool {
+    pub(super) fn half_full(&self) -> bool {
         self.state.lock().map(|s| s.next >= QUERIES / 2).unwrap_or(false)
     }
-}
 
-impl GpuContext {
-    /// Whether GPU time can be measured on this adapter.
-    pub fn timestamps(&self) -> Timestamps {
-        if self.timer.is_some() {
-            Timestamps::Available
-        } else {
-            Timestamps::Unavailable
-        }
-    }
-
-    /// Turns timing on or off (off: passes and copies carry no queries).
-    pub fn set_timing(&self, on: bool) {
-        if let Some(timer) = &self.timer {
-            timer.on.store(on, Ordering::Relaxed);
-        }
-    }
-
-    /// The timestamp writes for a compute pass: a span of kernel time while timing is on.
-    pub fn pass_timestamps(&self) -> Option<wgpu::ComputePassTimestampWrites<'_>> {
-        let timer = self.timer.as_ref()?;
-        let first = timer.reserve(SpanKind::Kernel)?;
-        Some(wgpu::ComputePassTimestampWrites {
-            query_set: &timer.set,
-            beginning_of_pass_write_index: Some(first),
-            end_of_pass_write_index: Some(first + 1),
-        })
-    }
-
-    /// `encoder.copy_buffer_to_buffer`, a span of copy time while timing is on and the
-    /// adapter writes timestamps between commands.
-    pub fn copy_buffer(
-        &self,
-        encoder: &mut wgpu::CommandEncoder,
-        from: &wgpu::Buffer,
-        from_offset: u64,
-        to: &wgpu::Buffer,
-        to_offset: u64,
-        size: u64,
-    ) {
-        let span =
-            self.timer.as_ref().filter(|t| t.between_commands).and_then(|t| Some((t, t.reserve(SpanKind::Copy)?)));
-        if let Some((timer, first)) = span {
-            encoder.write_timestamp(&timer.set, first);
-        }
-        encoder.copy_buffer_to_buffer(from, from_offset, to, to_offset, size);
-        if let Some((timer, first)) = span {
-            encoder.write_timestamp(&timer.set, first + 1);
-        }
-    }
-
-    /// After a submission: reads the spans back once half the set is used.
-    pub(super) fn collect_timestamps_if_half_full(&self) {
-        if self.timer.as_ref().is_some_and(Timer::half_full) {
-            if let Err(e) = self.collect_timestamps() {
-                tracing::warn!("reading GPU timestamps failed: {e}");
-            }
-        }
-    }
-
-    /// The GPU time since the last call (`None` where the adapter has no timestamps).
-    /// Every span must have been submitted.
-    pub fn take_times(&self) -> Result<Option<GpuTimes>, GpuError> {
-        let Some(timer) = &self.timer else { return Ok(None) };
-        self.collect_timestamps()?;
-        let mut state = timer.state.lock().map_err(|e| GpuError::Readback(e.to_string()))?;
-        Ok(Some(std::mem::take(&mut state.totals)))
-    }
-
-    /// Resolves the written queries, reads them back and adds their spans to the totals.
-    fn collect_timestamps(&self) -> Result<(), GpuError> {
-        let Some(timer) = &self.timer else { return Ok(()) };
-        let mut state = timer.state.lock().map_err(|e| GpuError::Readback(e.to_string()))?;
+    /// Resolves the written queries, reads them back (waiting for the queue) and adds their
+    /// spans to the totals. Every span must have been submitted.
+    pub(super) fn collect(&self, device: &wgpu::Device, queue: &wgpu::Queue) -> Result<(), String> {
+        let mut state = self.state.lock().map_err(|e| e.to_string())?;
         if state.next == 0 {
             return Ok(());
         }
         let bytes = u64::from(state.next) * 8;
-        let mut encoder =
-            self.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("timestamps") });
-        encoder.resolve_query_set(&timer.set, 0..state.next, &timer.resolved, 0);
-        encoder.copy_buffer_to_buffer(&timer.resolved, 0, &timer.staging, 0, bytes);
-        let submission = self.queue.submit([encoder.finish()]);
-        let mut read = vec![0u8; bytes as usize];
-        self.finish_read(super::PendingRead::map(timer.staging.clone(), submission), &mut read)?;
-        let ticks: Vec<u64> = bytemuck::pod_collect_to_vec(&read);
+        let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("timestamps") });
+        encoder.resolve_query_set(&self.set, 0..state.next, &self.resolved, 0);
+        encoder.copy_buffer_to_buffer(&self.resolved, 0, &self.staging, 0, bytes);
+        let submission = queue.submit([encoder.finish()]);
+        let (tx, mapped) = std::sync::mpsc::channel();
+        self.staging.map_async(wgpu::MapMode::Read, ..bytes, move |r| {
+            let _ = tx.send(r);
+        });
+        device
+            .poll(wgpu::PollType::Wait { submission_index: Some(submission), timeout: None })
+            .map_err(|e| e.to_string())?;
+        mapped.recv().map_err(|e| e.to_string())?.map_err(|e| e.to_string())?;
+        let ticks: Vec<u64> = {
+            let range = self.staging.get_mapped_range(..bytes).map_err(|e| e.to_string())?;
+            bytemuck::pod_collect_to_vec(&range)
+        };
+        self.staging.unmap();
         let ms = |first: u32| {
             let (begin, end) = (ticks[first as usize], ticks[first as usize + 1]);
-            end.saturating_sub(begin) as f64 * timer.period_ns * 1e-6
+            end.saturating_sub(begin) as f64 * self.period_ns * 1e-6
         };
         let spans = std::mem::take(&mut state.spans);
         for (kind, first) in spans {
@@ -220,6 +162,12 @@ impl GpuContext {
         }
         state.next = 0;
         Ok(())
+    }
+
+    /// The totals since the last call.
+    pub(super) fn take_totals(&self) -> Result<GpuTimes, String> {
+        let mut state = self.state.lock().map_err(|e| e.to_string())?;
+        Ok(std::mem::take(&mut state.totals))
     }
 }
 
