@@ -144,10 +144,16 @@ impl GpuCounters {
 impl GpuContext {
     /// Opens the best allowed adapter (see the module's adapter policy).
     pub fn open(policy: AdapterPolicy) -> Result<Self, GpuError> {
-        pollster::block_on(Self::new_async(policy))
+        pollster::block_on(Self::new_async(policy, true))
     }
 
-    async fn new_async(policy: AdapterPolicy) -> Result<Self, GpuError> {
+    /// [`GpuContext::open`] without timestamp queries, as on an adapter that has none
+    /// (GPU time then reads "unavailable").
+    pub fn open_without_timestamps(policy: AdapterPolicy) -> Result<Self, GpuError> {
+        pollster::block_on(Self::new_async(policy, false))
+    }
+
+    async fn new_async(policy: AdapterPolicy, timestamps: bool) -> Result<Self, GpuError> {
         let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
         desc.backends = wgpu::Backends::VULKAN | wgpu::Backends::METAL | wgpu::Backends::DX12;
         desc.flags = wgpu::InstanceFlags::empty().with_env();
@@ -175,7 +181,10 @@ impl GpuContext {
         };
         let info = adapter.get_info();
         let limits = adapter.limits();
-        let timestamps = wgpu::Features::TIMESTAMP_QUERY | wgpu::Features::TIMESTAMP_QUERY_INSIDE_ENCODERS;
+        let timestamps = match timestamps {
+            true => wgpu::Features::TIMESTAMP_QUERY | wgpu::Features::TIMESTAMP_QUERY_INSIDE_ENCODERS,
+            false => wgpu::Features::empty(),
+        };
         let (device, queue) = adapter
             .request_device(&wgpu::DeviceDescriptor {
                 label: Some("defvol"),

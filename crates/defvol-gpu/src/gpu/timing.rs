@@ -229,4 +229,18 @@ mod tests {
         assert_eq!(times.copy_spans, u64::from(between));
         assert_eq!(ctx.timestamps(), Timestamps::Available);
     }
+
+    /// Without timestamp queries the work runs as before and its time reads "unavailable":
+    /// no span, no times, nothing refused.
+    #[test]
+    fn an_adapter_without_timestamps_runs_and_says_its_gpu_time_is_unavailable() {
+        let Some(_) = test_context() else { return };
+        let ctx = crate::gpu::GpuContext::open_without_timestamps(crate::gpu::AdapterPolicy::AllowSoftware).unwrap();
+        assert_eq!(ctx.timestamps(), Timestamps::Unavailable);
+        ctx.set_timing(true);
+        assert!(ctx.pass_timestamps().is_none());
+        let buffer = ctx.storage_buffer("plain", &[5u8; 64]);
+        assert_eq!(ctx.read_back(&buffer, 64).unwrap(), vec![5u8; 64]);
+        assert_eq!(ctx.take_times().unwrap(), None);
+    }
 }
