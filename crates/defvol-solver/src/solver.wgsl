@@ -549,7 +549,8 @@ fn cg_direction(@builtin(global_invocation_id) gid: vec3<u32>) {
 @compute @workgroup_size(256)
 fn implicit_update(@builtin(global_invocation_id) gid: vec3<u32>) {
     let i = gid.x;
-    if (i >= params.counts.x) {
+    // Queued behind a solve that may not be done yet: nothing until it is.
+    if (i >= params.counts.x || scalars.done == 0u) {
         return;
     }
     if (is_fixed(i)) {
