@@ -672,21 +672,23 @@ fn solver_bench_cases_are_named_by_their_tets_as_the_readme_counts_them() {
     assert!(!table.contains("NaN"), "{table}");
 }
 
+/// `defvol ARGS --json` (ARGS split at spaces), its rows.
+fn bench_rows(args: &str) -> Vec<serde_json::Value> {
+    let out = defvol().args(args.split_whitespace()).arg("--json").output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    String::from_utf8_lossy(&out.stdout).lines().map(|l| serde_json::from_str(l).unwrap()).collect()
+}
+
 /// The DPCM bench's GPU rows say what a step cost the GPU: batched, a tenth of a submission
 /// a step; nothing read back while stepping; GPU time measured by timestamps (lavapipe has
 /// them) and no longer than the step's wall time; the batched state the single steps' one.
 #[test]
 fn dpcm_bench_gpu_rows_report_the_round_trips_and_gpu_time_of_a_batched_step() {
     let Some(_) = defvol::gpu::test_context() else { return };
-    let args = "bench dpcm --gpu --allow-software-gpu --size 64,64 --markers 3 --topologies eight --physics elastic";
-    let out = defvol()
-        .args(args.split(' '))
-        .args(["--steps", "40", "--no-sweep", "--batch", "1,10", "--json"])
-        .output()
-        .unwrap();
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    let rows: Vec<serde_json::Value> =
-        String::from_utf8_lossy(&out.stdout).lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    let rows = bench_rows(
+        "bench dpcm --gpu --allow-software-gpu --size 64,64 --markers 3 --topologies eight --physics elastic \
+         --steps 40 --no-sweep --batch 1,10",
+    );
     let gpu: Vec<&serde_json::Value> = rows.iter().filter(|r| r["backend"] == "gpu").collect();
     assert_eq!(gpu.len(), 2, "{rows:?}");
     for (row, batch) in gpu.iter().zip([1.0, 10.0]) {
@@ -707,15 +709,10 @@ fn dpcm_bench_gpu_rows_report_the_round_trips_and_gpu_time_of_a_batched_step() {
 #[test]
 fn solver_bench_gpu_rows_report_batched_explicit_steps_and_the_implicit_round_trips() {
     let Some(_) = defvol::gpu::test_context() else { return };
-    let args = "bench solver --sizes 80 --steps 21 --tolerances 1e-4 --preconditioners block-jacobi --backends gpu";
-    let out = defvol()
-        .args(args.split(' '))
-        .args(["--allow-software-gpu", "--explicit-dt", "1e-4", "--explicit-batch", "10", "--json"])
-        .output()
-        .unwrap();
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    let rows: Vec<serde_json::Value> =
-        String::from_utf8_lossy(&out.stdout).lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    let rows = bench_rows(
+        "bench solver --sizes 80 --steps 21 --tolerances 1e-4 --preconditioners block-jacobi --backends gpu \
+         --allow-software-gpu --explicit-dt 1e-4 --explicit-batch 10",
+    );
     assert_eq!(rows.len(), 4, "{rows:?}");
     for row in &rows {
         let cost = &row["gpu"];
@@ -723,7 +720,8 @@ fn solver_bench_gpu_rows_report_batched_explicit_steps_and_the_implicit_round_tr
         assert!(cost["kernel_ms"].as_f64().unwrap() > 0.0, "{row}");
         assert!(row["error"]["value"].as_f64().unwrap() < 1e-2, "{row}");
         if row["params"]["integrator"] == "implicit_euler" {
-            // ceil(i / 16) + 2 a step, below i / 16 + 3 on average.
+            // 1 a step where the last step foretold its CG windows, else those beyond the
+            // foretold ones and 3: below i / 16 + 3 on average.
             let windows = row["work"]["cg_iterations_mean"].as_f64().unwrap() / 16.0;
             assert!(cost["readbacks"].as_f64().unwrap() < windows + 3.0, "{row}");
         } else {
