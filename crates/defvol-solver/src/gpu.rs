@@ -721,7 +721,8 @@ impl GpuSimulation {
 
     /// bᵀA⁻¹b for the system the last step assembled (its contacts included) and b given on
     /// a few rows: CG from zero, then bᵀΔv by the `probe_outcome` kernel (the twin of
-    /// `Simulation::compliance_along`). The next step assembles afresh.
+    /// `Simulation::compliance_along`), read with the CG's check when its windows were
+    /// foretold. The next step assembles afresh.
     fn compliance_along(&mut self, b: &[(usize, Vector3<f64>)]) -> Result<f64, GpuError> {
         let system = self.system;
         let free: Vec<(usize, Vector3<f64>)> =
@@ -744,9 +745,12 @@ impl GpuSimulation {
         let probe = GpuContactTerm::probe(&free);
         let at = (contacts * std::mem::size_of::<GpuContactTerm>()) as u64;
         self.ctx.queue.write_buffer(&self.buffers.bound[CONTACT_BINDINGS.start], at, bytemuck::bytes_of(&probe));
-        self.cg(system, Solve::Probe)?;
-        self.run(&[(Kernel::ProbeOutcome, 1)]);
-        let bytes = self.ctx.read_back(&self.buffers.bound[CONTACT_BINDINGS.end - 1], 16)?;
+        let outcome = &self.buffers.bound[CONTACT_BINDINGS.end - 1];
+        let (_, read) = self.cg_then(system, Solve::Probe, &[(Kernel::ProbeOutcome, 1)], &[(outcome, 16)])?;
+        let bytes = match read {
+            Some(bytes) => bytes,
+            None => self.ctx.read_back(outcome, 16)?,
+        };
         let out: [f32; 4] = bytemuck::pod_read_unaligned(&bytes);
         Ok(f64::from(out[0]))
     }

@@ -344,7 +344,8 @@ fn contact_scatter(@builtin(global_invocation_id) gid: vec3<u32>) {
 // bᵀΔv for the probe stored after the contacts (the local model's compliance solve).
 @compute @workgroup_size(256)
 fn probe_outcome(@builtin(global_invocation_id) gid: vec3<u32>) {
-    if (gid.x != 0u) {
+    // Queued behind a solve that may not be done yet: nothing until it is.
+    if (gid.x != 0u || scalars.done == 0u) {
         return;
     }
     let c = params.system.y;
