@@ -9,9 +9,11 @@
 //! [`GpuContext::require_binding_size`]).
 
 pub mod nodes;
+mod staging;
 pub mod timing;
 
 pub use nodes::DeviceNodes;
+pub use staging::PendingRead;
 pub use timing::{GpuTimes, Timestamps};
 
 use timing::{SpanKind, Timer};
@@ -430,19 +432,7 @@ impl GpuContext {
     /// Waits for `pending` (for its own submission, not for what was queued behind it)
     /// and copies its first `out.len()` bytes into `out`.
     pub fn finish_read(&self, pending: PendingRead, out: &mut [u8]) -> Result<(), GpuError> {
-        let PendingRead { staging, submission, mapped } = pending;
-        let wait = wgpu::PollType::Wait { submission_index: Some(submission), timeout: None };
-        self.device.poll(wait).map_err(|e| GpuError::Readback(e.to_string()))?;
-        match mapped.recv() {
-            Ok(Ok(())) => {}
-            Ok(Err(e)) => return Err(GpuError::Readback(e.to_string())),
-            Err(e) => return Err(GpuError::Readback(e.to_string())),
-        }
-        let range = staging.get_mapped_range(..).map_err(|e| GpuError::Readback(e.to_string()))?;
-        out.copy_from_slice(&range[..out.len()]);
-        drop(range);
-        staging.unmap();
-        Ok(())
+        pending.wait_into(&self.device, out).map_err(GpuError::Readback)
     }
 }
 
@@ -511,24 +501,6 @@ impl GpuContext {
                 tracing::warn!("reading GPU timestamps failed: {e}");
             }
         }
-    }
-}
-
-/// A read-back on its way: its copy submitted and its staging buffer asked to map.
-pub struct PendingRead {
-    staging: wgpu::Buffer,
-    submission: wgpu::SubmissionIndex,
-    mapped: std::sync::mpsc::Receiver<Result<(), wgpu::BufferAsyncError>>,
-}
-
-impl PendingRead {
-    /// Asks `staging` (MAP_READ), written by `submission`, to map.
-    fn map(staging: wgpu::Buffer, submission: wgpu::SubmissionIndex) -> Self {
-        let (tx, mapped) = std::sync::mpsc::channel();
-        staging.map_async(wgpu::MapMode::Read, .., move |r| {
-            let _ = tx.send(r);
-        });
-        Self { staging, submission, mapped }
     }
 }
 

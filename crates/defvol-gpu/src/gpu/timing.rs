@@ -11,6 +11,8 @@
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Mutex;
 
+use super::staging::PendingRead;
+
 /// Queries in the set: WebGPU's most (`wgpu::QUERY_SET_MAX_QUERIES`), two a span.
 const QUERIES: u32 = wgpu::QUERY_SET_MAX_QUERIES;
 
@@ -115,8 +117,10 @@ impl Timer {
         Some(first)
     }
 
+    /// Whether half the set is used; checked at every submission, so without a lock
+    /// while timing is off (nothing is reserved then).
     pub(super) fn half_full(&self) -> bool {
-        self.state.lock().map(|s| s.next >= QUERIES / 2).unwrap_or(false)
+        self.on.load(Ordering::Relaxed) && self.state.lock().map(|s| s.next >= QUERIES / 2).unwrap_or(false)
     }
 
     /// Resolves the written queries, reads them back (waiting for the queue) and adds their
@@ -131,19 +135,9 @@ impl Timer {
         encoder.resolve_query_set(&self.set, 0..state.next, &self.resolved, 0);
         encoder.copy_buffer_to_buffer(&self.resolved, 0, &self.staging, 0, bytes);
         let submission = queue.submit([encoder.finish()]);
-        let (tx, mapped) = std::sync::mpsc::channel();
-        self.staging.map_async(wgpu::MapMode::Read, ..bytes, move |r| {
-            let _ = tx.send(r);
-        });
-        device
-            .poll(wgpu::PollType::Wait { submission_index: Some(submission), timeout: None })
-            .map_err(|e| e.to_string())?;
-        mapped.recv().map_err(|e| e.to_string())?.map_err(|e| e.to_string())?;
-        let ticks: Vec<u64> = {
-            let range = self.staging.get_mapped_range(..bytes).map_err(|e| e.to_string())?;
-            bytemuck::pod_collect_to_vec(&range)
-        };
-        self.staging.unmap();
+        let mut read = vec![0u8; bytes as usize];
+        PendingRead::map(self.staging.clone(), submission).wait_into(device, &mut read)?;
+        let ticks: Vec<u64> = bytemuck::pod_collect_to_vec(&read);
         let ms = |first: u32| {
             let (begin, end) = (ticks[first as usize], ticks[first as usize + 1]);
             end.saturating_sub(begin) as f64 * self.period_ns * 1e-6
