@@ -119,12 +119,16 @@ const CG_SCALARS_BYTES: u64 = std::mem::size_of::<CgScalars>() as u64;
 /// Displacements and velocities, a row a node.
 type State = [Vec<Vector3<f32>>; 2];
 
-/// What an implicit step leaves: the simulated tools' Δv, the CG's statistics, and the
-/// state where it came back with the solve.
-struct ImplicitStep {
+/// After a solve: the simulated tools' Δv, and each contact's and friction term's rate at
+/// the step's end.
+type Outcome = (Vec<Vector3<f64>>, Vec<f64>);
+
+/// What a step leaves for the host: the simulated tools' Δv, the CG's statistics (none
+/// for an explicit scheme), and the state.
+struct StepOutcome {
     proxy_dv: Vec<Vector3<f64>>,
     cg: CgStats,
-    state: Option<State>,
+    state: State,
 }
 
 /// The kinds of CG solve, each learning its own iteration count.
@@ -535,20 +539,21 @@ impl GpuSimulation {
         self.bind_group = self.ctx.bind_group("solver", &self.layout, &self.buffers.bound.iter().collect::<Vec<_>>());
     }
 
-    /// After a solve: the simulated tools' rows of Δv, and each contact's φ̇ at the step's
-    /// end (Σ g·(v + Δv): its start rate plus g·Δv from the GPU).
-    fn outcome(&self, terms: &[ContactTerms], system: [u32; 4]) -> Result<(Vec<Vector3<f64>>, Vec<f64>), GpuError> {
-        let tools = system[3] as usize;
-        let count = tools + terms.len();
-        if count == 0 {
-            return Ok((Vec::new(), Vec::new()));
-        }
-        self.run(&[(Kernel::ContactOutcome, count as u32)]);
-        let bytes = self.ctx.read_back(&self.buffers.bound[CONTACT_BINDINGS.end - 1], count as u64 * 16)?;
-        let rows: &[[f32; 4]] = bytemuck::try_cast_slice(&bytes).map_err(|e| GpuError::Readback(e.to_string()))?;
+    /// The simulated tools' rows of Δv and each contact's φ̇ at the step's end (Σ g·(v + Δv):
+    /// its start rate plus g·Δv from the GPU), from the `contact_outcome` kernel's rows.
+    fn decode_outcome(terms: &[ContactTerms], tools: usize, bytes: &[u8]) -> Result<Outcome, GpuError> {
+        let rows: &[[f32; 4]] = bytemuck::try_cast_slice(bytes).map_err(|e| GpuError::Readback(e.to_string()))?;
         let proxy_dv = rows[..tools].iter().map(|r| Vector3::new(r[0], r[1], r[2]).map(f64::from)).collect();
         let end_rates = terms.iter().zip(&rows[tools..]).map(|(t, r)| t.normal_speed + f64::from(r[0])).collect();
         Ok((proxy_dv, end_rates))
+    }
+
+    /// Puts the mirror's state back on the GPU: it is the GPU's as last read back, so this
+    /// undoes whatever ran since (a diverged batch, a step solved again).
+    fn restore_state(&self) {
+        let queue = &self.ctx.queue;
+        queue.write_buffer(&self.buffers.x, 0, bytemuck::cast_slice(&vec4s(self.mirror.displacements())));
+        queue.write_buffer(&self.buffers.v, 0, bytemuck::cast_slice(&vec4s(self.mirror.velocities())));
     }
 
     /// Displacements and velocities, in one read-back.
@@ -568,37 +573,26 @@ impl GpuSimulation {
         [x.iter().map(vec3).collect(), v.iter().map(vec3).collect()]
     }
 
-    /// CG on the system assembled from the current state, warm-started from the last Δv.
-    fn solve(&self, system: [u32; 4]) -> Result<CgStats, GpuError> {
-        self.assemble(system);
-        self.cg(system, Solve::Step)
-    }
-
-    /// Assembles the system from the current state.
-    fn assemble(&self, system: [u32; 4]) {
+    /// The kernels that assemble the system from the current state.
+    fn assembly(&self, system: [u32; 4]) -> Vec<(Kernel, u32)> {
         let mut assembly = vec![(Kernel::SpringTerms, self.springs), (Kernel::NodeTerms, self.nodes)];
         if system[2] > 0 {
             assembly.push((Kernel::ContactRows, system[2]));
         }
-        self.run(&assembly);
+        assembly
     }
 
-    /// CG on the system as assembled, from the Δv in its buffer: the start and as many
-    /// windows of `cg_check_interval` iterations as the last solve of this `kind` needed
-    /// go in one submission, then one check; where that falls short, a window more is
-    /// queued behind each check.
-    fn cg(&self, system: [u32; 4], kind: Solve) -> Result<CgStats, GpuError> {
-        Ok(self.cg_then(system, kind, &[], &[])?.0)
-    }
-
-    /// [`GpuSimulation::cg`], then `after` (kernels that do nothing until CG is done). When
-    /// the foretold windows were enough, `after` runs in the first submission and
-    /// `result_parts` come back with the check: one read-back for the solve and its result.
+    /// `before` (the assembly, or nothing), CG on the system from the Δv in its buffer,
+    /// then `after` (kernels that do nothing until CG is done): `before`, the start, as many windows of `cg_check_interval`
+    /// iterations as the last solve of this `kind` needed and `after` go in one submission,
+    /// then one check, with which `result_parts` come back (one read-back for the solve and
+    /// its result). Where that falls short, a window more is queued behind each check, and
+    /// `after` runs once CG is done (no result then: it is the caller's to read).
     fn cg_then(
         &self,
         system: [u32; 4],
         kind: Solve,
-        after: &[(Kernel, u32)],
+        [before, after]: [&[(Kernel, u32)]; 2],
         result_parts: &[(&wgpu::Buffer, u64)],
     ) -> Result<(CgStats, Option<Vec<u8>>), GpuError> {
         let (rows, touched, q) = (system[0], system[2], &self.ctx.queue);
@@ -620,6 +614,9 @@ impl GpuSimulation {
         let window: Vec<(Kernel, u32)> = (0..params.cg_check_interval).flat_map(|_| iteration.clone()).collect();
         let ahead = self.windows_ahead[kind as usize].get().max(1);
         let mut encoder = self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("cg") });
+        if !before.is_empty() {
+            self.encode(&mut encoder, before);
+        }
         self.ctx.copy_buffer(&mut encoder, &self.buffers.dv, 0, &self.buffers.p, 0, rows as u64 * 16);
         self.encode(&mut encoder, &start);
         self.encode(&mut encoder, &window.repeat(ahead as usize));
@@ -666,41 +663,59 @@ impl GpuSimulation {
         ))
     }
 
-    /// Implicit Euler: the solve, and again without the contacts that separate at the
-    /// step's end (at most four rounds, as on the CPU); the simulated tools' Δv and the
-    /// CG statistics of all rounds.
-    /// With no contact and no simulated tool nothing is read before the update, so the
-    /// update runs behind the solve and the state comes back with its check (when the
-    /// foretold CG windows were enough): the state too, then.
-    fn implicit_step(&mut self) -> Result<ImplicitStep, GpuError> {
+    /// Implicit Euler: the solve with the contacts' outcome and the update queued behind it,
+    /// read back in one (see [`GpuSimulation::solve_and_update`]). Where contacts separate at
+    /// the step's end they are released, the update undone and the step solved again
+    /// without them (at most four rounds, as on the CPU); the CG statistics of all rounds.
+    fn implicit_step(&mut self) -> Result<StepOutcome, GpuError> {
         let (mut terms, mut system) = self.upload_system();
-        if terms.is_empty() && system[3] == 0 {
-            self.assemble(system);
-            let bytes = self.nodes as u64 * 16;
-            let state = [(&self.buffers.x, bytes), (&self.buffers.v, bytes)];
-            let (cg, read) = self.cg_then(system, Solve::Step, &[(Kernel::ImplicitUpdate, self.nodes)], &state)?;
-            self.mirror.record_friction(&[]);
-            self.system = system;
-            let state = read.map(|bytes| self.decode_state(&bytes));
-            return Ok(ImplicitStep { proxy_dv: Vec::new(), cg, state });
-        }
-        let mut cg = self.solve(system)?;
-        let mut releases = 0;
-        let proxy_dv = loop {
-            let (proxy_dv, end_rates) = self.outcome(&terms, system)?;
+        let (mut iterations, mut releases) = (0, 0);
+        loop {
+            let (cg, (proxy_dv, end_rates), state) = self.solve_and_update(&terms, system)?;
+            iterations += cg.iterations;
             let contacts = self.mirror.active_contacts().len();
             if releases == 4 || !self.mirror.release_contacts(&end_rates[..contacts]) {
                 self.mirror.record_friction(&end_rates[contacts..]);
-                break proxy_dv;
+                self.system = system;
+                let cg = CgStats { iterations, relative_residual: cg.relative_residual };
+                return Ok(StepOutcome { proxy_dv, cg, state });
             }
             releases += 1;
+            self.restore_state();
             (terms, system) = self.upload_system();
-            let again = self.solve(system)?;
-            cg = CgStats { iterations: cg.iterations + again.iterations, relative_residual: again.relative_residual };
+        }
+    }
+
+    /// Assembles and solves, with the contacts' outcome and the update behind the solve
+    /// (no-ops until CG is done): when the foretold CG windows were enough, the outcome and
+    /// the state come back with the check, one read-back for the step; else in one more.
+    fn solve_and_update(
+        &self,
+        terms: &[ContactTerms],
+        system: [u32; 4],
+    ) -> Result<(CgStats, Outcome, State), GpuError> {
+        let tools = system[3] as usize;
+        let rows = tools + terms.len();
+        let mut after = Vec::new();
+        let mut parts = Vec::new();
+        if rows > 0 {
+            after.push((Kernel::ContactOutcome, rows as u32));
+            parts.push((&self.buffers.bound[CONTACT_BINDINGS.end - 1], rows as u64 * 16));
+        }
+        after.push((Kernel::ImplicitUpdate, self.nodes));
+        let node_bytes = self.nodes as u64 * 16;
+        parts.extend([(&self.buffers.x, node_bytes), (&self.buffers.v, node_bytes)]);
+        let (cg, read) = self.cg_then(system, Solve::Step, [&self.assembly(system), &after], &parts)?;
+        let bytes = match read {
+            Some(bytes) => bytes,
+            None => {
+                let mut bytes = vec![0u8; parts.iter().map(|(_, n)| *n as usize).sum()];
+                self.ctx.finish_read(self.ctx.read_back_later(&parts), &mut bytes)?;
+                bytes
+            }
         };
-        self.run(&[(Kernel::ImplicitUpdate, self.nodes)]);
-        self.system = system;
-        Ok(ImplicitStep { proxy_dv, cg, state: None })
+        let (outcome, state) = bytes.split_at(rows * 16);
+        Ok((cg, Self::decode_outcome(terms, tools, outcome)?, self.decode_state(state)))
     }
 
     /// Each coupled tool's local model for the force loop, from the step just taken, its
@@ -746,7 +761,7 @@ impl GpuSimulation {
         let at = (contacts * std::mem::size_of::<GpuContactTerm>()) as u64;
         self.ctx.queue.write_buffer(&self.buffers.bound[CONTACT_BINDINGS.start], at, bytemuck::bytes_of(&probe));
         let outcome = &self.buffers.bound[CONTACT_BINDINGS.end - 1];
-        let (_, read) = self.cg_then(system, Solve::Probe, &[(Kernel::ProbeOutcome, 1)], &[(outcome, 16)])?;
+        let (_, read) = self.cg_then(system, Solve::Probe, [&[], &[(Kernel::ProbeOutcome, 1)]], &[(outcome, 16)])?;
         let bytes = match read {
             Some(bytes) => bytes,
             None => self.ctx.read_back(outcome, 16)?,
@@ -783,31 +798,21 @@ impl GpuSimulation {
         let tools = self.mirror.prepare_step()?;
         // The implicit step rewrites `system` with its simulated tools and contacts.
         self.upload_params(&tools, [self.nodes, 0, 0, 0]);
-        let mut cg = CgStats { iterations: 0, relative_residual: 0.0 };
-        let mut proxy_dv = Vec::new();
-        let mut state = None;
-        match self.mirror.params().integrator {
-            Integrator::ImplicitEuler => ImplicitStep { proxy_dv, cg, state } = self.implicit_step()?,
+        let StepOutcome { proxy_dv, cg, state: [x, v] } = match self.mirror.params().integrator {
+            Integrator::ImplicitEuler => self.implicit_step()?,
             _ => {
                 let kernels = self.explicit_kernels();
                 self.run(&kernels.repeat(steps as usize));
+                let cg = CgStats { iterations: 0, relative_residual: 0.0 };
+                StepOutcome { proxy_dv: Vec::new(), cg, state: self.read_state()? }
             }
-        }
-        self.history_valid = true;
-        let [x, v] = match state {
-            Some(state) => state,
-            None => self.read_state()?,
         };
+        self.history_valid = true;
         match self.mirror.accept_steps(x, v, &proxy_dv, cg, steps) {
             Ok(report) => Ok(report),
             Err(err) => {
                 // Put the last stable state back on the GPU too.
-                self.ctx.queue.write_buffer(
-                    &self.buffers.x,
-                    0,
-                    bytemuck::cast_slice(&vec4s(self.mirror.displacements())),
-                );
-                self.ctx.queue.write_buffer(&self.buffers.v, 0, bytemuck::cast_slice(&vec4s(self.mirror.velocities())));
+                self.restore_state();
                 self.history_valid = false;
                 Err(err.into())
             }
@@ -1149,6 +1154,42 @@ mod tests {
             foretold = needed;
         }
         assert!(hits >= 4, "the last step foretold {hits} of 8");
+    }
+
+    /// A coupled tool held 2 mm into the slab on surface contact: the contacts' outcome
+    /// (for the release rule and the simulated tool) and the state come back with the CG
+    /// check, so a step in contact is one read-back when the last step foretold its CG
+    /// windows, as a step without contacts is.
+    #[test]
+    fn a_step_in_contact_is_one_read_back_when_the_last_step_foretold_its_cg_windows() {
+        let Some(ctx) = defvol_gpu::gpu::test_context() else { return };
+        let params = SolverParams {
+            gravity: [0.0; 3],
+            dt: 1e-3,
+            cg_tolerance: 1e-6,
+            cg_check_interval: 4,
+            ..Default::default()
+        };
+        let mut tool = Tool::new(ToolShape::Sphere { radius: 0.002 }, 20_000.0);
+        tool.coupling = Some(Coupling { stiffness: 2000.0, damping: 5.0, mass: 0.02, max_force: 5.0 });
+        let mut gpu = GpuSimulation::new(ctx.clone(), &slab(), params, vec![tool]).unwrap();
+        let (mut foretold, mut hits) = (0, 0);
+        for k in 0..80 {
+            let z = 0.003 - 0.005 * (k as f64 / 40.0).min(1.0);
+            gpu.tool_mut(0).unwrap().world_from_tool = Isometry3::translation(0.05, 0.05, z);
+            let start = ctx.counters();
+            let report = gpu.step().unwrap();
+            let counted = ctx.counters().since(&start);
+            let needed = u64::from(report.cg_iterations.div_ceil(4));
+            if k >= 40 {
+                assert!(!gpu.mirror().contacts().is_empty() && needed > 1, "step {k}: {report:?}");
+                let expected = if needed <= foretold { 1 } else { needed - foretold + 3 };
+                assert_eq!(counted.readbacks, expected, "step {k}: {report:?}, {foretold} windows foretold");
+                hits += usize::from(needed <= foretold);
+            }
+            foretold = needed.max(1);
+        }
+        assert!(hits >= 20, "the last step foretold {hits} of 40");
     }
 
     /// Explicit steps batched, a tool dented into the nodes and gravity: after the first

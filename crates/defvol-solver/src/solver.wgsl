@@ -359,9 +359,13 @@ fn probe_outcome(@builtin(global_invocation_id) gid: vec3<u32>) {
     outcome[0] = vec4<f32>(gd, 0.0, 0.0, 0.0);
 }
 
-// After the solve: the simulated tools' rows of Δv, then each contact's g·Δv.
+// After the solve: the simulated tools' rows of Δv, then each contact's g·Δv. Queued
+// behind a solve that may not be done yet: nothing until it is.
 @compute @workgroup_size(256)
 fn contact_outcome(@builtin(global_invocation_id) gid: vec3<u32>) {
+    if (scalars.done == 0u) {
+        return;
+    }
     let i = gid.x;
     let tools = params.system.w;
     if (i < tools) {
