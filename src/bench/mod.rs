@@ -57,7 +57,8 @@ pub struct GpuCost {
     pub submissions: f64,
     pub readbacks: f64,
     pub bytes_read_back: f64,
-    /// "available" or "unavailable" on this adapter.
+    /// "available" or "unavailable" on this adapter; "off" where the node times nothing
+    /// (its DDS rows, counted from its diagnostics).
     pub timestamps: &'static str,
 }
 

@@ -248,6 +248,7 @@ mod dds {
 
     use super::{percentile, time_stats, BenchRow, NodeBenchError, NodeBenchOptions};
     use crate::backend::{Backend, BackendChoice, RunsOn};
+    use crate::bench::GpuCost;
     use crate::msgs::{DiagnosticArray, Header, Pose, PoseStamped, Time, WrenchStamped};
     use crate::record::Qos;
     use crate::ros::args::RosArgs;
@@ -270,6 +271,8 @@ mod dds {
         /// the node's diagnostics.
         simulation_hz: f64,
         step_ms: f64,
+        /// The node's GPU round trips per solver step, from its diagnostics (GPU rows).
+        gpu: Option<GpuCost>,
     }
 
     impl FeedbackRun {
@@ -295,7 +298,7 @@ mod dds {
                 time_ms: time_stats(self.latencies),
                 error: None,
                 work: json!({"tets": tets, "stages_beside": everything}),
-                gpu: None,
+                gpu: self.gpu,
             }
         }
     }
@@ -400,6 +403,7 @@ mod dds {
             .create_subscription::<DiagnosticArray>(&diagnostics_topic, Some(qos(Qos::Reliable)))
             .map_err(|e| setup(&e))?;
         let mut solver_steps: Vec<(Instant, f64, f64)> = Vec::new();
+        let mut round_trips: Vec<(f64, [u64; 3])> = Vec::new();
         let poses = device.create_publisher::<PoseStamped>(&pose_topic, Some(q.clone())).map_err(|e| setup(&e))?;
         let mut feedback =
             device.create_subscription::<WrenchStamped>(&feedback_topic, Some(q)).map_err(|e| setup(&e))?;
@@ -458,6 +462,7 @@ mod dds {
                 while let Ok(Some((msg, _))) = diagnostics.take() {
                     if k >= opts.settle {
                         solver_steps.extend(solver_step(&msg).map(|(step, ms)| (Instant::now(), step, ms)));
+                        round_trips.extend(solver_step(&msg).zip(gpu_counters(&msg)).map(|((step, _), c)| (step, c)));
                     }
                 }
                 while let Ok(Some((msg, _))) = feedback.take() {
@@ -492,6 +497,30 @@ mod dds {
             seconds: listened,
             simulation_hz,
             step_ms,
+            gpu: per_solver_step(&round_trips),
+        })
+    }
+
+    /// The GPU's counters in a diagnostics message's backend status (a GPU node's).
+    fn gpu_counters(msg: &DiagnosticArray) -> Option<[u64; 3]> {
+        let status = msg.status.iter().find(|s| s.name == "defvol: backend")?;
+        let value = |key: &str| status.values.iter().find(|kv| kv.key == key)?.value.parse::<u64>().ok();
+        Some([value("gpu.submissions")?, value("gpu.readbacks")?, value("gpu.bytes_read_back")?])
+    }
+
+    /// The round trips between the first and the last timed diagnostics, per solver step
+    /// (every stage's on the node's context; its timestamps are off).
+    fn per_solver_step(round_trips: &[(f64, [u64; 3])]) -> Option<GpuCost> {
+        let ((first_step, first), (last_step, last)) = (round_trips.first()?, round_trips.last()?);
+        let steps = last_step - first_step;
+        let per = |k: usize| last[k].saturating_sub(first[k]) as f64 / steps;
+        (steps > 0.0).then(|| GpuCost {
+            kernel_ms: None,
+            copy_ms: None,
+            submissions: per(0),
+            readbacks: per(1),
+            bytes_read_back: per(2),
+            timestamps: "off",
         })
     }
 

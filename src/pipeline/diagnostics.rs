@@ -19,13 +19,25 @@ impl Pipeline {
         let stage_backends = p.stage_backends();
         let backend_of =
             |stage: &str| stage_backends.iter().find(|(s, _)| *s == stage).map_or("off", |(_, b)| b.name()).to_owned();
-        // Where each stage runs, under keys `backend.<stage>`.
+        // Where each stage runs, under keys `backend.<stage>`; on a GPU, its round trips
+        // since the node started (`gpu.submissions`, `gpu.readbacks`, `gpu.bytes_read_back`).
+        let mut values: Vec<KeyValue> =
+            stage_backends.iter().map(|(stage, backend)| kv(&format!("backend.{stage}"), backend)).collect();
+        #[cfg(feature = "gpu")]
+        if let Some(ctx) = p.backend().context() {
+            let c = ctx.counters();
+            values.extend([
+                kv("gpu.submissions", c.submissions),
+                kv("gpu.readbacks", c.readbacks),
+                kv("gpu.bytes_read_back", c.bytes_read_back),
+            ]);
+        }
         let mut status = vec![DiagnosticStatus {
             level: DiagnosticStatus::OK,
             name: "defvol: backend".into(),
             message: p.backend().describe(),
             hardware_id: p.backend().describe(),
-            values: stage_backends.iter().map(|(stage, backend)| kv(&format!("backend.{stage}"), backend)).collect(),
+            values,
         }];
         let solver = match (p.feedback.engine_backend(), p.last_report()) {
             (None, _) => DiagnosticStatus {

@@ -188,14 +188,22 @@ fn a_gpu_demo_reports_every_stage_on_the_gpu() {
     let bag_path = dir.path().join("demo.mcap");
     let diagnostics = decoded::<DiagnosticArray>(&bag_path, "/diagnostics");
     assert!(!diagnostics.is_empty());
+    let mut round_trips = Vec::new();
     for (_, array, _) in &diagnostics {
         let status = array.status.iter().find(|s| s.name == "defvol: backend").expect("a backend status");
-        let stages: Vec<(&str, &str)> = status.values.iter().map(|kv| (kv.key.as_str(), kv.value.as_str())).collect();
+        let pairs = status.values.iter().map(|kv| (kv.key.as_str(), kv.value.as_str()));
+        let (stages, gpu): (Vec<_>, Vec<_>) = pairs.partition(|(key, _)| key.starts_with("backend."));
         assert_eq!(
             stages,
             [("backend.solver", "gpu"), ("backend.warp", "gpu"), ("backend.dpcm", "gpu"), ("backend.raycast", "gpu")]
         );
+        let count = |key: &str| gpu.iter().find(|(k, _)| *k == key).and_then(|(_, v)| v.parse::<u64>().ok());
+        round_trips.push([count("gpu.submissions"), count("gpu.readbacks"), count("gpu.bytes_read_back")]);
     }
+    // The GPU's round trips since the start, counted by the plumbing: they only grow.
+    let first = round_trips[0].map(|c| c.expect("the GPU's counters in the backend status"));
+    assert!(first.iter().all(|c| *c > 0), "{round_trips:?}");
+    assert!(round_trips.windows(2).all(|w| (0..3).all(|k| w[0][k] <= w[1][k])), "{round_trips:?}");
     // The warped volume's geometry is whole: the phantom's identity direction, row major.
     let info = decoded::<WarpedVolumeInfo>(&bag_path, "/warped_volume/info");
     assert_eq!(info.last().unwrap().1.direction, [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]);

@@ -246,6 +246,8 @@ struct Buffers {
     diag: wgpu::Buffer,
     precond: wgpu::Buffer,
     rhs: wgpu::Buffer,
+    /// A compliance probe's right-hand side rows, copied into `rhs` once it is cleared.
+    probe_rhs: wgpu::Buffer,
     bound: Vec<wgpu::Buffer>,
     /// Contacts the contact buffers hold.
     contact_capacity: usize,
@@ -387,6 +389,7 @@ impl GpuSimulation {
             p: bound[18].clone(),
             scalars: bound[21].clone(),
             aux: bound[22].clone(),
+            probe_rhs: ctx.zeroed_buffer("probe_rhs", (CONTACT_ROWS * 16) as u64),
             bound,
             contact_capacity,
         };
@@ -582,27 +585,14 @@ impl GpuSimulation {
         assembly
     }
 
-    /// `before` (the assembly, or nothing), CG on the system from the Δv in its buffer,
-    /// then `after` (kernels that do nothing until CG is done): `before`, the start, as many windows of `cg_check_interval`
-    /// iterations as the last solve of this `kind` needed and `after` go in one submission,
-    /// then one check, with which `result_parts` come back (one read-back for the solve and
-    /// its result). Where that falls short, a window more is queued behind each check, and
-    /// `after` runs once CG is done (no result then: it is the caller's to read).
-    fn cg_then(
-        &self,
-        system: [u32; 4],
-        kind: Solve,
-        [before, after]: [&[(Kernel, u32)]; 2],
-        result_parts: &[(&wgpu::Buffer, u64)],
-    ) -> Result<(CgStats, Option<Vec<u8>>), GpuError> {
-        let (rows, touched, q) = (system[0], system[2], &self.ctx.queue);
-        q.write_buffer(&self.buffers.scalars, 0, bytemuck::bytes_of(&CgScalars::zeroed()));
+    /// CG's kernels for `system`: its start, and one window of `cg_check_interval` iterations.
+    fn cg_kernels(&self, system: [u32; 4]) -> [Vec<(Kernel, u32)>; 2] {
+        let (rows, touched) = (system[0], system[2]);
         // The contacts' kernels run only when there are contacts.
         let contacts = |kernels: &[(Kernel, u32)]| if touched > 0 { kernels.to_vec() } else { Vec::new() };
         let mut start = vec![(Kernel::CgStartSpmv, rows)];
         start.extend(contacts(&[(Kernel::ContactDot, 1), (Kernel::ContactScatter, touched)]));
         start.extend([(Kernel::CgInit, rows), (Kernel::CgInitReduce, 1)]);
-        let params = self.mirror.params();
         let mut iteration = vec![(Kernel::CgSpmv, rows)];
         iteration.extend(contacts(&[(Kernel::ContactDot, 1), (Kernel::ContactScatter, touched)]));
         iteration.extend([
@@ -611,56 +601,73 @@ impl GpuSimulation {
             (Kernel::CgBeta, 1),
             (Kernel::CgDirection, rows),
         ]);
-        let window: Vec<(Kernel, u32)> = (0..params.cg_check_interval).flat_map(|_| iteration.clone()).collect();
+        let window = (0..self.mirror.params().cg_check_interval).flat_map(|_| iteration.clone()).collect();
+        [start, window]
+    }
+
+    /// `before` (what sets the system up), CG on it from the Δv in its buffer, then `after`
+    /// (kernels that do nothing until CG is done): all that, as many windows of
+    /// `cg_check_interval` iterations as the last solve of this `kind` needed and the read
+    /// of the check with `result_parts` go in one submission, one read-back for the solve
+    /// and its result. Where that falls short, a window more and its check are queued
+    /// behind each check, and `after` and the result come once CG is done.
+    fn cg_then(
+        &self,
+        system: [u32; 4],
+        kind: Solve,
+        before: &dyn Fn(&mut wgpu::CommandEncoder),
+        after: &[(Kernel, u32)],
+        result_parts: &[(&wgpu::Buffer, u64)],
+    ) -> Result<(CgStats, Vec<u8>), GpuError> {
+        let rows = system[0];
+        self.ctx.queue.write_buffer(&self.buffers.scalars, 0, bytemuck::bytes_of(&CgScalars::zeroed()));
+        let [start, window] = self.cg_kernels(system);
+        let params = self.mirror.params();
         let ahead = self.windows_ahead[kind as usize].get().max(1);
-        let mut encoder = self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("cg") });
-        if !before.is_empty() {
-            self.encode(&mut encoder, before);
-        }
-        self.ctx.copy_buffer(&mut encoder, &self.buffers.dv, 0, &self.buffers.p, 0, rows as u64 * 16);
-        self.encode(&mut encoder, &start);
-        self.encode(&mut encoder, &window.repeat(ahead as usize));
+        let encoder = || self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("cg") });
+        let mut first = encoder();
+        before(&mut first);
+        self.ctx.copy_buffer(&mut first, &self.buffers.dv, 0, &self.buffers.p, 0, rows as u64 * 16);
+        self.encode(&mut first, &start);
+        self.encode(&mut first, &window.repeat(ahead as usize));
         if !after.is_empty() {
-            self.encode(&mut encoder, after);
+            self.encode(&mut first, after);
         }
-        self.ctx.submit(encoder.finish());
-        let scalars = || self.ctx.read_back_later(&[(&self.buffers.scalars, CG_SCALARS_BYTES)]);
-        let decode = |bytes: &[u8]| -> CgScalars { bytemuck::pod_read_unaligned(&bytes[..CG_SCALARS_BYTES as usize]) };
-        let read = |pending| -> Result<CgScalars, GpuError> {
-            let mut bytes = [0u8; CG_SCALARS_BYTES as usize];
+        let scalars = (&self.buffers.scalars, CG_SCALARS_BYTES);
+        let with_result: Vec<(&wgpu::Buffer, u64)> =
+            std::iter::once(scalars).chain(result_parts.iter().copied()).collect();
+        let read = |pending, parts: &[(&wgpu::Buffer, u64)]| -> Result<(CgScalars, Vec<u8>), GpuError> {
+            let mut bytes = vec![0u8; parts.iter().map(|(_, n)| *n as usize).sum()];
             self.ctx.finish_read(pending, &mut bytes)?;
-            Ok(decode(&bytes))
+            let s = bytemuck::pod_read_unaligned(&bytes[..CG_SCALARS_BYTES as usize]);
+            Ok((s, bytes.split_off(CG_SCALARS_BYTES as usize)))
         };
         let finished = |s: &CgScalars| s.done != 0 || s.iterations >= params.cg_max_iterations;
-        let with_result: Vec<(&wgpu::Buffer, u64)> =
-            [(&self.buffers.scalars, CG_SCALARS_BYTES)].into_iter().chain(result_parts.iter().copied()).collect();
-        let mut first = vec![0u8; with_result.iter().map(|(_, bytes)| *bytes as usize).sum()];
-        self.ctx.finish_read(self.ctx.read_back_later(&with_result), &mut first)?;
-        let mut s = decode(&first);
-        let mut result = Some(first.split_off(CG_SCALARS_BYTES as usize));
+        let (mut s, mut result) = read(self.ctx.submit_and_read(first, &with_result), &with_result)?;
         if !finished(&s) {
             // Short of the prediction: the next window runs while the host waits for each check.
-            self.run(&window);
-            let mut checked = scalars();
+            let checked_window = || {
+                let mut e = encoder();
+                self.encode(&mut e, &window);
+                self.ctx.submit_and_read(e, &[scalars])
+            };
+            let mut checked = checked_window();
             loop {
-                self.run(&window);
-                let next = scalars();
-                s = read(std::mem::replace(&mut checked, next))?;
+                let next = checked_window();
+                (s, _) = read(std::mem::replace(&mut checked, next), &[scalars])?;
                 if finished(&s) {
                     break;
                 }
             }
+            let mut last = encoder();
             if !after.is_empty() {
-                self.run(after);
+                self.encode(&mut last, after);
             }
-            result = None;
+            (_, result) = read(self.ctx.submit_and_read(last, &with_result), &with_result)?;
         }
         self.windows_ahead[kind as usize].set(s.iterations.div_ceil(params.cg_check_interval));
         let residual = if s.bb > 0.0 { (s.rr / s.bb).max(0.0).sqrt() as f64 } else { 0.0 };
-        Ok((
-            CgStats { iterations: s.iterations, relative_residual: residual },
-            result.filter(|_| !result_parts.is_empty()),
-        ))
+        Ok((CgStats { iterations: s.iterations, relative_residual: residual }, result))
     }
 
     /// Implicit Euler: the solve with the contacts' outcome and the update queued behind it,
@@ -705,15 +712,8 @@ impl GpuSimulation {
         after.push((Kernel::ImplicitUpdate, self.nodes));
         let node_bytes = self.nodes as u64 * 16;
         parts.extend([(&self.buffers.x, node_bytes), (&self.buffers.v, node_bytes)]);
-        let (cg, read) = self.cg_then(system, Solve::Step, [&self.assembly(system), &after], &parts)?;
-        let bytes = match read {
-            Some(bytes) => bytes,
-            None => {
-                let mut bytes = vec![0u8; parts.iter().map(|(_, n)| *n as usize).sum()];
-                self.ctx.finish_read(self.ctx.read_back_later(&parts), &mut bytes)?;
-                bytes
-            }
-        };
+        let assembly = self.assembly(system);
+        let (cg, bytes) = self.cg_then(system, Solve::Step, &|e| self.encode(e, &assembly), &after, &parts)?;
         let (outcome, state) = bytes.split_at(rows * 16);
         Ok((cg, Self::decode_outcome(terms, tools, outcome)?, self.decode_state(state)))
     }
@@ -744,28 +744,27 @@ impl GpuSimulation {
             b.iter().filter(|(row, _)| !self.mirror.fixed_row(*row)).copied().collect();
         let contacts = system[1] as usize;
         self.reserve_contacts(contacts + 1);
-        let mut encoder =
-            self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("probe") });
-        encoder.clear_buffer(&self.buffers.rhs, 0, None);
-        encoder.clear_buffer(&self.buffers.dv, 0, None);
-        self.ctx.submit(encoder.finish());
         let mut rhs: BTreeMap<usize, Vector3<f64>> = BTreeMap::new();
-        for (row, v) in &free {
+        for (row, v) in free.iter().take(CONTACT_ROWS) {
             *rhs.entry(*row).or_insert_with(Vector3::zeros) += v;
         }
-        for (row, v) in rhs {
-            let bytes = vec4s(&[v.map(|c| c as f32)]);
-            self.ctx.queue.write_buffer(&self.buffers.rhs, row as u64 * 16, bytemuck::cast_slice(&bytes));
-        }
+        let values: Vec<Vector3<f32>> = rhs.values().map(|v| v.map(|c| c as f32)).collect();
+        self.ctx.queue.write_buffer(&self.buffers.probe_rhs, 0, bytemuck::cast_slice(&vec4s(&values)));
         let probe = GpuContactTerm::probe(&free);
         let at = (contacts * std::mem::size_of::<GpuContactTerm>()) as u64;
         self.ctx.queue.write_buffer(&self.buffers.bound[CONTACT_BINDINGS.start], at, bytemuck::bytes_of(&probe));
-        let outcome = &self.buffers.bound[CONTACT_BINDINGS.end - 1];
-        let (_, read) = self.cg_then(system, Solve::Probe, [&[], &[(Kernel::ProbeOutcome, 1)]], &[(outcome, 16)])?;
-        let bytes = match read {
-            Some(bytes) => bytes,
-            None => self.ctx.read_back(outcome, 16)?,
+        // The writes land before the submission's commands: b's rows go in once rhs and Δv
+        // are cleared, in the solve's own submission.
+        let clear_then_b = |encoder: &mut wgpu::CommandEncoder| {
+            encoder.clear_buffer(&self.buffers.rhs, 0, None);
+            encoder.clear_buffer(&self.buffers.dv, 0, None);
+            for (k, row) in rhs.keys().enumerate() {
+                let (from, to) = (k as u64 * 16, *row as u64 * 16);
+                self.ctx.copy_buffer(encoder, &self.buffers.probe_rhs, from, &self.buffers.rhs, to, 16);
+            }
         };
+        let outcome = [(&self.buffers.bound[CONTACT_BINDINGS.end - 1], 16)];
+        let (_, bytes) = self.cg_then(system, Solve::Probe, &clear_then_b, &[(Kernel::ProbeOutcome, 1)], &outcome)?;
         let out: [f32; 4] = bytemuck::pod_read_unaligned(&bytes);
         Ok(f64::from(out[0]))
     }
@@ -1158,10 +1157,12 @@ mod tests {
 
     /// A coupled tool held 2 mm into the slab on surface contact: the contacts' outcome
     /// (for the release rule and the simulated tool) and the state come back with the CG
-    /// check, so a step in contact is one read-back when the last step foretold its CG
-    /// windows, as a step without contacts is.
+    /// check, so a step in contact is one submission and one read-back when the last step
+    /// foretold its CG windows, as a step without contacts is; the local model's probe
+    /// likewise (b set up in the solve's own submission), and short of its windows each
+    /// check still rides in the submission of the window it checks.
     #[test]
-    fn a_step_in_contact_is_one_read_back_when_the_last_step_foretold_its_cg_windows() {
+    fn a_step_in_contact_and_its_probe_are_one_submission_and_read_back_when_their_cg_windows_were_foretold() {
         let Some(ctx) = defvol_gpu::gpu::test_context() else { return };
         let params = SolverParams {
             gravity: [0.0; 3],
@@ -1173,23 +1174,29 @@ mod tests {
         let mut tool = Tool::new(ToolShape::Sphere { radius: 0.002 }, 20_000.0);
         tool.coupling = Some(Coupling { stiffness: 2000.0, damping: 5.0, mass: 0.02, max_force: 5.0 });
         let mut gpu = GpuSimulation::new(ctx.clone(), &slab(), params, vec![tool]).unwrap();
-        let (mut foretold, mut hits) = (0, 0);
+        let (mut foretold, mut hits, mut probes_in_one) = (0, 0, 0);
         for k in 0..80 {
             let z = 0.003 - 0.005 * (k as f64 / 40.0).min(1.0);
             gpu.tool_mut(0).unwrap().world_from_tool = Isometry3::translation(0.05, 0.05, z);
             let start = ctx.counters();
             let report = gpu.step().unwrap();
-            let counted = ctx.counters().since(&start);
+            let stepped = ctx.counters();
+            let models = gpu.local_models().unwrap();
+            let (step, probe) = (stepped.since(&start), ctx.counters().since(&stepped));
             let needed = u64::from(report.cg_iterations.div_ceil(4));
             if k >= 40 {
                 assert!(!gpu.mirror().contacts().is_empty() && needed > 1, "step {k}: {report:?}");
-                let expected = if needed <= foretold { 1 } else { needed - foretold + 3 };
-                assert_eq!(counted.readbacks, expected, "step {k}: {report:?}, {foretold} windows foretold");
+                assert!(models.len() == 1 && models[0].contact.is_some(), "step {k}: {models:?}");
+                // Short by w windows: the first check, w + 1 windows with theirs, the result.
+                let expected = if needed <= foretold { (1, 1) } else { (needed - foretold + 3, needed - foretold + 3) };
+                assert_eq!((step.submissions, step.readbacks), expected, "step {k}: {report:?}, {foretold} foretold");
+                assert!(probe.readbacks >= 1 && probe.submissions == probe.readbacks, "step {k}: {probe:?}");
                 hits += usize::from(needed <= foretold);
+                probes_in_one += usize::from((probe.submissions, probe.readbacks) == (1, 1));
             }
             foretold = needed.max(1);
         }
-        assert!(hits >= 20, "the last step foretold {hits} of 40");
+        assert!(hits >= 20 && probes_in_one >= 20, "foretold: {hits} steps, {probes_in_one} probes of 40");
     }
 
     /// Explicit steps batched, a tool dented into the nodes and gravity: after the first

@@ -409,6 +409,13 @@ impl GpuContext {
     /// one staging buffer: one submission, one read-back counted. The queue runs on, and
     /// more work may be submitted behind it, until [`GpuContext::finish_read`].
     pub fn read_back_later(&self, parts: &[(&wgpu::Buffer, u64)]) -> PendingRead {
+        let encoder = self.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("read-back") });
+        self.submit_and_read(encoder, parts)
+    }
+
+    /// Submits `encoder`'s work with the copies of [`GpuContext::read_back_later`] behind
+    /// it: the work and its read-back in one submission.
+    pub fn submit_and_read(&self, mut encoder: wgpu::CommandEncoder, parts: &[(&wgpu::Buffer, u64)]) -> PendingRead {
         let size: u64 = parts.iter().map(|(_, bytes)| bytes).sum();
         self.counters[1].fetch_add(1, Ordering::Relaxed);
         self.counters[2].fetch_add(size, Ordering::Relaxed);
@@ -418,8 +425,6 @@ impl GpuContext {
             usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
         });
-        let mut encoder =
-            self.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("read-back") });
         let mut at = 0;
         for (buffer, bytes) in parts {
             self.copy_buffer(&mut encoder, buffer, 0, &staging, at, *bytes);
@@ -548,5 +553,13 @@ mod tests {
         // Nothing asked, nothing counted.
         assert!(ctx.read_back(&buffer, 0).unwrap().is_empty());
         assert_eq!(ctx.counters().since(&start).readbacks, 1);
+        // Work and its read-back in one submission: the copy sees the work done.
+        let mut encoder = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("clear") });
+        encoder.clear_buffer(&buffer, 0, Some(32));
+        let pending = ctx.submit_and_read(encoder, &[(&buffer, 48)]);
+        let mut bytes = [1u8; 48];
+        ctx.finish_read(pending, &mut bytes).unwrap();
+        assert_eq!((bytes[..32].to_vec(), bytes[32..].to_vec()), (vec![0u8; 32], vec![7u8; 16]));
+        assert_eq!(ctx.counters().since(&start), GpuCounters { submissions: 3, readbacks: 2, bytes_read_back: 112 });
     }
 }
