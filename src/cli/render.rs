@@ -19,9 +19,13 @@ use super::choices::{CliMode, CliSampling, CliShading};
 
 #[derive(clap::Args)]
 pub struct RenderArgs {
-    /// Volume file (.nii/.nii.gz/.nrrd/.nhdr/.mha/.mhd); the phantom when absent.
+    /// Volume file (.nii/.nii.gz/.nrrd/.nhdr/.mha/.mhd/.dcm) or a folder of DICOM slices;
+    /// the phantom when absent.
     #[arg(long)]
     volume: Option<PathBuf>,
+    /// With a DICOM folder: the series to read (its SeriesInstanceUID); default the largest.
+    #[arg(long, requires = "volume")]
+    series: Option<String>,
     /// Render a tetrahedral mesh instead (.vtu, .vtk, .msh, .node/.ele), in the volume's
     /// world units. Its node scalars are the file's, or sampled from --volume (or the
     /// phantom) at the nodes.
@@ -127,7 +131,7 @@ pub fn run(args: RenderArgs) -> Result<()> {
         defvol::io::check_volume_output(path)?;
     }
     let volume: Volume = match &args.volume {
-        Some(path) => defvol::io::read_volume(path)?,
+        Some(path) => defvol::io::read_volume_series(path, args.series.as_deref())?,
         None => phantom::phantom(phantom::DEFAULT_DIMS, 1.0)?,
     };
     let tf = match &args.tf_file {

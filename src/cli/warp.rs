@@ -27,9 +27,13 @@ pub struct WarpArgs {
     /// from the unit the mesh file records (defvol's files do), else 1.
     #[arg(long, value_parser = super::checks::mesh_scale)]
     mesh_scale: Option<f64>,
-    /// Source volume (.nii, .nii.gz, .nrrd, .nhdr, .mha, .mhd); the phantom when absent.
+    /// Source volume (.nii, .nii.gz, .nrrd, .nhdr, .mha, .mhd, .dcm, or a folder of DICOM
+    /// slices); the phantom when absent.
     #[arg(long)]
     volume: Option<PathBuf>,
+    /// With a DICOM folder: the series to read (its SeriesInstanceUID); default the largest.
+    #[arg(long, requires = "volume")]
+    series: Option<String>,
     /// Output volume (.nii, .nii.gz, .nrrd, .mha, .mhd), in the source's units and conventions.
     #[arg(long)]
     out: PathBuf,
@@ -40,8 +44,10 @@ pub struct WarpArgs {
     scheme: CliScheme,
     #[arg(long, value_enum, default_value = "trilinear")]
     sampling: CliSampling,
-    #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
-    background: f32,
+    /// The value of voxels no tet covers. Default: the source's minimum, as the node uses
+    /// (air for a CT in Hounsfield units, not 0, which is soft tissue there).
+    #[arg(long, allow_negative_numbers = true)]
+    background: Option<f32>,
     /// Voxels outside the mesh keep the source's value.
     #[arg(long)]
     keep_uncovered: bool,
@@ -75,14 +81,14 @@ pub(super) fn parse_displacement(text: &str) -> Result<DisplacementVolume> {
 pub fn run(args: WarpArgs) -> Result<()> {
     io::check_volume_output(&args.out)?;
     let source = match &args.volume {
-        Some(path) => io::read_volume(path)?,
+        Some(path) => io::read_volume_series(path, args.series.as_deref())?,
         None => defvol::volume::phantom::phantom(defvol::volume::phantom::DEFAULT_DIMS, 1.0)?,
     };
     let displacements = args.displace.iter().map(|d| parse_displacement(d)).collect::<Result<Vec<_>>>()?;
     let options = WarpOptions {
         scheme: args.scheme.into(),
         sampling: args.sampling.into(),
-        background: args.background,
+        background: args.background.unwrap_or(source.range().0),
         keep_uncovered: args.keep_uncovered,
         displacements,
         ..Default::default()

@@ -63,7 +63,8 @@ const TABLE: &[(&str, Descriptor)] = &[
     ("lifecycle.managed", read_only(text("Run as a managed (lifecycle) node: outputs only while active"))),
     ("backend", read_only(constrained(text("Where every stage runs"), "one of auto, cpu, gpu; chosen once per run"))),
     ("allow_software_gpu", read_only(text("Let a software Vulkan adapter (lavapipe, llvmpipe) count as a GPU"))),
-    ("volume", text("Source volume: `phantom` or a .nii/.nii.gz/.nrrd/.nhdr/.mha/.mhd file")),
+    ("volume", text("Source volume: `phantom`, a .nii/.nii.gz/.nrrd/.nhdr/.mha/.mhd/.dcm file or a DICOM folder")),
+    ("volume_series", text("With a DICOM folder: the SeriesInstanceUID to read (default: the largest series)")),
     ("file_to_world", float("World units (m) per file unit (0.001: millimetre files)", 1e-9, 1e3)),
     ("density", float("Tissue density (kg/m³) giving the nodes' masses", 1.0, 1e5)),
     ("frame_id", text("World frame of the tool poses and every output")),
@@ -246,6 +247,7 @@ mod tests {
             ]),
             with(&[("mesh", "{kind: bar, length: 0.1}"), ("fixed", "{kind: indices, nodes: [0, 1]}")]),
             with(&[("mesh", "{kind: file, path: organ.vtk, scale: 0.001}")]),
+            with(&[("volume", "ct_series"), ("volume_series", "1.2.840.10008.99")]),
         ]
     }
 

@@ -272,8 +272,11 @@ impl Default for CameraConfig {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Scene {
-    /// "phantom" or a volume file.
+    /// "phantom", a volume file, or a DICOM folder or file.
     pub volume: String,
+    /// With DICOM: the series to read (its SeriesInstanceUID); the largest when absent.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub volume_series: Option<String>,
     /// World units per file unit (0.001: millimetre files, metre world).
     pub file_to_world: f64,
     pub mesh: MeshSource,
@@ -407,7 +410,7 @@ impl Scene {
         let volume = if self.volume == "phantom" {
             phantom::phantom(phantom::DEFAULT_DIMS, 1.0)?
         } else {
-            io::read_volume(Path::new(&self.volume))?
+            io::read_volume_series(Path::new(&self.volume), self.volume_series.as_deref())?
         };
         let scale = self.file_to_world;
         let mesh = match &self.mesh {

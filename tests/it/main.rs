@@ -5,6 +5,7 @@
 //! in their own process inside a private network namespace.
 
 mod cli;
+mod dicom;
 mod dpcm;
 mod dpcm_markers;
 mod file_interop;

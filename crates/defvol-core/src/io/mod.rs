@@ -3,7 +3,8 @@
 //! Meshes: VTK XML `.vtu` in every encoding VTK and meshio write (`vtk_xml.rs`), legacy
 //! `.vtk` 2.0-5.1 ASCII and binary (`vtk_legacy.rs`), Gmsh 2.2 and 4.1 ASCII and binary
 //! (`gmsh.rs`; 4.1 through mshio), TetGen `.node`/`.ele`. Volumes: NIfTI-1 (the nifti crate),
-//! NRRD and MetaImage (text headers read here). Other cells than tets are counted and skipped.
+//! NRRD and MetaImage (text headers read here), DICOM series (dicom-rs, `dicom.rs`). Other
+//! cells than tets are counted and skipped.
 //!
 //! No input crashes the process: every count and size a header gives is checked against the
 //! bytes that are there before anything is allocated from it, and arithmetic on header
@@ -11,6 +12,7 @@
 //! tests drive them without files. Writes go to a temporary name beside the target and are
 //! renamed at the end: a failure or a kill never leaves a half file under the final name.
 
+mod dicom;
 mod error;
 mod files;
 mod gmsh;
@@ -24,6 +26,7 @@ mod vtk;
 mod vtk_legacy;
 mod vtk_xml;
 
+pub use dicom::{read_dicom, DicomRead, SeriesInfo};
 pub use error::IoError;
 pub use mesh_file::{MeshRead, SkippedCells};
 
@@ -40,6 +43,8 @@ use crate::volume::Volume;
 
 const MESH_TYPES: &str = ".vtu, .vtk, .msh, .node/.ele";
 const VOLUME_TYPES: &str = ".nii, .nii.gz, .nrrd, .nhdr, .mha, .mhd";
+/// What [`read_volume`] takes, in its errors.
+const VOLUME_INPUTS: &str = ".nii, .nii.gz, .nrrd, .nhdr, .mha, .mhd, .dcm, a DICOM folder";
 
 /// The mesh format a file name asks for.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -186,15 +191,41 @@ pub fn parse_volume(path: &Path, bytes: &[u8], sidecar: &dyn Fn(&str) -> Option<
     }
 }
 
-/// Reads a scalar volume (NIfTI-1 `.nii[.gz]`, NRRD `.nrrd`/`.nhdr`, MetaImage `.mha`/`.mhd`).
+/// Reads a scalar volume (NIfTI-1 `.nii[.gz]`, NRRD `.nrrd`/`.nhdr`, MetaImage `.mha`/`.mhd`,
+/// a DICOM series: a folder of slices or a `.dcm` file, its largest series).
 pub fn read_volume(path: &Path) -> Result<Volume, IoError> {
+    read_volume_series(path, None)
+}
+
+/// [`read_volume`]; for DICOM, series `series` (a SeriesInstanceUID) when given.
+pub fn read_volume_series(path: &Path, series: Option<&str>) -> Result<Volume, IoError> {
+    if is_dicom(path) {
+        return Ok(read_dicom(path, series)?.volume);
+    }
+    if let Some(uid) = series {
+        return Err(malformed(path, format!("series {uid} asked for, but this is not a DICOM folder or file")));
+    }
     let name = file_name(path);
     if !VOLUME_TYPES.split(", ").any(|ext| name.ends_with(ext)) {
-        return Err(IoError::UnsupportedExtension { path: path.to_owned(), expected: VOLUME_TYPES });
+        return Err(IoError::UnsupportedExtension { path: path.to_owned(), expected: VOLUME_INPUTS });
     }
     let bytes = std::fs::read(path).map_err(io_error(path))?;
     let folder = path.parent().unwrap_or(Path::new(".")).to_owned();
     parse_volume(path, &bytes, &|name| std::fs::read(folder.join(name)).ok())
+}
+
+/// Whether `path` is read as DICOM: a folder, a `.dcm`/`.dicom` file, or a file with no
+/// other volume type's extension and the DICOM preamble's `DICM` mark.
+fn is_dicom(path: &Path) -> bool {
+    let name = file_name(path).to_ascii_lowercase();
+    if path.is_dir() || name.ends_with(".dcm") || name.ends_with(".dicom") {
+        return true;
+    }
+    let mut mark = [0u8; 132];
+    let other_type = VOLUME_TYPES.split(", ").any(|ext| name.ends_with(ext));
+    !other_type
+        && std::fs::File::open(path).and_then(|mut f| std::io::Read::read_exact(&mut f, &mut mark)).is_ok()
+        && &mark[128..] == b"DICM"
 }
 
 /// Writes a volume as f32 samples in the format the extension names, to exactly `path`

@@ -1,0 +1,297 @@
+//! DICOM series as ITK's `ImageSeriesReader` reads them (GDCM's sorting): the slices of a
+//! folder grouped by SeriesInstanceUID, sorted along the normal of ImageOrientationPatient
+//! by ImagePositionPatient, values through RescaleSlope/Intercept, in ITK's LPS frame.
+//!
+//! Origin: the first sorted slice's position. Direction: the orientation's row and column
+//! directions, then the unit step from the first slice to the second (ITK's rule). Spacing:
+//! PixelSpacing, then the measured distance between positions (not SliceThickness). What
+//! is not one regular volume (mixed orientations or sizes, a slice missing, uneven steps,
+//! gantry tilt) is refused naming the files and the reason. Pixel data is decoded by
+//! dicom-pixeldata's pure-Rust decoders: native little endian (explicit and implicit VR),
+//! deflate, RLE, JPEG baseline and lossless; other transfer syntaxes are refused by name.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use dicom_dictionary_std::tags;
+use dicom_object::{DefaultDicomObject, OpenFileOptions};
+use dicom_pixeldata::{ConvertOptions, PixelDecoder};
+use nalgebra::{Matrix3, Vector3};
+
+use super::error::{io_error, malformed, IoError, MAX_DECODED_BYTES};
+use crate::volume::Volume;
+
+/// Steps between slices may differ from the first by this fraction before a series is
+/// refused as uneven (positions are printed to a few decimals).
+const STEP_TOLERANCE: f64 = 1e-3;
+/// The largest angle (as 1 - cos) between the slice step and the orientation's normal
+/// before a series counts as tilted.
+const TILT_TOLERANCE: f64 = 1e-4;
+
+/// One series of a folder: its UID, description and slice files.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SeriesInfo {
+    pub uid: String,
+    pub description: String,
+    pub files: usize,
+}
+
+/// A volume read from DICOM: the series read, the others the folder holds, and the files
+/// skipped as not DICOM (with why).
+#[derive(Debug)]
+pub struct DicomRead {
+    pub volume: Volume,
+    pub series: SeriesInfo,
+    pub others: Vec<SeriesInfo>,
+    pub skipped: Vec<(PathBuf, String)>,
+}
+
+/// What a slice's header says, read before its pixel data.
+#[derive(Debug, Clone)]
+struct Slice {
+    path: PathBuf,
+    uid: String,
+    description: String,
+    size: [usize; 2],
+    frames: usize,
+    row_dir: Vector3<f64>,
+    col_dir: Vector3<f64>,
+    position: Vector3<f64>,
+    /// Between columns (x), then between rows (y): PixelSpacing reversed.
+    pixel_spacing: [f64; 2],
+}
+
+impl Slice {
+    fn normal(&self) -> Vector3<f64> {
+        self.row_dir.cross(&self.col_dir)
+    }
+}
+
+/// Reads the DICOM volume at `path` (a folder of slices, or one file): series `series` when
+/// given, else the one with the most files.
+pub fn read_dicom(path: &Path, series: Option<&str>) -> Result<DicomRead, IoError> {
+    let files = if path.is_dir() { folder_files(path)? } else { vec![path.to_owned()] };
+    let mut skipped = Vec::new();
+    let mut by_series: BTreeMap<String, Vec<Slice>> = BTreeMap::new();
+    for file in files {
+        match read_header(&file) {
+            Ok(slice) => by_series.entry(slice.uid.clone()).or_default().push(slice),
+            Err(why) => skipped.push((file, why)),
+        }
+    }
+    let infos: Vec<SeriesInfo> = by_series
+        .values()
+        .map(|s| SeriesInfo { uid: s[0].uid.clone(), description: s[0].description.clone(), files: s.len() })
+        .collect();
+    let chosen = match series {
+        Some(uid) => infos
+            .iter()
+            .find(|i| i.uid == uid)
+            .cloned()
+            .ok_or_else(|| malformed(path, format!("no series {uid}; it holds {}", list(&infos))))?,
+        // The largest; of equal ones, the first by UID.
+        None => {
+            infos.iter().max_by(|a, b| a.files.cmp(&b.files).then(b.uid.cmp(&a.uid))).cloned().ok_or_else(|| {
+                malformed(path, format!("no DICOM image among {} files ({})", skipped.len(), first_reason(&skipped)))
+            })?
+        }
+    };
+    let slices = by_series.remove(&chosen.uid).unwrap_or_default();
+    if !skipped.is_empty() {
+        tracing::warn!(
+            "{}: {} files skipped, not DICOM images ({})",
+            path.display(),
+            skipped.len(),
+            first_reason(&skipped)
+        );
+    }
+    let others: Vec<SeriesInfo> = infos.into_iter().filter(|i| i.uid != chosen.uid).collect();
+    if !others.is_empty() && series.is_none() {
+        tracing::info!(
+            "{}: read series {} ({} files); also there: {}",
+            path.display(),
+            chosen.uid,
+            chosen.files,
+            list(&others)
+        );
+    }
+    let volume = read_series(path, slices)?;
+    Ok(DicomRead { volume, series: chosen, others, skipped })
+}
+
+fn list(infos: &[SeriesInfo]) -> String {
+    let each: Vec<String> =
+        infos.iter().map(|i| format!("{} \"{}\" ({} files)", i.uid, i.description, i.files)).collect();
+    each.join(", ")
+}
+
+fn first_reason(skipped: &[(PathBuf, String)]) -> String {
+    skipped.first().map_or_else(String::new, |(file, why)| format!("{}: {why}", file.display()))
+}
+
+/// The folder's files (not its subfolders), by name.
+fn folder_files(folder: &Path) -> Result<Vec<PathBuf>, IoError> {
+    let mut files = Vec::new();
+    for entry in std::fs::read_dir(folder).map_err(io_error(folder))? {
+        let path = entry.map_err(io_error(folder))?.path();
+        if path.is_file() {
+            files.push(path);
+        }
+    }
+    files.sort();
+    Ok(files)
+}
+
+/// A file's header up to its pixel data, or why it is not a DICOM image.
+fn read_header(path: &Path) -> Result<Slice, String> {
+    let object = OpenFileOptions::new().read_until(tags::PIXEL_DATA).open_file(path).map_err(|e| e.to_string())?;
+    header(path, &object)
+}
+
+fn header(path: &Path, object: &DefaultDicomObject) -> Result<Slice, String> {
+    let text = |tag, name: &str| -> Result<String, String> {
+        let element = object.element(tag).map_err(|_| format!("no {name}"))?;
+        Ok(element.to_str().map_err(|e| format!("{name}: {e}"))?.trim().to_owned())
+    };
+    let numbers = |tag, name: &str, count: usize| -> Result<Vec<f64>, String> {
+        let element = object.element(tag).map_err(|_| format!("no {name}"))?;
+        let values = element.to_multi_float64().map_err(|e| format!("{name}: {e}"))?;
+        if values.len() != count || !values.iter().all(|v| v.is_finite()) {
+            return Err(format!("{name} is {values:?}; {count} finite numbers expected"));
+        }
+        Ok(values)
+    };
+    let count = |tag, name: &str| -> Result<usize, String> {
+        let element = object.element(tag).map_err(|_| format!("no {name}"))?;
+        element.to_int::<u32>().map(|v| v as usize).map_err(|e| format!("{name}: {e}"))
+    };
+    let frames = match object.element_opt(tags::NUMBER_OF_FRAMES).map_err(|e| e.to_string())? {
+        Some(element) => element.to_int::<u32>().map_err(|e| format!("NumberOfFrames: {e}"))? as usize,
+        None => 1,
+    };
+    let size = [count(tags::COLUMNS, "Columns")?, count(tags::ROWS, "Rows")?];
+    let bits = count(tags::BITS_ALLOCATED, "BitsAllocated")?;
+    let samples = object.element_opt(tags::SAMPLES_PER_PIXEL).ok().flatten().and_then(|e| e.to_int::<u32>().ok());
+    if samples.unwrap_or(1) != 1 {
+        return Err(format!("{} samples a pixel (colour); a volume has one", samples.unwrap_or(1)));
+    }
+    let bytes = (size[0] as u128) * (size[1] as u128) * (frames as u128) * (bits.div_ceil(8) as u128).max(1);
+    if size.contains(&0) || frames == 0 || bytes > MAX_DECODED_BYTES as u128 {
+        return Err(format!(
+            "{}x{} pixels x {frames} frames x {bits} bits: empty, or beyond {MAX_DECODED_BYTES} bytes",
+            size[0], size[1]
+        ));
+    }
+    let orientation = numbers(tags::IMAGE_ORIENTATION_PATIENT, "ImageOrientationPatient", 6)?;
+    let (row_dir, col_dir) = (
+        Vector3::new(orientation[0], orientation[1], orientation[2]),
+        Vector3::new(orientation[3], orientation[4], orientation[5]),
+    );
+    if (row_dir.norm() - 1.0).abs() > 1e-3 || (col_dir.norm() - 1.0).abs() > 1e-3 || row_dir.dot(&col_dir).abs() > 1e-3
+    {
+        return Err(format!("ImageOrientationPatient {orientation:?} is not two orthonormal directions"));
+    }
+    let position = numbers(tags::IMAGE_POSITION_PATIENT, "ImagePositionPatient", 3)?;
+    let spacing = numbers(tags::PIXEL_SPACING, "PixelSpacing", 2)?;
+    if !spacing.iter().all(|s| *s > 0.0) {
+        return Err(format!("PixelSpacing {spacing:?} must be positive"));
+    }
+    Ok(Slice {
+        path: path.to_owned(),
+        uid: text(tags::SERIES_INSTANCE_UID, "SeriesInstanceUID")?,
+        description: text(tags::SERIES_DESCRIPTION, "SeriesDescription").unwrap_or_default(),
+        size,
+        frames,
+        row_dir: row_dir.normalize(),
+        col_dir: col_dir.normalize(),
+        position: Vector3::new(position[0], position[1], position[2]),
+        pixel_spacing: [spacing[1], spacing[0]],
+    })
+}
+
+/// One series' slices as a volume: checked to be one regular grid, sorted, decoded.
+fn read_series(path: &Path, mut slices: Vec<Slice>) -> Result<Volume, IoError> {
+    if let Some(multi) = slices.iter().find(|s| s.frames > 1) {
+        return Err(malformed(
+            &multi.path,
+            "multi-frame DICOM files are not read yet; a series of single-frame files is",
+        ));
+    }
+    let first = slices[0].clone();
+    for s in &slices[1..] {
+        let reason = if s.size != first.size {
+            Some(format!("{}x{} pixels, not {}x{}", s.size[0], s.size[1], first.size[0], first.size[1]))
+        } else if (s.row_dir - first.row_dir).norm() > 1e-4 || (s.col_dir - first.col_dir).norm() > 1e-4 {
+            Some("mixed orientations (ImageOrientationPatient differs)".to_owned())
+        } else if (0..2).any(|a| (s.pixel_spacing[a] - first.pixel_spacing[a]).abs() > 1e-4 * first.pixel_spacing[a]) {
+            Some(format!("PixelSpacing differs ({:?} and {:?})", s.pixel_spacing, first.pixel_spacing))
+        } else {
+            None
+        };
+        if let Some(reason) = reason {
+            return Err(malformed(
+                path,
+                format!("not one volume: {} and {}: {reason}", first.path.display(), s.path.display()),
+            ));
+        }
+    }
+    let normal = first.normal();
+    slices.sort_by(|a, b| a.position.dot(&normal).total_cmp(&b.position.dot(&normal)));
+    let (slice_dir, step) = slice_step(path, &slices)?;
+    let direction = Matrix3::from_columns(&[first.row_dir, first.col_dir, slice_dir]);
+    let [nx, ny] = first.size;
+    let mut data = Vec::with_capacity(nx * ny * slices.len());
+    for s in &slices {
+        data.extend(decode_slice(&s.path, nx * ny)?);
+    }
+    let spacing = [first.pixel_spacing[0], first.pixel_spacing[1], step];
+    let origin = slices[0].position.into();
+    Ok(Volume::new([nx, ny, slices.len()], spacing, origin, direction, data, &path.display().to_string())?)
+}
+
+/// The unit step between slices and its length, as ITK takes them from the first two
+/// positions, after checking every step against the median step: no two slices at one
+/// place, none missing, no uneven step, no tilt from the orientation's normal.
+fn slice_step(path: &Path, slices: &[Slice]) -> Result<(Vector3<f64>, f64), IoError> {
+    let normal = slices[0].normal();
+    if slices.len() == 1 {
+        return Ok((normal, 1.0));
+    }
+    let steps: Vec<Vector3<f64>> = slices.windows(2).map(|w| w[1].position - w[0].position).collect();
+    let mut lengths: Vec<f64> = steps.iter().map(|d| d.norm()).collect();
+    lengths.sort_by(f64::total_cmp);
+    let median = lengths[lengths.len() / 2];
+    for (k, d) in steps.iter().enumerate() {
+        let (length, along) = (d.norm(), d.dot(&normal));
+        let reason = if length < 1e-6 {
+            Some("two slices at one position".to_owned())
+        } else if 1.0 - along / length > TILT_TOLERANCE {
+            let degrees = (along / length).clamp(-1.0, 1.0).acos().to_degrees();
+            Some(format!("the slices step {degrees:.2}° off their normal (gantry tilt); resample the series first"))
+        } else if length > 1.5 * median {
+            Some(format!("a slice is missing: {length:.4} mm between them, {median:.4} mm between the others"))
+        } else if (length - median).abs() > STEP_TOLERANCE * median {
+            Some(format!("uneven slice spacing: {length:.4} mm between them, {median:.4} mm between the others"))
+        } else {
+            None
+        };
+        if let Some(reason) = reason {
+            let pair = format!("{} and {}", slices[k].path.display(), slices[k + 1].path.display());
+            return Err(malformed(path, format!("{pair}: {reason}")));
+        }
+    }
+    Ok((steps[0] / steps[0].norm(), steps[0].norm()))
+}
+
+/// One slice's values through its RescaleSlope and RescaleIntercept.
+fn decode_slice(path: &Path, pixels: usize) -> Result<Vec<f32>, IoError> {
+    let object = OpenFileOptions::new().open_file(path).map_err(|e| malformed(path, e.to_string()))?;
+    let decoded = object.decode_pixel_data().map_err(|e| malformed(path, format!("pixel data: {e}")))?;
+    let values: Vec<f32> = decoded
+        .to_vec_frame_with_options(0, &ConvertOptions::new())
+        .map_err(|e| malformed(path, format!("pixel data: {e}")))?;
+    if values.len() != pixels {
+        return Err(malformed(path, format!("{} pixel values, Rows x Columns is {pixels}", values.len())));
+    }
+    Ok(values)
+}
