@@ -8,6 +8,7 @@ mod checks;
 mod choices;
 mod demo;
 mod dpcm;
+mod info;
 mod render;
 #[cfg(feature = "mcap")]
 mod replay;
@@ -39,6 +40,8 @@ enum Command {
     Dpcm(dpcm::DpcmArgs),
     /// A raycast image of a volume (the phantom when no file is given).
     Render(render::RenderArgs),
+    /// What a volume or mesh file holds: geometry, values, DICOM series; mesh quality.
+    Info(info::InfoArgs),
     /// The node's pipeline on a scene with its scripted tool path, no DDS: writes
     /// DIR/demo.mcap (a rosbag2 MCAP) and DIR/demo.rrd (a rerun log).
     Demo(demo::DemoArgs),
@@ -128,6 +131,7 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Warp(args) => warp::run(args),
         Command::Dpcm(args) => dpcm::run(args),
         Command::Render(args) => render::run(args),
+        Command::Info(args) => info::run(args),
         Command::Demo(args) => demo::run(args),
         #[cfg(feature = "mcap")]
         Command::Replay(args) => replay::run(args),

@@ -176,3 +176,51 @@ fn a_warped_ct_is_air_where_no_tet_covers_it() {
     let zeros = bent.data().iter().filter(|v| **v == 0.0).count();
     assert!(air > bent.len() / 10 && zeros == 0, "{air} voxels of air, {zeros} of 0 HU in {}", bent.len());
 }
+
+/// `defvol info --json`: a DICOM folder's geometry and range as ITK reads them, its series
+/// and the values' unit; a mesh's counts, bounds and dihedral angles (a corner tet's are
+/// 54.74° and 90°, analytically).
+#[test]
+fn info_describes_a_dicom_folder_as_itk_reads_it_and_a_mesh_by_its_quality() {
+    if !have_simpleitk() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    write_cases(dir.path());
+    let info = |path: &Path| -> Value {
+        let out = Command::new(env!("CARGO_BIN_EXE_defvol")).arg("info").arg(path).arg("--json").output().unwrap();
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        serde_json::from_slice(&out.stdout).unwrap()
+    };
+    let got = info(&dir.path().join("two_series"));
+    let itk = io::read_volume(&dir.path().join("two_series.1.2.3.4.1.mha")).unwrap();
+    let numbers = |v: &Value| -> Vec<f64> { v.as_array().unwrap().iter().map(|x| x.as_f64().unwrap()).collect() };
+    let d = itk.direction();
+    let row_major: Vec<f64> = (0..3).flat_map(|r| (0..3).map(move |c| d[(r, c)])).collect();
+    let (low, high) = itk.range();
+    let expected = [
+        itk.dims().map(|n| n as f64).to_vec(),
+        itk.spacing().to_vec(),
+        itk.origin().to_vec(),
+        row_major,
+        vec![f64::from(low), f64::from(high)],
+    ];
+    for (key, want) in ["dims", "spacing", "origin", "direction", "range"].iter().zip(expected) {
+        let have = numbers(&got[key]);
+        assert!(have.len() == want.len() && have.iter().zip(&want).all(|(a, b)| (a - b).abs() < 1e-4), "{key}: {got}");
+    }
+    assert_eq!((got["series"]["uid"].as_str(), got["units"].as_str()), (Some("1.2.3.4.1"), Some("HU")), "{got}");
+    assert_eq!(got["other_series"][0]["description"], "CT scout", "{got}");
+    let corner = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]].map(nalgebra::Vector3::from);
+    let mesh = defvol::mesh::TetMesh::new(corner.to_vec(), vec![[0, 1, 2, 3]], None, "corner").unwrap();
+    let path = dir.path().join("corner.vtu");
+    io::write_mesh(&path, &mesh, None, None).unwrap();
+    let got = info(&path);
+    assert_eq!(
+        (got["nodes"].as_u64(), got["tets"].as_u64(), got["inverted_tets"].as_u64()),
+        (Some(4), Some(1), Some(0))
+    );
+    let (min, max) = (got["min_dihedral_deg"].as_f64().unwrap(), got["max_dihedral_deg"].as_f64().unwrap());
+    assert!((min - 54.735_610_317).abs() < 1e-6 && (max - 90.0).abs() < 1e-9, "{got}");
+    assert_eq!(numbers(&got["bounds"][1]), [1.0, 1.0, 1.0]);
+}

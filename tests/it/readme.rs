@@ -76,6 +76,8 @@ const RUNS: &[Run] = &[
         writes: &["pushed.mha"],
     },
     Run { line: "defvol warp --out warped.nrrd", replace: &[], writes: &["warped.nrrd"] },
+    Run { line: "defvol info ct.nii.gz", replace: &[], writes: &[] },
+    Run { line: "defvol info organ.vtu", replace: &[], writes: &[] },
     Run {
         line: "defvol bench warp --incremental --gpu",
         replace: &[("--gpu", "--gpu --allow-software-gpu --tets 40 --cases upright --dims 48,32,24 --runs 1")],

@@ -41,6 +41,8 @@ pub struct SeriesInfo {
 #[derive(Debug)]
 pub struct DicomRead {
     pub volume: Volume,
+    /// The values' unit: RescaleType, or HU for a CT without one.
+    pub units: Option<String>,
     pub series: SeriesInfo,
     pub others: Vec<SeriesInfo>,
     pub skipped: Vec<(PathBuf, String)>,
@@ -59,6 +61,7 @@ struct Slice {
     position: Vector3<f64>,
     /// Between columns (x), then between rows (y): PixelSpacing reversed.
     pixel_spacing: [f64; 2],
+    units: Option<String>,
 }
 
 impl Slice {
@@ -97,6 +100,7 @@ pub fn read_dicom(path: &Path, series: Option<&str>) -> Result<DicomRead, IoErro
         }
     };
     let slices = by_series.remove(&chosen.uid).unwrap_or_default();
+    let units = slices.first().and_then(|s| s.units.clone());
     if !skipped.is_empty() {
         tracing::warn!(
             "{}: {} files skipped, not DICOM images ({})",
@@ -116,7 +120,7 @@ pub fn read_dicom(path: &Path, series: Option<&str>) -> Result<DicomRead, IoErro
         );
     }
     let volume = read_series(path, slices)?;
-    Ok(DicomRead { volume, series: chosen, others, skipped })
+    Ok(DicomRead { volume, units, series: chosen, others, skipped })
 }
 
 fn list(infos: &[SeriesInfo]) -> String {
@@ -206,6 +210,10 @@ fn header(path: &Path, object: &DefaultDicomObject) -> Result<Slice, String> {
         col_dir: col_dir.normalize(),
         position: Vector3::new(position[0], position[1], position[2]),
         pixel_spacing: [spacing[1], spacing[0]],
+        units: text(tags::RESCALE_TYPE, "RescaleType")
+            .ok()
+            .filter(|t| !t.is_empty())
+            .or_else(|| (text(tags::MODALITY, "Modality").ok()? == "CT").then(|| "HU".to_owned())),
     })
 }
 

@@ -216,7 +216,7 @@ pub fn read_volume_series(path: &Path, series: Option<&str>) -> Result<Volume, I
 
 /// Whether `path` is read as DICOM: a folder, a `.dcm`/`.dicom` file, or a file with no
 /// other volume type's extension and the DICOM preamble's `DICM` mark.
-fn is_dicom(path: &Path) -> bool {
+pub fn is_dicom(path: &Path) -> bool {
     let name = file_name(path).to_ascii_lowercase();
     if path.is_dir() || name.ends_with(".dcm") || name.ends_with(".dicom") {
         return true;

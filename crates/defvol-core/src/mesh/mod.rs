@@ -173,6 +173,29 @@ impl TetMesh {
     pub fn bounds(&self) -> (Vector3<f64>, Vector3<f64>) {
         bounds(&self.nodes)
     }
+
+    /// The smallest and largest dihedral angle (radians) over every tet: the quality
+    /// measure meshers report (a regular tet's are all acos(1/3) = 70.53°; slivers near 0°
+    /// or 180° stiffen springs and spoil barycentric maps).
+    pub fn dihedral_range(&self) -> (f64, f64) {
+        self.tets.iter().map(|t| dihedral_angles(&self.nodes, t)).fold((f64::INFINITY, 0.0), |(lo, hi), angles| {
+            angles.iter().fold((lo, hi), |(lo, hi), a| (lo.min(*a), hi.max(*a)))
+        })
+    }
+}
+
+/// A tet's six dihedral angles: π minus the angle between the outward normals of the two
+/// faces that meet at each edge.
+pub fn dihedral_angles(nodes: &[Vector3<f64>], t: &[u32; 4]) -> [f64; 6] {
+    let p = t.map(|i| nodes[i as usize]);
+    let normal = |face: [usize; 3]| (p[face[1]] - p[face[0]]).cross(&(p[face[2]] - p[face[0]])).normalize();
+    let n = TET_FACES.map(normal);
+    let mut angles = [0.0; 6];
+    let pairs = [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)];
+    for (k, (i, j)) in pairs.into_iter().enumerate() {
+        angles[k] = std::f64::consts::PI - n[i].dot(&n[j]).clamp(-1.0, 1.0).acos();
+    }
+    angles
 }
 
 pub fn bounds(points: &[Vector3<f64>]) -> (Vector3<f64>, Vector3<f64>) {
@@ -276,6 +299,21 @@ fn check_boundary_manifold(boundary: &[[u32; 3]], source: &str) -> Result<(), Me
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn dihedral_angles_of_a_regular_and_a_corner_tet_are_the_analytic_ones() {
+        let regular = [[1.0, 1.0, 1.0], [1.0, -1.0, -1.0], [-1.0, 1.0, -1.0], [-1.0, -1.0, 1.0]].map(Vector3::from);
+        let corner = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]].map(Vector3::from);
+        let mesh = |nodes: [Vector3<f64>; 4]| TetMesh::new(nodes.to_vec(), vec![[0, 1, 2, 3]], None, "tet").unwrap();
+        let (lo, hi) = mesh(regular).dihedral_range();
+        let tetrahedral = (1.0f64 / 3.0).acos();
+        assert!((lo - tetrahedral).abs() < 1e-12 && (hi - tetrahedral).abs() < 1e-12, "{lo} {hi}");
+        // Three right angles along the axes; where the slanted face meets an axis plane,
+        // acos(1/√3) = 54.74°.
+        let (lo, hi) = mesh(corner).dihedral_range();
+        let slanted = (1.0f64 / 3.0f64.sqrt()).acos();
+        assert!((lo - slanted).abs() < 1e-12 && (hi - std::f64::consts::FRAC_PI_2).abs() < 1e-12, "{lo} {hi}");
+    }
 
     fn unit_tet() -> (Vec<Vector3<f64>>, Vec<[u32; 4]>) {
         (vec![Vector3::zeros(), Vector3::x(), Vector3::y(), Vector3::z()], vec![[0, 1, 2, 3]])
