@@ -224,3 +224,82 @@ fn info_describes_a_dicom_folder_as_itk_reads_it_and_a_mesh_by_its_quality() {
     assert!((min - 54.735_610_317).abs() < 1e-6 && (max - 90.0).abs() < 1e-9, "{got}");
     assert_eq!(numbers(&got["bounds"][1]), [1.0, 1.0, 1.0]);
 }
+
+/// A CT slice as dicom-rs writes it (explicit VR little endian): `cols` x `rows` signed
+/// 16-bit values stored through slope 2 and intercept -1024, axial at height `z`, 0.5 by
+/// 0.75 mm pixels. `frames` overrides NumberOfFrames and `rows_claimed` Rows (damage).
+pub(crate) fn synthetic_slice(
+    z: f64,
+    size: [u16; 2],
+    stored: &[i16],
+    frames: Option<&str>,
+    rows_claimed: Option<u16>,
+) -> Vec<u8> {
+    use dicom_core::{dicom_value, DataElement, PrimitiveValue, VR};
+    use dicom_dictionary_std::tags;
+    use dicom_object::{FileMetaTableBuilder, InMemDicomObject};
+    let [cols, rows] = size;
+    let mut elements = vec![
+        DataElement::new(tags::SOP_CLASS_UID, VR::UI, "1.2.840.10008.5.1.4.1.1.2"),
+        DataElement::new(tags::SOP_INSTANCE_UID, VR::UI, format!("1.2.3.9.{}", (z * 10.0) as i64)),
+        DataElement::new(tags::MODALITY, VR::CS, "CT"),
+        DataElement::new(tags::SERIES_INSTANCE_UID, VR::UI, "1.2.3.9"),
+        DataElement::new(tags::IMAGE_POSITION_PATIENT, VR::DS, dicom_value!(Strs, ["-10", "20", z.to_string()])),
+        DataElement::new(tags::IMAGE_ORIENTATION_PATIENT, VR::DS, dicom_value!(Strs, ["1", "0", "0", "0", "1", "0"])),
+        DataElement::new(tags::SAMPLES_PER_PIXEL, VR::US, dicom_value!(U16, 1)),
+        DataElement::new(tags::PHOTOMETRIC_INTERPRETATION, VR::CS, "MONOCHROME2"),
+        DataElement::new(tags::ROWS, VR::US, dicom_value!(U16, rows_claimed.unwrap_or(rows))),
+        DataElement::new(tags::COLUMNS, VR::US, dicom_value!(U16, cols)),
+        DataElement::new(tags::PIXEL_SPACING, VR::DS, dicom_value!(Strs, ["0.75", "0.5"])),
+        DataElement::new(tags::BITS_ALLOCATED, VR::US, dicom_value!(U16, 16)),
+        DataElement::new(tags::BITS_STORED, VR::US, dicom_value!(U16, 16)),
+        DataElement::new(tags::HIGH_BIT, VR::US, dicom_value!(U16, 15)),
+        DataElement::new(tags::PIXEL_REPRESENTATION, VR::US, dicom_value!(U16, 1)),
+        DataElement::new(tags::RESCALE_INTERCEPT, VR::DS, "-1024"),
+        DataElement::new(tags::RESCALE_SLOPE, VR::DS, "2"),
+        DataElement::new(tags::PIXEL_DATA, VR::OW, PrimitiveValue::I16(stored.iter().copied().collect())),
+    ];
+    if let Some(frames) = frames {
+        elements.push(DataElement::new(tags::NUMBER_OF_FRAMES, VR::IS, frames));
+    }
+    let object = InMemDicomObject::from_element_iter(elements)
+        .with_meta(FileMetaTableBuilder::new().transfer_syntax("1.2.840.10008.1.2.1"))
+        .unwrap();
+    let mut bytes = Vec::new();
+    object.write_all(&mut bytes).unwrap();
+    bytes
+}
+
+/// A slice's values are its stored ones through slope and intercept, its geometry its
+/// position, orientation and PixelSpacing (columns first); damaged files are refused by
+/// their reason: cut short, Rows beyond the pixel data, 10^6 frames, and a cut slice in a
+/// folder names that file while a text file there is skipped.
+#[test]
+fn a_slice_reads_through_its_rescale_and_damaged_files_are_refused_by_their_reason() {
+    let stored: Vec<i16> = (0..12).map(|k| k * 37 - 200).collect();
+    let bytes = synthetic_slice(7.5, [4, 3], &stored, None, None);
+    let v = io::parse_dicom(Path::new("s.dcm"), &bytes).unwrap();
+    let hu: Vec<f32> = stored.iter().map(|s| f32::from(*s) * 2.0 - 1024.0).collect();
+    assert_eq!((v.dims(), v.origin(), v.spacing()), ([4, 3, 1], [-10.0, 20.0, 7.5], [0.5, 0.75, 1.0]));
+    assert_eq!((v.data(), *v.direction()), (&hu[..], nalgebra::Matrix3::identity()));
+    let refusal = |bytes: &[u8]| io::parse_dicom(Path::new("bad.dcm"), bytes).unwrap_err().to_string();
+    let cut = refusal(&bytes[..bytes.len() - 10]);
+    assert!(cut.starts_with("bad.dcm:") && cut.contains("truncated or damaged"), "{cut}");
+    let tall = refusal(&synthetic_slice(0.0, [4, 3], &stored, None, Some(60_000)));
+    assert!(tall.contains("declares 480000 bytes of pixel data") && tall.contains("header is wrong"), "{tall}");
+    let million = refusal(&synthetic_slice(0.0, [4, 3], &stored, Some("1000000"), None));
+    assert!(million.contains("declares 24000000 bytes"), "{million}");
+    let huge = refusal(&synthetic_slice(0.0, [4000, 3], &stored, Some("1000000"), Some(4000)));
+    assert!(huge.contains("4000x4000 pixels x 1000000 frames x 16 bits") && huge.contains("beyond"), "{huge}");
+    let dir = tempfile::tempdir().unwrap();
+    for k in 0..3 {
+        std::fs::write(dir.path().join(format!("{k}.dcm")), synthetic_slice(f64::from(k), [4, 3], &stored, None, None))
+            .unwrap();
+    }
+    std::fs::write(dir.path().join("notes.txt"), "not DICOM").unwrap();
+    let read = io::read_dicom(dir.path(), None).unwrap();
+    assert_eq!((read.volume.dims(), read.skipped.len(), read.units.as_deref()), ([4, 3, 3], 1, Some("HU")));
+    std::fs::write(dir.path().join("1.dcm"), &bytes[..200]).unwrap();
+    let damaged = io::read_dicom(dir.path(), None).unwrap_err().to_string();
+    assert!(damaged.contains("1.dcm") && damaged.contains("truncated or damaged"), "{damaged}");
+}

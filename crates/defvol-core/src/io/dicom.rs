@@ -62,6 +62,11 @@ struct Slice {
     /// Between columns (x), then between rows (y): PixelSpacing reversed.
     pixel_spacing: [f64; 2],
     units: Option<String>,
+    /// The pixel data's bytes as Rows x Columns x frames x BitsAllocated give them, where
+    /// the transfer syntax stores them uncompressed (the file must hold that many).
+    native_bytes: Option<u64>,
+    /// SpacingBetweenSlices, else SliceThickness: a lone slice's depth, as ITK takes it.
+    thickness: Option<f64>,
 }
 
 impl Slice {
@@ -79,6 +84,8 @@ pub fn read_dicom(path: &Path, series: Option<&str>) -> Result<DicomRead, IoErro
     for file in files {
         match read_header(&file) {
             Ok(slice) => by_series.entry(slice.uid.clone()).or_default().push(slice),
+            // A file that says it is DICOM and cannot be read is damaged, not a stray.
+            Err(why) if has_dicom_mark(&file) => return Err(damaged(&file, why)),
             Err(why) => skipped.push((file, why)),
         }
     }
@@ -152,6 +159,17 @@ fn read_header(path: &Path) -> Result<Slice, String> {
     header(path, &object)
 }
 
+/// Whether a file carries the DICOM preamble's `DICM` mark.
+fn has_dicom_mark(path: &Path) -> bool {
+    let mut mark = [0u8; 132];
+    std::fs::File::open(path).and_then(|mut f| std::io::Read::read_exact(&mut f, &mut mark)).is_ok()
+        && &mark[128..] == b"DICM"
+}
+
+/// Transfer syntaxes whose pixel data is stored as is: implicit and explicit VR little
+/// endian, explicit big endian.
+const NATIVE_SYNTAXES: [&str; 3] = ["1.2.840.10008.1.2", "1.2.840.10008.1.2.1", "1.2.840.10008.1.2.2"];
+
 fn header(path: &Path, object: &DefaultDicomObject) -> Result<Slice, String> {
     let text = |tag, name: &str| -> Result<String, String> {
         let element = object.element(tag).map_err(|_| format!("no {name}"))?;
@@ -175,6 +193,13 @@ fn header(path: &Path, object: &DefaultDicomObject) -> Result<Slice, String> {
     };
     let size = [count(tags::COLUMNS, "Columns")?, count(tags::ROWS, "Rows")?];
     let bits = count(tags::BITS_ALLOCATED, "BitsAllocated")?;
+    let stored = count(tags::BITS_STORED, "BitsStored")?;
+    // CT and MR store 8 or 16 bits; dicom-pixeldata's tables assume what is checked here.
+    if !(bits == 8 || bits == 16) || stored == 0 || stored > bits {
+        return Err(format!(
+            "BitsAllocated {bits}, BitsStored {stored}: 8 or 16 bits, stored in 1 to all of them, are read"
+        ));
+    }
     let samples = object.element_opt(tags::SAMPLES_PER_PIXEL).ok().flatten().and_then(|e| e.to_int::<u32>().ok());
     if samples.unwrap_or(1) != 1 {
         return Err(format!("{} samples a pixel (colour); a volume has one", samples.unwrap_or(1)));
@@ -210,6 +235,12 @@ fn header(path: &Path, object: &DefaultDicomObject) -> Result<Slice, String> {
         col_dir: col_dir.normalize(),
         position: Vector3::new(position[0], position[1], position[2]),
         pixel_spacing: [spacing[1], spacing[0]],
+        native_bytes: NATIVE_SYNTAXES
+            .contains(&object.meta().transfer_syntax().trim_end_matches('\0'))
+            .then(|| u64::try_from(bytes).unwrap_or(u64::MAX)),
+        thickness: [tags::SPACING_BETWEEN_SLICES, tags::SLICE_THICKNESS]
+            .into_iter()
+            .find_map(|tag| object.element(tag).ok()?.to_float64().ok().filter(|t| t.is_finite() && *t > 0.0)),
         units: text(tags::RESCALE_TYPE, "RescaleType")
             .ok()
             .filter(|t| !t.is_empty())
@@ -250,7 +281,7 @@ fn read_series(path: &Path, mut slices: Vec<Slice>) -> Result<Volume, IoError> {
     let [nx, ny] = first.size;
     let mut data = Vec::with_capacity(nx * ny * slices.len());
     for s in &slices {
-        data.extend(decode_slice(&s.path, nx * ny)?);
+        data.extend(decode_slice(s)?);
     }
     let spacing = [first.pixel_spacing[0], first.pixel_spacing[1], step];
     let origin = slices[0].position.into();
@@ -263,7 +294,7 @@ fn read_series(path: &Path, mut slices: Vec<Slice>) -> Result<Volume, IoError> {
 fn slice_step(path: &Path, slices: &[Slice]) -> Result<(Vector3<f64>, f64), IoError> {
     let normal = slices[0].normal();
     if slices.len() == 1 {
-        return Ok((normal, 1.0));
+        return Ok((normal, slices[0].thickness.unwrap_or(1.0)));
     }
     let steps: Vec<Vector3<f64>> = slices.windows(2).map(|w| w[1].position - w[0].position).collect();
     let mut lengths: Vec<f64> = steps.iter().map(|d| d.norm()).collect();
@@ -291,9 +322,34 @@ fn slice_step(path: &Path, slices: &[Slice]) -> Result<(Vector3<f64>, f64), IoEr
     Ok((steps[0] / steps[0].norm(), steps[0].norm()))
 }
 
+/// Refuses a file that holds fewer bytes than its uncompressed pixel data needs, before
+/// anything is allocated for it (a cut file, or a header that lies).
+fn check_pixel_bytes(path: &Path, slice: &Slice, available: u64) -> Result<(), IoError> {
+    match slice.native_bytes {
+        Some(needed) if needed > available => Err(malformed(
+            path,
+            format!(
+                "declares {needed} bytes of pixel data (Columns x Rows x frames x BitsAllocated) but holds {available} \
+                 bytes in all: truncated, or its header is wrong"
+            ),
+        )),
+        _ => Ok(()),
+    }
+}
+
+fn damaged(path: &Path, e: impl std::fmt::Display) -> IoError {
+    malformed(path, format!("a DICOM file that cannot be read (truncated or damaged): {e}"))
+}
+
 /// One slice's values through its RescaleSlope and RescaleIntercept.
-fn decode_slice(path: &Path, pixels: usize) -> Result<Vec<f32>, IoError> {
-    let object = OpenFileOptions::new().open_file(path).map_err(|e| malformed(path, e.to_string()))?;
+fn decode_slice(slice: &Slice) -> Result<Vec<f32>, IoError> {
+    let path = &slice.path;
+    check_pixel_bytes(path, slice, std::fs::metadata(path).map_err(io_error(path))?.len())?;
+    let object = OpenFileOptions::new().open_file(path).map_err(|e| damaged(path, e))?;
+    decode_frame(path, &object, slice.size[0] * slice.size[1])
+}
+
+fn decode_frame(path: &Path, object: &DefaultDicomObject, pixels: usize) -> Result<Vec<f32>, IoError> {
     let decoded = object.decode_pixel_data().map_err(|e| malformed(path, format!("pixel data: {e}")))?;
     let values: Vec<f32> = decoded
         .to_vec_frame_with_options(0, &ConvertOptions::new())
@@ -302,4 +358,22 @@ fn decode_slice(path: &Path, pixels: usize) -> Result<Vec<f32>, IoError> {
         return Err(malformed(path, format!("{} pixel values, Rows x Columns is {pixels}", values.len())));
     }
     Ok(values)
+}
+
+/// Parses one single-frame DICOM file from its bytes, a volume one slice deep (its depth
+/// SpacingBetweenSlices, else SliceThickness, else 1, as ITK takes it); `path` names it in
+/// errors. The fuzz tests drive the DICOM path through it.
+pub fn parse_dicom(path: &Path, bytes: &[u8]) -> Result<Volume, IoError> {
+    let open = |options: OpenFileOptions| options.from_reader(bytes).map_err(|e| damaged(path, e));
+    let slice = header(path, &open(OpenFileOptions::new().read_until(tags::PIXEL_DATA))?)
+        .map_err(|why| malformed(path, why))?;
+    check_pixel_bytes(path, &slice, bytes.len() as u64)?;
+    if slice.frames > 1 {
+        return Err(malformed(path, "multi-frame DICOM files are not read yet; a series of single-frame files is"));
+    }
+    let data = decode_frame(path, &open(OpenFileOptions::new())?, slice.size[0] * slice.size[1])?;
+    let direction = Matrix3::from_columns(&[slice.row_dir, slice.col_dir, slice.normal()]);
+    let spacing = [slice.pixel_spacing[0], slice.pixel_spacing[1], slice.thickness.unwrap_or(1.0)];
+    let dims = [slice.size[0], slice.size[1], 1];
+    Ok(Volume::new(dims, spacing, slice.position.into(), direction, data, &path.display().to_string())?)
 }

@@ -26,7 +26,7 @@ mod vtk;
 mod vtk_legacy;
 mod vtk_xml;
 
-pub use dicom::{read_dicom, DicomRead, SeriesInfo};
+pub use dicom::{parse_dicom, read_dicom, DicomRead, SeriesInfo};
 pub use error::IoError;
 pub use mesh_file::{MeshRead, SkippedCells};
 
