@@ -363,3 +363,15 @@ fn no_datagram_crashes_the_udp_frame_parser() {
         parser.parse(bytes);
     });
 }
+
+#[test]
+fn no_dicom_file_crashes_the_dicom_loader() {
+    let stored: Vec<i16> = (0..12).map(|k| k * 91 - 500).collect();
+    let seeds = vec![
+        ("slice.dcm".to_owned(), crate::dicom::synthetic_slice(2.5, [4, 3], &stored, None, None)),
+        ("frames.dcm".to_owned(), crate::dicom::synthetic_slice(0.0, [2, 3], &stored, Some("2"), None)),
+    ];
+    fuzz("DICOM loader", &seeds, ITERATIONS, |name, bytes| {
+        let _ = io::parse_dicom(Path::new(name), bytes);
+    });
+}

@@ -18,6 +18,7 @@ use dicom_object::{DefaultDicomObject, OpenFileOptions};
 use dicom_pixeldata::{ConvertOptions, PixelDecoder};
 use nalgebra::{Matrix3, Vector3};
 
+use super::dicom_scan::check_lengths;
 use super::error::{io_error, malformed, IoError, MAX_DECODED_BYTES};
 use crate::volume::Volume;
 
@@ -62,9 +63,10 @@ struct Slice {
     /// Between columns (x), then between rows (y): PixelSpacing reversed.
     pixel_spacing: [f64; 2],
     units: Option<String>,
-    /// The pixel data's bytes as Rows x Columns x frames x BitsAllocated give them, where
-    /// the transfer syntax stores them uncompressed (the file must hold that many).
-    native_bytes: Option<u64>,
+    /// The pixel data's bytes as Columns x Rows x frames x BitsAllocated give them.
+    pixel_bytes: u64,
+    /// Whether the transfer syntax stores them uncompressed (the file must hold them all).
+    native: bool,
     /// SpacingBetweenSlices, else SliceThickness: a lone slice's depth, as ITK takes it.
     thickness: Option<f64>,
 }
@@ -155,7 +157,10 @@ fn folder_files(folder: &Path) -> Result<Vec<PathBuf>, IoError> {
 
 /// A file's header up to its pixel data, or why it is not a DICOM image.
 fn read_header(path: &Path) -> Result<Slice, String> {
-    let object = OpenFileOptions::new().read_until(tags::PIXEL_DATA).open_file(path).map_err(|e| e.to_string())?;
+    let bytes = std::fs::read(path).map_err(|e| e.to_string())?;
+    check_lengths(&bytes)?;
+    let object =
+        OpenFileOptions::new().read_until(tags::PIXEL_DATA).from_reader(&bytes[..]).map_err(|e| e.to_string())?;
     header(path, &object)
 }
 
@@ -235,9 +240,8 @@ fn header(path: &Path, object: &DefaultDicomObject) -> Result<Slice, String> {
         col_dir: col_dir.normalize(),
         position: Vector3::new(position[0], position[1], position[2]),
         pixel_spacing: [spacing[1], spacing[0]],
-        native_bytes: NATIVE_SYNTAXES
-            .contains(&object.meta().transfer_syntax().trim_end_matches('\0'))
-            .then(|| u64::try_from(bytes).unwrap_or(u64::MAX)),
+        pixel_bytes: u64::try_from(bytes).unwrap_or(u64::MAX),
+        native: NATIVE_SYNTAXES.contains(&object.meta().transfer_syntax().trim_end_matches('\0')),
         thickness: [tags::SPACING_BETWEEN_SLICES, tags::SLICE_THICKNESS]
             .into_iter()
             .find_map(|tag| object.element(tag).ok()?.to_float64().ok().filter(|t| t.is_finite() && *t > 0.0)),
@@ -322,18 +326,27 @@ fn slice_step(path: &Path, slices: &[Slice]) -> Result<(Vector3<f64>, f64), IoEr
     Ok((steps[0] / steps[0].norm(), steps[0].norm()))
 }
 
-/// Refuses a file that holds fewer bytes than its uncompressed pixel data needs, before
-/// anything is allocated for it (a cut file, or a header that lies).
+/// No codec packs more than this many decoded bytes into one (deflate's limit is 1032,
+/// RLE's 128): a compressed file declaring more lies about its size.
+const MAX_COMPRESSION: u64 = 2048;
+
+/// Refuses a file whose pixel data cannot be in `available` bytes, before anything is
+/// allocated for it (a cut file, or a header that lies): uncompressed, every byte must be
+/// there; compressed, no more than [`MAX_COMPRESSION`] to one, and a byte a frame.
 fn check_pixel_bytes(path: &Path, slice: &Slice, available: u64) -> Result<(), IoError> {
-    match slice.native_bytes {
-        Some(needed) if needed > available => Err(malformed(
-            path,
-            format!(
-                "declares {needed} bytes of pixel data (Columns x Rows x frames x BitsAllocated) but holds {available} \
-                 bytes in all: truncated, or its header is wrong"
-            ),
-        )),
-        _ => Ok(()),
+    let (needed, frames) = (slice.pixel_bytes, slice.frames as u64);
+    let lie = if slice.native && needed > available {
+        Some(format!("declares {needed} bytes of pixel data (Columns x Rows x frames x BitsAllocated)"))
+    } else if needed > available.saturating_mul(MAX_COMPRESSION) || frames > available {
+        Some(format!("declares {needed} bytes of pixel data in {frames} frames, compressed beyond any codec's ratio"))
+    } else {
+        None
+    };
+    match lie {
+        Some(lie) => {
+            Err(malformed(path, format!("{lie} but holds {available} bytes in all: truncated, or its header is wrong")))
+        }
+        None => Ok(()),
     }
 }
 
@@ -345,7 +358,9 @@ fn damaged(path: &Path, e: impl std::fmt::Display) -> IoError {
 fn decode_slice(slice: &Slice) -> Result<Vec<f32>, IoError> {
     let path = &slice.path;
     check_pixel_bytes(path, slice, std::fs::metadata(path).map_err(io_error(path))?.len())?;
-    let object = OpenFileOptions::new().open_file(path).map_err(|e| damaged(path, e))?;
+    let bytes = std::fs::read(path).map_err(io_error(path))?;
+    check_lengths(&bytes).map_err(|e| damaged(path, e))?;
+    let object = OpenFileOptions::new().from_reader(&bytes[..]).map_err(|e| damaged(path, e))?;
     decode_frame(path, &object, slice.size[0] * slice.size[1])
 }
 
@@ -364,6 +379,7 @@ fn decode_frame(path: &Path, object: &DefaultDicomObject, pixels: usize) -> Resu
 /// SpacingBetweenSlices, else SliceThickness, else 1, as ITK takes it); `path` names it in
 /// errors. The fuzz tests drive the DICOM path through it.
 pub fn parse_dicom(path: &Path, bytes: &[u8]) -> Result<Volume, IoError> {
+    check_lengths(bytes).map_err(|e| damaged(path, e))?;
     let open = |options: OpenFileOptions| options.from_reader(bytes).map_err(|e| damaged(path, e));
     let slice = header(path, &open(OpenFileOptions::new().read_until(tags::PIXEL_DATA))?)
         .map_err(|why| malformed(path, why))?;

@@ -13,6 +13,7 @@
 //! renamed at the end: a failure or a kill never leaves a half file under the final name.
 
 mod dicom;
+mod dicom_scan;
 mod error;
 mod files;
 mod gmsh;
