@@ -21,12 +21,17 @@ fn have_simpleitk() -> bool {
     ok
 }
 
-/// Writes the cases into `dir`; what each holds.
-fn write_cases(dir: &Path) -> Value {
+/// The cases written into a fresh folder, and what each holds; none without SimpleITK.
+fn written_cases() -> Option<(tempfile::TempDir, Value)> {
+    if !have_simpleitk() {
+        return None;
+    }
+    let dir = tempfile::tempdir().unwrap();
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/interop/dicom.py");
-    let out = Command::new("python3").arg(script).arg("write").arg(dir).output().unwrap();
+    let out = Command::new("python3").arg(script).arg("write").arg(dir.path()).output().unwrap();
     assert!(out.status.success(), "dicom.py: {}", String::from_utf8_lossy(&out.stderr));
-    serde_json::from_slice(&out.stdout).unwrap()
+    let cases = serde_json::from_slice(&out.stdout).unwrap();
+    Some((dir, cases))
 }
 
 /// defvol's read of `case` (series `uid`) against ITK's, written beside it as `.mha`.
@@ -57,11 +62,7 @@ fn matches_itk(dir: &Path, case: &str, uid: &str, ours: &defvol::volume::Volume)
 
 #[test]
 fn dicom_series_read_as_itk_reads_them_and_irregular_ones_are_refused_by_their_reason() {
-    if !have_simpleitk() {
-        return;
-    }
-    let dir = tempfile::tempdir().unwrap();
-    let cases = write_cases(dir.path());
+    let Some((dir, cases)) = written_cases() else { return };
     let mut failures = Vec::new();
     for (case, entry) in cases.as_object().unwrap() {
         let folder = dir.path().join(case);
@@ -100,11 +101,7 @@ fn dicom_series_read_as_itk_reads_them_and_irregular_ones_are_refused_by_their_r
 /// skipped and counted.
 #[test]
 fn a_folder_of_several_series_reads_the_largest_or_the_one_asked_for() {
-    if !have_simpleitk() {
-        return;
-    }
-    let dir = tempfile::tempdir().unwrap();
-    write_cases(dir.path());
+    let Some((dir, _)) = written_cases() else { return };
     let folder = dir.path().join("two_series");
     let read = io::read_dicom(&folder, None).unwrap();
     assert_eq!((read.series.uid.as_str(), read.series.files), ("1.2.3.4.1", 9));
@@ -128,11 +125,7 @@ fn a_folder_of_several_series_reads_the_largest_or_the_one_asked_for() {
 /// error naming the ones there.
 #[test]
 fn warp_takes_a_dicom_folder_and_a_series_by_its_uid() {
-    if !have_simpleitk() {
-        return;
-    }
-    let dir = tempfile::tempdir().unwrap();
-    write_cases(dir.path());
+    let Some((dir, _)) = written_cases() else { return };
     let folder = dir.path().join("two_series");
     let out = dir.path().join("scout.nrrd");
     let run = |series: &str| {
@@ -157,11 +150,7 @@ fn warp_takes_a_dicom_folder_and_a_series_by_its_uid() {
 /// covers are the source's minimum (air, -1000 HU), not 0 (soft tissue).
 #[test]
 fn a_warped_ct_is_air_where_no_tet_covers_it() {
-    if !have_simpleitk() {
-        return;
-    }
-    let dir = tempfile::tempdir().unwrap();
-    write_cases(dir.path());
+    let Some((dir, _)) = written_cases() else { return };
     let out = dir.path().join("bent.nrrd");
     let done = Command::new(env!("CARGO_BIN_EXE_defvol"))
         .args(["warp", "--backend", "cpu", "--volume"])
@@ -182,11 +171,7 @@ fn a_warped_ct_is_air_where_no_tet_covers_it() {
 /// 54.74° and 90°, analytically).
 #[test]
 fn info_describes_a_dicom_folder_as_itk_reads_it_and_a_mesh_by_its_quality() {
-    if !have_simpleitk() {
-        return;
-    }
-    let dir = tempfile::tempdir().unwrap();
-    write_cases(dir.path());
+    let Some((dir, _)) = written_cases() else { return };
     let info = |path: &Path| -> Value {
         let out = Command::new(env!("CARGO_BIN_EXE_defvol")).arg("info").arg(path).arg("--json").output().unwrap();
         assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
