@@ -1,18 +1,22 @@
 """A Python ROS 2 node built against defvol_interfaces (the package generated from
 defvol_interfaces/ by rosidl) subscribes to a running defvol node's `deformed_mesh` and
 `warped_volume/info` and calls its `load_scene`, and prints what it got as one JSON object.
+It streams tool poses above the organ as a device would, so that the solver, which sleeps
+at rest, is stepping (and publishing meshes) however late this peer joins.
 
 Usage: rclpy_interfaces.py NAMESPACE (e.g. /robot); ROS_DOMAIN_ID picks the domain, and
 PYTHONPATH / AMENT_PREFIX_PATH must reach the built defvol_interfaces.
 """
 
 import json
+import math
 import sys
 import time
 
 import rclpy
 from defvol_interfaces.msg import DeformedMesh, WarpedVolumeInfo
 from defvol_interfaces.srv import LoadScene
+from geometry_msgs.msg import PoseStamped
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 
@@ -29,9 +33,16 @@ def main():
     client = node.create_client(LoadScene, f"{namespace}/load_scene")
     if not client.wait_for_service(timeout_sec=20.0):
         raise SystemExit("load_scene not found")
+    poses = node.create_publisher(PoseStamped, f"{namespace}/tool_pose", 10)
     end = time.monotonic() + 20.0
     while time.monotonic() < end and (len(meshes) < 3 or not infos):
-        rclpy.spin_once(node, timeout_sec=0.05)
+        pose = PoseStamped()
+        pose.header.frame_id = "world"
+        pose.header.stamp = node.get_clock().now().to_msg()
+        pose.pose.position.z = 0.15 + 0.005 * math.sin(4.0 * time.monotonic())
+        pose.pose.orientation.w = 1.0
+        poses.publish(pose)
+        rclpy.spin_once(node, timeout_sec=0.02)
     future = client.call_async(LoadScene.Request(scene="volume: [phantom\nmesh: {}"))
     rclpy.spin_until_future_complete(node, future, timeout_sec=10.0)
     reply = future.result()
