@@ -35,7 +35,7 @@ def ct_values(shape):
     return values
 
 
-def write_series(folder, values, spacing, origin, direction, uid, description, steps, names):
+def write_series(folder, values, spacing, origin, direction, uid, description, steps, names, compressor=None):
     """One file a slice, positions along the direction's third column every spacing[2] (or
     at the cumulative `steps`), values stored as int16 through slope 0.5, intercept -1024."""
     import SimpleITK as sitk
@@ -46,6 +46,10 @@ def write_series(folder, values, spacing, origin, direction, uid, description, s
     offsets = np.concatenate([[0.0], np.cumsum(steps)]) if steps is not None else np.arange(depth) * spacing[2]
     writer = sitk.ImageFileWriter()
     writer.KeepOriginalImageUIDOn()
+    if compressor:
+        # GDCM's "JPEG": JPEG lossless, first-order prediction (1.2.840.10008.1.2.4.70).
+        writer.SetUseCompression(True)
+        writer.SetCompressor(compressor)
     orientation = "\\".join(f"{v:.10f}" for v in list(direction[:, 0]) + list(direction[:, 1]))
     for k in range(depth):
         image = sitk.GetImageFromArray(values[k : k + 1].astype(np.float32))
@@ -102,13 +106,14 @@ def main():
         for n, (uid, description, vals) in enumerate(series):
             names = kwargs.get("names") or [f"{'s%d_' % n if n else ''}slice{k:03d}.dcm" for k in range(len(vals))]
             write_series(folder, vals, spacing, origin, kwargs.get("direction", axial), uid, description,
-                         kwargs.get("steps"), names)
+                         kwargs.get("steps"), names, kwargs.get("compressor"))
         cases[name] = {"series": [s[0] for s in series], "readable": readable}
         return folder
 
     one = [("1.2.3.4.1", "CT abdomen", values)]
     case("axial", True, one)
     case("oblique", True, one, direction=oblique())
+    case("jpeg_lossless", True, one, compressor="JPEG")
     shuffled = [f"{random.getrandbits(48):012x}.dcm" for _ in range(shape[0])]
     case("shuffled", True, one, names=shuffled)
     # A second, smaller series in the folder: the larger is read, `--series` picks either.

@@ -1,4 +1,5 @@
-//! DICOM series written by SimpleITK (GDCM) as a scanner writes them (tests/interop/dicom.py):
+//! DICOM series written by SimpleITK (GDCM) as a scanner writes them (tests/interop/dicom.py;
+//! native and JPEG lossless, 1.2.840.10008.1.2.4.70):
 //! defvol reads each as ITK's ImageSeriesReader does, voxel for voxel and to 1e-4 mm in
 //! origin, spacing and direction, and refuses what is not one regular volume by its reason.
 
