@@ -23,11 +23,8 @@ pub struct InfoArgs {
     json: bool,
 }
 
-const MESH_EXTENSIONS: [&str; 5] = [".vtu", ".vtk", ".msh", ".node", ".ele"];
-
 pub fn run(args: InfoArgs) -> Result<()> {
-    let name = args.path.to_string_lossy().to_ascii_lowercase();
-    let info = if !args.path.is_dir() && MESH_EXTENSIONS.iter().any(|e| name.ends_with(e)) {
+    let info = if io::is_mesh(&args.path) {
         mesh_info(&io::read_mesh(&args.path)?)
     } else if io::is_dicom(&args.path) {
         let read = io::read_dicom(&args.path, args.series.as_deref())?;

@@ -165,7 +165,7 @@ fn read_header(path: &Path) -> Result<Slice, String> {
 }
 
 /// Whether a file carries the DICOM preamble's `DICM` mark.
-fn has_dicom_mark(path: &Path) -> bool {
+pub(super) fn has_dicom_mark(path: &Path) -> bool {
     let mut mark = [0u8; 132];
     std::fs::File::open(path).and_then(|mut f| std::io::Read::read_exact(&mut f, &mut mark)).is_ok()
         && &mark[128..] == b"DICM"
@@ -357,14 +357,17 @@ fn damaged(path: &Path, e: impl std::fmt::Display) -> IoError {
 /// One slice's values through its RescaleSlope and RescaleIntercept.
 fn decode_slice(slice: &Slice) -> Result<Vec<f32>, IoError> {
     let path = &slice.path;
-    check_pixel_bytes(path, slice, std::fs::metadata(path).map_err(io_error(path))?.len())?;
     let bytes = std::fs::read(path).map_err(io_error(path))?;
     check_lengths(&bytes).map_err(|e| damaged(path, e))?;
-    let object = OpenFileOptions::new().from_reader(&bytes[..]).map_err(|e| damaged(path, e))?;
-    decode_frame(path, &object, slice.size[0] * slice.size[1])
+    decode_checked(path, &bytes, slice)
 }
 
-fn decode_frame(path: &Path, object: &DefaultDicomObject, pixels: usize) -> Result<Vec<f32>, IoError> {
+/// The first frame's values of a file whose element lengths were checked, once its pixel
+/// data is known to fit in its bytes.
+fn decode_checked(path: &Path, bytes: &[u8], slice: &Slice) -> Result<Vec<f32>, IoError> {
+    check_pixel_bytes(path, slice, bytes.len() as u64)?;
+    let object = OpenFileOptions::new().from_reader(bytes).map_err(|e| damaged(path, e))?;
+    let pixels = slice.size[0] * slice.size[1];
     let decoded = object.decode_pixel_data().map_err(|e| malformed(path, format!("pixel data: {e}")))?;
     let values: Vec<f32> = decoded
         .to_vec_frame_with_options(0, &ConvertOptions::new())
@@ -380,14 +383,14 @@ fn decode_frame(path: &Path, object: &DefaultDicomObject, pixels: usize) -> Resu
 /// errors. The fuzz tests drive the DICOM path through it.
 pub fn parse_dicom(path: &Path, bytes: &[u8]) -> Result<Volume, IoError> {
     check_lengths(bytes).map_err(|e| damaged(path, e))?;
-    let open = |options: OpenFileOptions| options.from_reader(bytes).map_err(|e| damaged(path, e));
-    let slice = header(path, &open(OpenFileOptions::new().read_until(tags::PIXEL_DATA))?)
-        .map_err(|why| malformed(path, why))?;
+    let object =
+        OpenFileOptions::new().read_until(tags::PIXEL_DATA).from_reader(bytes).map_err(|e| damaged(path, e))?;
+    let slice = header(path, &object).map_err(|why| malformed(path, why))?;
     check_pixel_bytes(path, &slice, bytes.len() as u64)?;
     if slice.frames > 1 {
         return Err(malformed(path, "multi-frame DICOM files are not read yet; a series of single-frame files is"));
     }
-    let data = decode_frame(path, &open(OpenFileOptions::new())?, slice.size[0] * slice.size[1])?;
+    let data = decode_checked(path, bytes, &slice)?;
     let direction = Matrix3::from_columns(&[slice.row_dir, slice.col_dir, slice.normal()]);
     let spacing = [slice.pixel_spacing[0], slice.pixel_spacing[1], slice.thickness.unwrap_or(1.0)];
     let dims = [slice.size[0], slice.size[1], 1];

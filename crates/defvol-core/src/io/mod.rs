@@ -219,14 +219,14 @@ pub fn read_volume_series(path: &Path, series: Option<&str>) -> Result<Volume, I
 /// other volume type's extension and the DICOM preamble's `DICM` mark.
 pub fn is_dicom(path: &Path) -> bool {
     let name = file_name(path).to_ascii_lowercase();
-    if path.is_dir() || name.ends_with(".dcm") || name.ends_with(".dicom") {
-        return true;
-    }
-    let mut mark = [0u8; 132];
     let other_type = VOLUME_TYPES.split(", ").any(|ext| name.ends_with(ext));
-    !other_type
-        && std::fs::File::open(path).and_then(|mut f| std::io::Read::read_exact(&mut f, &mut mark)).is_ok()
-        && &mark[128..] == b"DICM"
+    path.is_dir() || name.ends_with(".dcm") || name.ends_with(".dicom") || (!other_type && dicom::has_dicom_mark(path))
+}
+
+/// Whether `path` names a mesh file [`read_mesh`] reads (by its extension).
+pub fn is_mesh(path: &Path) -> bool {
+    let name = file_name(path);
+    MeshFormat::of(path).is_some() || name.ends_with(".node") || name.ends_with(".ele")
 }
 
 /// Writes a volume as f32 samples in the format the extension names, to exactly `path`
@@ -235,8 +235,7 @@ pub fn is_dicom(path: &Path) -> bool {
 /// What a command checks of a mesh output before its work: a type [`write_mesh`] writes, in
 /// a folder that exists.
 pub fn check_mesh_output(path: &Path) -> Result<(), IoError> {
-    let name = file_name(path);
-    if MeshFormat::of(path).is_none() && !(name.ends_with(".node") || name.ends_with(".ele")) {
+    if !is_mesh(path) {
         return Err(IoError::UnsupportedExtension { path: path.to_owned(), expected: MESH_TYPES });
     }
     check_folder(path)
