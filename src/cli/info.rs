@@ -45,7 +45,7 @@ pub fn run(args: InfoArgs) -> Result<()> {
 }
 
 fn series_info(s: &io::SeriesInfo) -> Value {
-    json!({"uid": s.uid, "description": s.description, "files": s.files})
+    json!({"uid": s.uid, "description": s.description, "files": s.files, "slices": s.slices})
 }
 
 fn volume_info(v: &Volume, units: Option<&str>) -> Value {

@@ -1,12 +1,14 @@
-"""DICOM series written by SimpleITK (GDCM), and what SimpleITK's ImageSeriesReader reads of
-them, for tests/it/dicom.rs.
+"""DICOM series written by SimpleITK (GDCM) and multi-frame files written by pydicom, and what
+SimpleITK reads of them (ImageSeriesReader for a series, GDCM's ImageIO for one file), for
+tests/it/dicom.rs.
 
 usage:
   dicom.py write DIR   writes each case's series into DIR/<case>/ (slices as a scanner writes
                        them: one file a slice, CT values stored through RescaleSlope and
                        RescaleIntercept), and for each case ITK reads as one volume, what
-                       ImageSeriesReader reads (GDCM's sorting) as DIR/<case>.mha; prints a
-                       JSON object: case -> {"series": [uids], "readable": bool}.
+                       ImageSeriesReader reads (GDCM's sorting) as DIR/<case>.<uid>.mha; a
+                       multi-frame case is one file, DIR/<case>/volume.dcm; prints a JSON
+                       object: case -> {"series": [uids], "readable": bool}.
 """
 
 import json
@@ -82,12 +84,66 @@ def write_series(folder, values, spacing, origin, direction, uid, description, s
         writer.Execute(image)
 
 
+def write_multiframe(path, values, spacing, origin, direction, uid, enhanced, syntax):
+    """One file holding every slice as a frame, by pydicom. Enhanced (Enhanced CT Image
+    Storage): per-frame positions, orientation, PixelSpacing and rescale (slope 0.5,
+    intercept -1024) in the shared functional groups. Classic (MR Image Storage, which GDCM
+    steps by SpacingBetweenSlices): one ImagePositionPatient, values stored as they are."""
+    from pydicom.dataset import Dataset, FileMetaDataset
+    from pydicom.sequence import Sequence
+    from pydicom.uid import ExplicitVRLittleEndian
+
+    def item(**attributes):
+        ds = Dataset()
+        for name, value in attributes.items():
+            setattr(ds, name, Sequence([value]) if isinstance(value, Dataset) else value)
+        return ds
+
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    direction = np.asarray(direction)
+    depth, rows, cols = values.shape
+    sop_class = "1.2.840.10008.5.1.4.1.1.2.1" if enhanced else "1.2.840.10008.5.1.4.1.1.4"
+    ds = item(SOPClassUID=sop_class, SOPInstanceUID=f"{uid}.1", StudyInstanceUID="1.2.826.0.1.3680043.2.1125.1",
+              SeriesInstanceUID=uid, SeriesDescription="multi-frame", Modality="CT" if enhanced else "MR",
+              Rows=rows, Columns=cols, NumberOfFrames=depth, SamplesPerPixel=1,
+              PhotometricInterpretation="MONOCHROME2", BitsAllocated=16, BitsStored=16, HighBit=15,
+              PixelRepresentation=1)
+    ds.file_meta = FileMetaDataset()
+    ds.file_meta.TransferSyntaxUID = ExplicitVRLittleEndian
+    ds.file_meta.MediaStorageSOPClassUID = sop_class
+    ds.file_meta.MediaStorageSOPInstanceUID = f"{uid}.1"
+    orientation = [float(v) for v in list(direction[:, 0]) + list(direction[:, 1])]
+    pixel_spacing = [spacing[1], spacing[0]]
+    if enhanced:
+        stored = np.round((values + 1024.0) / 0.5).astype(np.int16)
+        ds.ImageType = ["ORIGINAL", "PRIMARY", "AXIAL", "NONE"]
+        ds.SharedFunctionalGroupsSequence = Sequence([item(
+            PixelMeasuresSequence=item(PixelSpacing=pixel_spacing, SliceThickness=spacing[2]),
+            PlaneOrientationSequence=item(ImageOrientationPatient=orientation),
+            PixelValueTransformationSequence=item(RescaleIntercept=-1024, RescaleSlope=0.5, RescaleType="HU"),
+        )])
+        positions = [np.asarray(origin) + direction[:, 2] * spacing[2] * k for k in range(depth)]
+        ds.PerFrameFunctionalGroupsSequence = Sequence([
+            item(PlanePositionSequence=item(ImagePositionPatient=[float(v) for v in p])) for p in positions
+        ])
+    else:
+        stored = np.round(values).astype(np.int16)
+        ds.ImageOrientationPatient = orientation
+        ds.ImagePositionPatient = list(origin)
+        ds.PixelSpacing = pixel_spacing
+        ds.SpacingBetweenSlices = spacing[2]
+    ds.PixelData = stored.tobytes()
+    if syntax != ExplicitVRLittleEndian:
+        ds.compress(syntax, stored)
+    ds.save_as(path, enforce_file_format=True)
+
+
 def itk_read(folder, uid, out):
     import SimpleITK as sitk
 
     reader = sitk.ImageSeriesReader()
-    reader.SetFileNames(reader.GetGDCMSeriesFileNames(folder, uid))
-    image = reader.Execute()
+    files = reader.GetGDCMSeriesFileNames(folder, uid)
+    image = sitk.ReadImage(files[0]) if len(files) == 1 else sitk.ReadImage(files)
     sitk.WriteImage(sitk.Cast(image, sitk.sitkFloat32), out)
 
 
@@ -129,6 +185,14 @@ def main():
     for name in os.listdir(folder):
         os.remove(os.path.join(folder, name))
     write_tilted(folder, values, spacing, origin, tilted)
+    # Multi-frame files: an enhanced CT (oblique, native) and a classic MR, RLE-compressed.
+    from pydicom.uid import ExplicitVRLittleEndian, RLELossless
+
+    for name, enhanced, syntax in [("enhanced_ct", True, ExplicitVRLittleEndian),
+                                   ("multiframe_mr_rle", False, RLELossless)]:
+        path = os.path.join(out, name, "volume.dcm")
+        write_multiframe(path, values, spacing, origin, oblique(), "1.2.3.4.7", enhanced, syntax)
+        cases[name] = {"series": ["1.2.3.4.7"], "readable": True}
     folder = case("with_a_stray_file", True, one)
     with open(os.path.join(folder, "README.txt"), "w") as f:
         f.write("not a DICOM file\n")

@@ -1,7 +1,8 @@
-//! DICOM series written by SimpleITK (GDCM) as a scanner writes them (tests/interop/dicom.py;
-//! native and JPEG lossless, 1.2.840.10008.1.2.4.70):
-//! defvol reads each as ITK's ImageSeriesReader does, voxel for voxel and to 1e-4 mm in
-//! origin, spacing and direction, and refuses what is not one regular volume by its reason.
+//! DICOM series written by SimpleITK (GDCM) as a scanner writes them (native and JPEG
+//! lossless, 1.2.840.10008.1.2.4.70) and multi-frame files written by pydicom (an enhanced CT,
+//! a classic MR in RLE), by tests/interop/dicom.py: defvol reads each as SimpleITK does, voxel
+//! for voxel and to 1e-4 mm in origin, spacing and direction, and refuses what is not one
+//! regular volume by its reason.
 
 use std::path::Path;
 use std::process::Command;
@@ -9,22 +10,23 @@ use std::process::Command;
 use defvol::io;
 use serde_json::Value;
 
-/// SimpleITK; under tests/run.sh (DEFVOL_REQUIRE_INTEROP=1) it must be there.
-fn have_simpleitk() -> bool {
-    let ok = Command::new("python3").args(["-c", "import SimpleITK"]).output().is_ok_and(|o| o.status.success());
+/// SimpleITK and pydicom; under tests/run.sh (DEFVOL_REQUIRE_INTEROP=1) they must be there.
+fn have_dicom_writers() -> bool {
+    let ok =
+        Command::new("python3").args(["-c", "import SimpleITK, pydicom"]).output().is_ok_and(|o| o.status.success());
     if !ok {
         assert!(
             std::env::var_os("DEFVOL_REQUIRE_INTEROP").is_none(),
-            "SimpleITK is missing (tests/run.sh installs it)"
+            "SimpleITK or pydicom is missing (tests/run.sh installs them)"
         );
-        eprintln!("skipped: SimpleITK is not installed");
+        eprintln!("skipped: SimpleITK or pydicom is not installed");
     }
     ok
 }
 
 /// The cases written into a fresh folder, and what each holds; none without SimpleITK.
 fn written_cases() -> Option<(tempfile::TempDir, Value)> {
-    if !have_simpleitk() {
+    if !have_dicom_writers() {
         return None;
     }
     let dir = tempfile::tempdir().unwrap();
@@ -93,8 +95,24 @@ fn dicom_series_read_as_itk_reads_them_and_irregular_ones_are_refused_by_their_r
             }
         }
     }
-    assert!(cases.as_object().unwrap().len() >= 8, "{cases}");
+    assert!(cases.as_object().unwrap().len() >= 10, "{cases}");
     assert!(failures.is_empty(), "{}", failures.join("\n"));
+}
+
+/// A multi-frame file reads the same given as itself, as its folder, or as bytes (the fuzz
+/// path); its frames count as slices of one file.
+#[test]
+fn a_multi_frame_file_reads_alike_by_its_path_its_folder_and_its_bytes() {
+    let Some((dir, _)) = written_cases() else { return };
+    for case in ["enhanced_ct", "multiframe_mr_rle"] {
+        let file = dir.path().join(case).join("volume.dcm");
+        let read = io::read_dicom(&file, None).unwrap();
+        assert_eq!((read.series.files, read.series.slices), (1, 9), "{case}");
+        matches_itk(dir.path(), case, "1.2.3.4.7", &read.volume).unwrap();
+        let parsed = io::parse_dicom(&file, &std::fs::read(&file).unwrap()).unwrap();
+        matches_itk(dir.path(), case, "1.2.3.4.7", &parsed).unwrap();
+        assert_eq!(read.units.as_deref(), (case == "enhanced_ct").then_some("HU"), "{case}");
+    }
 }
 
 /// A folder of two series: the larger is read and the other listed; `read_volume_series`
@@ -105,7 +123,7 @@ fn a_folder_of_several_series_reads_the_largest_or_the_one_asked_for() {
     let Some((dir, _)) = written_cases() else { return };
     let folder = dir.path().join("two_series");
     let read = io::read_dicom(&folder, None).unwrap();
-    assert_eq!((read.series.uid.as_str(), read.series.files), ("1.2.3.4.1", 9));
+    assert_eq!((read.series.uid.as_str(), read.series.files, read.series.slices), ("1.2.3.4.1", 9, 9));
     let others: Vec<(&str, &str, usize)> =
         read.others.iter().map(|s| (s.uid.as_str(), s.description.as_str(), s.files)).collect();
     assert_eq!(others, [("1.2.3.4.2", "CT scout", 4)]);
@@ -277,6 +295,8 @@ fn a_slice_reads_through_its_rescale_and_damaged_files_are_refused_by_their_reas
     assert!(million.contains("declares 24000000 bytes"), "{million}");
     let huge = refusal(&synthetic_slice(0.0, [4000, 3], &stored, Some("1000000"), Some(4000)));
     assert!(huge.contains("4000x4000 pixels x 1000000 frames x 16 bits") && huge.contains("beyond"), "{huge}");
+    let unplaced = refusal(&synthetic_slice(0.0, [2, 3], &stored, Some("2"), None));
+    assert!(unplaced.contains("neither per-frame positions nor a positive SpacingBetweenSlices"), "{unplaced}");
     let dir = tempfile::tempdir().unwrap();
     for k in 0..3 {
         std::fs::write(dir.path().join(format!("{k}.dcm")), synthetic_slice(f64::from(k), [4, 3], &stored, None, None))

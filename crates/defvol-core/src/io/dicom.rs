@@ -9,12 +9,18 @@
 //! gantry tilt) is refused naming the files and the reason. Pixel data is decoded by
 //! dicom-pixeldata's pure-Rust decoders: native little endian (explicit and implicit VR),
 //! deflate, RLE, JPEG baseline and lossless; other transfer syntaxes are refused by name.
+//!
+//! A multi-frame file is a series in one file, each frame a slice: an enhanced one
+//! (Enhanced CT/MR) places its frames by the per-frame functional groups' positions and
+//! takes orientation, PixelSpacing and rescale from the shared ones (GDCM's rule); a
+//! classic one steps its frames along the normal by SpacingBetweenSlices.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
 
 use dicom_dictionary_std::tags;
-use dicom_object::{DefaultDicomObject, OpenFileOptions};
+use dicom_object::mem::InMemElement;
+use dicom_object::{DefaultDicomObject, InMemDicomObject, OpenFileOptions, Tag};
 use dicom_pixeldata::{ConvertOptions, PixelDecoder};
 use nalgebra::{Matrix3, Vector3};
 
@@ -28,13 +34,18 @@ const STEP_TOLERANCE: f64 = 1e-3;
 /// The largest angle (as 1 - cos) between the slice step and the orientation's normal
 /// before a series counts as tilted.
 const TILT_TOLERANCE: f64 = 1e-4;
+/// More frames than any one volume holds: a file declaring more is refused before its
+/// frames are listed.
+const MAX_FRAMES: usize = 1 << 16;
 
-/// One series of a folder: its UID, description and slice files.
+/// One series of a folder: its UID, description, files and slices (a multi-frame file
+/// holds many).
 #[derive(Debug, Clone, PartialEq)]
 pub struct SeriesInfo {
     pub uid: String,
     pub description: String,
     pub files: usize,
+    pub slices: usize,
 }
 
 /// A volume read from DICOM: the series read, the others the folder holds, and the files
@@ -49,10 +60,13 @@ pub struct DicomRead {
     pub skipped: Vec<(PathBuf, String)>,
 }
 
-/// What a slice's header says, read before its pixel data.
+/// What a slice's header says, read before its pixel data: one a file, or one a frame of a
+/// multi-frame file.
 #[derive(Debug, Clone)]
 struct Slice {
     path: PathBuf,
+    /// Which frame of its file.
+    frame: usize,
     uid: String,
     description: String,
     size: [usize; 2],
@@ -75,6 +89,14 @@ impl Slice {
     fn normal(&self) -> Vector3<f64> {
         self.row_dir.cross(&self.col_dir)
     }
+
+    /// The file, and the frame where the file holds several.
+    fn name(&self) -> String {
+        match self.frames {
+            1 => self.path.display().to_string(),
+            _ => format!("{} (frame {})", self.path.display(), self.frame + 1),
+        }
+    }
 }
 
 /// Reads the DICOM volume at `path` (a folder of slices, or one file): series `series` when
@@ -85,7 +107,7 @@ pub fn read_dicom(path: &Path, series: Option<&str>) -> Result<DicomRead, IoErro
     let mut by_series: BTreeMap<String, Vec<Slice>> = BTreeMap::new();
     for file in files {
         match read_header(&file) {
-            Ok(slice) => by_series.entry(slice.uid.clone()).or_default().push(slice),
+            Ok(frames) => by_series.entry(frames[0].uid.clone()).or_default().extend(frames),
             // A file that says it is DICOM and cannot be read is damaged, not a stray.
             Err(why) if has_dicom_mark(&file) => return Err(damaged(&file, why)),
             Err(why) => skipped.push((file, why)),
@@ -93,7 +115,12 @@ pub fn read_dicom(path: &Path, series: Option<&str>) -> Result<DicomRead, IoErro
     }
     let infos: Vec<SeriesInfo> = by_series
         .values()
-        .map(|s| SeriesInfo { uid: s[0].uid.clone(), description: s[0].description.clone(), files: s.len() })
+        .map(|s| SeriesInfo {
+            uid: s[0].uid.clone(),
+            description: s[0].description.clone(),
+            files: s.iter().filter(|slice| slice.frame == 0).count(),
+            slices: s.len(),
+        })
         .collect();
     let chosen = match series {
         Some(uid) => infos
@@ -103,7 +130,7 @@ pub fn read_dicom(path: &Path, series: Option<&str>) -> Result<DicomRead, IoErro
             .ok_or_else(|| malformed(path, format!("no series {uid}; it holds {}", list(&infos))))?,
         // The largest; of equal ones, the first by UID.
         None => {
-            infos.iter().max_by(|a, b| a.files.cmp(&b.files).then(b.uid.cmp(&a.uid))).cloned().ok_or_else(|| {
+            infos.iter().max_by(|a, b| a.slices.cmp(&b.slices).then(b.uid.cmp(&a.uid))).cloned().ok_or_else(|| {
                 malformed(path, format!("no DICOM image among {} files ({})", skipped.len(), first_reason(&skipped)))
             })?
         }
@@ -121,20 +148,20 @@ pub fn read_dicom(path: &Path, series: Option<&str>) -> Result<DicomRead, IoErro
     let others: Vec<SeriesInfo> = infos.into_iter().filter(|i| i.uid != chosen.uid).collect();
     if !others.is_empty() && series.is_none() {
         tracing::info!(
-            "{}: read series {} ({} files); also there: {}",
+            "{}: read series {} ({} slices); also there: {}",
             path.display(),
             chosen.uid,
-            chosen.files,
+            chosen.slices,
             list(&others)
         );
     }
-    let volume = read_series(path, slices)?;
+    let volume = assemble(path, slices, decode_file)?;
     Ok(DicomRead { volume, units, series: chosen, others, skipped })
 }
 
 fn list(infos: &[SeriesInfo]) -> String {
     let each: Vec<String> =
-        infos.iter().map(|i| format!("{} \"{}\" ({} files)", i.uid, i.description, i.files)).collect();
+        infos.iter().map(|i| format!("{} \"{}\" ({} slices)", i.uid, i.description, i.slices)).collect();
     each.join(", ")
 }
 
@@ -155,13 +182,13 @@ fn folder_files(folder: &Path) -> Result<Vec<PathBuf>, IoError> {
     Ok(files)
 }
 
-/// A file's header up to its pixel data, or why it is not a DICOM image.
-fn read_header(path: &Path) -> Result<Slice, String> {
+/// A file's slices from its header up to its pixel data, or why it is not a DICOM image.
+fn read_header(path: &Path) -> Result<Vec<Slice>, String> {
     let bytes = std::fs::read(path).map_err(|e| e.to_string())?;
     check_lengths(&bytes)?;
     let object =
         OpenFileOptions::new().read_until(tags::PIXEL_DATA).from_reader(&bytes[..]).map_err(|e| e.to_string())?;
-    header(path, &object)
+    header(path, &object, bytes.len() as u64)
 }
 
 /// Whether a file carries the DICOM preamble's `DICM` mark.
@@ -175,18 +202,30 @@ pub(super) fn has_dicom_mark(path: &Path) -> bool {
 /// endian, explicit big endian.
 const NATIVE_SYNTAXES: [&str; 3] = ["1.2.840.10008.1.2", "1.2.840.10008.1.2.1", "1.2.840.10008.1.2.2"];
 
-fn header(path: &Path, object: &DefaultDicomObject) -> Result<Slice, String> {
+/// An attribute as an enhanced file keeps it: in the first item of `group` in the shared
+/// functional groups, else in the first frame's, else at the top level (a classic file).
+fn functional(object: &DefaultDicomObject, group: Tag, attribute: Tag) -> Option<&InMemElement> {
+    let in_group = |groups: Tag| object.get(groups)?.items()?.first()?.get(group)?.items()?.first()?.get(attribute);
+    in_group(tags::SHARED_FUNCTIONAL_GROUPS_SEQUENCE)
+        .or_else(|| in_group(tags::PER_FRAME_FUNCTIONAL_GROUPS_SEQUENCE))
+        .or_else(|| object.get(attribute))
+}
+
+/// `count` finite numbers from `element`, named `name` in errors.
+fn numbers(element: Option<&InMemElement>, name: &str, count: usize) -> Result<Vec<f64>, String> {
+    let values = element.ok_or_else(|| format!("no {name}"))?.to_multi_float64().map_err(|e| format!("{name}: {e}"))?;
+    if values.len() != count || !values.iter().all(|v| v.is_finite()) {
+        return Err(format!("{name} is {values:?}; {count} finite numbers expected"));
+    }
+    Ok(values)
+}
+
+/// A file's slices, one a frame, from its header; `available` is the file's size, so pixel
+/// data that cannot be in it is refused before a frame is listed.
+fn header(path: &Path, object: &DefaultDicomObject, available: u64) -> Result<Vec<Slice>, String> {
     let text = |tag, name: &str| -> Result<String, String> {
         let element = object.element(tag).map_err(|_| format!("no {name}"))?;
         Ok(element.to_str().map_err(|e| format!("{name}: {e}"))?.trim().to_owned())
-    };
-    let numbers = |tag, name: &str, count: usize| -> Result<Vec<f64>, String> {
-        let element = object.element(tag).map_err(|_| format!("no {name}"))?;
-        let values = element.to_multi_float64().map_err(|e| format!("{name}: {e}"))?;
-        if values.len() != count || !values.iter().all(|v| v.is_finite()) {
-            return Err(format!("{name} is {values:?}; {count} finite numbers expected"));
-        }
-        Ok(values)
     };
     let count = |tag, name: &str| -> Result<usize, String> {
         let element = object.element(tag).map_err(|_| format!("no {name}"))?;
@@ -216,7 +255,11 @@ fn header(path: &Path, object: &DefaultDicomObject) -> Result<Slice, String> {
             size[0], size[1]
         ));
     }
-    let orientation = numbers(tags::IMAGE_ORIENTATION_PATIENT, "ImageOrientationPatient", 6)?;
+    let orientation = numbers(
+        functional(object, tags::PLANE_ORIENTATION_SEQUENCE, tags::IMAGE_ORIENTATION_PATIENT),
+        "ImageOrientationPatient",
+        6,
+    )?;
     let (row_dir, col_dir) = (
         Vector3::new(orientation[0], orientation[1], orientation[2]),
         Vector3::new(orientation[3], orientation[4], orientation[5]),
@@ -225,41 +268,81 @@ fn header(path: &Path, object: &DefaultDicomObject) -> Result<Slice, String> {
     {
         return Err(format!("ImageOrientationPatient {orientation:?} is not two orthonormal directions"));
     }
-    let position = numbers(tags::IMAGE_POSITION_PATIENT, "ImagePositionPatient", 3)?;
-    let spacing = numbers(tags::PIXEL_SPACING, "PixelSpacing", 2)?;
+    let spacing = numbers(functional(object, tags::PIXEL_MEASURES_SEQUENCE, tags::PIXEL_SPACING), "PixelSpacing", 2)?;
     if !spacing.iter().all(|s| *s > 0.0) {
         return Err(format!("PixelSpacing {spacing:?} must be positive"));
     }
-    Ok(Slice {
+    let depth = |tag| {
+        functional(object, tags::PIXEL_MEASURES_SEQUENCE, tag)?.to_float64().ok().filter(|t| t.is_finite() && *t > 0.0)
+    };
+    let first = Slice {
         path: path.to_owned(),
+        frame: 0,
         uid: text(tags::SERIES_INSTANCE_UID, "SeriesInstanceUID")?,
         description: text(tags::SERIES_DESCRIPTION, "SeriesDescription").unwrap_or_default(),
         size,
         frames,
         row_dir: row_dir.normalize(),
         col_dir: col_dir.normalize(),
-        position: Vector3::new(position[0], position[1], position[2]),
+        position: Vector3::zeros(),
         pixel_spacing: [spacing[1], spacing[0]],
         pixel_bytes: u64::try_from(bytes).unwrap_or(u64::MAX),
         native: NATIVE_SYNTAXES.contains(&object.meta().transfer_syntax().trim_end_matches('\0')),
-        thickness: [tags::SPACING_BETWEEN_SLICES, tags::SLICE_THICKNESS]
-            .into_iter()
-            .find_map(|tag| object.element(tag).ok()?.to_float64().ok().filter(|t| t.is_finite() && *t > 0.0)),
-        units: text(tags::RESCALE_TYPE, "RescaleType")
-            .ok()
+        thickness: depth(tags::SPACING_BETWEEN_SLICES).or_else(|| depth(tags::SLICE_THICKNESS)),
+        units: functional(object, tags::PIXEL_VALUE_TRANSFORMATION_SEQUENCE, tags::RESCALE_TYPE)
+            .and_then(|e| Some(e.to_str().ok()?.trim().to_owned()))
             .filter(|t| !t.is_empty())
             .or_else(|| (text(tags::MODALITY, "Modality").ok()? == "CT").then(|| "HU".to_owned())),
-    })
+    };
+    check_pixel_bytes(&first, available)?;
+    let positions = frame_positions(object, &first)?;
+    Ok(positions.into_iter().enumerate().map(|(frame, position)| Slice { frame, position, ..first.clone() }).collect())
 }
 
-/// One series' slices as a volume: checked to be one regular grid, sorted, decoded.
-fn read_series(path: &Path, mut slices: Vec<Slice>) -> Result<Volume, IoError> {
-    if let Some(multi) = slices.iter().find(|s| s.frames > 1) {
-        return Err(malformed(
-            &multi.path,
-            "multi-frame DICOM files are not read yet; a series of single-frame files is",
-        ));
+/// Where each frame of a file lies: the per-frame functional groups' positions where an
+/// enhanced file gives them, else ImagePositionPatient stepped along the normal by
+/// SpacingBetweenSlices (a classic multi-frame file).
+fn frame_positions(object: &DefaultDicomObject, first: &Slice) -> Result<Vec<Vector3<f64>>, String> {
+    if first.frames > MAX_FRAMES {
+        return Err(format!("{} frames: more than the {MAX_FRAMES} a volume is read with", first.frames));
     }
+    let per_frame = object.get(tags::PER_FRAME_FUNCTIONAL_GROUPS_SEQUENCE).and_then(|e| e.items());
+    let placed = |item: &InMemDicomObject| {
+        let position = item.get(tags::PLANE_POSITION_SEQUENCE)?.items()?.first()?.get(tags::IMAGE_POSITION_PATIENT);
+        Some(numbers(position, "ImagePositionPatient (per frame)", 3).map(|p| Vector3::new(p[0], p[1], p[2])))
+    };
+    if let Some(items) = per_frame.filter(|items| items.first().and_then(placed).is_some()) {
+        if items.len() != first.frames {
+            return Err(format!("{} per-frame functional groups for {} frames", items.len(), first.frames));
+        }
+        return items
+            .iter()
+            .enumerate()
+            .map(|(k, item)| {
+                placed(item).unwrap_or_else(|| Err(format!("frame {} has no PlanePositionSequence", k + 1)))
+            })
+            .collect();
+    }
+    let position = numbers(object.get(tags::IMAGE_POSITION_PATIENT), "ImagePositionPatient", 3)?;
+    let origin = Vector3::new(position[0], position[1], position[2]);
+    if first.frames == 1 {
+        return Ok(vec![origin]);
+    }
+    let step = object
+        .get(tags::SPACING_BETWEEN_SLICES)
+        .and_then(|e| e.to_float64().ok())
+        .filter(|s| s.is_finite() && *s > 0.0)
+        .ok_or("a multi-frame file with neither per-frame positions nor a positive SpacingBetweenSlices")?;
+    Ok((0..first.frames).map(|k| origin + first.normal() * (step * k as f64)).collect())
+}
+
+/// Slices as a volume: checked to be one regular grid, sorted, and filled by `decode` (all
+/// the frames of a slice's file, called once a file).
+fn assemble(
+    path: &Path,
+    mut slices: Vec<Slice>,
+    mut decode: impl FnMut(&Slice) -> Result<Vec<Vec<f32>>, IoError>,
+) -> Result<Volume, IoError> {
     let first = slices[0].clone();
     for s in &slices[1..] {
         let reason = if s.size != first.size {
@@ -272,10 +355,7 @@ fn read_series(path: &Path, mut slices: Vec<Slice>) -> Result<Volume, IoError> {
             None
         };
         if let Some(reason) = reason {
-            return Err(malformed(
-                path,
-                format!("not one volume: {} and {}: {reason}", first.path.display(), s.path.display()),
-            ));
+            return Err(malformed(path, format!("not one volume: {} and {}: {reason}", first.name(), s.name())));
         }
     }
     let normal = first.normal();
@@ -284,8 +364,13 @@ fn read_series(path: &Path, mut slices: Vec<Slice>) -> Result<Volume, IoError> {
     let direction = Matrix3::from_columns(&[first.row_dir, first.col_dir, slice_dir]);
     let [nx, ny] = first.size;
     let mut data = Vec::with_capacity(nx * ny * slices.len());
+    let mut decoded: HashMap<PathBuf, Vec<Vec<f32>>> = HashMap::new();
     for s in &slices {
-        data.extend(decode_slice(s)?);
+        if !decoded.contains_key(&s.path) {
+            decoded.insert(s.path.clone(), decode(s)?);
+        }
+        let frame = decoded.get_mut(&s.path).and_then(|frames| frames.get_mut(s.frame));
+        data.extend(frame.map(std::mem::take).unwrap_or_default());
     }
     let spacing = [first.pixel_spacing[0], first.pixel_spacing[1], step];
     let origin = slices[0].position.into();
@@ -319,7 +404,7 @@ fn slice_step(path: &Path, slices: &[Slice]) -> Result<(Vector3<f64>, f64), IoEr
             None
         };
         if let Some(reason) = reason {
-            let pair = format!("{} and {}", slices[k].path.display(), slices[k + 1].path.display());
+            let pair = format!("{} and {}", slices[k].name(), slices[k + 1].name());
             return Err(malformed(path, format!("{pair}: {reason}")));
         }
     }
@@ -333,66 +418,59 @@ const MAX_COMPRESSION: u64 = 2048;
 /// Refuses a file whose pixel data cannot be in `available` bytes, before anything is
 /// allocated for it (a cut file, or a header that lies): uncompressed, every byte must be
 /// there; compressed, no more than [`MAX_COMPRESSION`] to one, and a byte a frame.
-fn check_pixel_bytes(path: &Path, slice: &Slice, available: u64) -> Result<(), IoError> {
+fn check_pixel_bytes(slice: &Slice, available: u64) -> Result<(), String> {
     let (needed, frames) = (slice.pixel_bytes, slice.frames as u64);
     let lie = if slice.native && needed > available {
-        Some(format!("declares {needed} bytes of pixel data (Columns x Rows x frames x BitsAllocated)"))
+        format!("declares {needed} bytes of pixel data (Columns x Rows x frames x BitsAllocated)")
     } else if needed > available.saturating_mul(MAX_COMPRESSION) || frames > available {
-        Some(format!("declares {needed} bytes of pixel data in {frames} frames, compressed beyond any codec's ratio"))
+        format!("declares {needed} bytes of pixel data in {frames} frames, compressed beyond any codec's ratio")
     } else {
-        None
+        return Ok(());
     };
-    match lie {
-        Some(lie) => {
-            Err(malformed(path, format!("{lie} but holds {available} bytes in all: truncated, or its header is wrong")))
-        }
-        None => Ok(()),
-    }
+    Err(format!("{lie} but holds {available} bytes in all: truncated, or its header is wrong"))
 }
 
 fn damaged(path: &Path, e: impl std::fmt::Display) -> IoError {
     malformed(path, format!("a DICOM file that cannot be read (truncated or damaged): {e}"))
 }
 
-/// One slice's values through its RescaleSlope and RescaleIntercept.
-fn decode_slice(slice: &Slice) -> Result<Vec<f32>, IoError> {
+/// Every frame's values of a slice's file, through its RescaleSlope and RescaleIntercept.
+fn decode_file(slice: &Slice) -> Result<Vec<Vec<f32>>, IoError> {
     let path = &slice.path;
     let bytes = std::fs::read(path).map_err(io_error(path))?;
     check_lengths(&bytes).map_err(|e| damaged(path, e))?;
     decode_checked(path, &bytes, slice)
 }
 
-/// The first frame's values of a file whose element lengths were checked, once its pixel
-/// data is known to fit in its bytes.
-fn decode_checked(path: &Path, bytes: &[u8], slice: &Slice) -> Result<Vec<f32>, IoError> {
-    check_pixel_bytes(path, slice, bytes.len() as u64)?;
+/// Every frame's values of a file whose element lengths were checked, once its pixel data
+/// is known to fit in its bytes; a frame's own rescale where the per-frame functional
+/// groups give one (dicom-pixeldata reads them).
+fn decode_checked(path: &Path, bytes: &[u8], slice: &Slice) -> Result<Vec<Vec<f32>>, IoError> {
+    check_pixel_bytes(slice, bytes.len() as u64).map_err(|why| malformed(path, why))?;
     let object = OpenFileOptions::new().from_reader(bytes).map_err(|e| damaged(path, e))?;
     let pixels = slice.size[0] * slice.size[1];
     let decoded = object.decode_pixel_data().map_err(|e| malformed(path, format!("pixel data: {e}")))?;
-    let values: Vec<f32> = decoded
-        .to_vec_frame_with_options(0, &ConvertOptions::new())
-        .map_err(|e| malformed(path, format!("pixel data: {e}")))?;
-    if values.len() != pixels {
-        return Err(malformed(path, format!("{} pixel values, Rows x Columns is {pixels}", values.len())));
+    let mut frames = Vec::with_capacity(slice.frames);
+    for frame in 0..slice.frames {
+        let values: Vec<f32> = decoded
+            .to_vec_frame_with_options(frame as u32, &ConvertOptions::new())
+            .map_err(|e| malformed(path, format!("pixel data, frame {}: {e}", frame + 1)))?;
+        if values.len() != pixels {
+            return Err(malformed(path, format!("{} pixel values, Rows x Columns is {pixels}", values.len())));
+        }
+        frames.push(values);
     }
-    Ok(values)
+    Ok(frames)
 }
 
-/// Parses one single-frame DICOM file from its bytes, a volume one slice deep (its depth
-/// SpacingBetweenSlices, else SliceThickness, else 1, as ITK takes it); `path` names it in
-/// errors. The fuzz tests drive the DICOM path through it.
+/// Parses one DICOM file from its bytes: a multi-frame file as its volume, a single-frame
+/// one as a volume one slice deep (its depth SpacingBetweenSlices, else SliceThickness, else
+/// 1, as ITK takes it); `path` names it in errors. The fuzz tests drive the DICOM path
+/// through it.
 pub fn parse_dicom(path: &Path, bytes: &[u8]) -> Result<Volume, IoError> {
     check_lengths(bytes).map_err(|e| damaged(path, e))?;
     let object =
         OpenFileOptions::new().read_until(tags::PIXEL_DATA).from_reader(bytes).map_err(|e| damaged(path, e))?;
-    let slice = header(path, &object).map_err(|why| malformed(path, why))?;
-    check_pixel_bytes(path, &slice, bytes.len() as u64)?;
-    if slice.frames > 1 {
-        return Err(malformed(path, "multi-frame DICOM files are not read yet; a series of single-frame files is"));
-    }
-    let data = decode_checked(path, bytes, &slice)?;
-    let direction = Matrix3::from_columns(&[slice.row_dir, slice.col_dir, slice.normal()]);
-    let spacing = [slice.pixel_spacing[0], slice.pixel_spacing[1], slice.thickness.unwrap_or(1.0)];
-    let dims = [slice.size[0], slice.size[1], 1];
-    Ok(Volume::new(dims, spacing, slice.position.into(), direction, data, &path.display().to_string())?)
+    let slices = header(path, &object, bytes.len() as u64).map_err(|why| malformed(path, why))?;
+    assemble(path, slices, |slice| decode_checked(path, bytes, slice))
 }
