@@ -133,8 +133,11 @@ def write_multiframe(path, values, spacing, origin, direction, uid, enhanced, sy
         ds.PixelSpacing = pixel_spacing
         ds.SpacingBetweenSlices = spacing[2]
     ds.PixelData = stored.tobytes()
-    if syntax != ExplicitVRLittleEndian:
+    if syntax.is_compressed:
         ds.compress(syntax, stored)
+    else:
+        # Deflate compresses the whole data set, not the pixel data: pydicom deflates on save.
+        ds.file_meta.TransferSyntaxUID = syntax
     ds.save_as(path, enforce_file_format=True)
 
 
@@ -185,10 +188,11 @@ def main():
     for name in os.listdir(folder):
         os.remove(os.path.join(folder, name))
     write_tilted(folder, values, spacing, origin, tilted)
-    # Multi-frame files: an enhanced CT (oblique, native) and a classic MR, RLE-compressed.
-    from pydicom.uid import ExplicitVRLittleEndian, RLELossless
+    # Multi-frame files: an enhanced CT (oblique; native, then deflated) and a classic MR in RLE.
+    from pydicom.uid import DeflatedExplicitVRLittleEndian, ExplicitVRLittleEndian, RLELossless
 
     for name, enhanced, syntax in [("enhanced_ct", True, ExplicitVRLittleEndian),
+                                   ("enhanced_ct_deflated", True, DeflatedExplicitVRLittleEndian),
                                    ("multiframe_mr_rle", False, RLELossless)]:
         path = os.path.join(out, name, "volume.dcm")
         write_multiframe(path, values, spacing, origin, oblique(), "1.2.3.4.7", enhanced, syntax)
