@@ -56,6 +56,9 @@ pub struct WarpBenchOptions {
     pub incremental: bool,
     /// Also run the GPU path (spans, trilinear) on this backend.
     pub gpu: Option<crate::backend::Backend>,
+    /// Write each case's work (source, mesh in index space, f64 reference) here, for the
+    /// peers in `benches/peers/` to run exactly the same warp.
+    pub export: Option<std::path::PathBuf>,
 }
 
 /// Grid warp of the phantom through lattice meshes, against the f64 reference.
@@ -75,6 +78,12 @@ pub fn warp(opts: &WarpBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result<
             for &sampling in &opts.samplings {
                 let reference_opts = WarpOptions { sampling, ..Default::default() };
                 let (reference, _) = w::warp_samples::<f64>(&source, &mesh, &deformed, &grid, &reference_opts)?;
+                if let Some(dir) = &opts.export {
+                    let name = format!("lattice{}_{}_{sampling:?}", mesh.tets().len(), case.name()).to_lowercase();
+                    let work = WarpWork { source: &source, mesh: &mesh, deformed: &deformed, grid: &grid };
+                    export_case(&dir.join(name), &work, &reference)
+                        .map_err(|e| w::WarpError::BadDisplacement { index: 0, why: format!("export: {e}") })?;
+                }
                 for &scheme in &opts.schemes {
                     let options = WarpOptions { scheme, sampling, ..Default::default() };
                     // Settle into a buffer reused from run to run, as a publishing node does.
@@ -226,6 +235,37 @@ fn warp_gpu_rows(
         gpu: cost,
     });
     Ok(())
+}
+
+/// One warp's inputs.
+struct WarpWork<'a> {
+    source: &'a crate::volume::Volume,
+    mesh: &'a crate::mesh::TetMesh,
+    deformed: &'a [Vector3<f64>],
+    grid: &'a crate::volume::Grid,
+}
+
+/// Writes a warp's work as raw little-endian arrays and a `case.json` naming them: the
+/// source (f32, x fastest), the tets (u32), the rest nodes in source index space and the
+/// deformed ones in output index space (f64; the warp's own first step), and the f64
+/// reference warp (as f32).
+fn export_case(dir: &std::path::Path, work: &WarpWork, reference: &[f64]) -> std::io::Result<()> {
+    let index = |grid: &crate::volume::Grid, points: &[Vector3<f64>]| -> Vec<f64> {
+        points.iter().flat_map(|p| grid.index_from_world(*p).iter().copied().collect::<Vec<_>>()).collect()
+    };
+    let f32s = |values: &mut dyn Iterator<Item = f32>| values.flat_map(f32::to_le_bytes).collect::<Vec<u8>>();
+    let f64s = |values: Vec<f64>| values.into_iter().flat_map(f64::to_le_bytes).collect::<Vec<u8>>();
+    let tets: Vec<u8> = work.mesh.tets().iter().flatten().flat_map(|n| n.to_le_bytes()).collect();
+    std::fs::create_dir_all(dir)?;
+    std::fs::write(dir.join("source.f32"), f32s(&mut work.source.data().iter().copied()))?;
+    std::fs::write(dir.join("tets.u32"), tets)?;
+    std::fs::write(dir.join("rest_index.f64"), f64s(index(&work.source.grid(), work.mesh.nodes())))?;
+    std::fs::write(dir.join("deformed_index.f64"), f64s(index(work.grid, work.deformed)))?;
+    std::fs::write(dir.join("reference.f32"), f32s(&mut reference.iter().map(|v| *v as f32)))?;
+    let (low, high) = work.source.range();
+    let case = json!({"source_dims": work.source.dims(), "out_dims": work.grid.dims, "tets": work.mesh.tets().len(),
+        "nodes": work.mesh.nodes().len(), "background": 0.0, "source_range": [low, high]});
+    std::fs::write(dir.join("case.json"), case.to_string())
 }
 
 /// One grid covering both states, so an incremental update never needs to grow it.

@@ -102,6 +102,10 @@ pub enum BenchStage {
         /// Also time an incremental update after a local press.
         #[arg(long)]
         incremental: bool,
+        /// Write each case's work (source, mesh, reference) into this folder for the peers
+        /// in benches/peers/.
+        #[arg(long)]
+        export: Option<std::path::PathBuf>,
         #[command(flatten)]
         gpu: GpuRows,
         #[arg(long)]
@@ -227,7 +231,7 @@ pub fn run(stage: BenchStage) -> Result<()> {
             };
             bench::dpcm::run(&opts, row_printer(json, bench::dpcm::TABLE_HEADER, bench::dpcm::table_row))?;
         }
-        BenchStage::Warp { tets, cases, schemes, samplings, dims, runs, incremental, gpu, json } => {
+        BenchStage::Warp { tets, cases, schemes, samplings, dims, runs, incremental, export, gpu, json } => {
             let cases = cases
                 .iter()
                 .map(|c| {
@@ -247,6 +251,7 @@ pub fn run(stage: BenchStage) -> Result<()> {
                 runs,
                 incremental,
                 gpu: gpu.backend()?,
+                export,
             };
             bench::warp(&opts, row_printer(json, bench::WARP_TABLE_HEADER, bench::warp_table_row))?;
         }

@@ -11,6 +11,8 @@ pub trait Real: nalgebra::RealField + Copy + Default + Send + Sync + 'static {
     fn trunc_i32(self) -> i32;
     fn of_i32(i: i32) -> Self;
     fn of_f32(x: f32) -> Self;
+    /// The slice itself where Self is f32: the hot loops' f32-only lanes take it.
+    fn as_f32_mut(values: &mut [Self]) -> Option<&mut [f32]>;
 }
 impl Real for f32 {
     fn of(x: f64) -> Self {
@@ -28,6 +30,9 @@ impl Real for f32 {
     fn of_f32(x: f32) -> Self {
         x
     }
+    fn as_f32_mut(values: &mut [Self]) -> Option<&mut [f32]> {
+        Some(values)
+    }
 }
 impl Real for f64 {
     fn of(x: f64) -> Self {
@@ -44,5 +49,8 @@ impl Real for f64 {
     }
     fn of_f32(x: f32) -> Self {
         x as f64
+    }
+    fn as_f32_mut(_: &mut [Self]) -> Option<&mut [f32]> {
+        None
     }
 }

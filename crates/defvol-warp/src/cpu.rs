@@ -7,7 +7,7 @@ use std::sync::Arc;
 use nalgebra::Vector3;
 use rayon::prelude::*;
 
-use crate::kernels::{initial_value, rasterize_slice, tet_maps, Sampler, TetMap};
+use crate::kernels::{initial_value, rasterize_slab, tet_maps, Sampler, TetMap};
 use crate::{WarpError, WarpOptions, WarpStats};
 use defvol_core::math::Real;
 use defvol_core::mesh::TetMesh;
@@ -29,14 +29,26 @@ pub fn default_grid(source: &Volume, deformed: &[Vector3<f64>]) -> Grid {
     Grid { dims, spacing: g.spacing, origin: g.world_from_index(lo).into(), direction: g.direction }
 }
 
-/// Which tets overlap each output slice, in tet order.
-fn slice_bins(maps: &[Option<TetMap>], nz: usize) -> Vec<Vec<u32>> {
-    let mut bins = vec![Vec::new(); nz];
+/// Output slices a task rasterizes together: as many as fit in this many bytes (a slab
+/// stays in a core's cache from its fill to its last tet, and each tet's source footprint
+/// is read once for all its slices in the slab), at least one.
+const SLAB_BYTES: usize = 1 << 20;
+
+fn slab_depth<T>(nx: usize, ny: usize) -> usize {
+    (SLAB_BYTES / (nx * ny * std::mem::size_of::<T>())).max(1)
+}
+
+/// Which tets overlap each slab of `depth` slices from `first` to `last`, in tet order.
+fn slab_bins(maps: &[Option<TetMap>], first: usize, last: usize, depth: usize) -> Vec<Vec<u32>> {
+    let mut bins = vec![Vec::new(); (last - first) / depth + 1];
     for (t, m) in maps.iter().enumerate() {
-        if let Some(m) = m {
-            for bin in &mut bins[m.lo[2]..=m.hi[2]] {
-                bin.push(t as u32);
-            }
+        let Some(m) = m else { continue };
+        if m.hi[2] < first || m.lo[2] > last {
+            continue;
+        }
+        let (s0, s1) = ((m.lo[2].max(first) - first) / depth, (m.hi[2].min(last) - first) / depth);
+        for bin in &mut bins[s0..=s1] {
+            bin.push(t as u32);
         }
     }
     bins
@@ -87,21 +99,25 @@ pub fn warp_into<T: Real>(
     let sampler = Sampler::new(source, options)?;
     let identity = grid.index_map_to(&source.grid());
     let [nx, ny, nz] = grid.dims;
-    let bins = slice_bins(&maps, nz);
+    let depth = slab_depth::<T>(nx, ny);
+    let bins = slab_bins(&maps, 0, nz - 1, depth);
     let mut stats = out
-        .par_chunks_mut(nx * ny)
+        .par_chunks_mut(nx * ny * depth)
         .enumerate()
-        .map(|(k, slice)| {
+        .map(|(s, slab)| {
+            let k0 = s * depth;
             if options.keep_uncovered {
-                for j in 0..ny {
-                    for i in 0..nx {
-                        slice[i + nx * j] = initial_value(&sampler, &identity, true, i, j, k);
+                for (dk, slice) in slab.chunks_mut(nx * ny).enumerate() {
+                    for j in 0..ny {
+                        for i in 0..nx {
+                            slice[i + nx * j] = initial_value(&sampler, &identity, true, i, j, k0 + dk);
+                        }
                     }
                 }
             } else {
-                slice.fill(T::of(options.background as f64));
+                slab.fill(T::of(options.background as f64));
             }
-            rasterize_slice(slice, nx, k, &bins[k], &maps, &sampler, options.scheme, [0, 0], [nx - 1, ny - 1])
+            rasterize_slab(slab, [nx, ny], k0, &bins[s], &maps, &sampler, options.scheme, [0, 0], [nx - 1, ny - 1])
         })
         .reduce(WarpStats::default, |mut a, b| {
             a += b;
@@ -301,25 +317,29 @@ impl IncrementalWarp {
         let sampler = Sampler::new(&self.source, &self.options)?;
         let identity = self.grid.index_map_to(&self.source.grid());
         let [nx, ny, _] = self.grid.dims;
-        let bins = slice_bins(&self.maps, self.grid.dims[2]);
+        let depth = slab_depth::<f32>(nx, ny);
+        let bins = slab_bins(&self.maps, lo[2], hi[2], depth);
         let (maps, options) = (&self.maps, &self.options);
         let background = options.background;
         let mut stats = out[lo[2] * nx * ny..(hi[2] + 1) * nx * ny]
-            .par_chunks_mut(nx * ny)
+            .par_chunks_mut(nx * ny * depth)
             .enumerate()
-            .map(|(dk, slice)| {
-                let k = lo[2] + dk;
-                for j in lo[1]..=hi[1] {
-                    let row = &mut slice[nx * j + lo[0]..=nx * j + hi[0]];
-                    if options.keep_uncovered {
-                        for (di, v) in row.iter_mut().enumerate() {
-                            *v = initial_value(&sampler, &identity, true, lo[0] + di, j, k);
+            .map(|(s, slab)| {
+                let k0 = lo[2] + s * depth;
+                for (dk, slice) in slab.chunks_mut(nx * ny).enumerate() {
+                    for j in lo[1]..=hi[1] {
+                        let row = &mut slice[nx * j + lo[0]..=nx * j + hi[0]];
+                        if options.keep_uncovered {
+                            for (di, v) in row.iter_mut().enumerate() {
+                                *v = initial_value(&sampler, &identity, true, lo[0] + di, j, k0 + dk);
+                            }
+                        } else {
+                            row.fill(background);
                         }
-                    } else {
-                        row.fill(background);
                     }
                 }
-                rasterize_slice(slice, nx, k, &bins[k], maps, &sampler, options.scheme, [lo[0], lo[1]], [hi[0], hi[1]])
+                let (lo, hi) = ([lo[0], lo[1]], [hi[0], hi[1]]);
+                rasterize_slab(slab, [nx, ny], k0, &bins[s], maps, &sampler, options.scheme, lo, hi)
             })
             .reduce(WarpStats::default, |mut a, b| {
                 a += b;

@@ -6,6 +6,7 @@ use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
 
 use crate::bspline::{self, backward_all, CompiledDisplacement};
+use crate::lanes::{trilinear_lanes, CellLookup};
 use crate::{Sampling, Scheme, WarpError, WarpOptions, WarpStats};
 use defvol_core::math::Real;
 use defvol_core::mesh::TetMesh;
@@ -225,13 +226,14 @@ impl<'a> Sampler<'a> {
     /// loop of the warp, with the limits and strides hoisted out of it.
     fn trilinear_run<T: Real>(&self, out: &mut [T], base: [T; 3], step: [T; 3], i0: usize, src_inside: bool) {
         let [nx, ny, nz] = self.dims;
-        let top = [nx.saturating_sub(2), ny.saturating_sub(2), nz.saturating_sub(2)];
-        let sx = usize::from(nx > 1);
-        let sy = if ny > 1 { nx } else { 0 };
-        let sz = if nz > 1 { nx * ny } else { 0 };
+        let cell = CellLookup {
+            top: [nx, ny, nz].map(|n| n.saturating_sub(2) as i32),
+            strides: [usize::from(nx > 1), if ny > 1 { nx } else { 0 }, if nz > 1 { nx * ny } else { 0 }]
+                .map(|s| s as i32),
+            nx: nx as i32,
+            nxy: (nx * ny) as i32,
+        };
         let background = T::of(self.background as f64);
-        let data = self.data;
-        let (top, nx, nxy) = (top.map(|t| t as i32), nx as i32, (nx * ny) as i32);
         // The run is affine in n. A rest tet inside the source box samples inside it (only
         // round-off can leave, and the clamps absorb it); otherwise find the sub-run whose
         // sample points lie in the box, so the loop needs no per-voxel bounds test.
@@ -243,16 +245,29 @@ impl<'a> Sampler<'a> {
         };
         out[..first].fill(background);
         out[last + 1..].fill(background);
-        for (n, slot) in out[first..=last].iter_mut().enumerate() {
-            let fi = T::of_i32((i0 + first + n) as i32);
+        let start = i0 + first;
+        let inside = &mut out[first..=last];
+        let done = match T::as_f32_mut(inside) {
+            Some(lanes) => {
+                let (base, step) = (base.map(|v| v.to_f64() as f32), step.map(|v| v.to_f64() as f32));
+                trilinear_lanes(self.data, &cell, lanes, base, step, start as i32)
+            }
+            None => 0,
+        };
+        let (data, [sx, sy, sz]) = (self.data, cell.strides.map(|s| s as usize));
+        for (n, slot) in inside.iter_mut().enumerate().skip(done) {
+            let fi = T::of_i32((start + n) as i32);
             let (x, y, z) = (base[0] + step[0] * fi, base[1] + step[1] * fi, base[2] + step[2] * fi);
-            let (i, j, k) =
-                (x.trunc_i32().clamp(0, top[0]), y.trunc_i32().clamp(0, top[1]), z.trunc_i32().clamp(0, top[2]));
-            let b = (i + nx * j + nxy * k) as usize;
+            let (i, j, k) = (
+                x.trunc_i32().clamp(0, cell.top[0]),
+                y.trunc_i32().clamp(0, cell.top[1]),
+                z.trunc_i32().clamp(0, cell.top[2]),
+            );
+            let b = (i + cell.nx * j + cell.nxy * k) as usize;
             // One bounds check for the whole cell instead of one per corner.
-            let cell = &data[b..=b + sx + sy + sz];
+            let corners = &data[b..=b + sx + sy + sz];
             *slot = defvol_core::volume::lerp_cube(
-                |o| T::of_f32(cell[o]),
+                |o| T::of_f32(corners[o]),
                 [sx, sy, sz],
                 [x - T::of_i32(i), y - T::of_i32(j), z - T::of_i32(k)],
             );
@@ -326,13 +341,15 @@ pub(crate) fn initial_value<T: Real>(
     sampler.at(T::of(s.x), T::of(s.y), T::of(s.z))
 }
 
-/// Rasterizes `maps` into the output slice k (x-fastest rows), restricted to the inclusive
-/// box `[lo, hi]` in (i, j). The CPU twin of `warp.wgsl`.
+/// Rasterizes `maps` into a slab of output slices from k0 (x-fastest rows, slices of
+/// `nx` x `ny`), restricted to the inclusive box `[lo, hi]` in (i, j). Tet by tet, in tet
+/// order (a later tet wins a shared face's voxels, as on the GPU), each through all its
+/// slices in the slab: its source footprint is read while still in cache.
 #[allow(clippy::too_many_arguments)]
-pub(crate) fn rasterize_slice<T: Real>(
-    slice: &mut [T],
-    nx: usize,
-    k: usize,
+pub(crate) fn rasterize_slab<T: Real>(
+    slab: &mut [T],
+    [nx, ny]: [usize; 2],
+    k0: usize,
     tets: &[u32],
     maps: &[Option<TetMap>],
     sampler: &Sampler,
@@ -341,87 +358,104 @@ pub(crate) fn rasterize_slice<T: Real>(
     hi: [usize; 2],
 ) -> WarpStats {
     let mut stats = WarpStats::default();
+    let last = k0 + slab.len() / (nx * ny) - 1;
     for &t in tets {
         let Some(m) = &maps[t as usize] else { continue };
-        if k < m.lo[2] || k > m.hi[2] {
-            continue;
-        }
-        let (j0, j1) = (m.lo[1].max(lo[1]), m.hi[1].min(hi[1]));
-        let (i0, i1) = (m.lo[0].max(lo[0]), m.hi[0].min(hi[0]));
-        if j0 > j1 || i0 > i1 {
-            continue;
-        }
-        match scheme {
-            Scheme::Spans => {
-                let Some((s0, s1)) = m.section_rows(k) else { continue };
-                for j in s0.max(j0)..=s1.min(j1) {
-                    let a = m.row(j, k);
-                    let Some((s0, s1)) = m.span(&a) else { continue };
-                    let (s0, s1) = (s0.max(i0), s1.min(i1));
-                    if s0 > s1 {
-                        continue;
-                    }
-                    write_run(&mut slice[j * nx..], m, j, k, s0, s1, sampler);
-                    let n = (s1 - s0 + 1) as u64;
-                    stats.candidates += n;
-                    stats.inside += n;
-                }
-            }
-            Scheme::Bbox => {
-                for j in j0..=j1 {
-                    let a = m.row(j, k);
-                    for i in i0..=i1 {
-                        stats.candidates += 1;
-                        if m.inside(&a, i) {
-                            write_run(&mut slice[j * nx..], m, j, k, i, i, sampler);
-                            stats.inside += 1;
-                        }
-                    }
-                }
-            }
-            Scheme::Culling => {
-                // Coarse points every CELL voxels from the tet's box corner; the cell test
-                // needs masks at its 8 corners (4 in this slice's plane pair).
-                let kc0 = m.lo[2] + (k - m.lo[2]) / CELL * CELL;
-                let kc1 = kc0 + CELL;
-                let mask = |i: usize, j: usize, kk: usize| -> u8 {
-                    let a = m.row(j, kk);
-                    let mut bits = 0u8;
-                    for q in 0..4 {
-                        let b = a[q] + m.bary[q][1] * i as f64;
-                        // b here is b_q + ε; inside needs b ≥ 0, which bounds b_q + ε ≤ 1 + 4ε.
-                        bits |= u8::from(b < 0.0) << (2 * q);
-                        bits |= u8::from(b > 1.0 + 4.0 * INSIDE_TOLERANCE) << (2 * q + 1);
-                    }
-                    bits
-                };
-                let mut jc = m.lo[1];
-                while jc <= m.hi[1] {
-                    let mut ic = m.lo[0];
-                    while ic <= m.hi[0] {
-                        let corners = [(ic, jc), (ic + CELL, jc), (ic, jc + CELL), (ic + CELL, jc + CELL)];
-                        let culled =
-                            corners.iter().fold(0xFFu8, |acc, &(i, j)| acc & mask(i, j, kc0) & mask(i, j, kc1));
-                        if culled == 0 {
-                            for j in jc.max(j0)..=(jc + CELL - 1).min(j1) {
-                                let a = m.row(j, k);
-                                for i in ic.max(i0)..=(ic + CELL - 1).min(i1) {
-                                    stats.candidates += 1;
-                                    if m.inside(&a, i) {
-                                        write_run(&mut slice[j * nx..], m, j, k, i, i, sampler);
-                                        stats.inside += 1;
-                                    }
-                                }
-                            }
-                        }
-                        ic += CELL;
-                    }
-                    jc += CELL;
-                }
-            }
+        for k in m.lo[2].max(k0)..=m.hi[2].min(last) {
+            let slice = &mut slab[(k - k0) * nx * ny..(k - k0 + 1) * nx * ny];
+            rasterize_tet_slice(slice, nx, k, m, sampler, scheme, lo, hi, &mut stats);
         }
     }
     stats
+}
+
+/// Rasterizes one tet into output slice k, within the box `[lo, hi]` in (i, j). The CPU
+/// twin of `warp.wgsl`.
+#[allow(clippy::too_many_arguments)]
+fn rasterize_tet_slice<T: Real>(
+    slice: &mut [T],
+    nx: usize,
+    k: usize,
+    m: &TetMap,
+    sampler: &Sampler,
+    scheme: Scheme,
+    lo: [usize; 2],
+    hi: [usize; 2],
+    stats: &mut WarpStats,
+) {
+    let (j0, j1) = (m.lo[1].max(lo[1]), m.hi[1].min(hi[1]));
+    let (i0, i1) = (m.lo[0].max(lo[0]), m.hi[0].min(hi[0]));
+    if j0 > j1 || i0 > i1 {
+        return;
+    }
+    match scheme {
+        Scheme::Spans => {
+            let Some((s0, s1)) = m.section_rows(k) else { return };
+            for j in s0.max(j0)..=s1.min(j1) {
+                let a = m.row(j, k);
+                let Some((s0, s1)) = m.span(&a) else { continue };
+                let (s0, s1) = (s0.max(i0), s1.min(i1));
+                if s0 > s1 {
+                    continue;
+                }
+                write_run(&mut slice[j * nx..], m, j, k, s0, s1, sampler);
+                let n = (s1 - s0 + 1) as u64;
+                stats.candidates += n;
+                stats.inside += n;
+            }
+        }
+        Scheme::Bbox => {
+            for j in j0..=j1 {
+                let a = m.row(j, k);
+                for i in i0..=i1 {
+                    stats.candidates += 1;
+                    if m.inside(&a, i) {
+                        write_run(&mut slice[j * nx..], m, j, k, i, i, sampler);
+                        stats.inside += 1;
+                    }
+                }
+            }
+        }
+        Scheme::Culling => {
+            // Coarse points every CELL voxels from the tet's box corner; the cell test
+            // needs masks at its 8 corners (4 in this slice's plane pair).
+            let kc0 = m.lo[2] + (k - m.lo[2]) / CELL * CELL;
+            let kc1 = kc0 + CELL;
+            let mask = |i: usize, j: usize, kk: usize| -> u8 {
+                let a = m.row(j, kk);
+                let mut bits = 0u8;
+                for q in 0..4 {
+                    let b = a[q] + m.bary[q][1] * i as f64;
+                    // b here is b_q + ε; inside needs b ≥ 0, which bounds b_q + ε ≤ 1 + 4ε.
+                    bits |= u8::from(b < 0.0) << (2 * q);
+                    bits |= u8::from(b > 1.0 + 4.0 * INSIDE_TOLERANCE) << (2 * q + 1);
+                }
+                bits
+            };
+            let mut jc = m.lo[1];
+            while jc <= m.hi[1] {
+                let mut ic = m.lo[0];
+                while ic <= m.hi[0] {
+                    let corners = [(ic, jc), (ic + CELL, jc), (ic, jc + CELL), (ic + CELL, jc + CELL)];
+                    let culled = corners.iter().fold(0xFFu8, |acc, &(i, j)| acc & mask(i, j, kc0) & mask(i, j, kc1));
+                    if culled == 0 {
+                        for j in jc.max(j0)..=(jc + CELL - 1).min(j1) {
+                            let a = m.row(j, k);
+                            for i in ic.max(i0)..=(ic + CELL - 1).min(i1) {
+                                stats.candidates += 1;
+                                if m.inside(&a, i) {
+                                    write_run(&mut slice[j * nx..], m, j, k, i, i, sampler);
+                                    stats.inside += 1;
+                                }
+                            }
+                        }
+                    }
+                    ic += CELL;
+                }
+                jc += CELL;
+            }
+        }
+    }
 }
 
 /// Coarse cell size of the culling scheme (the seed's 8x8x8).

@@ -27,6 +27,7 @@ pub mod engine;
 #[cfg(feature = "gpu")]
 pub mod gpu;
 pub mod kernels;
+mod lanes;
 
 use serde::{Deserialize, Serialize};
 
