@@ -1,7 +1,9 @@
 #!/usr/bin/env bash
 # The CPU warp against its peers, side by side in one run: `defvol bench warp` (spans,
-# trilinear) and Taichi's CPU kernel (taichi_warp.py) on exactly the same work, on the same
-# threads, with each one's error against defvol's f64 reference and the speed ratio.
+# trilinear; its current path and the one before the speed work) and Taichi's CPU kernel
+# (taichi_warp.py) on exactly the same work, on the same threads, with each one's error
+# against defvol's f64 reference and the speed ratios (compare.py). A table on stdout, one
+# JSON object a case on stderr.
 # Outside the test command: Taichi comes from PyPI into its own virtual environment.
 # Usage: benches/peers/run.sh [TETS] [CASES] [RUNS]   (default 700 rot45,upright,bend 9)
 # DEFVOL_BIN names a built defvol; else the release binary is built.
@@ -25,19 +27,6 @@ fi
 threads=$(nproc)
 work=$(mktemp -d)
 trap 'rm -rf "$work"' EXIT
-"$bin" bench warp --tets "$tets" --cases "$cases" --schemes spans --runs "$runs" --export "$work" --json \
-    > "$work/defvol.jsonl"
-printf '%-34s %12s %12s %8s %12s %12s\n' case "defvol ms" "taichi ms" ratio "defvol err" "taichi err"
-while read -r row; do
-    case_name=$(python3 -c 'import json,sys; r=json.loads(sys.argv[1]); print(r["case"]+"_"+r["params"]["sampling"])' "$row")
-    # The last line: Taichi prints its banner on import.
-    peer=$("$venv/bin/python" benches/peers/taichi_warp.py "$work/$case_name" "$threads" "$runs" | tail -n 1)
-    python3 - "$row" "$peer" <<'PY'
-import json, sys
-ours, peer = json.loads(sys.argv[1]), json.loads(sys.argv[2])
-a, b = ours["time_ms"]["median"], peer["time_ms"]["median"]
-print(f'{ours["case"]:<34} {a:12.2f} {b:12.2f} {b / a:7.1f}x {ours["error"]["value"]:12.2e} {peer["error"]["value"]:12.2e}')
-print(json.dumps({"stage": "warp", "case": ours["case"], "peer": "taichi", "threads": peer["threads"],
-                  "defvol_median_ms": a, "peer_median_ms": b, "ratio": b / a, "peer": peer}), file=sys.stderr)
-PY
-done < <(grep '"backend":"cpu"' "$work/defvol.jsonl")
+"$bin" bench warp --tets "$tets" --cases "$cases" --schemes spans --runs "$runs" --baseline --export "$work" \
+    --json > "$work/defvol.jsonl"
+python3 benches/peers/compare.py "$work" "$venv/bin/python" "$threads" "$runs"

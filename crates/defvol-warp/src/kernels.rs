@@ -57,9 +57,9 @@ impl TetMap {
         for m in 0..4 {
             let c = self.bary[m][1];
             if c > 0.0 {
-                lo = lo.max((-a[m] * self.inv_c[m]).ceil());
+                lo = lo.max(ceil(-a[m] * self.inv_c[m]));
             } else if c < 0.0 {
-                hi = hi.min((-a[m] * self.inv_c[m]).floor());
+                hi = hi.min(floor(-a[m] * self.inv_c[m]));
             } else if a[m] < 0.0 {
                 return None;
             }
@@ -106,10 +106,29 @@ impl TetMap {
         if lo > hi {
             return None;
         }
-        let j0 = (lo.ceil() - 1.0).max(self.lo[1] as f64);
-        let j1 = (hi.floor() + 1.0).min(self.hi[1] as f64);
+        let j0 = (ceil(lo) - 1.0).max(self.lo[1] as f64);
+        let j1 = (floor(hi) + 1.0).min(self.hi[1] as f64);
         (j0 <= j1).then_some((j0 as usize, j1 as usize))
     }
+}
+
+/// ⌊x⌋ in a few instructions (x86-64's baseline has no rounding instruction, and `floor`
+/// is a libm call there), exact within ±2⁶³; beyond, it saturates, which the span and
+/// section bounds clamp to the tet's box anyway.
+#[inline]
+fn floor(x: f64) -> f64 {
+    let t = x as i64 as f64;
+    if t > x {
+        t - 1.0
+    } else {
+        t
+    }
+}
+
+/// ⌈x⌉, as [`floor`].
+#[inline]
+fn ceil(x: f64) -> f64 {
+    -floor(-x)
 }
 
 /// The maps of every tet; `None` for deformed tets that are inverted, degenerate or miss the grid.
@@ -191,6 +210,8 @@ pub struct Sampler<'a> {
     background: f32,
     displacements: Vec<CompiledDisplacement>,
     source: Grid,
+    /// Eight-lane runs where the CPU has them ([`crate::CpuPath::Fast`]).
+    lanes: bool,
 }
 
 impl<'a> Sampler<'a> {
@@ -204,6 +225,7 @@ impl<'a> Sampler<'a> {
             background: options.background,
             displacements,
             source: source.grid(),
+            lanes: options.cpu_path == crate::CpuPath::Fast,
         })
     }
 
@@ -247,7 +269,7 @@ impl<'a> Sampler<'a> {
         out[last + 1..].fill(background);
         let start = i0 + first;
         let inside = &mut out[first..=last];
-        let done = match T::as_f32_mut(inside) {
+        let done = match T::as_f32_mut(inside).filter(|_| self.lanes) {
             Some(lanes) => {
                 let (base, step) = (base.map(|v| v.to_f64() as f32), step.map(|v| v.to_f64() as f32));
                 trilinear_lanes(self.data, &cell, lanes, base, step, start as i32)

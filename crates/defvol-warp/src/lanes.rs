@@ -97,7 +97,9 @@ mod x86 {
                 let mut group = [0f32; 8];
                 // SAFETY: `group` holds eight floats.
                 unsafe { _mm256_storeu_ps(group.as_mut_ptr(), value) };
-                out[n..].copy_from_slice(&group[..len - n]);
+                for (slot, value) in out[n..].iter_mut().zip(group) {
+                    *slot = value;
+                }
             }
         }
         len

@@ -74,6 +74,18 @@ pub struct WarpOptions {
     pub displacements: Vec<DisplacementVolume>,
     /// Refuse output grids larger than this (bytes of f32 samples).
     pub max_bytes: u64,
+    pub cpu_path: CpuPath,
+}
+
+/// The CPU warp's inner loops: the fast ones, or the path before the speed work (scalar
+/// samples, one output slice a task), kept so a benchmark measures both in one run.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CpuPath {
+    /// Eight-lane samples where the CPU has AVX2, tets through 1 MiB slabs of slices.
+    #[default]
+    Fast,
+    Baseline,
 }
 
 impl Default for WarpOptions {
@@ -85,6 +97,7 @@ impl Default for WarpOptions {
             keep_uncovered: false,
             displacements: Vec::new(),
             max_bytes: 4 << 30,
+            cpu_path: CpuPath::Fast,
         }
     }
 }
