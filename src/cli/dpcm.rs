@@ -186,11 +186,12 @@ pub fn run(args: DpcmArgs) -> Result<()> {
     if let Source::Udp(udp, _) = &source {
         let c = udp.parser.counts;
         tracing::info!(
-            "UDP frames: {} received, {} lost, {} malformed, {} out of order",
+            "UDP frames: {} received, {} lost, {} malformed, {} out of order; {} steps left datagrams waiting (a flood)",
             c.received,
             c.lost,
             c.malformed,
-            c.out_of_order
+            c.out_of_order,
+            c.backlogged
         );
     }
     write_outputs(&args, &config, &engine, None)

@@ -289,3 +289,72 @@ fn tool_poses_recorded_in_an_mcap_bag_drive_markers() {
     let err = defvol::record::bag::motion_from_bag(&dir.path().join("broken.mcap"), &[]).unwrap_err().to_string();
     assert!(err.contains("broken.mcap"), "{err}");
 }
+
+/// A sender flooding at full speed costs a step at most a bounded read: the step rate with
+/// the flood stays within 20 % of the rate without it (windows taking turns in one run), the
+/// polls that stopped at the bound are counted, and the newest frames still come through.
+#[test]
+fn a_udp_flood_leaves_the_step_rate_within_a_fifth_of_the_quiet_rate() {
+    use std::sync::atomic::{AtomicBool, Ordering};
+    use std::sync::Arc;
+    let mut source = UdpSource::bind("127.0.0.1:0".parse().unwrap()).unwrap();
+    let addr = source.local_addr().unwrap();
+    let (flooding, stop) = (Arc::new(AtomicBool::new(false)), Arc::new(AtomicBool::new(false)));
+    let sender = {
+        let (flooding, stop) = (flooding.clone(), stop.clone());
+        std::thread::spawn(move || {
+            let socket = UdpSocket::bind("127.0.0.1:0").unwrap();
+            let mut n = 0u32;
+            while !stop.load(Ordering::Relaxed) {
+                // Quiet, it spins: both windows share the cores alike, only datagrams differ.
+                if flooding.load(Ordering::Relaxed) {
+                    n += 1;
+                    let _ = socket.send_to(&frame(n, &[(0, 1.0, 2.0)]).encode(), addr);
+                } else {
+                    std::hint::spin_loop();
+                }
+            }
+        })
+    };
+    // A step's own work: about a millisecond of arithmetic on one thread.
+    let data: Vec<f64> = (0..400_000).map(f64::from).collect();
+    let mut steps_per_second = |source: &mut UdpSource| {
+        let start = Instant::now();
+        for _ in 0..100 {
+            source.poll().unwrap();
+            std::hint::black_box(data.iter().map(|x| x.sqrt()).sum::<f64>());
+        }
+        100.0 / start.elapsed().as_secs_f64()
+    };
+    let (mut quiet, mut flooded) = (Vec::new(), Vec::new());
+    for round in 0..8 {
+        let flood = round % 2 == 1;
+        flooding.store(flood, Ordering::Relaxed);
+        std::thread::sleep(Duration::from_millis(20));
+        if !flood {
+            // What a flood left in the socket is read before a quiet window.
+            let mut before = u64::MAX;
+            while source.parser.counts.backlogged != before {
+                before = source.parser.counts.backlogged;
+                source.poll().unwrap();
+            }
+        }
+        let rate = steps_per_second(&mut source);
+        if flood {
+            flooded.push(rate)
+        } else {
+            quiet.push(rate)
+        }
+    }
+    stop.store(true, Ordering::Relaxed);
+    sender.join().unwrap();
+    let median = |v: &mut Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    let (quiet, flooded) = (median(&mut quiet), median(&mut flooded));
+    let counts = source.parser.counts;
+    assert!(flooded >= 0.8 * quiet, "{flooded:.0} steps/s flooded, {quiet:.0} quiet ({counts:?})");
+    assert!(counts.backlogged > 0 && counts.received > 1000, "the flood reached the bound: {counts:?}");
+    assert!(source.poll().unwrap().is_some_and(|f| f.frame > 1000));
+}

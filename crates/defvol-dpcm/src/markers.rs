@@ -195,6 +195,10 @@ pub struct FrameCounts {
     pub malformed: u64,
     /// Frames older than one already taken.
     pub out_of_order: u64,
+    /// Polls that stopped at [`MAX_DATAGRAMS_PER_POLL`] with datagrams still waiting (a
+    /// flood: the rest wait for the next step, or the kernel drops them once its buffer
+    /// is full, which shows as `lost`).
+    pub backlogged: u64,
 }
 
 /// Parses the seed's frames (little-endian 32-bit words: flag, count, frame number, then
@@ -285,7 +289,12 @@ impl FrameParser {
     }
 }
 
-/// A non-blocking UDP marker source (the seed's network reading pass never blocks a step).
+/// Datagrams one poll reads at most: markers come at a device's rate (about one frame a
+/// step), so a sender faster than that is a flood, and a step must not loop on it.
+pub const MAX_DATAGRAMS_PER_POLL: usize = 32;
+
+/// A non-blocking UDP marker source (the seed's network reading pass never blocks a step,
+/// and never reads more than [`MAX_DATAGRAMS_PER_POLL`] in one).
 #[derive(Debug)]
 pub struct UdpSource {
     socket: UdpSocket,
@@ -306,9 +315,10 @@ impl UdpSource {
         self.socket.local_addr().ok()
     }
 
-    /// Drains pending datagrams; the newest well-formed frame so far.
+    /// Reads the pending datagrams, up to [`MAX_DATAGRAMS_PER_POLL`]; the newest
+    /// well-formed frame so far.
     pub fn poll(&mut self) -> Result<Option<&UdpFrame>, MarkerError> {
-        loop {
+        for _ in 0..MAX_DATAGRAMS_PER_POLL {
             match self.socket.recv(&mut self.buffer) {
                 Ok(n) => {
                     let frames = self.parser.parse(&self.buffer[..n]);
@@ -316,11 +326,12 @@ impl UdpSource {
                         self.latest = Some(last);
                     }
                 }
-                Err(e) if e.kind() == ErrorKind::WouldBlock => break,
+                Err(e) if e.kind() == ErrorKind::WouldBlock => return Ok(self.latest.as_ref()),
                 Err(e) if e.kind() == ErrorKind::Interrupted || e.kind() == ErrorKind::ConnectionRefused => continue,
                 Err(e) => return Err(MarkerError::Receive(e)),
             }
         }
+        self.parser.counts.backlogged += 1;
         Ok(self.latest.as_ref())
     }
 }
