@@ -318,7 +318,7 @@ fn a_udp_flood_leaves_the_step_rate_within_a_fifth_of_the_quiet_rate() {
     };
     // A step's own work: about a millisecond of arithmetic on one thread.
     let data: Vec<f64> = (0..400_000).map(f64::from).collect();
-    let mut steps_per_second = |source: &mut UdpSource| {
+    let steps_per_second = |source: &mut UdpSource| {
         let start = Instant::now();
         for _ in 0..100 {
             source.poll().unwrap();
