@@ -21,6 +21,7 @@ impl Pipeline {
             |stage: &str| stage_backends.iter().find(|(s, _)| *s == stage).map_or("off", |(_, b)| b.name()).to_owned();
         // Where each stage runs, under keys `backend.<stage>`; on a GPU, its round trips
         // since the node started (`gpu.submissions`, `gpu.readbacks`, `gpu.bytes_read_back`).
+        #[cfg_attr(not(feature = "gpu"), allow(unused_mut))]
         let mut values: Vec<KeyValue> =
             stage_backends.iter().map(|(stage, backend)| kv(&format!("backend.{stage}"), backend)).collect();
         #[cfg(feature = "gpu")]

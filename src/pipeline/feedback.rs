@@ -201,6 +201,8 @@ impl FeedbackLoop {
     pub fn engine_backend(&self) -> Option<RunsOn> {
         self.engine_backend
     }
+    /// The solver itself (on a GPU, the warp reads its displacements where they are).
+    #[cfg(feature = "gpu")]
     pub(super) fn engine(&self) -> Option<&SolverEngine> {
         self.engine.as_ref()
     }
