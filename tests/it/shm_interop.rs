@@ -143,3 +143,55 @@ fn an_oblique_volume_lands_where_itk_puts_it() {
     let (value_error, largest) = (got["max_value_error"].as_f64().unwrap(), got["last"].as_f64().unwrap());
     assert!(value_error <= 1e-6 * largest, "warped values differ from the file's by up to {value_error}: {got}");
 }
+
+/// A /dev/shm of 1 MiB, a real tmpfs in a private mount namespace (`unshare --mount`): a
+/// service whose samples cannot fit is refused naming the room there and the room needed,
+/// before iceoryx2 maps anything; one that fits opens and publishes there.
+#[test]
+fn a_tiny_dev_shm_refuses_a_service_naming_its_size_and_takes_one_that_fits() {
+    const INSIDE: &str = "DEFVOL_TEST_IN_TINY_SHM";
+    let name = "shm_interop::a_tiny_dev_shm_refuses_a_service_naming_its_size_and_takes_one_that_fits";
+    if std::env::var_os(INSIDE).is_none() {
+        let exe = std::env::current_exe().unwrap();
+        let mount = "mount -t tmpfs -o size=1m defvol-test-shm /dev/shm && exec \"$0\" \"$@\"";
+        let mut command = Command::new("unshare");
+        // /proc/self belongs to the process's effective user.
+        if std::os::unix::fs::MetadataExt::uid(&std::fs::metadata("/proc/self").unwrap()) != 0 {
+            command.arg("--map-root-user");
+        }
+        let out = command
+            .args(["--mount", "--", "sh", "-c", mount])
+            .arg(exe)
+            .args([name, "--exact", "--nocapture"])
+            .env(INSIDE, "1")
+            .output()
+            .unwrap();
+        let text = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+        assert!(out.status.success() && text.contains("1 passed"), "inside the tiny /dev/shm:\n{text}");
+        return;
+    }
+    let stat = nix::sys::statvfs::statvfs("/dev/shm").unwrap();
+    assert_eq!(stat.blocks() as u64 * stat.fragment_size() as u64, 1 << 20, "the tmpfs is 1 MiB");
+    let grid =
+        |n: usize| Grid { dims: [n; 3], spacing: [1.0; 3], origin: [0.0; 3], direction: nalgebra::Matrix3::identity() };
+    let Err(refused) = WarpedVolumePublisher::new("defvol/test_tiny_shm_big", &grid(64)) else {
+        panic!("a 1 MiB volume was taken into a 1 MiB /dev/shm")
+    };
+    let message = refused.to_string();
+    let needed = defvol::shm::bytes_needed(64 * 64 * 64) as f64 / 1048576.0;
+    assert!(
+        message.contains("/dev/shm has 1.0 MiB free") && message.contains(&format!("needs {needed:.1} MiB")),
+        "{message}"
+    );
+    let small = grid(8);
+    assert!(defvol::shm::bytes_needed(8 * 8 * 8) < 1 << 19, "the small service fits with room to spare");
+    let publisher = WarpedVolumePublisher::new("defvol/test_tiny_shm_small", &small).unwrap();
+    let volume = WarpedVolume {
+        grid: small.clone(),
+        sequence: 1,
+        stamp: Time::default(),
+        stats: Default::default(),
+        published: false,
+    };
+    publisher.publish_slice(&volume, &vec![1.5; 512]).unwrap();
+}
