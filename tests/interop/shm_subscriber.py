@@ -6,7 +6,11 @@ With --check-against FILE it also places voxels by the header (origin + directio
 (index · spacing)) and compares them with where SimpleITK puts the same voxels of FILE, and
 their values with FILE's: the largest point and value differences go into the JSON.
 
-usage: shm_subscriber.py SERVICE_NAME [--check-against FILE]
+With --hoard it never lets a sample go: it borrows every sample it can, prints
+{"holding": N} once it can borrow no more, and keeps them until it is killed (a subscriber
+that misbehaves; the publisher must not block on it).
+
+usage: shm_subscriber.py SERVICE_NAME [--check-against FILE | --hoard]
 """
 
 import ctypes
@@ -60,6 +64,23 @@ def check(header, values, path):
     return {"checked": checked, "max_point_error_mm": worst_point, "max_value_error": worst_value}
 
 
+def hoard(subscriber):
+    held = []
+    deadline = time.time() + 20
+    while time.time() < deadline:
+        try:
+            sample = subscriber.receive()
+        except Exception:  # the subscriber's borrow limit: it holds all it may
+            break
+        if sample is not None:
+            held.append(sample)
+        else:
+            time.sleep(0.005)
+    print(json.dumps({"holding": len(held)}), flush=True)
+    while True:
+        time.sleep(1)
+
+
 def main():
     iox2.set_log_level_from_env_or(iox2.LogLevel.Warn)
     node = iox2.NodeBuilder.new().create(iox2.ServiceType.Ipc)
@@ -70,6 +91,9 @@ def main():
         .open()
     )
     subscriber = service.subscriber_builder().create()
+    if "--hoard" in sys.argv:
+        hoard(subscriber)
+        return
     deadline = time.time() + 20
     while time.time() < deadline:
         sample = subscriber.receive()

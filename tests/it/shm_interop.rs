@@ -195,3 +195,65 @@ fn a_tiny_dev_shm_refuses_a_service_naming_its_size_and_takes_one_that_fits() {
     };
     publisher.publish_slice(&volume, &vec![1.5; 512]).unwrap();
 }
+
+/// A subscriber that borrows every sample it can and never lets go, then is killed with
+/// SIGKILL while holding them: publishing never blocks or fails meanwhile, and afterwards a
+/// new subscriber receives the volumes that followed.
+#[test]
+fn a_subscriber_hoarding_samples_then_killed_never_blocks_the_publisher() {
+    use std::io::BufRead;
+    if !have_python("iceoryx2") {
+        return;
+    }
+    let grid =
+        Grid { dims: [16, 12, 8], spacing: [1.0; 3], origin: [0.0; 3], direction: nalgebra::Matrix3::identity() };
+    let service = format!("defvol/test_hoard_{}", std::process::id());
+    let publisher = WarpedVolumePublisher::new(&service, &grid).unwrap();
+    let sequence = std::cell::Cell::new(0u64);
+    let publish = || {
+        sequence.set(sequence.get() + 1);
+        let volume = WarpedVolume {
+            grid: grid.clone(),
+            sequence: sequence.get(),
+            stamp: Time::default(),
+            stats: Default::default(),
+            published: false,
+        };
+        publisher.publish_slice(&volume, &vec![sequence.get() as f32; grid.len()]).unwrap();
+    };
+    let mut hoarder = Command::new("python3")
+        .arg(script("shm_subscriber.py"))
+        .args([service.as_str(), "--hoard"])
+        .stdout(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let (told, heard) = std::sync::mpsc::channel();
+    let stdout = hoarder.stdout.take().unwrap();
+    std::thread::spawn(move || {
+        let line = std::io::BufReader::new(stdout).lines().next().and_then(Result::ok).unwrap_or_default();
+        let _ = told.send(line);
+    });
+    // Volumes keep coming until the hoarder holds all it may.
+    let holding = loop {
+        publish();
+        if let Ok(line) = heard.try_recv() {
+            break serde_json::from_str::<serde_json::Value>(&line).unwrap()["holding"].as_u64().unwrap();
+        }
+        std::thread::sleep(std::time::Duration::from_millis(5));
+    };
+    assert!(holding >= 1, "the hoarder holds {holding} samples");
+    let started = std::time::Instant::now();
+    for _ in 0..200 {
+        publish();
+    }
+    hoarder.kill().unwrap();
+    hoarder.wait().unwrap();
+    for _ in 0..200 {
+        publish();
+    }
+    let since = sequence.get();
+    let received = subscribe(&[service.as_str()], publish);
+    assert!(received["sequence"].as_u64().unwrap() > since, "{received}");
+    assert_eq!(received["first"].as_f64().unwrap(), received["sequence"].as_f64().unwrap(), "{received}");
+    eprintln!("{holding} samples hoarded; 400 volumes published past them in {:?}", started.elapsed());
+}
