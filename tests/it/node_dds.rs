@@ -845,3 +845,88 @@ exit $status"#;
         }
     });
 }
+
+/// Two hosts on one machine: this test's network namespace and a second one joined to it by
+/// a veth pair (192.0.2.0/24, a documentation range; both made here and gone with the test).
+/// With default settings the node puts no RTPS datagram on the link (counted by a raw
+/// capture on the far end); with `ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET` its discovery
+/// reaches the other host (the same capture, the positive control).
+#[test]
+fn dds_stays_off_a_second_host_by_default_and_reaches_it_when_opened() {
+    // Always in a namespace of its own: the veth and its routes must not meet other tests.
+    if std::env::var_os("DEFVOL_NETNS_RERUN").is_none() || !dds::private_network() {
+        let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/netns-run");
+        let name = "node_dds::dds_stays_off_a_second_host_by_default_and_reaches_it_when_opened";
+        let status = Command::new(script)
+            .arg(std::env::current_exe().unwrap())
+            .args(["--exact", name, "--nocapture", "--test-threads", "1"])
+            .env("DEFVOL_NETNS_RERUN", "1")
+            .status()
+            .unwrap();
+        assert!(status.success(), "failed inside its network namespaces");
+        return;
+    }
+    let shell = |script: &str| {
+        let out = Command::new("sh").args(["-c", script]).output().unwrap();
+        assert!(out.status.success(), "{script}: {}", String::from_utf8_lossy(&out.stderr));
+    };
+    // The other host: a process in a network namespace of its own, holding it.
+    let mut other = Command::new("unshare").args(["--net", "sleep", "300"]).spawn().unwrap();
+    let own = std::fs::read_link("/proc/self/ns/net").unwrap();
+    let its = format!("/proc/{}/ns/net", other.id());
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while std::fs::read_link(&its).map_or(true, |ns| ns == own) {
+        assert!(Instant::now() < deadline, "the second namespace never came");
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    shell(&format!(
+        "ip link add dv0 type veth peer name dv1 netns {} && ip addr add 192.0.2.1/24 dev dv0 && ip link set dv0 up",
+        other.id()
+    ));
+    shell(&format!(
+        "nsenter --net={its} sh -c 'ip link set lo up && ip addr add 192.0.2.2/24 dev dv1 && ip link set dv1 up'"
+    ));
+    let capture = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/interop/rtps_capture.py");
+    let mut counted = Vec::new();
+    for open in [false, true] {
+        let mut listener = Command::new("nsenter")
+            .arg(format!("--net={its}"))
+            .arg("python3")
+            .arg(&capture)
+            .args(["dv1", "5"])
+            .stdout(std::process::Stdio::piped())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        // The capture is bound once it says so.
+        let mut ready = String::new();
+        std::io::BufRead::read_line(&mut std::io::BufReader::new(listener.stderr.as_mut().unwrap()), &mut ready)
+            .unwrap();
+        assert_eq!(ready.trim(), "ready");
+        let dir = tempfile::tempdir().unwrap();
+        let mut node = Command::new(env!("CARGO_BIN_EXE_defvol_node"));
+        node.args(["--backend", "cpu", "--seconds", "3", "--ros-args", "-p"])
+            .arg(format!("scene_file:={}", scene().display()))
+            .arg("-p")
+            .arg(format!("warp.service:=defvol/two_hosts_{open}_{}", std::process::id()))
+            .env("ROS_DOMAIN_ID", "17")
+            .env_remove("ROS_DISTRO")
+            .current_dir(dir.path());
+        if open {
+            node.env("ROS_AUTOMATIC_DISCOVERY_RANGE", "SUBNET");
+        }
+        let out = node.output().unwrap();
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        let seen = listener.wait_with_output().unwrap();
+        let text = String::from_utf8_lossy(&seen.stdout);
+        assert!(seen.status.success(), "{text}");
+        counted.push(serde_json::from_str::<serde_json::Value>(text.lines().last().unwrap()).unwrap());
+    }
+    other.kill().unwrap();
+    other.wait().unwrap();
+    let (closed, opened) = (&counted[0], &counted[1]);
+    assert_eq!(closed["rtps"], 0, "RTPS on the link by default: {closed}");
+    assert!(opened["rtps"].as_u64().unwrap() > 0, "opened, discovery reaches the other host: {opened}");
+    assert_eq!(opened["sources"], serde_json::json!(["192.0.2.1"]), "{opened}");
+    eprintln!("RTPS datagrams on the link: {} by default, {} opened", closed["rtps"], opened["rtps"]);
+}
