@@ -850,7 +850,8 @@ exit $status"#;
 /// a veth pair (192.0.2.0/24, a documentation range; both made here and gone with the test).
 /// With default settings the node puts no RTPS datagram on the link (counted by a raw
 /// capture on the far end); with `ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET` its discovery
-/// reaches the other host (the same capture, the positive control).
+/// reaches the other host (the same capture, the positive control), and a Cyclone DDS peer
+/// there, bound to its end of the link, exchanges poses and feedback with the node.
 #[test]
 fn dds_stays_off_a_second_host_by_default_and_reaches_it_when_opened() {
     // Always in a namespace of its own: the veth and its routes must not meet other tests.
@@ -888,6 +889,7 @@ fn dds_stays_off_a_second_host_by_default_and_reaches_it_when_opened() {
     ));
     let capture = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/interop/rtps_capture.py");
     let mut counted = Vec::new();
+    let mut peer = None;
     for open in [false, true] {
         let mut listener = Command::new("nsenter")
             .arg(format!("--net={its}"))
@@ -905,7 +907,8 @@ fn dds_stays_off_a_second_host_by_default_and_reaches_it_when_opened() {
         assert_eq!(ready.trim(), "ready");
         let dir = tempfile::tempdir().unwrap();
         let mut node = Command::new(env!("CARGO_BIN_EXE_defvol_node"));
-        node.args(["--backend", "cpu", "--seconds", "3", "--ros-args", "-p"])
+        let seconds = if open { "12" } else { "3" };
+        node.args(["--backend", "cpu", "--seconds", seconds, "--ros-args", "-r", "__ns:=/robot", "-p"])
             .arg(format!("scene_file:={}", scene().display()))
             .arg("-p")
             .arg(format!("warp.service:=defvol/two_hosts_{open}_{}", std::process::id()))
@@ -915,7 +918,11 @@ fn dds_stays_off_a_second_host_by_default_and_reaches_it_when_opened() {
         if open {
             node.env("ROS_AUTOMATIC_DISCOVERY_RANGE", "SUBNET");
         }
-        let out = node.output().unwrap();
+        let node = node.stderr(std::process::Stdio::piped()).spawn().unwrap();
+        if open && python_has("cyclonedds.domain") {
+            peer = Some(cyclone_peer_at(&its, "dv1"));
+        }
+        let out = node.wait_with_output().unwrap();
         assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
         let seen = listener.wait_with_output().unwrap();
         let text = String::from_utf8_lossy(&seen.stdout);
@@ -927,6 +934,33 @@ fn dds_stays_off_a_second_host_by_default_and_reaches_it_when_opened() {
     let (closed, opened) = (&counted[0], &counted[1]);
     assert_eq!(closed["rtps"], 0, "RTPS on the link by default: {closed}");
     assert!(opened["rtps"].as_u64().unwrap() > 0, "opened, discovery reaches the other host: {opened}");
-    assert_eq!(opened["sources"], serde_json::json!(["192.0.2.1"]), "{opened}");
+    // From the node's host; with the peer running, from the peer's too (both ways).
+    assert!(opened["sources"].as_array().unwrap().contains(&serde_json::json!("192.0.2.1")), "{opened}");
     eprintln!("RTPS datagrams on the link: {} by default, {} opened", closed["rtps"], opened["rtps"]);
+    if let Some(got) = peer {
+        assert!(got["feedback"].as_u64().unwrap() > 0 && got["meshes"].as_u64().unwrap() > 0, "{got}");
+        assert!(got["max_force_z"].as_f64().unwrap() > 1.0, "its poses reached the solver: {got}");
+        eprintln!("the peer on the other host: {got}");
+    }
+}
+
+/// Runs tests/interop/cyclone_peer.py for 8 s in the network namespace `ns`, Cyclone DDS
+/// bound to `interface`, under the node's namespace /robot; what it received.
+fn cyclone_peer_at(ns: &str, interface: &str) -> serde_json::Value {
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/interop/cyclone_peer.py");
+    let uri = format!(
+        "<CycloneDDS><Domain id=\"17\"><General><Interfaces><NetworkInterface name=\"{interface}\"/></Interfaces></General></Domain></CycloneDDS>"
+    );
+    let out = Command::new("nsenter")
+        .arg(format!("--net={ns}"))
+        .arg("python3")
+        .arg(script)
+        .args(["8", "/robot"])
+        .env("ROS_DOMAIN_ID", "17")
+        .env("CYCLONEDDS_URI", uri)
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{text}{}", String::from_utf8_lossy(&out.stderr));
+    serde_json::from_str(text.lines().last().unwrap()).unwrap()
 }
