@@ -271,3 +271,62 @@ fn the_recording_names_topics_as_the_node_does_remaps_applied() {
     assert!(topics.contains("/robot/mesh_out") && topics.contains("/robot/probe_pose"), "{topics:?}");
     assert!(!topics.contains("/robot/deformed_mesh") && !topics.contains("/robot/tool_pose"), "{topics:?}");
 }
+
+/// The warped volumes themselves, which leave by shared memory and not through the bag,
+/// repeat bit for bit from the same poses on rayon's default threads and on one, while a
+/// probe presses in and changes them.
+#[test]
+fn the_warped_volumes_repeat_bit_for_bit_on_any_thread_count() {
+    use std::sync::{Arc, Mutex};
+
+    use defvol::backend::Backend;
+    use defvol::msgs::{Header, PoseStamped, Time};
+    use defvol::pipeline::inputs::InputLimits;
+    use defvol::pipeline::{Demand, FrameMode, Pipeline, VolumeSink, WarpedVolume, WriteVolume};
+    use defvol::scene::Scene;
+
+    /// Every volume published, as the warp wrote it into memory lent to it.
+    struct Capture(Mutex<Vec<(u64, Vec<u32>)>>);
+    impl VolumeSink for Capture {
+        fn has_subscribers(&self) -> bool {
+            true
+        }
+        fn publish(&self, volume: &WarpedVolume, write: &mut WriteVolume<'_>) -> Result<(), String> {
+            let mut samples = vec![0f32; volume.grid.len()];
+            write(&mut samples, None)?;
+            let bits = samples.iter().map(|v| v.to_bits()).collect();
+            self.0.lock().map_err(|e| e.to_string())?.push((volume.sequence, bits));
+            Ok(())
+        }
+    }
+    let run = || {
+        let mut scene = Scene::from_file(&scene()).unwrap();
+        scene.tools[0].path = None;
+        let limits = InputLimits { max_age: None, ..Default::default() };
+        let mut pipeline = Pipeline::new(scene, &Backend::cpu(), limits, FrameMode::Lockstep).unwrap();
+        let capture = Arc::new(Capture(Mutex::new(Vec::new())));
+        pipeline.set_volume_sink(Some(capture.clone() as Arc<dyn VolumeSink>));
+        let demand = Demand { warped_volume: true, ..Demand::NONE };
+        for tick in 1..=60u32 {
+            let stamp = Time::from_secs(f64::from(tick) * 0.01);
+            let mut pose = PoseStamped { header: Header { stamp, frame_id: "world".into() }, ..Default::default() };
+            // Down from 12 cm to 7 cm over the first half second, then held.
+            pose.pose.position.z = 0.12 - 0.05 * (f64::from(tick) / 50.0).min(1.0);
+            pipeline.apply_pose("tool_pose", &pose, stamp).unwrap();
+            pipeline.tick(stamp, &demand).unwrap();
+        }
+        let volumes = std::mem::take(&mut *capture.0.lock().unwrap());
+        volumes
+    };
+    let default_threads = run();
+    let one_thread = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap().install(run);
+    assert!(default_threads.len() >= 3, "{} volumes published", default_threads.len());
+    let (first, last) = (&default_threads[0].1, &default_threads.last().unwrap().1);
+    let moved = first.iter().zip(last).filter(|(a, b)| a != b).count();
+    assert!(moved > 1000, "the press changed {moved} voxels");
+    assert_eq!(one_thread.len(), default_threads.len());
+    for ((s1, a), (s2, b)) in default_threads.iter().zip(&one_thread) {
+        let differ = a.iter().zip(b).filter(|(x, y)| x != y).count();
+        assert_eq!((s1, differ), (s2, 0), "volume {s1}: {differ} voxels differ on one thread");
+    }
+}
