@@ -970,26 +970,9 @@ fn cyclone_peer_at(ns: &str, interface: &str) -> serde_json::Value {
 /// runs on without shared volumes: meshes, images and `warped_volume/info` still come.
 #[test]
 fn a_node_with_a_tiny_dev_shm_names_the_room_and_runs_on_without_shared_volumes() {
-    const INSIDE: &str = "DEFVOL_TEST_IN_TINY_SHM";
     let name = "node_dds::a_node_with_a_tiny_dev_shm_names_the_room_and_runs_on_without_shared_volumes";
-    if std::env::var_os(INSIDE).is_none() {
-        let netns_run = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/netns-run");
-        let mount = "mount -t tmpfs -o size=1m defvol-test-shm /dev/shm && exec \"$0\" \"$@\"";
-        let mut command = Command::new("unshare");
-        // /proc/self belongs to the process's effective user.
-        if std::os::unix::fs::MetadataExt::uid(&std::fs::metadata("/proc/self").unwrap()) != 0 {
-            command.arg("--map-root-user");
-        }
-        let status = command
-            .args(["--mount", "--", "sh", "-c", mount])
-            .arg(netns_run)
-            .arg(std::env::current_exe().unwrap())
-            .args(["--exact", name, "--nocapture", "--test-threads", "1"])
-            .env(INSIDE, "1")
-            .env("DEFVOL_NETNS_RERUN", "1")
-            .status()
-            .unwrap();
-        assert!(status.success(), "failed inside its mount and network namespaces");
+    let netns_run = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/netns-run");
+    if crate::rerun_under_tiny_dev_shm(name, Some(&netns_run)) {
         return;
     }
     assert!(dds::private_network(), "the node must run in a private network namespace");

@@ -149,25 +149,8 @@ fn an_oblique_volume_lands_where_itk_puts_it() {
 /// before iceoryx2 maps anything; one that fits opens and publishes there.
 #[test]
 fn a_tiny_dev_shm_refuses_a_service_naming_its_size_and_takes_one_that_fits() {
-    const INSIDE: &str = "DEFVOL_TEST_IN_TINY_SHM";
     let name = "shm_interop::a_tiny_dev_shm_refuses_a_service_naming_its_size_and_takes_one_that_fits";
-    if std::env::var_os(INSIDE).is_none() {
-        let exe = std::env::current_exe().unwrap();
-        let mount = "mount -t tmpfs -o size=1m defvol-test-shm /dev/shm && exec \"$0\" \"$@\"";
-        let mut command = Command::new("unshare");
-        // /proc/self belongs to the process's effective user.
-        if std::os::unix::fs::MetadataExt::uid(&std::fs::metadata("/proc/self").unwrap()) != 0 {
-            command.arg("--map-root-user");
-        }
-        let out = command
-            .args(["--mount", "--", "sh", "-c", mount])
-            .arg(exe)
-            .args([name, "--exact", "--nocapture"])
-            .env(INSIDE, "1")
-            .output()
-            .unwrap();
-        let text = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
-        assert!(out.status.success() && text.contains("1 passed"), "inside the tiny /dev/shm:\n{text}");
+    if crate::rerun_under_tiny_dev_shm(name, None) {
         return;
     }
     let stat = nix::sys::statvfs::statvfs("/dev/shm").unwrap();
