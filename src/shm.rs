@@ -200,7 +200,11 @@ impl WarpedVolumePublisher {
 
 impl VolumeSink for WarpedVolumePublisher {
     fn has_subscribers(&self) -> bool {
-        self.service.dynamic_config().number_of_subscribers() > 0
+        self.subscribers() > 0
+    }
+
+    fn subscribers(&self) -> usize {
+        self.service.dynamic_config().number_of_subscribers()
     }
 
     fn publish(&self, volume: &WarpedVolume, write: &mut WriteVolume<'_>) -> Result<(), String> {

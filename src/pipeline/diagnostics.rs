@@ -101,13 +101,19 @@ impl Pipeline {
             } else {
                 "ok".into()
             };
-            let values = vec![
+            let mut values = vec![
                 kv("warp_ms", format!("{:.3}", times.warp)),
                 kv("sequence", sequence),
                 kv("voxels", stats.voxels),
                 kv("inside", stats.inside),
                 kv("inverted_tets", stats.skipped_tets),
             ];
+            // Shared memory: who takes the volumes, and whether the latest went out (a
+            // subscriber that holds its samples loses its oldest; the node never waits).
+            if let Some(subscribers) = p.volume_subscribers() {
+                let published = p.warped_volume().is_some_and(|w| w.published);
+                values.extend([kv("shared_subscribers", subscribers), kv("shared_published", published)]);
+            }
             status.push(DiagnosticStatus {
                 level,
                 name: "defvol: warp".into(),

@@ -47,6 +47,11 @@ pub trait VolumeSink: Send + Sync {
     /// Whether anyone takes the volumes (else the warp is not published).
     fn has_subscribers(&self) -> bool;
 
+    /// How many take them now, for diagnostics (0 or 1 where the sink cannot count them).
+    fn subscribers(&self) -> usize {
+        usize::from(self.has_subscribers())
+    }
+
     /// Lends memory for one volume of `volume.grid` to `write`, which is told the sequence
     /// of the earlier volume of this run the memory still holds (if the sink knows one),
     /// then publishes it. An error from `write` is returned and nothing is published.

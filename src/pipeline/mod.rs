@@ -455,6 +455,11 @@ impl Pipeline {
     }
 
     /// The latest warped volume (grid in file units, sequence, work), once one is made.
+    /// How many take the published volumes now; `None` without a volume sink.
+    pub fn volume_subscribers(&self) -> Option<usize> {
+        self.sink.as_ref().map(|sink| sink.subscribers())
+    }
+
     pub fn warped_volume(&self) -> Option<&WarpedVolume> {
         self.frames.as_ref().and_then(|f| f.latest.as_ref())
     }
@@ -1139,6 +1144,11 @@ mod tests {
             checked += 1;
         }
         assert!(checked >= 5, "{checked} volumes published");
+        // Diagnostics say who takes the volumes and that the latest went out.
+        let report = p.diagnostics(Time::from_secs(1.0), &[]);
+        let warp = report.status.iter().find(|s| s.name == "defvol: warp").unwrap();
+        let value = |key: &str| warp.values.iter().find(|v| v.key == key).map(|v| v.value.as_str());
+        assert_eq!((value("shared_subscribers"), value("shared_published")), (Some("1"), Some("true")));
         assert!(
             lender.published.lock().unwrap().iter().skip(3).count() >= 2,
             "buffers came back holding older volumes"

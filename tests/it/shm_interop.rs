@@ -225,6 +225,8 @@ fn a_subscriber_hoarding_samples_then_killed_never_blocks_the_publisher() {
         std::thread::sleep(std::time::Duration::from_millis(5));
     };
     assert!(holding >= 1, "the hoarder holds {holding} samples");
+    // What the node's diagnostics report as `shared_subscribers`.
+    assert_eq!(defvol::pipeline::VolumeSink::subscribers(&publisher), 1);
     let started = std::time::Instant::now();
     for _ in 0..200 {
         publish();
