@@ -1,6 +1,6 @@
 """Counts the RTPS (DDS) datagrams an interface carries, in and out, for a while: a raw
 AF_PACKET socket sees every IPv4 frame whatever its port or address. Prints one JSON
-object: frames seen, RTPS datagrams among them, and their source addresses.
+object: frames seen, RTPS datagrams among them, and how many came from each source address.
 
 usage: rtps_capture.py INTERFACE SECONDS
 """
@@ -19,7 +19,7 @@ def main():
     print("ready", file=sys.stderr, flush=True)
     end = time.time() + seconds
     frames = rtps = 0
-    sources = set()
+    sources = {}
     while time.time() < end:
         try:
             frame = capture.recv(65535)
@@ -31,8 +31,9 @@ def main():
             header = (frame[14] & 15) * 4
             if frame[14 + header + 8 : 14 + header + 12] == b"RTPS":
                 rtps += 1
-                sources.add(socket.inet_ntoa(frame[26:30]))
-    print(json.dumps({"frames": frames, "rtps": rtps, "sources": sorted(sources)}))
+                source = socket.inet_ntoa(frame[26:30])
+                sources[source] = sources.get(source, 0) + 1
+    print(json.dumps({"frames": frames, "rtps": rtps, "sources": sources}))
 
 
 if __name__ == "__main__":
