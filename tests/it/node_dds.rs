@@ -32,6 +32,12 @@ fn isolated(name: &str, test: impl FnOnce()) {
         std::env::var_os("DEFVOL_NETNS_RERUN").is_none(),
         "{name}: still on a real interface after tests/netns-run"
     );
+    rerun_in_a_namespace_of_its_own(name);
+}
+
+/// Re-runs this test binary, filtered to the test `name` of this module, through
+/// tests/netns-run: a fresh private network namespace.
+fn rerun_in_a_namespace_of_its_own(name: &str) {
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/netns-run");
     // The harness names a test by its path inside the test crate: `node_dds::<name>`.
     let path = module_path!().split_once("::").map_or(module_path!(), |(_crate, module)| module);
@@ -855,18 +861,11 @@ exit $status"#;
 #[test]
 fn dds_stays_off_a_second_host_by_default_and_reaches_it_when_opened() {
     // Always in a namespace of its own: the veth and its routes must not meet other tests.
-    if std::env::var_os("DEFVOL_NETNS_RERUN").is_none() || !dds::private_network() {
-        let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/netns-run");
-        let name = "node_dds::dds_stays_off_a_second_host_by_default_and_reaches_it_when_opened";
-        let status = Command::new(script)
-            .arg(std::env::current_exe().unwrap())
-            .args(["--exact", name, "--nocapture", "--test-threads", "1"])
-            .env("DEFVOL_NETNS_RERUN", "1")
-            .status()
-            .unwrap();
-        assert!(status.success(), "failed inside its network namespaces");
+    if std::env::var_os("DEFVOL_NETNS_RERUN").is_none() {
+        rerun_in_a_namespace_of_its_own("dds_stays_off_a_second_host_by_default_and_reaches_it_when_opened");
         return;
     }
+    assert!(dds::private_network(), "the first host must be a private network namespace");
     let shell = |script: &str| {
         let out = Command::new("sh").args(["-c", script]).output().unwrap();
         assert!(out.status.success(), "{script}: {}", String::from_utf8_lossy(&out.stderr));

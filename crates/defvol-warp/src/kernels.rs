@@ -210,6 +210,8 @@ pub struct Sampler<'a> {
     background: f32,
     displacements: Vec<CompiledDisplacement>,
     source: Grid,
+    /// How a run finds its cells, fixed by the source's dims.
+    cell: CellLookup,
     /// Eight-lane runs where the CPU has them ([`crate::CpuPath::Fast`]).
     lanes: bool,
 }
@@ -225,6 +227,7 @@ impl<'a> Sampler<'a> {
             background: options.background,
             displacements,
             source: source.grid(),
+            cell: CellLookup::for_dims(source.dims()),
             lanes: options.cpu_path == crate::CpuPath::Fast,
         })
     }
@@ -247,14 +250,7 @@ impl<'a> Sampler<'a> {
     /// Trilinear samples along a run of output voxels, source index base + step·i: the hot
     /// loop of the warp, with the limits and strides hoisted out of it.
     fn trilinear_run<T: Real>(&self, out: &mut [T], base: [T; 3], step: [T; 3], i0: usize, src_inside: bool) {
-        let [nx, ny, nz] = self.dims;
-        let cell = CellLookup {
-            top: [nx, ny, nz].map(|n| n.saturating_sub(2) as i32),
-            strides: [usize::from(nx > 1), if ny > 1 { nx } else { 0 }, if nz > 1 { nx * ny } else { 0 }]
-                .map(|s| s as i32),
-            nx: nx as i32,
-            nxy: (nx * ny) as i32,
-        };
+        let cell = &self.cell;
         let background = T::of(self.background as f64);
         // The run is affine in n. A rest tet inside the source box samples inside it (only
         // round-off can leave, and the clamps absorb it); otherwise find the sub-run whose
@@ -272,7 +268,7 @@ impl<'a> Sampler<'a> {
         let done = match T::as_f32_mut(inside).filter(|_| self.lanes) {
             Some(lanes) => {
                 let (base, step) = (base.map(|v| v.to_f64() as f32), step.map(|v| v.to_f64() as f32));
-                trilinear_lanes(self.data, &cell, lanes, base, step, start as i32)
+                trilinear_lanes(self.data, cell, lanes, base, step, start as i32)
             }
             None => 0,
         };

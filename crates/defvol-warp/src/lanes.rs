@@ -18,6 +18,19 @@ pub(crate) struct CellLookup {
     pub nxy: i32,
 }
 
+impl CellLookup {
+    /// The lookup for x-fastest samples of `dims`.
+    pub fn for_dims([nx, ny, nz]: [usize; 3]) -> Self {
+        Self {
+            top: [nx, ny, nz].map(|n| n.saturating_sub(2) as i32),
+            strides: [usize::from(nx > 1), if ny > 1 { nx } else { 0 }, if nz > 1 { nx * ny } else { 0 }]
+                .map(|s| s as i32),
+            nx: nx as i32,
+            nxy: (nx * ny) as i32,
+        }
+    }
+}
+
 /// Writes trilinear samples at `base + step·(start + n)` into `out` where AVX2 serves (a
 /// last group of fewer than eight computes all eight lanes, which the clamps keep inside the
 /// data, and stores its own); returns how many it wrote: all of `out`, or none.
@@ -40,7 +53,8 @@ pub(crate) fn trilinear_lanes(
             return unsafe { x86::trilinear_avx2(data, cell, out, base, step, start) };
         }
     }
-    let _ = (data, cell, base, step, start);
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = (data, cell, out, base, step, start);
     0
 }
 
@@ -128,7 +142,8 @@ mod tests {
     fn lanes_give_the_scalar_loops_bits_and_the_f64_sample() {
         let dims = [7usize, 5, 4];
         let data: Vec<f32> = (0..140).map(|v| ((v * 37) % 101) as f32 - 50.0).collect();
-        let cell = CellLookup { top: [5, 3, 2], strides: [1, 7, 35], nx: 7, nxy: 35 };
+        let cell = CellLookup::for_dims(dims);
+        assert_eq!((cell.top, cell.strides, cell.nx, cell.nxy), ([5, 3, 2], [1, 7, 35], 7, 35));
         let mut checked = 0;
         for len in 1..20usize {
             let start = (len % 3) as i32;

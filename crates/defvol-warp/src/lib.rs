@@ -74,6 +74,7 @@ pub struct WarpOptions {
     pub displacements: Vec<DisplacementVolume>,
     /// Refuse output grids larger than this (bytes of f32 samples).
     pub max_bytes: u64,
+    /// Which CPU inner loops run (benchmarks measure both side by side).
     pub cpu_path: CpuPath,
 }
 
