@@ -254,18 +254,20 @@ struct WarpWork<'a> {
 /// deformed ones in output index space (f64; the warp's own first step), and the f64
 /// reference warp (as f32).
 fn export_case(dir: &std::path::Path, work: &WarpWork, reference: &[f64]) -> std::io::Result<()> {
-    let index = |grid: &crate::volume::Grid, points: &[Vector3<f64>]| -> Vec<f64> {
-        points.iter().flat_map(|p| grid.index_from_world(*p).iter().copied().collect::<Vec<_>>()).collect()
+    // Points as f64 index triples, little-endian bytes.
+    let index = |grid: &crate::volume::Grid, points: &[Vector3<f64>]| -> Vec<u8> {
+        let q = points.iter().map(|p| grid.index_from_world(*p));
+        q.flat_map(|q| [q.x, q.y, q.z]).flat_map(f64::to_le_bytes).collect()
     };
-    let f32s = |values: &mut dyn Iterator<Item = f32>| values.flat_map(f32::to_le_bytes).collect::<Vec<u8>>();
-    let f64s = |values: Vec<f64>| values.into_iter().flat_map(f64::to_le_bytes).collect::<Vec<u8>>();
+    let f32s = |values: &[f32]| values.iter().flat_map(|v| v.to_le_bytes()).collect::<Vec<u8>>();
     let tets: Vec<u8> = work.mesh.tets().iter().flatten().flat_map(|n| n.to_le_bytes()).collect();
+    let reference: Vec<f32> = reference.iter().map(|v| *v as f32).collect();
     std::fs::create_dir_all(dir)?;
-    std::fs::write(dir.join("source.f32"), f32s(&mut work.source.data().iter().copied()))?;
+    std::fs::write(dir.join("source.f32"), f32s(work.source.data()))?;
     std::fs::write(dir.join("tets.u32"), tets)?;
-    std::fs::write(dir.join("rest_index.f64"), f64s(index(&work.source.grid(), work.mesh.nodes())))?;
-    std::fs::write(dir.join("deformed_index.f64"), f64s(index(work.grid, work.deformed)))?;
-    std::fs::write(dir.join("reference.f32"), f32s(&mut reference.iter().map(|v| *v as f32)))?;
+    std::fs::write(dir.join("rest_index.f64"), index(&work.source.grid(), work.mesh.nodes()))?;
+    std::fs::write(dir.join("deformed_index.f64"), index(work.grid, work.deformed))?;
+    std::fs::write(dir.join("reference.f32"), f32s(&reference))?;
     let (low, high) = work.source.range();
     let case = json!({"source_dims": work.source.dims(), "out_dims": work.grid.dims, "tets": work.mesh.tets().len(),
         "nodes": work.mesh.nodes().len(), "background": 0.0, "source_range": [low, high]});
