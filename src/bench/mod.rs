@@ -4,6 +4,7 @@
 pub mod dpcm;
 pub mod node;
 pub mod render;
+pub mod report;
 mod solver;
 mod warp;
 

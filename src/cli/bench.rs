@@ -115,6 +115,11 @@ pub enum BenchStage {
         #[arg(long)]
         json: bool,
     },
+    /// Run time against error drawn: `DIR/<stage>.svg` for each stage (log-log, a curve per
+    /// scheme and backend, the seeds' published figures beside), `DIR/index.html` showing them
+    /// with the machine, build and date, and `DIR/rows.jsonl`; from the stages' benchmarks run
+    /// now, or from rows already written (`--from`).
+    Report(super::bench_report::ReportArgs),
     /// Implicit Euler (CG tolerance and time step sweeps) and the explicit schemes.
     Solver {
         /// Mesh sizes in tets (default: the seed's Table 1 sizes).
@@ -195,6 +200,7 @@ impl GpuRows {
 
 pub fn run(stage: BenchStage) -> Result<()> {
     match stage {
+        BenchStage::Report(args) => super::bench_report::run(&args)?,
         BenchStage::Node { tets, steps, settle, volume_mib, backends, volume_frames, json } => {
             let opts = bench::node::NodeBenchOptions {
                 tets,

@@ -4,6 +4,7 @@
 #[cfg(feature = "mcap")]
 mod bag;
 mod bench;
+mod bench_report;
 mod checks;
 mod choices;
 mod demo;

@@ -4,6 +4,7 @@
 //! the fuzzers keep their panics on their own threads, and the DDS tests re-run themselves
 //! in their own process inside a private network namespace.
 
+mod bench_report;
 mod cli;
 mod dicom;
 mod dpcm;

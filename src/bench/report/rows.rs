@@ -1,0 +1,174 @@
+//! Benchmark rows read back from JSON lines, and how a stage's rows fall into series: one
+//! curve per scheme and backend, its points the sweep (tolerances, steps, time steps).
+
+use serde::Deserialize;
+
+/// The stages a report draws, in its order.
+pub const STAGES: [&str; 5] = ["solver", "warp", "dpcm", "render", "node"];
+
+/// One row of `defvol bench <stage> --json`, as the conventions fix it.
+#[derive(Debug, Clone, Deserialize)]
+pub struct Row {
+    pub stage: String,
+    pub case: String,
+    pub backend: String,
+    pub device: String,
+    #[serde(default)]
+    pub params: serde_json::Value,
+    pub time_ms: Times,
+    #[serde(default)]
+    pub error: Option<RowError>,
+    /// The JSON line as read, kept whole (work, GPU costs) for the report's `rows.jsonl`.
+    #[serde(skip)]
+    pub line: String,
+}
+
+#[derive(Debug, Clone, Deserialize)]
+pub struct Times {
+    pub min: f64,
+    pub median: f64,
+    pub max: f64,
+}
+
+#[derive(Debug, Clone, Deserialize)]
+pub struct RowError {
+    pub metric: String,
+    pub value: f64,
+    pub reference: String,
+}
+
+/// A line that is not a benchmark row, named so the user can find it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Skipped {
+    pub source: String,
+    pub line: usize,
+    pub why: String,
+}
+
+impl std::fmt::Display for Skipped {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{} line {}: {}", self.source, self.line, self.why)
+    }
+}
+
+/// The rows of JSON-lines `text` (from `source`), and the lines skipped with why (blank
+/// lines are passed over).
+pub fn parse_rows(text: &str, source: &str) -> (Vec<Row>, Vec<Skipped>) {
+    let (mut rows, mut skipped) = (Vec::new(), Vec::new());
+    for (n, line) in text.lines().enumerate() {
+        let line = line.trim();
+        if line.is_empty() {
+            continue;
+        }
+        match parse_row(line) {
+            Ok(row) => rows.push(row),
+            Err(why) => skipped.push(Skipped { source: source.to_owned(), line: n + 1, why }),
+        }
+    }
+    (rows, skipped)
+}
+
+fn parse_row(line: &str) -> Result<Row, String> {
+    let mut row: Row = serde_json::from_str(line).map_err(|e| format!("not a benchmark row ({e})"))?;
+    row.line = line.to_owned();
+    if !STAGES.contains(&row.stage.as_str()) {
+        return Err(format!("stage `{}` is not one of {}", row.stage, STAGES.join(", ")));
+    }
+    let t = &row.time_ms;
+    if ![t.min, t.median, t.max].iter().all(|v| v.is_finite() && *v > 0.0) {
+        return Err(format!("time_ms must be positive and finite, got {:?}", [t.min, t.median, t.max]));
+    }
+    if let Some(e) = &row.error {
+        if !e.value.is_finite() {
+            return Err(format!("error value of `{}` is not finite", e.metric));
+        }
+    }
+    Ok(row)
+}
+
+/// The params that tell one curve of a stage from another; the rest are its sweep
+/// (tolerances, time steps, ray steps, sampling) or measurements (prepare times, notes).
+fn series_params(stage: &str) -> &'static [&'static str] {
+    match stage {
+        "solver" => &["integrator", "preconditioner", "batch"],
+        "warp" => &["scheme", "path", "dims"],
+        "dpcm" => &["topology", "physics", "batch"],
+        "render" => &["mode", "shading", "preintegrated"],
+        _ => &[],
+    }
+}
+
+/// Rows of one stage that make one curve, in the order they were measured.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Series {
+    pub label: String,
+    pub rows: Vec<usize>,
+}
+
+/// The series of `rows` (all of one stage): same backend, device, case and series params.
+/// The device joins the label only where the rows come from more than one machine.
+pub fn series_of(rows: &[&Row]) -> Vec<Series> {
+    let several_devices = rows.iter().any(|r| r.device != rows[0].device);
+    let mut series: Vec<Series> = Vec::new();
+    for (i, row) in rows.iter().enumerate() {
+        let label = series_label(row, several_devices);
+        match series.iter_mut().find(|s| s.label == label) {
+            Some(s) => s.rows.push(i),
+            None => series.push(Series { label, rows: vec![i] }),
+        }
+    }
+    series
+}
+
+fn series_label(row: &Row, with_device: bool) -> String {
+    let mut parts = vec![row.backend.clone(), row.case.clone()];
+    for key in series_params(&row.stage) {
+        match row.params.get(*key) {
+            Some(serde_json::Value::String(s)) => parts.push(s.clone()),
+            Some(serde_json::Value::Bool(true)) => parts.push((*key).to_owned()),
+            Some(serde_json::Value::Bool(false)) => {}
+            Some(v) if !v.is_null() => parts.push(format!("{key} {v}")),
+            _ => {}
+        }
+    }
+    if with_device {
+        parts.push(format!("({})", row.device));
+    }
+    parts.join(" · ")
+}
+
+/// A published figure from the seed papers: time only (they give no error).
+#[derive(Debug, Clone, PartialEq)]
+pub struct SeedPoint {
+    pub label: String,
+    pub time_ms: f64,
+}
+
+/// Frames per second as milliseconds a frame.
+fn per_second(label: impl Into<String>, hz: f64) -> SeedPoint {
+    SeedPoint { label: label.into(), time_ms: 1000.0 / hz }
+}
+
+/// The seeds' published figures for a stage: 000's Table 1 (implicit Euler on a GeForce
+/// 7800; its raycaster), 003's GTX 680 warp, 004's Table 1 (GeForce 8800 GTX).
+pub fn seed_points(stage: &str) -> Vec<SeedPoint> {
+    match stage {
+        "solver" => vec![
+            per_second("seed 000 implicit Euler, Bar 80 tets", 282.0),
+            per_second("seed 000 implicit Euler, Dolphin 13,766 tets", 113.0),
+            per_second("seed 000 implicit Euler, Knee-small 35,118 tets", 56.0),
+            per_second("seed 000 implicit Euler, Knee 112,299 tets", 22.0),
+            per_second("seed 000 implicit Euler, Foot 156,612 tets", 12.0),
+        ],
+        "warp" => vec![SeedPoint { label: "seed 003 GTX 680, 700 tets, 4.99M voxels".into(), time_ms: 14.86 }],
+        "dpcm" => crate::bench::dpcm::SEED_TABLE_1
+            .iter()
+            .map(|&(markers, hz)| per_second(format!("seed 004 8800 GTX, 1100x1100, {markers} markers"), hz))
+            .collect(),
+        "render" => vec![
+            per_second("seed 000 raycaster, Knee 112,299 tets", 11.2),
+            per_second("seed 000 raycaster, Foot 156,612 tets", 6.2),
+        ],
+        _ => Vec::new(),
+    }
+}

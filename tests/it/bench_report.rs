@@ -1,0 +1,238 @@
+//! `defvol bench report`: the SVGs read back as XML, each curve's points mapped back through
+//! the axes' own tick labels to data and compared with the JSON rows it was drawn from.
+
+use std::path::Path;
+use std::process::Command;
+
+use defvol::bench::report::{parse_rows, series_of, Row};
+
+/// What a report SVG shows, in pixels, as a reader finds it.
+#[derive(Debug, Default)]
+struct Drawn {
+    /// Series curves (polylines of stroke width 2): stroke colour, points.
+    curves: Vec<(String, Vec<(f64, f64)>)>,
+    /// Legend squares and their labels: (label, fill colour).
+    legend: Vec<(String, String)>,
+    /// Numeric tick labels: (pixel, value) along x and along y.
+    x_ticks: Vec<(f64, f64)>,
+    y_ticks: Vec<(f64, f64)>,
+    /// Hollow circles: stroke colour, centre x.
+    hollow: Vec<(String, f64)>,
+    /// Letters beside the seeds' triangles, and the triangles.
+    seed_letters: usize,
+    triangles: usize,
+}
+
+fn number(node: roxmltree::Node, attribute: &str) -> f64 {
+    node.attribute(attribute).unwrap().parse().unwrap()
+}
+
+fn read_svg(path: &Path) -> Drawn {
+    let text = std::fs::read_to_string(path).unwrap();
+    let doc = roxmltree::Document::parse(&text).unwrap_or_else(|e| panic!("{} is not XML: {e}", path.display()));
+    let mut drawn = Drawn::default();
+    for node in doc.descendants().filter(|n| n.is_element()) {
+        match node.tag_name().name() {
+            "polyline" if node.attribute("stroke-width") == Some("2") => {
+                let points = node
+                    .attribute("points")
+                    .unwrap()
+                    .split_whitespace()
+                    .map(|p| p.split_once(',').map(|(x, y)| (x.parse().unwrap(), y.parse().unwrap())).unwrap())
+                    .collect();
+                drawn.curves.push((node.attribute("stroke").unwrap().to_owned(), points));
+            }
+            "polygon" => drawn.triangles += 1,
+            "circle" if node.attribute("fill") == Some("none") => {
+                drawn.hollow.push((node.attribute("stroke").unwrap().to_owned(), number(node, "cx")));
+            }
+            "text" => read_text(node, &mut drawn),
+            _ => {}
+        }
+    }
+    drawn
+}
+
+fn read_text(node: roxmltree::Node, drawn: &mut Drawn) {
+    let content = node.text().unwrap_or("").trim();
+    if let Ok(value) = content.parse::<f64>() {
+        match node.attribute("text-anchor") {
+            Some("middle") => drawn.x_ticks.push((number(node, "x"), value)),
+            Some("end") => drawn.y_ticks.push((number(node, "y"), value)),
+            other => panic!("a number `{content}` anchored {other:?}"),
+        }
+    } else if content.len() == 1 && content.chars().all(|c| c.is_ascii_uppercase()) {
+        drawn.seed_letters += 1;
+    } else if let Some(square) = node.prev_sibling_element().filter(|n| n.tag_name().name() == "rect") {
+        if square.attribute("fill") != Some("#FFFFFF") {
+            drawn.legend.push((content.to_owned(), square.attribute("fill").unwrap().to_owned()));
+        }
+    }
+}
+
+/// The least-squares line value = a + b·pixel through the tick labels (values through
+/// `scale`), and how far one pixel moves along it.
+fn axis(ticks: &[(f64, f64)], scale: fn(f64) -> f64) -> impl Fn(f64) -> f64 {
+    assert!(ticks.len() >= 2, "an axis needs two labelled ticks, has {ticks:?}");
+    let n = ticks.len() as f64;
+    let (mx, my) = (ticks.iter().map(|t| t.0).sum::<f64>() / n, ticks.iter().map(|t| scale(t.1)).sum::<f64>() / n);
+    let sxy: f64 = ticks.iter().map(|t| (t.0 - mx) * (scale(t.1) - my)).sum();
+    let sxx: f64 = ticks.iter().map(|t| (t.0 - mx).powi(2)).sum();
+    let b = sxy / sxx;
+    for t in ticks {
+        assert!((my + b * (t.0 - mx) - scale(t.1)).abs() < 1.0 * b.abs(), "tick {t:?} off its axis");
+    }
+    move |pixel| my + b * (pixel - mx)
+}
+
+/// Asserts `value` (through `scale`) lies within 1.5 pixels of where `pixel` says.
+fn assert_at(what: &str, pixel: f64, value: f64, map: &impl Fn(f64) -> f64, scale: fn(f64) -> f64) {
+    let per_pixel = (map(1.0) - map(0.0)).abs();
+    let off = (map(pixel) - scale(value)).abs();
+    assert!(off <= 1.5 * per_pixel, "{what}: drawn at {} (pixel {pixel}), row says {}", map(pixel), scale(value));
+}
+
+fn log10(v: f64) -> f64 {
+    v.log10()
+}
+
+fn linear(v: f64) -> f64 {
+    v
+}
+
+fn plotted(row: &Row) -> Option<f64> {
+    let e = row.error.as_ref()?;
+    (e.metric.ends_with("_db") || e.value > 0.0).then_some(e.value)
+}
+
+/// Every row of `stage` in `dir`'s rows.jsonl is in its SVG where its values put it: the
+/// rows with an error on their series' curve (one curve a series, in its legend colour), the
+/// rest as hollow circles on the time axis; the seeds' figures as lettered triangles.
+fn assert_drawn_as_rows_say(dir: &Path, stage: &str, seeds: usize) {
+    let (all, skipped) = parse_rows(&std::fs::read_to_string(dir.join("rows.jsonl")).unwrap(), "rows.jsonl");
+    assert!(skipped.is_empty(), "{skipped:?}");
+    let rows: Vec<&Row> = all.iter().filter(|r| r.stage == stage).collect();
+    assert!(!rows.is_empty(), "no {stage} rows");
+    let drawn = read_svg(&dir.join(format!("{stage}.svg")));
+    let decibels = rows.iter().any(|r| r.error.as_ref().is_some_and(|e| e.metric.ends_with("_db")));
+    let (x, y) = (axis(&drawn.x_ticks, log10), axis(&drawn.y_ticks, if decibels { linear } else { log10 }));
+    let series = series_of(&rows);
+    let mut curves = 0;
+    for s in &series {
+        let colour = &drawn
+            .legend
+            .iter()
+            .find(|(label, _)| *label == s.label)
+            .unwrap_or_else(|| panic!("{} not in the legend", s.label))
+            .1;
+        let mut expected: Vec<(f64, f64)> =
+            s.rows.iter().filter_map(|&i| plotted(rows[i]).map(|e| (rows[i].time_ms.median, e))).collect();
+        expected.sort_by(|a, b| a.0.total_cmp(&b.0));
+        let mine: Vec<_> = drawn.curves.iter().filter(|(c, _)| c == colour).collect();
+        if expected.is_empty() {
+            assert!(mine.is_empty(), "{}: a curve with no points", s.label);
+        } else {
+            assert_eq!(mine.len(), 1, "{}: one curve", s.label);
+            assert_eq!(mine[0].1.len(), expected.len(), "{}: its points", s.label);
+            for (&(px, py), &(time, error)) in mine[0].1.iter().zip(&expected) {
+                assert_at(&s.label, px, time, &x, log10);
+                assert_at(&s.label, py, error, &y, if decibels { linear } else { log10 });
+            }
+            curves += 1;
+        }
+        let missing: Vec<f64> =
+            s.rows.iter().filter(|&&i| plotted(rows[i]).is_none()).map(|&i| rows[i].time_ms.median).collect();
+        let circles: Vec<f64> = drawn.hollow.iter().filter(|(c, _)| c == colour).map(|h| h.1).collect();
+        assert_eq!(circles.len(), missing.len(), "{}: rows with no error to draw", s.label);
+        for (cx, time) in circles.iter().zip(&missing) {
+            assert_at(&s.label, *cx, *time, &x, log10);
+        }
+    }
+    assert_eq!(drawn.curves.len(), curves, "{stage}: curves beyond the series'");
+    assert_eq!(
+        (drawn.triangles, drawn.seed_letters),
+        (seeds + seeds, seeds),
+        "{stage}: seed figures (a triangle in the strip and one in the legend each)"
+    );
+}
+
+fn report(args: &[&str]) -> (tempfile::TempDir, std::process::Output) {
+    let dir = tempfile::tempdir().unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_defvol"))
+        .args(["bench", "report"])
+        .arg(dir.path().join("report"))
+        .args(args)
+        .current_dir(dir.path())
+        .output()
+        .unwrap();
+    (dir, out)
+}
+
+#[test]
+fn a_report_of_tiny_benchmarks_draws_each_row_where_its_time_and_error_put_it() {
+    let (dir, out) = report(&["--quick", "--stages", "solver,warp,dpcm,render"]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let report = dir.path().join("report");
+    for (stage, seeds) in [("solver", 5), ("warp", 1), ("dpcm", 5), ("render", 2)] {
+        assert_drawn_as_rows_say(&report, stage, seeds);
+    }
+    let page = std::fs::read_to_string(report.join("index.html")).unwrap();
+    for needle in ["<img src=\"solver.svg\"", "<img src=\"render.svg\"", "build: defvol ", "date: 20", "machine: "] {
+        assert!(page.contains(needle), "index.html lacks {needle}:\n{page}");
+    }
+    assert!(!report.join("node.svg").exists());
+}
+
+fn solver_row(backend: &str, tolerance: f64, time: f64, error: Option<f64>) -> String {
+    let error = error.map_or(String::new(), |e| {
+        format!(r#","error":{{"metric":"max_node_distance_over_max_displacement","value":{e},"reference":"f64"}}"#)
+    });
+    format!(
+        r#"{{"stage":"solver","case":"cantilever_600tets","backend":"{backend}","device":"test machine","params":{{"cg_tolerance":{tolerance},"integrator":"implicit_euler","preconditioner":"amg"}},"runs":3,"time_ms":{{"min":{time},"median":{time},"max":{time}}}{error},"work":{{}}}}"#
+    )
+}
+
+#[test]
+fn rows_from_files_are_drawn_and_lines_that_are_not_rows_are_named_and_skipped() {
+    let dir = tempfile::tempdir().unwrap();
+    let lines = [
+        solver_row("cpu", 1e-2, 1.0, Some(1e-3)),
+        solver_row("cpu", 1e-3, 2.0, Some(1e-4)),
+        "{not json".to_owned(),
+        solver_row("cpu", 1e-4, 4.0, Some(1e-5)),
+        r#"{"name": "a foreign object", "value": 3}"#.to_owned(),
+        solver_row("gpu", 1e-2, 0.5, Some(2e-4)),
+        solver_row("gpu", 1e-4, 0.3, None),
+        solver_row("gpu", 1e-3, 0.0, Some(1e-4)),
+    ];
+    let rows = dir.path().join("rows.jsonl");
+    std::fs::write(&rows, lines.join("\n")).unwrap();
+    let (out_dir, out) = report(&["--from", rows.to_str().unwrap()]);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{stderr}");
+    for line in [3, 5, 8] {
+        assert!(stderr.contains(&format!("rows.jsonl line {line}: ")), "line {line} not named:\n{stderr}");
+    }
+    assert!(stderr.contains("time_ms must be positive"), "{stderr}");
+    let report = out_dir.path().join("report");
+    assert_drawn_as_rows_say(&report, "solver", 5);
+    let drawn = read_svg(&report.join("solver.svg"));
+    assert_eq!(drawn.curves.iter().map(|c| c.1.len()).collect::<Vec<_>>(), [3, 1]);
+    assert_eq!(drawn.hollow.len(), 1, "the gpu row without an error is on the time axis");
+    let page = std::fs::read_to_string(report.join("index.html")).unwrap();
+    assert!(page.contains("5 rows, 2 series") && page.matches("rows.jsonl line ").count() == 3, "{page}");
+}
+
+#[test]
+fn an_empty_result_set_writes_a_page_that_says_so() {
+    let dir = tempfile::tempdir().unwrap();
+    let rows = dir.path().join("none.jsonl");
+    std::fs::write(&rows, "\n{\"stage\": \"warp\"}\n").unwrap();
+    let (out_dir, out) = report(&["--from", rows.to_str().unwrap()]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let report = out_dir.path().join("report");
+    let page = std::fs::read_to_string(report.join("index.html")).unwrap();
+    assert!(page.contains("No benchmark rows: nothing to draw.") && page.contains("none.jsonl line 2: "), "{page}");
+    let files: Vec<_> = std::fs::read_dir(&report).unwrap().map(|e| e.unwrap().file_name()).collect();
+    assert_eq!(files.len(), 2, "index.html and an empty rows.jsonl, no plot: {files:?}");
+}
