@@ -71,6 +71,18 @@ pub fn table_row(row: &BenchRow) -> String {
     )
 }
 
+/// The fractions at which a row reports its latency distribution (`quantiles_ms`, drawn as
+/// a CDF by `bench report`).
+const QUANTILES: [f64; 11] = [0.0, 0.05, 0.1, 0.25, 0.5, 0.75, 0.9, 0.95, 0.99, 0.999, 1.0];
+
+/// (fraction, ms) at each of [`QUANTILES`]; none without samples.
+fn quantiles(samples: &[f64]) -> Vec<[f64; 2]> {
+    if samples.is_empty() {
+        return Vec::new();
+    }
+    QUANTILES.iter().map(|&p| [p, percentile(samples, p)]).collect()
+}
+
 fn percentile(samples: &[f64], p: f64) -> f64 {
     let mut sorted = samples.to_vec();
     sorted.sort_by(f64::total_cmp);
@@ -207,7 +219,7 @@ fn feedback_rows(
         case: format!("in_process_step_{n}tets"),
         backend: name.clone(),
         device: device.to_owned(),
-        params: json!({"input_hz": 1000, "dt": 1e-3, "p99_ms": p99, "sustained_hz": 1e3 / mean, "note": format!("no DDS (outside a private network namespace); sustains {:.0} Hz", 1e3 / mean)}),
+        params: json!({"input_hz": 1000, "dt": 1e-3, "p99_ms": p99, "quantiles_ms": quantiles(&plain), "sustained_hz": 1e3 / mean, "note": format!("no DDS (outside a private network namespace); sustains {:.0} Hz", 1e3 / mean)}),
         runs: plain.len(),
         time_ms: time_stats(plain),
         error: None,
@@ -219,7 +231,7 @@ fn feedback_rows(
         case: format!("in_process_recording_{n}tets"),
         backend: name,
         device: device.to_owned(),
-        params: json!({"p99_ms": percentile(&recorded, 0.99), "overhead": overhead, "note": format!("MCAP recording adds {:.1} % to the median step", overhead * 100.0)}),
+        params: json!({"p99_ms": percentile(&recorded, 0.99), "quantiles_ms": quantiles(&recorded), "overhead": overhead, "note": format!("MCAP recording adds {:.1} % to the median step", overhead * 100.0)}),
         runs: recorded.len(),
         time_ms: time_stats(recorded),
         error: None,
@@ -246,7 +258,7 @@ mod dds {
     use ros2_client::{MessageTypeName, Name, NodeName, NodeOptions};
     use serde_json::json;
 
-    use super::{percentile, time_stats, BenchRow, NodeBenchError, NodeBenchOptions};
+    use super::{percentile, quantiles, time_stats, BenchRow, NodeBenchError, NodeBenchOptions};
     use crate::backend::{Backend, BackendChoice, RunsOn};
     use crate::bench::GpuCost;
     use crate::msgs::{DiagnosticArray, Header, Pose, PoseStamped, Time, WrenchStamped};
@@ -293,7 +305,7 @@ mod dds {
                 case,
                 backend: backend.into(),
                 device: device.into(),
-                params: json!({"input_hz": 1000, "dt": 1e-3, "p99_ms": percentile(&self.latencies, 0.99), "sustained_hz": rate, "answered": self.own_answers, "answered_or_superseded": self.latencies.len(), "poses": self.poses, "simulation_hz": self.simulation_hz, "solver_step_ms": self.step_ms, "note": note}),
+                params: json!({"input_hz": 1000, "dt": 1e-3, "p99_ms": percentile(&self.latencies, 0.99), "quantiles_ms": quantiles(&self.latencies), "sustained_hz": rate, "answered": self.own_answers, "answered_or_superseded": self.latencies.len(), "poses": self.poses, "simulation_hz": self.simulation_hz, "solver_step_ms": self.step_ms, "note": note}),
                 runs: self.latencies.len(),
                 time_ms: time_stats(self.latencies),
                 error: None,
@@ -637,7 +649,7 @@ fn pose_to_volume(backend: &Backend, device: &str, frames: usize) -> Result<Benc
         case: format!("pose_to_warped_volume_{}tets", pipeline.mesh().tets().len()),
         backend: backend.runs_on().name().into(),
         device: device.into(),
-        params: json!({"p99_ms": percentile(&samples, 0.99), "note": format!("pose to subscriber, {:?} voxels through iceoryx2", grid.dims)}),
+        params: json!({"p99_ms": percentile(&samples, 0.99), "quantiles_ms": quantiles(&samples), "note": format!("pose to subscriber, {:?} voxels through iceoryx2", grid.dims)}),
         runs: samples.len(),
         time_ms: time_stats(samples),
         error: None,
@@ -735,7 +747,7 @@ fn shm_delivery(mib: usize, cpu: &str) -> Result<BenchRow, NodeBenchError> {
         case: format!("volume_{mib}mib_iceoryx2"),
         backend: "shm".into(),
         device: cpu.into(),
-        params: json!({"p99_ms": percentile(&samples, 0.99), "note": "send() to receive(), goal < 0.1 ms"}),
+        params: json!({"p99_ms": percentile(&samples, 0.99), "quantiles_ms": quantiles(&samples), "note": "send() to receive(), goal < 0.1 ms"}),
         runs: samples.len(),
         time_ms: time_stats(samples),
         error: None,
@@ -761,7 +773,7 @@ fn dds_delivery(mib: usize, cpu: &str) -> Result<BenchRow, NodeBenchError> {
         case: format!("volume_{mib}mib_dds"),
         backend: "rustdds".into(),
         device: cpu.into(),
-        params: json!({"p99_ms": percentile(&samples, 0.99), "note": note}),
+        params: json!({"p99_ms": percentile(&samples, 0.99), "quantiles_ms": quantiles(&samples), "note": note}),
         runs: samples.len(),
         time_ms: time_stats(samples),
         error: None,

@@ -168,9 +168,30 @@ fn report(args: &[&str]) -> (tempfile::TempDir, std::process::Output) {
     (dir, out)
 }
 
+/// Each node row is a curve in its legend colour through the latency quantiles it lists.
+fn assert_latencies_drawn_as_rows_say(dir: &Path) {
+    let (all, _) = parse_rows(&std::fs::read_to_string(dir.join("rows.jsonl")).unwrap(), "rows.jsonl");
+    let rows: Vec<&Row> = all.iter().filter(|r| r.stage == "node").collect();
+    let drawn = read_svg(&dir.join("node.svg"));
+    let (x, y) = (axis(&drawn.x_ticks, log10), axis(&drawn.y_ticks, linear));
+    assert_eq!(drawn.curves.len(), rows.len());
+    for row in rows {
+        let label = format!("{} · {}", row.backend, row.case);
+        let colour =
+            &drawn.legend.iter().find(|(l, _)| *l == label).unwrap_or_else(|| panic!("{label} not in the legend")).1;
+        let curve = &drawn.curves.iter().find(|(c, _)| c == colour).unwrap().1;
+        let quantiles = row.params["quantiles_ms"].as_array().unwrap();
+        assert_eq!(curve.len(), quantiles.len(), "{label}");
+        for (&(px, py), q) in curve.iter().zip(quantiles) {
+            assert_at(&label, px, q[1].as_f64().unwrap(), &x, log10);
+            assert_at(&label, py, q[0].as_f64().unwrap(), &y, linear);
+        }
+    }
+}
+
 #[test]
 fn a_report_of_tiny_benchmarks_draws_each_row_where_its_time_and_error_put_it() {
-    let (dir, out) = report(&["--quick", "--stages", "solver,warp,dpcm,render"]);
+    let (dir, out) = report(&["--quick", "--stages", "solver,warp,dpcm,render,node"]);
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let report = dir.path().join("report");
     for (stage, seeds) in [("solver", 5), ("warp", 1), ("dpcm", 5), ("render", 2)] {
@@ -180,7 +201,7 @@ fn a_report_of_tiny_benchmarks_draws_each_row_where_its_time_and_error_put_it() 
     for needle in ["<img src=\"solver.svg\"", "<img src=\"render.svg\"", "build: defvol ", "date: 20", "machine: "] {
         assert!(page.contains(needle), "index.html lacks {needle}:\n{page}");
     }
-    assert!(!report.join("node.svg").exists());
+    assert_latencies_drawn_as_rows_say(&report);
 }
 
 fn solver_row(backend: &str, tolerance: f64, time: f64, error: Option<f64>) -> String {

@@ -36,7 +36,8 @@ pub fn stage_svg(stage: &str, rows: &[&Row]) -> Result<String, Box<dyn std::erro
     let seeds = seed_points(stage);
     let metrics = metrics(rows);
     let panels = if stage == "node" { 1 } else { metrics.len() };
-    let height = TITLE_HEIGHT + panels as u32 * PANEL_HEIGHT + STRIP_HEIGHT;
+    let strip_height = if stage == "node" { 0 } else { STRIP_HEIGHT };
+    let height = TITLE_HEIGHT + panels as u32 * PANEL_HEIGHT + strip_height;
     let mut svg = String::new();
     {
         let root = SVGBackend::with_string(&mut svg, (WIDTH, height)).into_drawing_area();
@@ -53,7 +54,9 @@ pub fn stage_svg(stage: &str, rows: &[&Row]) -> Result<String, Box<dyn std::erro
                 draw_error_panel(area, times.clone(), rows, &series, metric)?;
             }
         }
-        draw_strip(&strip, times, rows, &series, &seeds, stage == "node")?;
+        if stage != "node" {
+            draw_strip(&strip, times, rows, &series, &seeds)?;
+        }
         draw_legend(&legend, &series, &seeds)?;
         root.present()?;
     }
@@ -225,7 +228,7 @@ fn draw_latency_cdf(area: &Area, times: Range<f64>, rows: &[&Row], series: &[Ser
     chart
         .configure_mesh()
         .x_desc("latency, ms")
-        .y_desc("fraction answered within (min, p50, p99, max)")
+        .y_desc("fraction answered within")
         .x_label_formatter(&|v| tick_text(*v))
         .y_label_formatter(&|v| tick_text(*v))
         .light_line_style(WHITE)
@@ -243,8 +246,20 @@ fn draw_latency_cdf(area: &Area, times: Range<f64>, rows: &[&Row], series: &[Ser
     Ok(())
 }
 
-/// (latency, fraction at or below) of a node row: its min, median, p99 where it has one, max.
+/// (latency, fraction at or below) of a node row: its `quantiles_ms` where it has them,
+/// else its min, median, p99 (where it has one) and max.
 pub fn latency_quantiles(row: &Row) -> Vec<(f64, f64)> {
+    let listed: Vec<(f64, f64)> = row
+        .params
+        .get("quantiles_ms")
+        .and_then(|q| q.as_array())
+        .into_iter()
+        .flatten()
+        .filter_map(|pair| Some((pair.get(1)?.as_f64()?, pair.get(0)?.as_f64()?)))
+        .collect();
+    if !listed.is_empty() {
+        return listed;
+    }
     let t = &row.time_ms;
     let mut points = vec![(t.min, 0.0), (t.median, 0.5)];
     if let Some(p99) = row.params.get("p99_ms").and_then(|v| v.as_f64()) {
@@ -256,14 +271,7 @@ pub fn latency_quantiles(row: &Row) -> Vec<(f64, f64)> {
 
 /// What has no error to draw, on the shared time axis: rows without an error value (or
 /// exactly 0 on a log axis) as hollow circles in their series' colour, seeds as triangles.
-fn draw_strip(
-    area: &Area,
-    times: Range<f64>,
-    rows: &[&Row],
-    series: &[Series],
-    seeds: &[SeedPoint],
-    node: bool,
-) -> DrawResult {
+fn draw_strip(area: &Area, times: Range<f64>, rows: &[&Row], series: &[Series], seeds: &[SeedPoint]) -> DrawResult {
     let mut chart = ChartBuilder::on(area)
         .margin(MARGIN)
         .x_label_area_size(30)
@@ -274,13 +282,11 @@ fn draw_strip(
         )
         .build_cartesian_2d(times.log_scale(), 0.0..3.0)?;
     chart.configure_mesh().disable_mesh().disable_y_axis().x_label_formatter(&|_| String::new()).draw()?;
-    if !node {
-        for (index, s) in series.iter().enumerate() {
-            let missing = s.rows.iter().filter(|&&i| plotted_error(rows[i]).is_none());
-            chart.draw_series(
-                missing.map(|&i| Circle::new((rows[i].time_ms.median, 2.0), 4, colour(index).stroke_width(2))),
-            )?;
-        }
+    for (index, s) in series.iter().enumerate() {
+        let missing = s.rows.iter().filter(|&&i| plotted_error(rows[i]).is_none());
+        chart.draw_series(
+            missing.map(|&i| Circle::new((rows[i].time_ms.median, 2.0), 4, colour(index).stroke_width(2))),
+        )?;
     }
     chart.draw_series(seeds.iter().map(|s| TriangleMarker::new((s.time_ms, 1.0), 6, BLACK.filled())))?;
     // Lettered as in the legend (letters, not numbers: the axes' numbers are all ticks).

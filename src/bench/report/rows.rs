@@ -15,6 +15,9 @@ pub struct Row {
     pub device: String,
     #[serde(default)]
     pub params: serde_json::Value,
+    /// Timed runs; 0 marks a row the bench could not measure here (its note says why).
+    #[serde(default)]
+    pub runs: Option<usize>,
     pub time_ms: Times,
     #[serde(default)]
     pub error: Option<RowError>,
@@ -75,6 +78,10 @@ fn parse_row(line: &str) -> Result<Row, String> {
         return Err(format!("stage `{}` is not one of {}", row.stage, STAGES.join(", ")));
     }
     let t = &row.time_ms;
+    if row.runs == Some(0) {
+        let note = row.params.get("note").and_then(|n| n.as_str()).unwrap_or("no note");
+        return Err(format!("`{}` was not measured ({note})", row.case));
+    }
     if ![t.min, t.median, t.max].iter().all(|v| v.is_finite() && *v > 0.0) {
         return Err(format!("time_ms must be positive and finite, got {:?}", [t.min, t.median, t.max]));
     }
