@@ -23,6 +23,11 @@ pub struct ReportArgs {
     /// Tiny sizes (seconds, not minutes): the shape of the report, not its figures.
     #[arg(long)]
     quick: bool,
+    /// Also log the plotted points to a rerun recording (.rrd): per stage, panel and series,
+    /// x = log10 ms and y = log10 error (PSNR in dB as it is).
+    #[cfg(feature = "rerun")]
+    #[arg(long)]
+    rerun: Option<PathBuf>,
 }
 
 /// A stage's arguments for `--quick`.
@@ -52,6 +57,10 @@ pub fn run(args: &ReportArgs) -> Result<()> {
         command: std::env::args().collect::<Vec<_>>().join(" "),
     };
     let written = report::write_report(&args.dir, &rows, &skipped, &about)?;
+    #[cfg(feature = "rerun")]
+    if let Some(path) = &args.rerun {
+        log_to_rerun(path, &rows)?;
+    }
     println!("{} rows, {} plots: {}", rows.len(), written.svgs.len(), written.page.display());
     if !failed.is_empty() {
         bail!("the {} benchmark failed (the report holds the other stages' rows)", failed.join(", "));
@@ -109,4 +118,36 @@ fn run_stage(exe: &Path, stage: &str, extra: &[&str]) -> Result<String> {
         bail!("defvol bench {stage} failed ({})", output.status);
     }
     String::from_utf8(output.stdout).with_context(|| format!("defvol bench {stage} printed non-UTF-8 output"))
+}
+
+/// The report's points as rerun 2D points, one entity per series:
+/// `bench/<stage>/<panel>/<series>` and `bench/<stage>/<panel>/<series>/no_error` (y = 0).
+#[cfg(feature = "rerun")]
+fn log_to_rerun(path: &Path, rows: &[Row]) -> Result<()> {
+    use defvol::record::rerun_log::RerunLog;
+    let log = RerunLog::save(path)?;
+    log.log_markdown(
+        "bench/axes",
+        "x: log10 of the median time per step or frame (ms); y: log10 of the error against the f64 reference \
+         (PSNR: dB as it is); `no_error`: rows with no error to draw, at y = 0.",
+    )?;
+    let name = |text: &str| text.chars().map(|c| if c.is_ascii_alphanumeric() { c } else { '_' }).collect::<String>();
+    for stage in STAGES {
+        let of_stage: Vec<&Row> = rows.iter().filter(|r| r.stage == stage).collect();
+        for s in report::drawn_series(&of_stage) {
+            let entity = format!("bench/{stage}/{}/{}", name(&s.panel), name(&s.label));
+            let decibels = of_stage.iter().any(|r| r.error.as_ref().is_some_and(|e| e.metric.ends_with("_db")));
+            let y = |v: f64| if decibels { v } else { v.log10() };
+            let points: Vec<[f32; 2]> = s.points.iter().map(|&(t, e)| [t.log10() as f32, y(e) as f32]).collect();
+            if !points.is_empty() {
+                log.log_bench_series(&entity, &points, s.rgb, &s.label)?;
+            }
+            let timed: Vec<[f32; 2]> = s.timed_only.iter().map(|t| [t.log10() as f32, 0.0]).collect();
+            if !timed.is_empty() {
+                log.log_bench_series(&format!("{entity}/no_error"), &timed, s.rgb, &s.label)?;
+            }
+        }
+    }
+    log.flush()?;
+    Ok(())
 }

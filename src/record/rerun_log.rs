@@ -42,6 +42,27 @@ impl RerunLog {
         self.stream.log(path, what).map_err(|e| RerunError::Log(format!("{path}: {e}")))
     }
 
+    /// One benchmark series as static 2D points (x: log10 ms, y: log10 error or dB), in the
+    /// colour of its SVG curve, labelled.
+    pub fn log_bench_series(
+        &self,
+        path: &str,
+        points: &[[f32; 2]],
+        rgb: [u8; 3],
+        label: &str,
+    ) -> Result<(), RerunError> {
+        let points = rerun::Points2D::new(points.iter().copied())
+            .with_colors([rerun::Color::from_rgb(rgb[0], rgb[1], rgb[2])])
+            .with_labels([label]);
+        self.stream.log_static(path, &points).map_err(|e| RerunError::Log(format!("{path}: {e}")))
+    }
+
+    /// A markdown note, static (what a view's axes mean).
+    pub fn log_markdown(&self, path: &str, markdown: &str) -> Result<(), RerunError> {
+        let text = rerun::TextDocument::from_markdown(markdown);
+        self.stream.log_static(path, &text).map_err(|e| RerunError::Log(format!("{path}: {e}")))
+    }
+
     /// The tools' shapes, once (they move through their transforms).
     pub fn log_tool_shapes(&self, tools: &[ToolConfig]) -> Result<(), RerunError> {
         for tool in tools {

@@ -6,32 +6,62 @@ use std::process::Command;
 
 use defvol::bench::report::{parse_rows, series_of, Row};
 
-/// What a report SVG shows, in pixels, as a reader finds it.
+/// One panel of a report SVG: what follows its caption up to the next one.
 #[derive(Debug, Default)]
-struct Drawn {
+struct Panel {
+    caption: String,
     /// Series curves (polylines of stroke width 2): stroke colour, points.
     curves: Vec<(String, Vec<(f64, f64)>)>,
-    /// Legend squares and their labels: (label, fill colour).
-    legend: Vec<(String, String)>,
     /// Numeric tick labels: (pixel, value) along x and along y.
     x_ticks: Vec<(f64, f64)>,
     y_ticks: Vec<(f64, f64)>,
     /// Hollow circles: stroke colour, centre x.
     hollow: Vec<(String, f64)>,
-    /// Letters beside the seeds' triangles, and the triangles.
+}
+
+/// What a report SVG shows, in pixels, as a reader finds it.
+#[derive(Debug, Default)]
+struct Drawn {
+    panels: Vec<Panel>,
+    /// Legend squares and their labels: (label, fill colour).
+    legend: Vec<(String, String)>,
+    /// Letters beside the seeds' triangles, and the triangles (strip and legend).
     seed_letters: usize,
     triangles: usize,
+}
+
+impl Drawn {
+    fn panel(&self, caption: &str) -> &Panel {
+        self.panels.iter().find(|p| p.caption == caption).unwrap_or_else(|| panic!("no panel `{caption}`"))
+    }
+
+    fn colour(&self, label: &str) -> &str {
+        &self.legend.iter().find(|(l, _)| l == label).unwrap_or_else(|| panic!("{label} not in the legend")).1
+    }
+
+    fn curves(&self) -> usize {
+        self.panels.iter().map(|p| p.curves.len()).sum()
+    }
 }
 
 fn number(node: roxmltree::Node, attribute: &str) -> f64 {
     node.attribute(attribute).unwrap().parse().unwrap()
 }
 
-fn read_svg(path: &Path) -> Drawn {
+/// Reads a report SVG whose panels are captioned with `captions`.
+fn read_svg(path: &Path, captions: &[&str]) -> Drawn {
     let text = std::fs::read_to_string(path).unwrap();
     let doc = roxmltree::Document::parse(&text).unwrap_or_else(|e| panic!("{} is not XML: {e}", path.display()));
     let mut drawn = Drawn::default();
     for node in doc.descendants().filter(|n| n.is_element()) {
+        if drawn.panels.is_empty() {
+            let content = node.text().unwrap_or("").trim();
+            if node.tag_name().name() == "text" && captions.contains(&content) {
+                drawn.panels.push(Panel { caption: content.to_owned(), ..Default::default() });
+            }
+            continue;
+        }
+        let panel = drawn.panels.last_mut().unwrap();
         match node.tag_name().name() {
             "polyline" if node.attribute("stroke-width") == Some("2") => {
                 let points = node
@@ -40,25 +70,28 @@ fn read_svg(path: &Path) -> Drawn {
                     .split_whitespace()
                     .map(|p| p.split_once(',').map(|(x, y)| (x.parse().unwrap(), y.parse().unwrap())).unwrap())
                     .collect();
-                drawn.curves.push((node.attribute("stroke").unwrap().to_owned(), points));
+                panel.curves.push((node.attribute("stroke").unwrap().to_owned(), points));
             }
             "polygon" => drawn.triangles += 1,
             "circle" if node.attribute("fill") == Some("none") => {
-                drawn.hollow.push((node.attribute("stroke").unwrap().to_owned(), number(node, "cx")));
+                panel.hollow.push((node.attribute("stroke").unwrap().to_owned(), number(node, "cx")));
             }
-            "text" => read_text(node, &mut drawn),
+            "text" => read_text(node, captions, &mut drawn),
             _ => {}
         }
     }
     drawn
 }
 
-fn read_text(node: roxmltree::Node, drawn: &mut Drawn) {
+fn read_text(node: roxmltree::Node, captions: &[&str], drawn: &mut Drawn) {
     let content = node.text().unwrap_or("").trim();
-    if let Ok(value) = content.parse::<f64>() {
+    let panel = drawn.panels.last_mut().unwrap();
+    if captions.contains(&content) {
+        drawn.panels.push(Panel { caption: content.to_owned(), ..Default::default() });
+    } else if let Ok(value) = content.parse::<f64>() {
         match node.attribute("text-anchor") {
-            Some("middle") => drawn.x_ticks.push((number(node, "x"), value)),
-            Some("end") => drawn.y_ticks.push((number(node, "y"), value)),
+            Some("middle") => panel.x_ticks.push((number(node, "x"), value)),
+            Some("end") => panel.y_ticks.push((number(node, "y"), value)),
             other => panic!("a number `{content}` anchored {other:?}"),
         }
     } else if content.len() == 1 && content.chars().all(|c| c.is_ascii_uppercase()) {
@@ -105,50 +138,59 @@ fn plotted(row: &Row) -> Option<f64> {
     (e.metric.ends_with("_db") || e.value > 0.0).then_some(e.value)
 }
 
+const STRIP: &str =
+    "no error to draw: rows without an error value or with exactly 0 (circles), the seeds' figures (triangles)";
+
 /// Every row of `stage` in `dir`'s rows.jsonl is in its SVG where its values put it: the
-/// rows with an error on their series' curve (one curve a series, in its legend colour), the
-/// rest as hollow circles on the time axis; the seeds' figures as lettered triangles.
+/// rows with an error on their series' curve in their case's panel (one curve a series, in
+/// its legend colour), the rest as hollow circles on the strip's time axis; the seeds'
+/// figures as lettered triangles.
 fn assert_drawn_as_rows_say(dir: &Path, stage: &str, seeds: usize) {
     let (all, skipped) = parse_rows(&std::fs::read_to_string(dir.join("rows.jsonl")).unwrap(), "rows.jsonl");
     assert!(skipped.is_empty(), "{skipped:?}");
     let rows: Vec<&Row> = all.iter().filter(|r| r.stage == stage).collect();
     assert!(!rows.is_empty(), "no {stage} rows");
-    let drawn = read_svg(&dir.join(format!("{stage}.svg")));
+    let mut captions: Vec<&str> = rows.iter().map(|r| r.case.as_str()).collect();
+    captions.push(STRIP);
+    let drawn = read_svg(&dir.join(format!("{stage}.svg")), &captions);
     let decibels = rows.iter().any(|r| r.error.as_ref().is_some_and(|e| e.metric.ends_with("_db")));
-    let (x, y) = (axis(&drawn.x_ticks, log10), axis(&drawn.y_ticks, if decibels { linear } else { log10 }));
-    let series = series_of(&rows);
+    let y_scale = if decibels { linear } else { log10 };
+    let strip = drawn.panel(STRIP);
+    let strip_x = axis(&strip.x_ticks, log10);
     let mut curves = 0;
-    for s in &series {
-        let colour = &drawn
-            .legend
-            .iter()
-            .find(|(label, _)| *label == s.label)
-            .unwrap_or_else(|| panic!("{} not in the legend", s.label))
-            .1;
+    for s in series_of(&rows) {
+        let colour = drawn.colour(&s.label);
         let mut expected: Vec<(f64, f64)> =
             s.rows.iter().filter_map(|&i| plotted(rows[i]).map(|e| (rows[i].time_ms.median, e))).collect();
-        expected.sort_by(|a, b| a.0.total_cmp(&b.0));
-        let mine: Vec<_> = drawn.curves.iter().filter(|(c, _)| c == colour).collect();
-        if expected.is_empty() {
-            assert!(mine.is_empty(), "{}: a curve with no points", s.label);
-        } else {
-            assert_eq!(mine.len(), 1, "{}: one curve", s.label);
+        // Drawn from the largest error to the smallest (in decibels: the lowest PSNR first).
+        expected.sort_by(|a, b| if decibels { a.1.total_cmp(&b.1) } else { b.1.total_cmp(&a.1) });
+        if !expected.is_empty() {
+            let panel = drawn.panel(&s.panel);
+            let (x, y) = (axis(&panel.x_ticks, log10), axis(&panel.y_ticks, y_scale));
+            let mine: Vec<_> = panel.curves.iter().filter(|(c, _)| c == colour).collect();
+            assert_eq!(mine.len(), 1, "{} in {}: one curve", s.label, s.panel);
             assert_eq!(mine[0].1.len(), expected.len(), "{}: its points", s.label);
             for (&(px, py), &(time, error)) in mine[0].1.iter().zip(&expected) {
                 assert_at(&s.label, px, time, &x, log10);
-                assert_at(&s.label, py, error, &y, if decibels { linear } else { log10 });
+                assert_at(&s.label, py, error, &y, y_scale);
             }
             curves += 1;
         }
         let missing: Vec<f64> =
             s.rows.iter().filter(|&&i| plotted(rows[i]).is_none()).map(|&i| rows[i].time_ms.median).collect();
-        let circles: Vec<f64> = drawn.hollow.iter().filter(|(c, _)| c == colour).map(|h| h.1).collect();
-        assert_eq!(circles.len(), missing.len(), "{}: rows with no error to draw", s.label);
-        for (cx, time) in circles.iter().zip(&missing) {
-            assert_at(&s.label, *cx, *time, &x, log10);
+        let mut circles: Vec<f64> = strip.hollow.iter().filter(|(c, _)| c == colour).map(|h| h.1).collect();
+        for time in missing {
+            let at = circles
+                .iter()
+                .position(|cx| (strip_x(*cx) - time.log10()).abs() <= 1.5 * (strip_x(1.0) - strip_x(0.0)).abs());
+            circles.remove(at.unwrap_or_else(|| {
+                panic!("{}: the row at {time} ms without an error is not on the time axis", s.label)
+            }));
         }
     }
-    assert_eq!(drawn.curves.len(), curves, "{stage}: curves beyond the series'");
+    assert_eq!(drawn.curves(), curves, "{stage}: curves beyond the series'");
+    let hollow: usize = drawn.panels.iter().map(|p| p.hollow.len()).sum();
+    assert_eq!(hollow, rows.iter().filter(|r| plotted(r).is_none()).count(), "{stage}: circles beyond the rows'");
     assert_eq!(
         (drawn.triangles, drawn.seed_letters),
         (seeds + seeds, seeds),
@@ -172,14 +214,14 @@ fn report(args: &[&str]) -> (tempfile::TempDir, std::process::Output) {
 fn assert_latencies_drawn_as_rows_say(dir: &Path) {
     let (all, _) = parse_rows(&std::fs::read_to_string(dir.join("rows.jsonl")).unwrap(), "rows.jsonl");
     let rows: Vec<&Row> = all.iter().filter(|r| r.stage == "node").collect();
-    let drawn = read_svg(&dir.join("node.svg"));
-    let (x, y) = (axis(&drawn.x_ticks, log10), axis(&drawn.y_ticks, linear));
-    assert_eq!(drawn.curves.len(), rows.len());
+    let drawn = read_svg(&dir.join("node.svg"), &["latency"]);
+    let panel = drawn.panel("latency");
+    let (x, y) = (axis(&panel.x_ticks, log10), axis(&panel.y_ticks, linear));
+    assert_eq!(panel.curves.len(), rows.len());
     for row in rows {
         let label = format!("{} · {}", row.backend, row.case);
-        let colour =
-            &drawn.legend.iter().find(|(l, _)| *l == label).unwrap_or_else(|| panic!("{label} not in the legend")).1;
-        let curve = &drawn.curves.iter().find(|(c, _)| c == colour).unwrap().1;
+        let colour = drawn.colour(&label);
+        let curve = &panel.curves.iter().find(|(c, _)| c == colour).unwrap().1;
         let quantiles = row.params["quantiles_ms"].as_array().unwrap();
         assert_eq!(curve.len(), quantiles.len(), "{label}");
         for (&(px, py), q) in curve.iter().zip(quantiles) {
@@ -213,10 +255,10 @@ fn solver_row(backend: &str, tolerance: f64, time: f64, error: Option<f64>) -> S
     )
 }
 
-#[test]
-fn rows_from_files_are_drawn_and_lines_that_are_not_rows_are_named_and_skipped() {
-    let dir = tempfile::tempdir().unwrap();
-    let lines = [
+/// Solver rows of two series (the gpu one with a row without an error), among lines that
+/// are not rows: malformed (line 3), foreign (line 5), and a row with no time (line 8).
+fn crafted_lines() -> Vec<String> {
+    vec![
         solver_row("cpu", 1e-2, 1.0, Some(1e-3)),
         solver_row("cpu", 1e-3, 2.0, Some(1e-4)),
         "{not json".to_owned(),
@@ -225,7 +267,13 @@ fn rows_from_files_are_drawn_and_lines_that_are_not_rows_are_named_and_skipped()
         solver_row("gpu", 1e-2, 0.5, Some(2e-4)),
         solver_row("gpu", 1e-4, 0.3, None),
         solver_row("gpu", 1e-3, 0.0, Some(1e-4)),
-    ];
+    ]
+}
+
+#[test]
+fn rows_from_files_are_drawn_and_lines_that_are_not_rows_are_named_and_skipped() {
+    let dir = tempfile::tempdir().unwrap();
+    let lines = crafted_lines();
     let rows = dir.path().join("rows.jsonl");
     std::fs::write(&rows, lines.join("\n")).unwrap();
     let (out_dir, out) = report(&["--from", rows.to_str().unwrap()]);
@@ -237,9 +285,10 @@ fn rows_from_files_are_drawn_and_lines_that_are_not_rows_are_named_and_skipped()
     assert!(stderr.contains("time_ms must be positive"), "{stderr}");
     let report = out_dir.path().join("report");
     assert_drawn_as_rows_say(&report, "solver", 5);
-    let drawn = read_svg(&report.join("solver.svg"));
-    assert_eq!(drawn.curves.iter().map(|c| c.1.len()).collect::<Vec<_>>(), [3, 1]);
-    assert_eq!(drawn.hollow.len(), 1, "the gpu row without an error is on the time axis");
+    let drawn = read_svg(&report.join("solver.svg"), &["cantilever_600tets", STRIP]);
+    let panel = drawn.panel("cantilever_600tets");
+    assert_eq!(panel.curves.iter().map(|c| c.1.len()).collect::<Vec<_>>(), [3, 1]);
+    assert_eq!(drawn.panel(STRIP).hollow.len(), 1, "the gpu row without an error is on the time axis");
     let page = std::fs::read_to_string(report.join("index.html")).unwrap();
     assert!(page.contains("5 rows, 2 series") && page.matches("rows.jsonl line ").count() == 3, "{page}");
 }
@@ -256,4 +305,59 @@ fn an_empty_result_set_writes_a_page_that_says_so() {
     assert!(page.contains("No benchmark rows: nothing to draw.") && page.contains("none.jsonl line 2: "), "{page}");
     let files: Vec<_> = std::fs::read_dir(&report).unwrap().map(|e| e.unwrap().file_name()).collect();
     assert_eq!(files.len(), 2, "index.html and an empty rows.jsonl, no plot: {files:?}");
+}
+
+/// `--rerun`: the points the SVG draws, as rerun 2D points (log10 ms, log10 error) per series,
+/// read back by rerun's own CLI.
+#[cfg(feature = "rerun")]
+#[test]
+fn the_rerun_log_holds_each_series_points_as_drawn() {
+    if !Command::new("rerun").arg("--version").output().is_ok_and(|o| o.status.success()) {
+        assert!(
+            std::env::var_os("DEFVOL_REQUIRE_INTEROP").is_none(),
+            "the rerun CLI is missing (tests/run.sh installs it)"
+        );
+        eprintln!("skipped: the rerun CLI (rerun-sdk) is not installed");
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let rows = dir.path().join("rows.jsonl");
+    std::fs::write(&rows, crafted_lines().join("\n")).unwrap();
+    let rrd = dir.path().join("report.rrd");
+    let (_out_dir, out) = report(&["--from", rows.to_str().unwrap(), "--rerun", rrd.to_str().unwrap()]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let printed = Command::new("rerun").args(["rrd", "print", "-vvv"]).arg(&rrd).output().unwrap();
+    let text = String::from_utf8_lossy(&printed.stdout);
+    let l = |v: f64| v.log10();
+    let entity = "/bench/solver/cantilever_600tets/";
+    for (series, expected) in [
+        ("cpu___implicit_euler___amg", vec![[l(1.0), l(1e-3)], [l(2.0), l(1e-4)], [l(4.0), l(1e-5)]]),
+        ("gpu___implicit_euler___amg", vec![[l(0.5), l(2e-4)]]),
+        ("gpu___implicit_euler___amg/no_error", vec![[l(0.3), 0.0]]),
+    ] {
+        let positions = logged_positions(&text, &format!("{entity}{series}"));
+        assert_eq!(positions.len(), expected.len(), "{series}: {positions:?}");
+        for (got, want) in positions.iter().zip(&expected) {
+            assert!(
+                (got[0] - want[0]).abs() < 1e-6 && (got[1] - want[1]).abs() < 1e-6,
+                "{series}: {got:?} vs {want:?}"
+            );
+        }
+    }
+}
+
+/// The Points2D positions of `entity` in `rerun rrd print -vvv` output: the last `[[x, y], …]`
+/// cell of its chunk's data row.
+fn logged_positions(printed: &str, entity: &str) -> Vec<[f64; 2]> {
+    let header = format!("- {entity} - ");
+    let chunk = printed.split("Chunk(").find(|c| c.lines().next().is_some_and(|l| l.contains(&header)));
+    let chunk = chunk.unwrap_or_else(|| panic!("no chunk for {entity}"));
+    let row = chunk.lines().find(|l| l.contains("row_")).unwrap();
+    let cell = &row[row.rfind("[[").unwrap() + 2..row.rfind("]]").unwrap()];
+    cell.split("], [")
+        .map(|pair| {
+            let (x, y) = pair.split_once(", ").unwrap();
+            [x.trim().parse().unwrap(), y.trim().parse().unwrap()]
+        })
+        .collect()
 }

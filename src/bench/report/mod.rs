@@ -7,7 +7,7 @@ mod rows;
 
 use std::path::{Path, PathBuf};
 
-pub use plot::{latency_quantiles, stage_svg, tick_text};
+pub use plot::{drawn_series, latency_quantiles, stage_svg, tick_text, DrawnSeries};
 pub use rows::{parse_rows, seed_points, series_of, Row, Series, Skipped, STAGES};
 
 #[derive(Debug, thiserror::Error)]

@@ -1,12 +1,13 @@
-//! One stage's rows drawn as an SVG with plotters: run time against error on log-log axes
-//! (a panel per error metric; PSNR on a linear axis, higher is better), one curve per
-//! series, and beneath them a strip on the same time axis for what has no error to draw:
-//! rows without one (hollow circles) and the seeds' published figures (triangles). The
-//! node's latencies are drawn as distributions instead.
+//! One stage's rows drawn as an SVG with plotters: a panel per case (and error metric) with
+//! run time against error on log-log axes (PSNR on a linear axis, higher is better), one
+//! curve per scheme and backend in the same colour in every panel, all panels on the same
+//! time axis; beneath them a strip, on that time axis too, for what has no error to draw:
+//! rows without one (hollow circles) and the seeds' published figures (lettered triangles).
+//! The node's latencies are drawn as distributions, all in one panel.
 //!
-//! Conventions a reader (or a test) relies on: a series' curve is the only polyline of
-//! stroke width 2, in the colour of its legend square; the numbers on the axes are the
-//! tick values, parseable as they stand.
+//! What a reader (or a test) relies on: each panel starts with its caption, the case; a
+//! series' curve is the only polyline of stroke width 2, in the colour of its legend square;
+//! the numbers on the axes are the tick values, parseable as they stand.
 
 use std::ops::Range;
 
@@ -15,49 +16,120 @@ use plotters::coord::Shift;
 use plotters::prelude::*;
 use plotters_svg::SVGBackend;
 
-use super::rows::{seed_points, series_of, Row, SeedPoint, Series};
+use super::rows::{labels, seed_points, series_of, Row, SeedPoint, Series, LATENCY_PANEL};
 
-const WIDTH: u32 = 1200;
+const PANEL_WIDTH: u32 = 560;
+const PANEL_HEIGHT: u32 = 360;
+const COLUMNS: u32 = 2;
 const LEGEND_WIDTH: u32 = 480;
 const TITLE_HEIGHT: u32 = 50;
-const PANEL_HEIGHT: u32 = 400;
-const STRIP_HEIGHT: u32 = 110;
-/// Room for the y labels, the same in every panel and the strip: they share the time axis.
+const STRIP_HEIGHT: u32 = 120;
 const Y_LABELS: u32 = 80;
 const MARGIN: u32 = 12;
 const CURVE_WIDTH: u32 = 2;
+/// The caption over the strip.
+pub const STRIP_CAPTION: &str =
+    "no error to draw: rows without an error value or with exactly 0 (circles), the seeds' figures (triangles)";
 
 type Area<'a> = DrawingArea<SVGBackend<'a>, Shift>;
 type DrawResult = Result<(), Box<dyn std::error::Error>>;
 
+/// What one stage's figure draws: its rows, their series, the seeds, the shared time axis.
+struct Figure<'r> {
+    rows: &'r [&'r Row],
+    series: Vec<Series>,
+    colours: Vec<String>,
+    seeds: Vec<SeedPoint>,
+    times: Range<f64>,
+}
+
+impl Figure<'_> {
+    fn colour(&self, s: &Series) -> RGBColor {
+        let index = self.colours.iter().position(|l| *l == s.label).unwrap_or(0);
+        let c = Palette99::pick(index).to_rgba();
+        RGBColor(c.0, c.1, c.2)
+    }
+}
+
+/// A series as the report draws it, for other sinks (the rerun log).
+#[derive(Debug, Clone, PartialEq)]
+pub struct DrawnSeries {
+    pub panel: String,
+    pub label: String,
+    pub rgb: [u8; 3],
+    /// (median ms, error) of the rows drawn on the curve, in the curve's order.
+    pub points: Vec<(f64, f64)>,
+    /// Median ms of the rows with no error to draw (the strip).
+    pub timed_only: Vec<f64>,
+}
+
+/// The series of one stage's rows, with their colours and points as the SVG draws them.
+pub fn drawn_series(rows: &[&Row]) -> Vec<DrawnSeries> {
+    let series = series_of(rows);
+    let colours: Vec<String> = labels(&series).into_iter().map(str::to_owned).collect();
+    let figure = Figure { rows, series, colours, seeds: Vec::new(), times: 0.1..10.0 };
+    figure
+        .series
+        .iter()
+        .map(|s| {
+            let c = figure.colour(s);
+            let of_series = s.rows.iter().map(|&i| figure.rows[i]);
+            DrawnSeries {
+                panel: s.panel.clone(),
+                label: s.label.clone(),
+                rgb: [c.0, c.1, c.2],
+                points: curve_points(&figure, s, None),
+                timed_only: of_series.filter(|r| plotted_error(r).is_none()).map(|r| r.time_ms.median).collect(),
+            }
+        })
+        .collect()
+}
+
+/// The (median ms, error) points of a series' curve (of one metric, or of all), from the
+/// coarsest to the finest: the sweep's order, whatever the timing noise.
+fn curve_points(figure: &Figure, s: &Series, metric: Option<&str>) -> Vec<(f64, f64)> {
+    let mut points: Vec<(f64, f64, bool)> = s
+        .rows
+        .iter()
+        .filter_map(|&i| {
+            let r = figure.rows[i];
+            let (m, v) = plotted_error(r).filter(|(m, _)| metric.is_none_or(|want| want == *m))?;
+            Some((r.time_ms.median, v, is_decibels(m)))
+        })
+        .collect();
+    points.sort_by(|a, b| if a.2 { a.1.total_cmp(&b.1) } else { b.1.total_cmp(&a.1) });
+    points.into_iter().map(|(t, v, _)| (t, v)).collect()
+}
+
 /// The SVG of one stage's rows (all of `stage`), titled with the machines they ran on.
 pub fn stage_svg(stage: &str, rows: &[&Row]) -> Result<String, Box<dyn std::error::Error>> {
     let series = series_of(rows);
+    let colours = labels(&series).into_iter().map(str::to_owned).collect();
     let seeds = seed_points(stage);
-    let metrics = metrics(rows);
-    let panels = if stage == "node" { 1 } else { metrics.len() };
-    let strip_height = if stage == "node" { 0 } else { STRIP_HEIGHT };
-    let height = TITLE_HEIGHT + panels as u32 * PANEL_HEIGHT + strip_height;
+    let times = time_range(rows, &seeds, stage == "node");
+    let figure = Figure { rows, series, colours, seeds, times };
+    let panels = if stage == "node" { vec![(LATENCY_PANEL.to_owned(), String::new())] } else { panels(&figure) };
+    let grid_rows = (panels.len() as u32).div_ceil(COLUMNS).max(1);
+    let strip = if stage == "node" { 0 } else { STRIP_HEIGHT };
+    let size = (COLUMNS * PANEL_WIDTH + LEGEND_WIDTH, TITLE_HEIGHT + grid_rows * PANEL_HEIGHT + strip);
     let mut svg = String::new();
     {
-        let root = SVGBackend::with_string(&mut svg, (WIDTH, height)).into_drawing_area();
+        let root = SVGBackend::with_string(&mut svg, size).into_drawing_area();
         root.fill(&WHITE)?;
         let root = root.titled(&title(stage, rows), ("sans-serif", 20))?;
-        let (charts, legend) = root.split_horizontally(WIDTH - LEGEND_WIDTH);
-        let times = time_range(rows, &seeds, stage == "node");
-        let (panel_areas, strip) = charts.split_vertically(panels as u32 * PANEL_HEIGHT);
-        let areas = panel_areas.split_evenly((panels.max(1), 1));
-        if stage == "node" {
-            draw_latency_cdf(&areas[0], times.clone(), rows, &series)?;
-        } else {
-            for (area, metric) in areas.iter().zip(&metrics) {
-                draw_error_panel(area, times.clone(), rows, &series, metric)?;
+        let (charts, legend) = root.split_horizontally(COLUMNS * PANEL_WIDTH);
+        let (grid, strip_area) = charts.split_vertically(grid_rows * PANEL_HEIGHT);
+        let cells = grid.split_evenly((grid_rows as usize, COLUMNS as usize));
+        for ((case, metric), cell) in panels.iter().zip(&cells) {
+            match stage {
+                "node" => draw_latency_cdf(cell, &figure)?,
+                _ => draw_error_panel(cell, &figure, case, metric)?,
             }
         }
         if stage != "node" {
-            draw_strip(&strip, times, rows, &series, &seeds)?;
+            draw_strip(&strip_area, &figure)?;
         }
-        draw_legend(&legend, &series, &seeds)?;
+        draw_legend(&legend, &figure)?;
         root.present()?;
     }
     Ok(svg)
@@ -65,6 +137,7 @@ pub fn stage_svg(stage: &str, rows: &[&Row]) -> Result<String, Box<dyn std::erro
 
 fn title(stage: &str, rows: &[&Row]) -> String {
     let mut devices: Vec<&str> = rows.iter().map(|r| r.device.as_str()).collect();
+    devices.sort_unstable();
     devices.dedup();
     let what = if stage == "node" { "latency distribution" } else { "run time against error" };
     match devices.as_slice() {
@@ -73,18 +146,18 @@ fn title(stage: &str, rows: &[&Row]) -> String {
     }
 }
 
-/// Error metrics of the rows, in order of first appearance.
-fn metrics(rows: &[&Row]) -> Vec<String> {
-    let mut seen: Vec<String> = Vec::new();
-    for e in rows.iter().filter_map(|r| r.error.as_ref()) {
-        if !seen.contains(&e.metric) {
-            seen.push(e.metric.clone());
+/// (case, metric) of every panel: each case's metrics with a point to draw, in row order.
+fn panels(figure: &Figure) -> Vec<(String, String)> {
+    let mut panels: Vec<(String, String)> = Vec::new();
+    for row in figure.rows {
+        if let Some((metric, _)) = plotted_error(row) {
+            let panel = (row.case.clone(), metric.to_owned());
+            if !panels.contains(&panel) {
+                panels.push(panel);
+            }
         }
     }
-    if seen.is_empty() {
-        seen.push("error".to_owned());
-    }
-    seen
+    panels
 }
 
 /// Decibel metrics (PSNR) are already logarithmic and grow with accuracy: a linear axis.
@@ -128,11 +201,6 @@ fn seed_letters() -> impl Iterator<Item = String> {
     ('A'..='Z').map(String::from)
 }
 
-fn colour(index: usize) -> RGBColor {
-    let c = Palette99::pick(index).to_rgba();
-    RGBColor(c.0, c.1, c.2)
-}
-
 /// A tick value as text that parses back to it: plain where short, else in e-notation.
 pub fn tick_text(v: f64) -> String {
     let a = v.abs();
@@ -151,80 +219,70 @@ pub fn tick_text(v: f64) -> String {
     }
 }
 
-fn draw_error_panel(area: &Area, times: Range<f64>, rows: &[&Row], series: &[Series], metric: &str) -> DrawResult {
+/// One case's curves for one metric, on the range of that metric over all cases (panels
+/// of one metric compare at a glance).
+fn draw_error_panel(area: &Area, figure: &Figure, case: &str, metric: &str) -> DrawResult {
     let values: Vec<f64> =
-        rows.iter().filter_map(|r| plotted_error(r)).filter(|(m, _)| *m == metric).map(|(_, v)| v).collect();
-    let reference =
-        rows.iter().filter_map(|r| r.error.as_ref()).find(|e| e.metric == metric).map(|e| e.reference.clone());
-    let label = match reference {
-        Some(reference) => format!("{metric} (against {reference})"),
-        None => metric.to_owned(),
-    };
+        figure.rows.iter().filter_map(|r| plotted_error(r)).filter(|(m, _)| *m == metric).map(|(_, v)| v).collect();
+    let reference = figure.rows.iter().filter_map(|r| r.error.as_ref()).find(|e| e.metric == metric);
+    let y_desc = reference.map_or(metric.to_owned(), |e| format!("{metric} (against {})", e.reference));
+    let panel = Panel { case, metric, y_desc: &y_desc };
     if is_decibels(metric) {
         let lo = values.iter().copied().fold(f64::INFINITY, f64::min);
         let hi = values.iter().copied().fold(f64::NEG_INFINITY, f64::max);
-        let range = if lo.is_finite() { lo - 3.0..hi + 3.0 } else { 0.0..60.0 };
-        curves(area, times, range, &label, rows, series, metric)
+        curves(area, figure, &panel, lo - 3.0..hi + 3.0)
     } else {
-        curves(area, times, padded_log_range(&values).log_scale(), &label, rows, series, metric)
+        curves(area, figure, &panel, padded_log_range(&values).log_scale())
     }
 }
 
-/// The curves of one metric's panel: a polyline through each series' points in time order,
-/// a filled circle at each point.
-fn curves<Y>(
-    area: &Area,
-    times: Range<f64>,
-    y: Y,
-    y_desc: &str,
-    rows: &[&Row],
-    series: &[Series],
-    metric: &str,
-) -> DrawResult
+struct Panel<'a> {
+    case: &'a str,
+    metric: &'a str,
+    y_desc: &'a str,
+}
+
+/// A polyline through each series' points of the panel, a dot at each point.
+fn curves<Y>(area: &Area, figure: &Figure, panel: &Panel, y: Y) -> DrawResult
 where
     Y: AsRangedCoord<Value = f64>,
     Y::CoordDescType: ValueFormatter<f64>,
 {
     let mut chart = ChartBuilder::on(area)
         .margin(MARGIN)
+        .caption(panel.case, ("sans-serif", 15))
         .x_label_area_size(40)
         .y_label_area_size(Y_LABELS)
-        .build_cartesian_2d(times.log_scale(), y)?;
+        .build_cartesian_2d(figure.times.clone().log_scale(), y)?;
     chart
         .configure_mesh()
         .x_desc("time per step or frame, ms (median)")
-        .y_desc(y_desc)
+        .y_desc(panel.y_desc)
         .x_label_formatter(&|v| tick_text(*v))
         .y_label_formatter(&|v| tick_text(*v))
         .light_line_style(WHITE)
         .draw()?;
-    for (index, s) in series.iter().enumerate() {
-        let mut points: Vec<(f64, f64)> = s
-            .rows
-            .iter()
-            .filter_map(|&i| {
-                plotted_error(rows[i]).filter(|(m, _)| *m == metric).map(|(_, v)| (rows[i].time_ms.median, v))
-            })
-            .collect();
+    for s in figure.series.iter().filter(|s| s.panel == panel.case) {
+        let points = curve_points(figure, s, Some(panel.metric));
         if points.is_empty() {
             continue;
         }
-        points.sort_by(|a, b| a.0.total_cmp(&b.0));
-        let style = colour(index).stroke_width(CURVE_WIDTH);
-        chart.draw_series(std::iter::once(PathElement::new(points.clone(), style)))?;
-        chart.draw_series(points.iter().map(|p| Circle::new(*p, 3, colour(index).filled())))?;
+        let colour = figure.colour(s);
+        chart.draw_series(std::iter::once(PathElement::new(points.clone(), colour.stroke_width(CURVE_WIDTH))))?;
+        chart.draw_series(points.iter().map(|p| Circle::new(*p, 3, colour.filled())))?;
     }
     Ok(())
 }
 
 /// The node's latencies as distributions: for each row, the fraction of steps answered
-/// within a time, through the quantiles it reports (min, median, p99, max).
-fn draw_latency_cdf(area: &Area, times: Range<f64>, rows: &[&Row], series: &[Series]) -> DrawResult {
+/// within a time, through the quantiles it reports.
+fn draw_latency_cdf(area: &Area, figure: &Figure) -> DrawResult {
     let mut chart = ChartBuilder::on(area)
         .margin(MARGIN)
+        .caption(LATENCY_PANEL, ("sans-serif", 15))
         .x_label_area_size(40)
         .y_label_area_size(Y_LABELS)
-        .build_cartesian_2d(times.log_scale(), 0.0..1.05)?;
+        .build_cartesian_2d(figure.times.clone().log_scale(), 0.0..1.05)?;
     chart
         .configure_mesh()
         .x_desc("latency, ms")
@@ -233,14 +291,12 @@ fn draw_latency_cdf(area: &Area, times: Range<f64>, rows: &[&Row], series: &[Ser
         .y_label_formatter(&|v| tick_text(*v))
         .light_line_style(WHITE)
         .draw()?;
-    for (index, s) in series.iter().enumerate() {
+    for s in &figure.series {
+        let colour = figure.colour(s);
         for &i in &s.rows {
-            let points = latency_quantiles(rows[i]);
-            chart.draw_series(std::iter::once(PathElement::new(
-                points.clone(),
-                colour(index).stroke_width(CURVE_WIDTH),
-            )))?;
-            chart.draw_series(points.iter().map(|p| Circle::new(*p, 3, colour(index).filled())))?;
+            let points = latency_quantiles(figure.rows[i]);
+            chart.draw_series(std::iter::once(PathElement::new(points.clone(), colour.stroke_width(CURVE_WIDTH))))?;
+            chart.draw_series(points.iter().map(|p| Circle::new(*p, 3, colour.filled())))?;
         }
     }
     Ok(())
@@ -271,23 +327,20 @@ pub fn latency_quantiles(row: &Row) -> Vec<(f64, f64)> {
 
 /// What has no error to draw, on the shared time axis: rows without an error value (or
 /// exactly 0 on a log axis) as hollow circles in their series' colour, seeds as triangles.
-fn draw_strip(area: &Area, times: Range<f64>, rows: &[&Row], series: &[Series], seeds: &[SeedPoint]) -> DrawResult {
+fn draw_strip(area: &Area, figure: &Figure) -> DrawResult {
     let mut chart = ChartBuilder::on(area)
         .margin(MARGIN)
+        .caption(STRIP_CAPTION, ("sans-serif", 13))
         .x_label_area_size(30)
         .y_label_area_size(Y_LABELS)
-        .caption(
-            "no error to draw: rows without an error value or with exactly 0 (circles), the seeds' figures (triangles)",
-            ("sans-serif", 13),
-        )
-        .build_cartesian_2d(times.log_scale(), 0.0..3.0)?;
-    chart.configure_mesh().disable_mesh().disable_y_axis().x_label_formatter(&|_| String::new()).draw()?;
-    for (index, s) in series.iter().enumerate() {
-        let missing = s.rows.iter().filter(|&&i| plotted_error(rows[i]).is_none());
-        chart.draw_series(
-            missing.map(|&i| Circle::new((rows[i].time_ms.median, 2.0), 4, colour(index).stroke_width(2))),
-        )?;
+        .build_cartesian_2d(figure.times.clone().log_scale(), 0.0..3.0)?;
+    chart.configure_mesh().disable_mesh().disable_y_axis().x_label_formatter(&|v| tick_text(*v)).x_desc("ms").draw()?;
+    for s in &figure.series {
+        let missing = s.rows.iter().map(|&i| figure.rows[i]).filter(|r| plotted_error(r).is_none());
+        let colour = figure.colour(s);
+        chart.draw_series(missing.map(|r| Circle::new((r.time_ms.median, 2.0), 4, colour.stroke_width(2))))?;
     }
+    let seeds = &figure.seeds;
     chart.draw_series(seeds.iter().map(|s| TriangleMarker::new((s.time_ms, 1.0), 6, BLACK.filled())))?;
     // Lettered as in the legend (letters, not numbers: the axes' numbers are all ticks).
     let letter = ("sans-serif", 11).into_font();
@@ -295,21 +348,19 @@ fn draw_strip(area: &Area, times: Range<f64>, rows: &[&Row], series: &[Series], 
     Ok(())
 }
 
-fn draw_legend(area: &Area, series: &[Series], seeds: &[SeedPoint]) -> DrawResult {
+fn draw_legend(area: &Area, figure: &Figure) -> DrawResult {
     let text = ("sans-serif", 12).into_font();
     let mut y = 20;
-    for (index, s) in series.iter().enumerate() {
-        area.draw(&Rectangle::new([(4, y - 5), (14, y + 5)], colour(index).filled()))?;
-        area.draw(&Text::new(s.label.clone(), (20, y - 6), text.clone()))?;
+    for (index, label) in figure.colours.iter().enumerate() {
+        let c = Palette99::pick(index).to_rgba();
+        area.draw(&Rectangle::new([(4, y - 5), (14, y + 5)], RGBColor(c.0, c.1, c.2).filled()))?;
+        area.draw(&Text::new(label.clone(), (20, y - 6), text.clone()))?;
         y += 18;
     }
-    for (seed, letter) in seeds.iter().zip(seed_letters()) {
+    for (seed, letter) in figure.seeds.iter().zip(seed_letters()) {
         area.draw(&TriangleMarker::new((9, y), 5, BLACK.filled()))?;
-        area.draw(&Text::new(
-            format!("{letter} {}: {} ms", seed.label, tick_text(seed.time_ms)),
-            (20, y - 6),
-            text.clone(),
-        ))?;
+        let label = format!("{letter} {}: {} ms", seed.label, tick_text(seed.time_ms));
+        area.draw(&Text::new(label, (20, y - 6), text.clone()))?;
         y += 18;
     }
     Ok(())

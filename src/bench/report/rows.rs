@@ -105,30 +105,51 @@ fn series_params(stage: &str) -> &'static [&'static str] {
     }
 }
 
-/// Rows of one stage that make one curve, in the order they were measured.
+/// Rows of one stage that make one curve: one scheme on one backend, in one panel (a case).
 #[derive(Debug, Clone, PartialEq)]
 pub struct Series {
+    /// The panel it is drawn in: its rows' case (the node's distributions share one).
+    pub panel: String,
+    /// Backend and scheme: the same label is the same colour in every panel.
     pub label: String,
     pub rows: Vec<usize>,
 }
 
-/// The series of `rows` (all of one stage): same backend, device, case and series params.
+/// The panel the node's latency distributions share.
+pub const LATENCY_PANEL: &str = "latency";
+
+/// The series of `rows` (all of one stage): same case, backend, device and series params.
 /// The device joins the label only where the rows come from more than one machine.
 pub fn series_of(rows: &[&Row]) -> Vec<Series> {
     let several_devices = rows.iter().any(|r| r.device != rows[0].device);
     let mut series: Vec<Series> = Vec::new();
     for (i, row) in rows.iter().enumerate() {
+        let panel = if row.stage == "node" { LATENCY_PANEL.to_owned() } else { row.case.clone() };
         let label = series_label(row, several_devices);
-        match series.iter_mut().find(|s| s.label == label) {
+        match series.iter_mut().find(|s| s.label == label && s.panel == panel) {
             Some(s) => s.rows.push(i),
-            None => series.push(Series { label, rows: vec![i] }),
+            None => series.push(Series { panel, label, rows: vec![i] }),
         }
     }
     series
 }
 
+/// The distinct series labels, in order: index i is colour i.
+pub fn labels(series: &[Series]) -> Vec<&str> {
+    let mut labels: Vec<&str> = Vec::new();
+    for s in series {
+        if !labels.contains(&s.label.as_str()) {
+            labels.push(&s.label);
+        }
+    }
+    labels
+}
+
 fn series_label(row: &Row, with_device: bool) -> String {
-    let mut parts = vec![row.backend.clone(), row.case.clone()];
+    let mut parts = vec![row.backend.clone()];
+    if row.stage == "node" {
+        parts.push(row.case.clone());
+    }
     for key in series_params(&row.stage) {
         match row.params.get(*key) {
             Some(serde_json::Value::String(s)) => parts.push(s.clone()),
