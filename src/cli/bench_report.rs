@@ -49,9 +49,11 @@ pub fn run(args: &ReportArgs) -> Result<()> {
     }
     let about = About {
         build: format!(
-            "defvol {} ({})",
+            "defvol {} ({}, {}-{})",
             env!("CARGO_PKG_VERSION"),
-            if cfg!(debug_assertions) { "debug build" } else { "optimized build" }
+            if cfg!(debug_assertions) { "debug build" } else { "optimized build" },
+            std::env::consts::ARCH,
+            std::env::consts::OS
         ),
         date: jiff::Timestamp::now().strftime("%Y-%m-%d %H:%M:%S UTC").to_string(),
         command: std::env::args().collect::<Vec<_>>().join(" "),

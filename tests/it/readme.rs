@@ -65,6 +65,7 @@ const RUNS: &[Run] = &[
         replace: &[("80,14000", "80"), ("--json", SMALL_BENCH), (" >", " --json >")],
         writes: &["solver.jsonl"],
     },
+    Run { line: "defvol bench report report --from solver.jsonl", replace: &[], writes: &["report/solver.svg", "report/index.html"] },
     Run {
         line: "defvol warp --rest out/rest.vtu --deformed out/final.vtu --volume ct.nii.gz --out warped.nii.gz",
         replace: &[],
@@ -149,6 +150,16 @@ const RUNS: &[Run] = &[
         line: "tests/netns-run defvol bench node",
         replace: &[("node", "node --tets 300 --steps 30 --settle 5 --volume-mib 1 --volume-frames 2")],
         writes: &[],
+    },
+    Run {
+        line: "defvol bench report docs/bench --stages solver",
+        replace: &[("--stages solver", "--stages solver --quick")],
+        writes: &["docs/bench/solver.svg", "docs/bench/index.html", "docs/bench/rows.jsonl"],
+    },
+    Run {
+        line: "tests/netns-run defvol bench report report",
+        replace: &[("report report", "report report --quick --stages warp,node")],
+        writes: &["report/warp.svg", "report/node.svg", "report/index.html"],
     },
 ];
 
