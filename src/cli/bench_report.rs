@@ -18,11 +18,17 @@ pub struct ReportArgs {
     #[arg(long, num_args = 1..)]
     from: Vec<PathBuf>,
     /// Stages to run (without `--from`).
-    #[arg(long, value_delimiter = ',', default_value = "solver,warp,dpcm,render,node")]
+    #[arg(long, value_delimiter = ',', default_value = "solver,warp,dpcm,render,node", conflicts_with = "from")]
     stages: Vec<String>,
     /// Tiny sizes (seconds, not minutes): the shape of the report, not its figures.
-    #[arg(long)]
+    #[arg(long, conflicts_with = "from")]
     quick: bool,
+    /// GPU rows beside the CPU ones in every stage (no usable adapter is an error).
+    #[arg(long, conflicts_with = "from")]
+    gpu: bool,
+    /// Let a software adapter (lavapipe, llvmpipe) run the GPU rows: correctness, not speed.
+    #[arg(long, requires = "gpu")]
+    allow_software_gpu: bool,
     /// Also log the plotted points to a rerun recording (.rrd): per stage, panel and series,
     /// x = log10 ms and y = log10 error (PSNR in dB as it is).
     #[cfg(feature = "rerun")]
@@ -39,6 +45,14 @@ fn quick_args(stage: &str) -> &'static [&'static str] {
         "render" => &["--sizes", "32", "--steps", "2,1", "--runs", "2", "--meshes", "600", "--source-meshes"],
         "node" => &["--tets", "600", "--steps", "100", "--settle", "20", "--volume-mib", "1", "--volume-frames", "5"],
         _ => &[],
+    }
+}
+
+/// A stage's arguments for GPU rows beside its CPU rows.
+fn gpu_args(stage: &str) -> &'static [&'static str] {
+    match stage {
+        "solver" | "node" => &["--backends", "cpu,gpu"],
+        _ => &["--gpu"],
     }
 }
 
@@ -92,8 +106,14 @@ fn run_stages(args: &ReportArgs) -> Result<Gathered> {
         if !STAGES.contains(&stage.as_str()) {
             bail!("unknown stage `{stage}` ({})", STAGES.join(", "));
         }
-        let extra = if args.quick { quick_args(stage) } else { &[] };
-        match run_stage(&exe, stage, extra) {
+        let mut extra: Vec<&str> = if args.quick { quick_args(stage).to_vec() } else { Vec::new() };
+        if args.gpu {
+            extra.extend(gpu_args(stage));
+            if args.allow_software_gpu {
+                extra.push("--allow-software-gpu");
+            }
+        }
+        match run_stage(&exe, stage, &extra) {
             Ok(text) => {
                 let (r, s) = report::parse_rows(&text, &format!("defvol bench {stage}"));
                 rows.extend(r);

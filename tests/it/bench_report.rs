@@ -361,3 +361,24 @@ fn logged_positions(printed: &str, entity: &str) -> Vec<[f64; 2]> {
         })
         .collect()
 }
+
+/// `--gpu`: every stage's GPU rows beside its CPU rows, a series of their own in the same
+/// panels (on the software adapter here: correctness of the drawing, not speed).
+#[test]
+fn gpu_rows_are_series_of_their_own_beside_the_cpu_ones() {
+    let (dir, out) = report(&["--quick", "--stages", "solver,dpcm", "--gpu", "--allow-software-gpu"]);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    if !out.status.success() && stderr.contains("no GPU adapter") && std::env::var_os("DEFVOL_REQUIRE_GPU").is_none() {
+        eprintln!("skipped: no GPU adapter ({stderr})");
+        return;
+    }
+    assert!(out.status.success(), "{stderr}");
+    let report = dir.path().join("report");
+    for (stage, seeds) in [("solver", 5), ("dpcm", 5)] {
+        assert_drawn_as_rows_say(&report, stage, seeds);
+        let (rows, _) = parse_rows(&std::fs::read_to_string(report.join("rows.jsonl")).unwrap(), "rows.jsonl");
+        let of_stage: Vec<&Row> = rows.iter().filter(|r| r.stage == stage).collect();
+        let gpu = series_of(&of_stage).into_iter().filter(|s| s.label.starts_with("gpu")).count();
+        assert!(gpu > 0 && gpu < series_of(&of_stage).len(), "{stage}: gpu series beside cpu ones");
+    }
+}
