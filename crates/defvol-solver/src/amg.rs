@@ -149,10 +149,10 @@ impl Csr {
 /// preconditioner, so its rounding does not limit CG's accuracy), f64 accumulation.
 #[derive(Debug, Clone)]
 pub struct CsrF32 {
-    rows: usize,
-    indptr: Vec<u32>,
-    indices: Vec<u32>,
-    values: Vec<f32>,
+    pub(crate) rows: usize,
+    pub(crate) indptr: Vec<u32>,
+    pub(crate) indices: Vec<u32>,
+    pub(crate) values: Vec<f32>,
 }
 
 impl From<&Csr> for CsrF32 {
@@ -300,19 +300,19 @@ fn tentative(
     (p0, coarse_dofs, b)
 }
 
-struct Level {
-    p: CsrF32,
-    r: CsrF32,
-    dinv: Vec<f64>,
-    omega: f64,
+pub(crate) struct Level {
+    pub(crate) p: CsrF32,
+    pub(crate) r: CsrF32,
+    pub(crate) dinv: Vec<f64>,
+    pub(crate) omega: f64,
 }
 
 /// The hierarchy below the fine level plus the coarsest factor.
 pub struct Amg {
     /// Fine → first coarse prolongator and its transpose.
-    p: CsrF32,
-    r: CsrF32,
-    levels: Vec<Level>,
+    pub(crate) p: CsrF32,
+    pub(crate) r: CsrF32,
+    pub(crate) levels: Vec<Level>,
     coarsest: Option<nalgebra::Cholesky<f64, nalgebra::Dyn>>,
     coarsest_a: Csr,
     /// Damping of the fine block-Jacobi smoother.
@@ -446,6 +446,18 @@ impl Amg {
         let mut e = vec![0.0; self.p.rows];
         self.p.spmv(&ec, &mut e);
         e
+    }
+
+    /// The coarsest level's solve as a dense inverse (the device applies it as one product;
+    /// the Jacobi fallback's diagonal where the factor failed, as the CPU cycle does).
+    pub fn coarsest_inverse(&self) -> DMatrix<f64> {
+        match &self.coarsest {
+            Some(chol) => chol.inverse(),
+            None => DMatrix::from_diagonal(&nalgebra::DVector::from_iterator(
+                self.coarsest_a.rows,
+                self.coarsest_a.diagonal().into_iter().map(|d| 1.0 / d),
+            )),
+        }
     }
 
     /// Nonzeros of the cycle's operators (for logs: they set its cost).

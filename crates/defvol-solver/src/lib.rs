@@ -7,6 +7,8 @@
 #![cfg_attr(not(test), deny(clippy::unwrap_used, clippy::expect_used))]
 
 pub mod amg;
+#[cfg(feature = "gpu")]
+pub mod coarse;
 pub mod contact;
 pub mod cpu;
 pub mod engine;

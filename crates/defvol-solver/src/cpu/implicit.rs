@@ -359,6 +359,11 @@ impl<T: Real> Simulation<T> {
         Ok((self.system_triplets(true), rhs))
     }
 
+    /// The multigrid hierarchy in use, if any (its device twin is built from it).
+    pub fn multigrid(&self) -> Option<&Amg> {
+        self.amg.as_ref().map(|state| &state.amg)
+    }
+
     /// Prepares the preconditioner in use for the assembled system (tests).
     pub fn prepare_preconditioner(&mut self) {
         if self.multigrid {
