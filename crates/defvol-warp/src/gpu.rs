@@ -1,5 +1,5 @@
 //! The grid warp on the GPU: `warp.wgsl` beside this file, the `Spans` scheme with trilinear
-//! sampling. The source volume, the rest mesh and the output grid go up once; a warp then
+//! or tricubic (Catmull-Rom) sampling. The source volume, the rest mesh and the output grid go up once; a warp then
 //! takes the deformed nodes where they are ([`GpuWarp::place_from`]: another stage's device
 //! buffer; [`GpuWarp::place_host`]: from the host), computes every tet's maps on the device
 //! (`tet_maps`, the twin of `tet_map`) and rasterises them into an output buffer
@@ -9,7 +9,7 @@
 //! Differences from the CPU path: maps and spans are computed in f32 on box-local
 //! coordinates, so voxels within ~1e-5 (in barycentric terms) of a tet face may be decided
 //! differently; a voxel on a face shared by two tets takes whichever tet wrote last.
-//! Tricubic sampling and displacement volumes run on the CPU path only.
+//! Displacement volumes run on the CPU path only.
 
 use std::sync::Arc;
 
@@ -76,9 +76,6 @@ impl GpuWarp {
         options: &WarpOptions,
         to_file: f64,
     ) -> Result<Self, GpuWarpError> {
-        if options.sampling != Sampling::Trilinear {
-            return Err(GpuWarpError::Unsupported("trilinear sampling only"));
-        }
         if !options.displacements.is_empty() {
             return Err(GpuWarpError::Unsupported("no displacement volumes"));
         }
@@ -118,7 +115,7 @@ impl GpuWarp {
                 if options.keep_uncovered { 1.0 } else { 0.0 },
             ],
             identity,
-            groups: [fill.0, maps.0, warp.0, 0],
+            groups: [fill.0, maps.0, warp.0, u32::from(options.sampling == Sampling::Tricubic)],
         };
         use defvol_gpu::gpu::Binding::{Read, ReadWrite, Uniform};
         let kernels = ctx.kernels(
@@ -251,7 +248,8 @@ mod tests {
     use nalgebra::Rotation3;
 
     /// GPU and CPU warps of the phantom through an upright, a rotated and bent mesh, and
-    /// with the uncovered voxels kept: the same inside decisions and values.
+    /// with the uncovered voxels kept, sampled trilinear and tricubic: the same inside
+    /// decisions and values.
     #[test]
     fn gpu_warp_matches_cpu() {
         let Some(ctx) = defvol_gpu::gpu::test_context() else { return };
@@ -266,9 +264,12 @@ mod tests {
             .map(|p| centre + rot * (p - centre) + Vector3::new(0.0, 0.0, 1e-3 * (p.x - centre.x).powi(2)))
             .collect();
         // Upright: the mesh boundary lies on voxel planes, every boundary voxel an exact tie.
-        for (deformed, keep_uncovered) in [(mesh.nodes().to_vec(), false), (bent.clone(), false), (bent, true)] {
+        let cases = [(mesh.nodes().to_vec(), false), (bent.clone(), false), (bent, true)];
+        for ((deformed, keep_uncovered), sampling) in
+            cases.iter().flat_map(|case| [Sampling::Trilinear, Sampling::Tricubic].map(|s| (case.clone(), s)))
+        {
             let grid = warp::default_grid(&source, &deformed);
-            let options = WarpOptions { background: -2000.0, keep_uncovered, ..Default::default() };
+            let options = WarpOptions { background: -2000.0, keep_uncovered, sampling, ..Default::default() };
             let (cpu, stats) = warp::warp_samples::<f32>(&source, &mesh, &deformed, &grid, &options).unwrap();
             let gpu = GpuWarp::new(ctx.clone(), &source, &mesh, grid, &options, 1.0).unwrap();
             let (gpu_out, gpu_stats) = gpu.warp(&mesh, &deformed).unwrap();
@@ -281,7 +282,7 @@ mod tests {
             // Measured on lavapipe: 0 of 73,719 decided differently, values within 6e-6 of the range.
             assert!(
                 (off.len() as f64) <= 1e-4 * stats.inside as f64,
-                "{} voxels differ (keep_uncovered {keep_uncovered}) of {} inside",
+                "{} voxels differ (keep_uncovered {keep_uncovered}, {sampling:?}) of {} inside",
                 off.len(),
                 stats.inside
             );

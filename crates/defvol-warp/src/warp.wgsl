@@ -5,14 +5,15 @@
 //   nodes (source index space), as `tet_map` computes them in f64; rebased on the tet's box
 //   corner so f32 keeps precision in voxel-local coordinates;
 // - `warp_tets`: one workgroup per tet; its threads take the rows (j, k) of the tet's box in
-//   turn (TetMap::span, rasterize_slice, Sampler::trilinear_run).
+//   turn (TetMap::span, rasterize_slice, Sampler::trilinear_run), sampling trilinear or
+//   tricubic (Catmull-Rom) as the CPU's Sampler does.
 
 struct Params {
     out_dims: vec4<u32>,   // nx, ny, nz, tet count
     src_dims: vec4<u32>,   // nx, ny, nz, -
     background: vec4<f32>, // background, inside tolerance, sample tolerance, keep_uncovered (1/0)
     identity: array<vec4<f32>, 3>, // source index from output index, rows (offset, di, dj, dk)
-    groups: vec4<u32>,     // row widths of the fill, tet-map and warp dispatch grids, -
+    groups: vec4<u32>,     // row widths of the fill, tet-map and warp dispatch grids; sampling (0 trilinear, 1 tricubic)
 }
 
 @group(0) @binding(0) var<uniform> params: Params;
@@ -58,6 +59,52 @@ fn trilinear(p: vec3<f32>) -> f32 {
     return mix(mix(c00, c10, f.y), mix(c01, c11, f.y), f.z);
 }
 
+// Catmull-Rom weights of the four taps around t in [0, 1) (volume::catmull_rom).
+fn catmull_rom(t: f32) -> vec4<f32> {
+    let t2 = t * t;
+    let t3 = t2 * t;
+    return 0.5 * vec4<f32>(-t3 + 2.0 * t2 - t, 3.0 * t3 - 5.0 * t2 + 2.0, -3.0 * t3 + 4.0 * t2 + t, t3 - t2);
+}
+
+// Tricubic (Catmull-Rom) sample, the twin of volume::tricubic: taps beyond the edges repeat
+// the edge voxel; beyond the sample tolerance outside the voxel-centre box, the background.
+fn tricubic(p: vec3<f32>) -> f32 {
+    let dims = vec3<f32>(params.src_dims.xyz);
+    let tol = params.background.z;
+    let top = dims - vec3<f32>(1.0);
+    if (any(p < vec3<f32>(-tol)) || any(p > top + vec3<f32>(tol))) {
+        return params.background.x;
+    }
+    let q = clamp(p, vec3<f32>(0.0), top);
+    let b = vec3<i32>(floor(q));
+    let f = q - vec3<f32>(b);
+    let wx = catmull_rom(f.x);
+    let wy = catmull_rom(f.y);
+    let wz = catmull_rom(f.z);
+    let n = vec3<i32>(params.src_dims.xyz);
+    var acc = 0.0;
+    for (var c = 0; c < 4; c = c + 1) {
+        let kk = clamp(b.z + c - 1, 0, n.z - 1);
+        for (var r = 0; r < 4; r = r + 1) {
+            let jj = clamp(b.y + r - 1, 0, n.y - 1);
+            let row = n.x * (jj + n.y * kk);
+            var line = 0.0;
+            for (var a = 0; a < 4; a = a + 1) {
+                line = line + wx[a] * source[u32(row + clamp(b.x + a - 1, 0, n.x - 1))];
+            }
+            acc = acc + wz[c] * wy[r] * line;
+        }
+    }
+    return acc;
+}
+
+fn sample(p: vec3<f32>) -> f32 {
+    if (params.groups.w == 1u) {
+        return tricubic(p);
+    }
+    return trilinear(p);
+}
+
 @compute @workgroup_size(64)
 fn fill(@builtin(global_invocation_id) gid: vec3<u32>) {
     let v = gid.x + gid.y * params.groups.x * WG;
@@ -72,7 +119,7 @@ fn fill(@builtin(global_invocation_id) gid: vec3<u32>) {
     let ny = params.out_dims.y;
     let ijk = vec3<f32>(f32(v % nx), f32((v / nx) % ny), f32(v / (nx * ny)));
     let r = params.identity;
-    out[v] = trilinear(vec3<f32>(dot(r[0], vec4<f32>(1.0, ijk)), dot(r[1], vec4<f32>(1.0, ijk)), dot(r[2], vec4<f32>(1.0, ijk))));
+    out[v] = sample(vec3<f32>(dot(r[0], vec4<f32>(1.0, ijk)), dot(r[1], vec4<f32>(1.0, ijk)), dot(r[2], vec4<f32>(1.0, ijk))));
 }
 
 fn skip_tet(base: u32) {
@@ -197,7 +244,7 @@ fn warp_tets(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_id
         for (var i = i0; i <= i1; i = i + 1) {
             let fi = f32(i);
             let p = vec3<f32>(s0.x + s0.y * fi + s0.z * jl + s0.w * kl, s1.x + s1.y * fi + s1.z * jl + s1.w * kl, s2.x + s2.y * fi + s2.z * jl + s2.w * kl);
-            out[row + u32(i)] = trilinear(p);
+            out[row + u32(i)] = sample(p);
         }
         if (i1 >= i0) {
             written = written + u32(i1 - i0 + 1);
