@@ -1,5 +1,5 @@
 //! The grid warp on the GPU: `warp.wgsl` beside this file, the `Spans` scheme with trilinear
-//! or tricubic (Catmull-Rom) sampling. The source volume, the rest mesh and the output grid go up once; a warp then
+//! or tricubic (Catmull-Rom) sampling, after the displacement volumes. The source volume, the rest mesh and the output grid go up once; a warp then
 //! takes the deformed nodes where they are ([`GpuWarp::place_from`]: another stage's device
 //! buffer; [`GpuWarp::place_host`]: from the host), computes every tet's maps on the device
 //! (`tet_maps`, the twin of `tet_map`) and rasterises them into an output buffer
@@ -9,7 +9,6 @@
 //! Differences from the CPU path: maps and spans are computed in f32 on box-local
 //! coordinates, so voxels within ~1e-5 (in barycentric terms) of a tet face may be decided
 //! differently; a voxel on a face shared by two tets takes whichever tet wrote last.
-//! Displacement volumes run on the CPU path only.
 
 use std::sync::Arc;
 
@@ -49,7 +48,7 @@ const WORKGROUP: u32 = 64;
 const GPU_INSIDE_TOLERANCE: f32 = 1e-5;
 const GPU_SAMPLE_TOLERANCE: f32 = 1e-4;
 /// Storage buffers `warp.wgsl` binds.
-const STORAGE_BUFFERS: u32 = 7;
+const STORAGE_BUFFERS: u32 = 8;
 
 /// A warp of one source volume through one mesh onto one grid, kept on the device.
 pub struct GpuWarp {
@@ -76,9 +75,6 @@ impl GpuWarp {
         options: &WarpOptions,
         to_file: f64,
     ) -> Result<Self, GpuWarpError> {
-        if !options.displacements.is_empty() {
-            return Err(GpuWarpError::Unsupported("no displacement volumes"));
-        }
         if !(to_file.is_finite() && to_file > 0.0) {
             return Err(GpuWarpError::Unsupported("positive, finite unit scales only"));
         }
@@ -107,7 +103,7 @@ impl GpuWarp {
         let d = |dims: [usize; 3], w: u32| [dims[0] as u32, dims[1] as u32, dims[2] as u32, w];
         let params = Params {
             out_dims: d(grid.dims, tet_count),
-            src_dims: d(source.dims(), 0),
+            src_dims: d(source.dims(), options.displacements.len() as u32),
             background: [
                 options.background,
                 GPU_INSIDE_TOLERANCE,
@@ -121,7 +117,7 @@ impl GpuWarp {
         let kernels = ctx.kernels(
             "warp.wgsl",
             include_str!("warp.wgsl"),
-            &[Uniform, ReadWrite, Read, ReadWrite, Read, Read, Read, ReadWrite],
+            &[Uniform, ReadWrite, Read, ReadWrite, Read, Read, Read, ReadWrite, Read],
             ["fill", "tet_maps", "warp_tets"],
         );
         let params = wgpu::util::DeviceExt::create_buffer_init(
@@ -138,10 +134,12 @@ impl GpuWarp {
         let rest_buffer = ctx.storage_buffer("warp rest nodes", bytemuck::cast_slice(&rest_src));
         let tets = ctx.storage_buffer("warp tets", bytemuck::cast_slice(rest.tets()));
         let stats = ctx.zeroed_buffer("warp stats", 8);
+        let pushes =
+            ctx.storage_buffer("warp displacement volumes", bytemuck::cast_slice(&pushes(&source_grid, options)?));
         let bind_group = ctx.bind_group(
             "warp",
             &kernels.layout,
-            &[&params, &maps_buffer, &source_buffer, &out, nodes.buffer(), &rest_buffer, &tets, &stats],
+            &[&params, &maps_buffer, &source_buffer, &out, nodes.buffer(), &rest_buffer, &tets, &stats, &pushes],
         );
         Ok(Self { ctx, grid, tet_count, nodes, out, stats, kernels, bind_group, groups: [fill, maps, warp] })
     }
@@ -239,6 +237,26 @@ impl GpuWarp {
     }
 }
 
+/// The displacement volumes in the source's index space, 4 vec4 each as `warp.wgsl` reads
+/// them (one zero block where there are none: a binding is never empty).
+fn pushes(source: &Grid, options: &WarpOptions) -> Result<Vec<[f32; 4]>, WarpError> {
+    let compiled = crate::bspline::compile_all(&options.displacements)
+        .map_err(|(index, why)| WarpError::BadDisplacement { index, why })?;
+    let m = source.direction * Matrix3::from_diagonal(&Vector3::from(source.spacing));
+    let mut blocks = Vec::with_capacity(4 * compiled.len().max(1));
+    for (index, volume) in compiled.iter().enumerate() {
+        let (rows, d) = volume
+            .in_space(&m, &Vector3::from(source.origin))
+            .ok_or_else(|| WarpError::BadDisplacement { index, why: "the source grid is singular".into() })?;
+        blocks.extend(rows.map(|r| r.map(|v| v as f32)));
+        blocks.push([d.x as f32, d.y as f32, d.z as f32, 0.0]);
+    }
+    if blocks.is_empty() {
+        blocks.resize(4, [0.0; 4]);
+    }
+    Ok(blocks)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -247,9 +265,9 @@ mod tests {
     use defvol_core::volume::phantom;
     use nalgebra::Rotation3;
 
-    /// GPU and CPU warps of the phantom through an upright, a rotated and bent mesh, and
-    /// with the uncovered voxels kept, sampled trilinear and tricubic: the same inside
-    /// decisions and values.
+    /// GPU and CPU warps of the phantom through an upright, a rotated and bent mesh, with
+    /// the uncovered voxels kept, and with two displacement volumes on top, sampled trilinear
+    /// and tricubic: the same inside decisions and values.
     #[test]
     fn gpu_warp_matches_cpu() {
         let Some(ctx) = defvol_gpu::gpu::test_context() else { return };
@@ -264,12 +282,27 @@ mod tests {
             .map(|p| centre + rot * (p - centre) + Vector3::new(0.0, 0.0, 1e-3 * (p.x - centre.x).powi(2)))
             .collect();
         // Upright: the mesh boundary lies on voxel planes, every boundary voxel an exact tie.
-        let cases = [(mesh.nodes().to_vec(), false), (bent.clone(), false), (bent, true)];
-        for ((deformed, keep_uncovered), sampling) in
+        // Two pushes (mm, the phantom's units) across the bent mesh, the second overlapping the first.
+        let pushes = vec![
+            warp::DisplacementVolume { centre: centre.into(), displacement: [0.0, 6.0, 3.0], extent: 30.0 },
+            warp::DisplacementVolume {
+                centre: (centre + Vector3::new(10.0, 0.0, 0.0)).into(),
+                displacement: [-4.0, 0.0, 0.0],
+                extent: 20.0,
+            },
+        ];
+        let cases = [
+            (mesh.nodes().to_vec(), false, Vec::new()),
+            (bent.clone(), false, Vec::new()),
+            (bent.clone(), true, Vec::new()),
+            (bent, true, pushes),
+        ];
+        for ((deformed, keep_uncovered, displacements), sampling) in
             cases.iter().flat_map(|case| [Sampling::Trilinear, Sampling::Tricubic].map(|s| (case.clone(), s)))
         {
             let grid = warp::default_grid(&source, &deformed);
-            let options = WarpOptions { background: -2000.0, keep_uncovered, sampling, ..Default::default() };
+            let options =
+                WarpOptions { background: -2000.0, keep_uncovered, sampling, displacements, ..Default::default() };
             let (cpu, stats) = warp::warp_samples::<f32>(&source, &mesh, &deformed, &grid, &options).unwrap();
             let gpu = GpuWarp::new(ctx.clone(), &source, &mesh, grid, &options, 1.0).unwrap();
             let (gpu_out, gpu_stats) = gpu.warp(&mesh, &deformed).unwrap();
@@ -282,8 +315,9 @@ mod tests {
             // Measured on lavapipe: 0 of 73,719 decided differently, values within 6e-6 of the range.
             assert!(
                 (off.len() as f64) <= 1e-4 * stats.inside as f64,
-                "{} voxels differ (keep_uncovered {keep_uncovered}, {sampling:?}) of {} inside",
+                "{} voxels differ (keep_uncovered {keep_uncovered}, {sampling:?}, {} pushes) of {} inside",
                 off.len(),
+                options.displacements.len(),
                 stats.inside
             );
             // Shared faces are written by both their tets: the GPU counts every write.

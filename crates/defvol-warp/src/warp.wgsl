@@ -10,7 +10,7 @@
 
 struct Params {
     out_dims: vec4<u32>,   // nx, ny, nz, tet count
-    src_dims: vec4<u32>,   // nx, ny, nz, -
+    src_dims: vec4<u32>,   // nx, ny, nz, displacement volumes
     background: vec4<f32>, // background, inside tolerance, sample tolerance, keep_uncovered (1/0)
     identity: array<vec4<f32>, 3>, // source index from output index, rows (offset, di, dj, dk)
     groups: vec4<u32>,     // row widths of the fill, tet-map and warp dispatch grids; sampling (0 trilinear, 1 tricubic)
@@ -28,6 +28,9 @@ struct Params {
 @group(0) @binding(6) var<storage, read> tets: array<vec4<u32>>;
 // Voxels written from inside a tet; tets skipped (inverted, flat, or off the grid).
 @group(0) @binding(7) var<storage, read_write> stats: array<atomic<u32>, 2>;
+// Displacement volumes in source index space (CompiledDisplacement::in_space), 4 vec4 each:
+// the rows of l = A·p + a (xyz: A's row, w: a), then the displacement in index units (xyz).
+@group(0) @binding(8) var<storage, read> pushes: array<vec4<f32>>;
 
 const WG: u32 = 64u;
 
@@ -98,11 +101,40 @@ fn tricubic(p: vec3<f32>) -> f32 {
     return acc;
 }
 
-fn sample(p: vec3<f32>) -> f32 {
-    if (params.groups.w == 1u) {
-        return tricubic(p);
+// Quadratic B-spline of support [-1, 1], 1 at 0 (bspline::quadratic_bspline).
+fn quadratic_bspline(x: f32) -> f32 {
+    let t = (x + 1.0) * 1.5;
+    var b = 0.0;
+    if (t >= 0.0 && t < 1.0) {
+        b = 0.5 * t * t;
+    } else if (t >= 1.0 && t < 2.0) {
+        b = 0.5 * (-2.0 * t * t + 6.0 * t - 3.0);
+    } else if (t >= 2.0 && t < 3.0) {
+        b = 0.5 * (3.0 - t) * (3.0 - t);
     }
-    return trilinear(p);
+    return b / 0.75;
+}
+
+// The backward map of the displacement volumes, the last applied first (bspline::backward_all).
+fn displaced(p: vec3<f32>) -> vec3<f32> {
+    var q = p;
+    for (var v = i32(params.src_dims.w) - 1; v >= 0; v = v - 1) {
+        let base = u32(v) * 4u;
+        let l = vec3<f32>(dot(pushes[base].xyz, q), dot(pushes[base + 1u].xyz, q), dot(pushes[base + 2u].xyz, q))
+            + vec3<f32>(pushes[base].w, pushes[base + 1u].w, pushes[base + 2u].w);
+        let along = select(quadratic_bspline(l.z / 2.0), quadratic_bspline(l.z), l.z < 0.0);
+        q = q - quadratic_bspline(l.x) * quadratic_bspline(l.y) * along * pushes[base + 3u].xyz;
+    }
+    return q;
+}
+
+// The source at p after the displacement volumes, as Sampler::at.
+fn sample(p: vec3<f32>) -> f32 {
+    let q = displaced(p);
+    if (params.groups.w == 1u) {
+        return tricubic(q);
+    }
+    return trilinear(q);
 }
 
 @compute @workgroup_size(64)

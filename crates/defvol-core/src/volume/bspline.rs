@@ -100,6 +100,17 @@ impl CompiledDisplacement {
         quadratic_bspline(l.x) * quadratic_bspline(l.y) * bw
     }
 
+    /// The volume in another space whose points map to this one's as x ↦ M·x + o (a grid's
+    /// index space): the rows of l = A·x + a (the frame coordinates over the extent that
+    /// [`Self::weight`] takes; xyz: A's row, w: a) and the displacement there, M⁻¹·d; `None`
+    /// for a singular M. The GPU warp samples through this form.
+    pub fn in_space(&self, m: &Matrix3<f64>, o: &Vector3<f64>) -> Option<([[f64; 4]; 3], Vector3<f64>)> {
+        let a = self.frame * m / self.extent;
+        let a0 = self.frame * (o - self.centre) / self.extent;
+        let d = m.try_inverse()? * self.displacement;
+        Some(([0, 1, 2].map(|r| [a[(r, 0)], a[(r, 1)], a[(r, 2)], a0[r]]), d))
+    }
+
     /// The backward map of this volume: p - V(p)·d.
     pub fn backward(&self, p: &Vector3<f64>) -> Vector3<f64> {
         p - self.displacement * self.weight(p)
