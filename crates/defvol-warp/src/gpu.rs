@@ -197,24 +197,31 @@ impl GpuWarp {
 
     /// The last warp's work (a small read-back).
     pub fn stats(&self) -> Result<WarpStats, GpuWarpError> {
-        let bytes = self.ctx.read_back(&self.stats, 8)?;
-        let [inside, skipped]: [u32; 2] = bytemuck::pod_read_unaligned(&bytes);
-        Ok(WarpStats {
-            voxels: self.grid.len() as u64,
-            candidates: 0,
-            inside: u64::from(inside),
-            skipped_tets: u64::from(skipped),
-        })
+        let mut counts = [0u8; 8];
+        self.ctx.read_back_into(&self.stats, &mut counts)?;
+        Ok(self.work(counts))
     }
 
     /// Reads the last warp back into `out` (one staging copy straight into it: a
-    /// shared-memory sample, say) and returns its work.
+    /// shared-memory sample, say) and returns its work, read in the same round trip.
     pub fn read_into(&self, out: &mut [f32]) -> Result<WarpStats, GpuWarpError> {
         if out.len() != self.grid.len() {
             return Err(WarpError::BufferSize { got: out.len(), expected: self.grid.len() }.into());
         }
-        self.ctx.read_back_into(&self.out, bytemuck::cast_slice_mut(out))?;
-        self.stats()
+        let pending = self.ctx.read_back_later(&[(&self.out, self.grid.len() as u64 * 4), (&self.stats, 8)]);
+        let mut counts = [0u8; 8];
+        self.ctx.finish_read_parts(pending, &mut [bytemuck::cast_slice_mut(out), &mut counts])?;
+        Ok(self.work(counts))
+    }
+
+    fn work(&self, counts: [u8; 8]) -> WarpStats {
+        let [inside, skipped]: [u32; 2] = bytemuck::pod_read_unaligned(&counts);
+        WarpStats {
+            voxels: self.grid.len() as u64,
+            candidates: 0,
+            inside: u64::from(inside),
+            skipped_tets: u64::from(skipped),
+        }
     }
 
     /// Warps to `deformed` (positions in the source's units, `to_file` = 1) and reads the
@@ -327,6 +334,29 @@ mod tests {
             );
             assert_eq!(gpu_stats.skipped_tets, stats.skipped_tets);
         }
+    }
+
+    /// A read-back of a warp is one round trip, its work counted in it: the samples and the
+    /// counts equal those read apart.
+    #[test]
+    fn a_warp_reads_back_with_its_work_in_one_round_trip() {
+        let Some(ctx) = defvol_gpu::gpu::test_context() else { return };
+        let source = phantom::phantom([40, 30, 20], 4.0).unwrap();
+        let (lo, hi) = source.bounds();
+        let mesh = generate::lattice_for_box(lo, hi, 300, CellSplit::Five).unwrap();
+        let grid = warp::default_grid(&source, mesh.nodes());
+        let gpu = GpuWarp::new(ctx.clone(), &source, &mesh, grid.clone(), &WarpOptions::default(), 1.0).unwrap();
+        gpu.place_host(&vec![Vector3::zeros(); mesh.nodes().len()]).unwrap();
+        gpu.run();
+        let mut out = vec![f32::NAN; grid.len()];
+        let before = ctx.counters();
+        let stats = gpu.read_into(&mut out).unwrap();
+        let cost = ctx.counters().since(&before);
+        assert_eq!((cost.submissions, cost.readbacks, cost.bytes_read_back), (1, 1, grid.len() as u64 * 4 + 8));
+        assert_eq!(stats, gpu.stats().unwrap());
+        assert!(stats.inside >= grid.len() as u64, "{stats:?}: the lattice covers its own grid");
+        let apart = ctx.read_back(gpu.output(), grid.len() as u64 * 4).unwrap();
+        assert_eq!(bytemuck::cast_slice::<f32, u8>(&out), apart.as_slice());
     }
 
     /// The deformed nodes read from a device buffer of displacements in other units (metres

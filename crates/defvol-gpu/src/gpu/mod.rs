@@ -437,7 +437,13 @@ impl GpuContext {
     /// Waits for `pending` (for its own submission, not for what was queued behind it)
     /// and copies its first `out.len()` bytes into `out`.
     pub fn finish_read(&self, pending: PendingRead, out: &mut [u8]) -> Result<(), GpuError> {
-        pending.wait_into(&self.device, out).map_err(GpuError::Readback)
+        self.finish_read_parts(pending, &mut [out])
+    }
+
+    /// As [`GpuContext::finish_read`], the parts of a read of several buffers each into its
+    /// own destination (a volume into a shared-memory sample, its counters beside).
+    pub fn finish_read_parts(&self, pending: PendingRead, outs: &mut [&mut [u8]]) -> Result<(), GpuError> {
+        pending.wait_into(&self.device, outs).map_err(GpuError::Readback)
     }
 }
 

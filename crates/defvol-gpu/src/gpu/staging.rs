@@ -20,13 +20,17 @@ impl PendingRead {
     }
 
     /// Waits for its own submission (not for what was queued behind it) and copies the
-    /// first `out.len()` bytes into `out`.
-    pub(super) fn wait_into(self, device: &wgpu::Device, out: &mut [u8]) -> Result<(), String> {
+    /// staging buffer's bytes, in order, into `outs` (each takes as many as it holds).
+    pub(super) fn wait_into(self, device: &wgpu::Device, outs: &mut [&mut [u8]]) -> Result<(), String> {
         let wait = wgpu::PollType::Wait { submission_index: Some(self.submission), timeout: None };
         device.poll(wait).map_err(|e| e.to_string())?;
         self.mapped.recv().map_err(|e| e.to_string())?.map_err(|e| e.to_string())?;
         let range = self.staging.get_mapped_range(..).map_err(|e| e.to_string())?;
-        out.copy_from_slice(&range[..out.len()]);
+        let mut at = 0;
+        for out in outs.iter_mut() {
+            out.copy_from_slice(&range[at..at + out.len()]);
+            at += out.len();
+        }
         drop(range);
         self.staging.unmap();
         Ok(())

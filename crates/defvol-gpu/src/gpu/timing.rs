@@ -136,7 +136,7 @@ impl Timer {
         encoder.copy_buffer_to_buffer(&self.resolved, 0, &self.staging, 0, bytes);
         let submission = queue.submit([encoder.finish()]);
         let mut read = vec![0u8; bytes as usize];
-        PendingRead::map(self.staging.clone(), submission).wait_into(device, &mut read)?;
+        PendingRead::map(self.staging.clone(), submission).wait_into(device, &mut [&mut read])?;
         let ticks: Vec<u64> = bytemuck::pod_collect_to_vec(&read);
         let ms = |first: u32| {
             let (begin, end) = (ticks[first as usize], ticks[first as usize + 1]);
