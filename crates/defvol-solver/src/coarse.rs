@@ -37,7 +37,7 @@ struct Dispatch {
 pub struct DeviceCoarseCorrection {
     ctx: Arc<GpuContext>,
     kernels: Kernels<3>,
-    /// The fine residual (input) and the fine correction (output), f32 per unknown.
+    /// The fine residual (input) and the fine correction (output), f32, `stride` per node.
     residual: wgpu::Buffer,
     correction: wgpu::Buffer,
     dispatches: Vec<Dispatch>,
@@ -103,9 +103,49 @@ impl Chain<'_> {
     }
 }
 
+/// `m` with its columns read from a vector of `stride` floats per node (xyz first): the
+/// restriction reading the solver's `vec4` rows.
+fn strided_columns(m: &CsrF32, stride: usize) -> CsrF32 {
+    let mut out = m.clone();
+    for c in &mut out.indices {
+        *c = (stride * (*c as usize / 3) + *c as usize % 3) as u32;
+    }
+    out
+}
+
+/// `m` with its rows written to a vector of `stride` floats per node (xyz first, the rest
+/// empty rows, so 0): the prolongation writing the solver's `vec4` rows.
+fn strided_rows(m: &CsrF32, stride: usize) -> CsrF32 {
+    let nodes = m.rows / 3;
+    let mut indptr = Vec::with_capacity(nodes * stride + 1);
+    indptr.push(0);
+    for node in 0..nodes {
+        for k in 0..stride {
+            let end = if k < 3 { m.indptr[3 * node + k + 1] } else { m.indptr[3 * node + 3] };
+            indptr.push(end);
+        }
+    }
+    CsrF32 { rows: nodes * stride, indptr, indices: m.indices.clone(), values: m.values.clone() }
+}
+
 impl DeviceCoarseCorrection {
     /// Uploads `amg`'s operators; an error names the first one past the adapter's limits.
     pub fn new(ctx: Arc<GpuContext>, amg: &Amg) -> Result<Self, GpuError> {
+        let unknowns = amg.p.rows;
+        let vector = |label: &str| ctx.zeroed_buffer(label, unknowns.max(1) as u64 * 4);
+        let (residual, correction) = (vector("amg residual"), vector("amg correction"));
+        Self::on(ctx, amg, residual, correction, 3)
+    }
+
+    /// As [`Self::new`], reading the residual from and writing the correction to the given
+    /// buffers of `stride` floats per node (4: the solver's `vec4` rows; the 4th left 0).
+    pub fn on(
+        ctx: Arc<GpuContext>,
+        amg: &Amg,
+        residual: wgpu::Buffer,
+        correction: wgpu::Buffer,
+        stride: usize,
+    ) -> Result<Self, GpuError> {
         ctx.require_storage_buffers("the multigrid coarse correction", 5)?;
         let kernels = ctx.kernels(
             "coarse.wgsl",
@@ -114,14 +154,13 @@ impl DeviceCoarseCorrection {
             ["csr_product", "add_jacobi", "dense_product"],
         );
         let vector = |label: &str, len: usize| ctx.zeroed_buffer(label, len.max(1) as u64 * 4);
-        let unknowns = amg.p.rows;
-        let (residual, correction) = (vector("amg residual", unknowns), vector("amg correction", unknowns));
+        let unknowns = amg.p.rows / 3 * stride;
         // Level k's right-hand side b[k] and solution x[k]; k = 0 is the first coarse level.
         let sizes: Vec<usize> = std::iter::once(amg.r.rows).chain(amg.levels.iter().map(|l| l.r.rows)).collect();
         let b: Vec<wgpu::Buffer> = sizes.iter().map(|&n| vector("amg level rhs", n)).collect();
         let x: Vec<wgpu::Buffer> = sizes.iter().map(|&n| vector("amg level solution", n)).collect();
         let mut chain = Chain { ctx: &ctx, kernels: &kernels, unused: vector("unused", 1), dispatches: Vec::new() };
-        chain.csr("the first restriction", &amg.r, &residual, &b[0])?;
+        chain.csr("the first restriction", &strided_columns(&amg.r, stride), &residual, &b[0])?;
         for (k, level) in amg.levels.iter().enumerate() {
             chain.csr("a coarse restriction", &level.r, &b[k], &b[k + 1])?;
         }
@@ -131,7 +170,7 @@ impl DeviceCoarseCorrection {
             chain.csr("a coarse prolongation", &level.p, &x[k + 1], &x[k])?;
             chain.jacobi(&level.dinv, level.omega, &b[k], &x[k])?;
         }
-        chain.csr("the fine prolongation", &amg.p, &x[0], &correction)?;
+        chain.csr("the fine prolongation", &strided_rows(&amg.p, stride), &x[0], &correction)?;
         let dispatches = chain.dispatches;
         Ok(Self { ctx, kernels, residual, correction, dispatches, unknowns })
     }
@@ -224,12 +263,28 @@ mod tests {
         sim.prepare_preconditioner();
         let amg = sim.multigrid().expect("a hierarchy");
         assert!(amg.levels.len() >= 1, "coarse sizes {:?}", amg.coarse_sizes);
-        let device = DeviceCoarseCorrection::new(ctx, amg).unwrap();
+        let device = DeviceCoarseCorrection::new(ctx.clone(), amg).unwrap();
         assert_eq!(device.len(), 3 * amg.levels.len() + 3);
+        // The same chain on the solver's vec4 rows: the 4th value ignored on the way in, 0 out.
+        let nodes = amg.p.rows / 3;
+        let strided = DeviceCoarseCorrection::on(
+            ctx.clone(),
+            amg,
+            ctx.zeroed_buffer("vec4 residual", nodes as u64 * 16),
+            ctx.zeroed_buffer("vec4 correction", nodes as u64 * 16),
+            4,
+        )
+        .unwrap();
         let rough: Vec<f64> = (0..rhs.len()).map(|i| ((i * 7919) % 101) as f64 / 50.0 - 1.0).collect();
         for residual in [rhs, rough] {
             let want = amg.coarse_correction(&residual);
             let got = device.apply(&residual.iter().map(|&v| v as f32).collect::<Vec<_>>()).unwrap();
+            let rows: Vec<f32> =
+                residual.chunks(3).flat_map(|r| [r[0] as f32, r[1] as f32, r[2] as f32, 7.0]).collect();
+            let got4 = strided.apply(&rows).unwrap();
+            for (node, (four, three)) in got4.chunks(4).zip(got.chunks(3)).enumerate() {
+                assert_eq!((&four[..3], four[3]), (three, 0.0), "node {node}");
+            }
             let scale = want.iter().fold(0.0f64, |m, v| m.max(v.abs()));
             let worst = got.iter().zip(&want).map(|(g, w)| (f64::from(*g) - w).abs()).fold(0.0, f64::max);
             assert!(scale > 0.0 && worst <= 1e-5 * scale, "worst {worst:e} against {scale:e}");
