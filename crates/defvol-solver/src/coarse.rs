@@ -262,7 +262,7 @@ mod tests {
         let (_, rhs) = sim.assembled_system().unwrap();
         sim.prepare_preconditioner();
         let amg = sim.multigrid().expect("a hierarchy");
-        assert!(amg.levels.len() >= 1, "coarse sizes {:?}", amg.coarse_sizes);
+        assert!(!amg.levels.is_empty(), "coarse sizes {:?}", amg.coarse_sizes);
         let device = DeviceCoarseCorrection::new(ctx.clone(), amg).unwrap();
         assert_eq!(device.len(), 3 * amg.levels.len() + 3);
         // The same chain on the solver's vec4 rows: the 4th value ignored on the way in, 0 out.
