@@ -16,7 +16,7 @@ struct Tool {
 struct Params {
     gravity_h: vec4<f32>,  // gravity xyz, time step h
     counts: vec4<u32>,     // nodes, springs, tools, partial-sum slots
-    cg: vec4<f32>,         // tolerance^2, max iterations, -, -
+    cg: vec4<f32>,         // tolerance^2, max iterations, multigrid's fine damping ω (0: block Jacobi), -
     tools: array<Tool, 4>,
     system: vec4<u32>,     // rows (nodes + simulated tools' rows), contacts, touched rows, simulated tools' rows
 }
@@ -546,6 +546,76 @@ fn cg_direction(@builtin(global_invocation_id) gid: vec3<u32>) {
     let i = gid.x;
     if (i < params.system.x) {
         p[i] = vec4<f32>(z[i].xyz + p[i].xyz * scalars.beta, 0.0);
+    }
+}
+
+// ---- multigrid preconditioner -------------------------------------------------------------
+// z = M⁻¹ r by one symmetric V-cycle, as cpu/implicit.rs `apply_amg`: z₀ = ω B r (B the
+// inverse diagonal blocks), z₁ = z₀ + P (cycle) R (r - A z₀) over the nodes, z = z₁ + ω B (r -
+// A z₁). The products reuse the CG's own (q = A p, contacts included), so p holds z₀ and z₁
+// meanwhile (the host saves the direction around them); the coarse cycle (coarse.wgsl) reads
+// the nodes' residual from `aux` and writes its correction to `force`, both idle in an
+// implicit step.
+
+@compute @workgroup_size(256)
+fn amg_presmooth(@builtin(global_invocation_id) gid: vec3<u32>) {
+    if (scalars.done != 0u) {
+        return;
+    }
+    let i = gid.x;
+    if (i < params.system.x) {
+        p[i] = vec4<f32>(precond[i] * r[i].xyz * params.cg.z, 0.0);
+    }
+}
+
+@compute @workgroup_size(256)
+fn amg_residual(@builtin(global_invocation_id) gid: vec3<u32>) {
+    if (scalars.done != 0u) {
+        return;
+    }
+    let i = gid.x;
+    if (i < params.counts.x) {
+        aux[i] = vec4<f32>(r[i].xyz - q[i].xyz, 0.0);
+    }
+}
+
+@compute @workgroup_size(256)
+fn amg_correct(@builtin(global_invocation_id) gid: vec3<u32>) {
+    if (scalars.done != 0u) {
+        return;
+    }
+    let i = gid.x;
+    if (i < params.counts.x) {
+        p[i] = vec4<f32>(p[i].xyz + force[i].xyz, 0.0);
+    }
+}
+
+// z = z₁ + ω B (r - A z₁), with r·z and r·r into the partial sums (as cg_update leaves them).
+@compute @workgroup_size(256)
+fn amg_postsmooth(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>) {
+    if (scalars.done != 0u) {
+        return;
+    }
+    let i = gid.x;
+    var sums = vec4<f32>(0.0);
+    if (i < params.system.x) {
+        let ri = r[i].xyz;
+        let zi = p[i].xyz + precond[i] * (ri - q[i].xyz) * params.cg.z;
+        z[i] = vec4<f32>(zi, 0.0);
+        sums = vec4<f32>(dot(ri, zi), dot(ri, ri), 0.0, 0.0);
+    }
+    workgroup_sum(sums, lid.x, wid.x);
+}
+
+// The start's r·z with the multigrid's z (cg_init_reduce set the rest).
+@compute @workgroup_size(256)
+fn amg_init_reduce(@builtin(local_invocation_id) lid: vec3<u32>) {
+    if (scalars.done != 0u) {
+        return;
+    }
+    let s = reduce_partials(lid.x);
+    if (lid.x == 0u) {
+        scalars.rz = s.x;
     }
 }
 
