@@ -132,7 +132,7 @@ pub fn solver(opts: &SolverBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Res
                     case: case.clone(),
                     backend: result.backend.name().into(),
                     device: device_name,
-                    params: run_params(&params, result.backend, opts.steps, batch),
+                    params: run_params(&params, opts.steps, batch),
                     runs: result.step_ms.len(),
                     time_ms: time_stats(result.step_ms),
                     error: Some(ErrorMeasure {
@@ -150,11 +150,11 @@ pub fn solver(opts: &SolverBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Res
 }
 
 /// What a row ran: the CG settings only where a scheme solves a system.
-fn run_params(params: &SolverParams, backend: RunsOn, steps: usize, batch: u32) -> serde_json::Value {
+fn run_params(params: &SolverParams, steps: usize, batch: u32) -> serde_json::Value {
     let mut out = json!({"integrator": params.integrator.name(), "dt": params.dt, "steps": steps});
     if params.integrator == Integrator::ImplicitEuler {
         out["cg_tolerance"] = json!(params.cg_tolerance);
-        out["preconditioner"] = json!(preconditioner_name(backend, params));
+        out["preconditioner"] = json!(preconditioner_name(params));
     } else {
         out["batch"] = json!(batch);
     }
@@ -170,11 +170,9 @@ fn run_work(params: &SolverParams, model: &MassSpringModel, tets: usize, cg_iter
     out
 }
 
-/// The preconditioner a run really used: the GPU path has block Jacobi only; explicit
-/// schemes solve nothing.
-fn preconditioner_name(backend: RunsOn, params: &SolverParams) -> &'static str {
+/// The preconditioner a run used (on either backend); explicit schemes solve nothing.
+fn preconditioner_name(params: &SolverParams) -> &'static str {
     match (params.integrator, params.preconditioner) {
-        (Integrator::ImplicitEuler, _) if backend == RunsOn::Gpu => "block_jacobi",
         (Integrator::ImplicitEuler, Preconditioner::BlockJacobi) => "block_jacobi",
         (Integrator::ImplicitEuler, Preconditioner::Amg) => "amg",
         (Integrator::ImplicitEuler, Preconditioner::Auto) => "auto",

@@ -112,7 +112,7 @@ const TABLE: &[(&str, Descriptor)] = &[
     ("solver.cg_check_interval", integer("Implicit solve: CG iterations between residual checks (GPU)", 1, 1000)),
     (
         "solver.preconditioner",
-        constrained(text("CG preconditioner"), "one of auto, block_jacobi, amg (CPU); the GPU uses block_jacobi"),
+        constrained(text("CG preconditioner"), "one of auto, block_jacobi, amg (on either backend)"),
     ),
     ("tools.#.name", text("Tool name (its topics are <name>/tool_pose … after the first tool)")),
     ("tools.#.shape.kind", constrained(text("Tool shape"), "sphere or capsule")),

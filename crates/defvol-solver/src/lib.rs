@@ -69,8 +69,8 @@ impl Integrator {
 pub enum Preconditioner {
     /// Inverse 3x3 diagonal blocks: cheap, on both backends; iterations grow with resolution.
     BlockJacobi,
-    /// Smoothed-aggregation multigrid (CPU): few iterations, independent of resolution;
-    /// the GPU path uses block Jacobi.
+    /// Smoothed-aggregation multigrid: few iterations, independent of resolution (on the
+    /// GPU, the CPU-built hierarchy's V-cycle on the device, `coarse.rs`).
     Amg,
     /// Block Jacobi while CG converges within [`AUTO_AMG_ABOVE`] iterations, multigrid from
     /// the step after one that needed more. A V-cycle costs about six Jacobi iterations
