@@ -29,6 +29,9 @@ type ReferenceKey = (Integrator, u64);
 
 struct Run {
     positions: Vec<Vector3<f64>>,
+    /// The first step: the preconditioner's setup (the multigrid hierarchy, its upload), the
+    /// pipelines' compilation, the first solve.
+    setup_ms: f64,
     step_ms: Vec<f64>,
     cg_iterations: f64,
     backend: RunsOn,
@@ -49,8 +52,11 @@ fn run(
         Some(backend) => SolverEngine::new(backend, model, params, Vec::new())?,
         None => SolverEngine::reference_f64(model, params, Vec::new())?,
     };
-    // Settle: the first step pays for allocation, pipeline compilation and warm caches.
+    // Settle: the first step pays for allocation, pipeline compilation, the preconditioner's
+    // setup and warm caches; timed apart.
+    let start = Instant::now();
     engine.step()?;
+    let setup_ms = start.elapsed().as_secs_f64() * 1e3;
     let meter = backend.and_then(|b| super::GpuMeter::start(b, engine.runs_on()));
     let mut step_ms = Vec::with_capacity(steps);
     let mut iterations = 0u64;
@@ -64,6 +70,7 @@ fn run(
     let gpu = meter.and_then(|m| m.finish(steps.saturating_sub(1)));
     Ok(Run {
         gpu,
+        setup_ms,
         positions: engine.positions(),
         step_ms,
         cg_iterations: iterations as f64 / (steps.max(2) - 1) as f64,
@@ -132,7 +139,7 @@ pub fn solver(opts: &SolverBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Res
                     case: case.clone(),
                     backend: result.backend.name().into(),
                     device: device_name,
-                    params: run_params(&params, opts.steps, batch),
+                    params: run_params(&params, opts.steps, batch, result.setup_ms),
                     runs: result.step_ms.len(),
                     time_ms: time_stats(result.step_ms),
                     error: Some(ErrorMeasure {
@@ -149,9 +156,11 @@ pub fn solver(opts: &SolverBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Res
     Ok(())
 }
 
-/// What a row ran: the CG settings only where a scheme solves a system.
-fn run_params(params: &SolverParams, steps: usize, batch: u32) -> serde_json::Value {
-    let mut out = json!({"integrator": params.integrator.name(), "dt": params.dt, "steps": steps});
+/// What a row ran (and its first step's time, the setup): the CG settings only where a
+/// scheme solves a system.
+fn run_params(params: &SolverParams, steps: usize, batch: u32, setup_ms: f64) -> serde_json::Value {
+    let mut out =
+        json!({"integrator": params.integrator.name(), "dt": params.dt, "steps": steps, "setup_ms": setup_ms});
     if params.integrator == Integrator::ImplicitEuler {
         out["cg_tolerance"] = json!(params.cg_tolerance);
         out["preconditioner"] = json!(preconditioner_name(params));

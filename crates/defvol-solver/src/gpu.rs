@@ -277,6 +277,9 @@ struct Multigrid {
     coarse: DeviceCoarseCorrection,
     omega: f32,
     saved_p: wgpu::Buffer,
+    /// Iterations of the first solve with it (0 until then): a solve needing more than
+    /// twice as many (and 4) rebuilds it, the CPU path's rule.
+    iterations_at_build: u32,
 }
 
 /// A piece of a CG submission: kernels in one compute pass, a whole-buffer copy, or the
@@ -305,7 +308,7 @@ pub struct GpuSimulation {
     system: [u32; 4],
     /// The multigrid preconditioner once in use (`amg` from the first implicit step, `auto`
     /// after a block-Jacobi solve past [`crate::AUTO_AMG_ABOVE`] iterations), and the model
-    /// its hierarchy is built from until then.
+    /// its hierarchy is built from (none where it will not be, or does not fit).
     multigrid: Option<Multigrid>,
     multigrid_source: Option<MassSpringModel>,
     multigrid_wanted: bool,
@@ -516,31 +519,51 @@ impl GpuSimulation {
         }
     }
 
-    /// Builds the multigrid hierarchy on the CPU (from the model at rest, as the CPU path's
-    /// first one) and uploads it. Past the adapter's limits: an error under `amg`; under
-    /// `auto`, block Jacobi on, saying why.
+    /// Builds the multigrid hierarchy on the CPU from the system at the last accepted state
+    /// (as the CPU path builds it) and uploads it. Past the adapter's limits: an error under
+    /// `amg`; under `auto`, block Jacobi on, saying why.
     fn build_multigrid(&mut self) -> Result<(), GpuSolverError> {
-        let Some(model) = self.multigrid_source.take() else { return Ok(()) };
+        let Some(model) = &self.multigrid_source else { return Ok(()) };
         let params = SolverParams { preconditioner: Preconditioner::Amg, ..self.mirror.params().clone() };
-        let mut rest = Simulation::<f32>::new(&model, params, Vec::new())?;
-        rest.assembled_system()?;
-        rest.prepare_preconditioner();
-        let Some(amg) = rest.multigrid() else {
+        let mut at_state = Simulation::<f32>::new(model, params, Vec::new())?;
+        let velocities: Vec<Vector3<f64>> = self.mirror.velocities().iter().map(|v| v.cast()).collect();
+        at_state.set_state(&self.mirror.positions_f64(), &velocities);
+        at_state.assembled_system()?;
+        at_state.prepare_preconditioner();
+        let Some(amg) = at_state.multigrid() else {
             tracing::warn!("no multigrid hierarchy for this mesh (nothing to aggregate): block Jacobi on the GPU");
+            self.multigrid_source = None;
             return Ok(());
         };
         let (aux, force) = (self.buffers.bound[22].clone(), self.buffers.bound[23].clone());
         match DeviceCoarseCorrection::on(self.ctx.clone(), amg, aux, force, 4) {
             Ok(coarse) => {
                 let saved_p = self.ctx.zeroed_buffer("saved direction", self.buffers.p.size());
-                self.multigrid = Some(Multigrid { coarse, omega: amg.fine_omega as f32, saved_p });
+                let omega = amg.fine_omega as f32;
+                self.multigrid = Some(Multigrid { coarse, omega, saved_p, iterations_at_build: 0 });
                 Ok(())
             }
             Err(e) if self.mirror.params().preconditioner == Preconditioner::Auto => {
                 tracing::warn!("the multigrid hierarchy does not fit the GPU ({e}): block Jacobi on");
+                self.multigrid_source = None;
                 Ok(())
             }
             Err(e) => Err(e.into()),
+        }
+    }
+
+    /// The preconditioner's rules after a solve of `iterations`: `auto` turns to multigrid
+    /// past [`crate::AUTO_AMG_ABOVE`]; a hierarchy whose solves need more than twice the
+    /// iterations of its first (and 4) is rebuilt before the next step.
+    fn note_iterations(&mut self, iterations: u32) {
+        let auto = self.mirror.params().preconditioner == Preconditioner::Auto;
+        self.multigrid_wanted |= auto && iterations > crate::AUTO_AMG_ABOVE;
+        if let Some(m) = &mut self.multigrid {
+            if m.iterations_at_build == 0 {
+                m.iterations_at_build = iterations.max(1);
+            } else if iterations > 2 * m.iterations_at_build + 4 {
+                self.multigrid = None;
+            }
         }
     }
 
@@ -930,8 +953,7 @@ impl GpuSimulation {
         let StepOutcome { proxy_dv, cg, state: [x, v] } = match self.mirror.params().integrator {
             Integrator::ImplicitEuler => {
                 let outcome = self.implicit_step()?;
-                let auto = self.mirror.params().preconditioner == Preconditioner::Auto;
-                self.multigrid_wanted |= auto && outcome.cg.iterations > crate::AUTO_AMG_ABOVE;
+                self.note_iterations(outcome.cg.iterations);
                 outcome
             }
             _ => {
