@@ -272,3 +272,24 @@ fn auto_preconditioner_runs_block_jacobi_while_cg_is_quick_and_multigrid_once_it
     let err = relative_error(&model, &auto_x, &amg_x);
     assert!(err < 1e-6, "Auto and AMG reach the same state: {err:e}");
 }
+
+/// Multigrid on the GPU (the software adapter here) against the CPU's at about 157k tets,
+/// three implicit steps at h = 10 ms and CG tolerance 5e-2: CG iterations within 20 % and the
+/// two states within 1e-3 of the largest displacement (each 2.6e-4 from the f64 run in
+/// `bench solver`).
+#[cfg(feature = "gpu")]
+#[test]
+fn gpu_multigrid_takes_the_cpus_iterations_at_157k_tets() {
+    use defvol::solver::{gpu::GpuSimulation, Preconditioner};
+    let Some(ctx) = defvol::gpu::test_context() else { return };
+    let model = cantilever(157_000).unwrap();
+    let params = SolverParams { preconditioner: Preconditioner::Amg, cg_tolerance: 5e-2, ..Default::default() };
+    let mut cpu = Simulation::<f32>::new(&model, params.clone(), Vec::new()).unwrap();
+    let mut gpu = GpuSimulation::new(ctx, &model, params, Vec::new()).unwrap();
+    let iterations: Vec<[u32; 2]> =
+        (0..3).map(|_| [cpu.step().unwrap().cg_iterations, gpu.step().unwrap().cg_iterations]).collect();
+    let [c, g] = iterations.iter().fold([0, 0], |[a, b], [c, g]| [a + c, b + g]);
+    assert!(f64::from(c.abs_diff(g)) <= 0.2 * f64::from(c), "cpu, gpu: {iterations:?}");
+    let err = relative_error(&model, &gpu.mirror().positions_f64(), &cpu.positions_f64());
+    assert!(err <= 1e-3, "{err:e}; iterations {iterations:?}");
+}

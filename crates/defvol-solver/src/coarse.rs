@@ -236,9 +236,7 @@ impl DeviceCoarseCorrection {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::{FixedNodes, Integrator, MassSpringModel, Material, Preconditioner, Simulation, SolverParams};
-    use defvol_core::mesh::generate::{self, CellSplit};
-    use nalgebra::Vector3;
+    use crate::{Integrator, Preconditioner, Simulation, SolverParams};
 
     /// The CPU's own hierarchy for a cantilever's implicit system (1,422 unknowns on the first
     /// coarse level, a dense coarsest of 42): on the device it corrects the system's right-hand
@@ -247,12 +245,7 @@ mod tests {
     #[test]
     fn the_device_coarse_correction_is_the_cpu_cycles() {
         let Some(ctx) = defvol_gpu::gpu::test_context() else { return };
-        let mesh =
-            generate::lattice(Vector3::zeros(), Vector3::new(0.3, 0.06, 0.06), [40, 8, 8], CellSplit::Five).unwrap();
-        let fixed = FixedNodes::Plane { normal: [1.0, 0.0, 0.0], offset: 0.0 }.select(mesh.nodes()).unwrap();
-        let model =
-            MassSpringModel::new(&mesh, &Material::Uniform { stiffness: 1000.0, damping: 0.5 }, 1000.0, &fixed, None)
-                .unwrap();
+        let model = crate::model::clamped_cantilever([40, 8, 8]);
         let params = SolverParams {
             integrator: Integrator::ImplicitEuler,
             preconditioner: Preconditioner::Amg,

@@ -1288,12 +1288,7 @@ mod tests {
     #[test]
     fn gpu_multigrid_takes_the_cpu_multigrids_iterations_and_solution() {
         let Some(ctx) = defvol_gpu::gpu::test_context() else { return };
-        let mesh =
-            generate::lattice(Vector3::zeros(), Vector3::new(0.3, 0.06, 0.06), [40, 8, 8], CellSplit::Five).unwrap();
-        let fixed = FixedNodes::Plane { normal: [1.0, 0.0, 0.0], offset: 0.0 }.select(mesh.nodes()).unwrap();
-        let model =
-            MassSpringModel::new(&mesh, &Material::Uniform { stiffness: 1000.0, damping: 0.5 }, 1000.0, &fixed, None)
-                .unwrap();
+        let model = crate::model::clamped_cantilever([40, 8, 8]);
         let params = SolverParams {
             integrator: Integrator::ImplicitEuler,
             dt: 0.01,

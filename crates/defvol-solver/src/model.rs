@@ -309,6 +309,16 @@ impl MassSpringModel {
     }
 }
 
+/// A cantilever 0.3 x 0.06 x 0.06 m clamped at x = 0 (k = 1000 N/m, damping 0.5, 1000 kg/m³),
+/// `cells` lattice cells of five tets each: the multigrid tests' beam.
+#[cfg(test)]
+pub(crate) fn clamped_cantilever(cells: [usize; 3]) -> MassSpringModel {
+    use defvol_core::mesh::generate::{self, CellSplit};
+    let mesh = generate::lattice(Vector3::zeros(), Vector3::new(0.3, 0.06, 0.06), cells, CellSplit::Five).unwrap();
+    let fixed = FixedNodes::Plane { normal: [1.0, 0.0, 0.0], offset: 0.0 }.select(mesh.nodes()).unwrap();
+    MassSpringModel::new(&mesh, &Material::Uniform { stiffness: 1000.0, damping: 0.5 }, 1000.0, &fixed, None).unwrap()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -39,14 +39,21 @@ fn inside(a: vec4<f32>, c: vec4<f32>, i: f32) -> bool {
     return all(b >= vec4<f32>(0.0));
 }
 
-fn trilinear(p: vec3<f32>) -> f32 {
-    let dims = vec3<f32>(params.src_dims.xyz);
+// p clamped into the source's voxel-centre box; w = 0 where p lies beyond the sample
+// tolerance outside it (clamp_to_box: the sample is then the background).
+fn in_source(p: vec3<f32>) -> vec4<f32> {
+    let top = vec3<f32>(params.src_dims.xyz) - vec3<f32>(1.0);
     let tol = params.background.z;
-    let top = dims - vec3<f32>(1.0);
-    if (any(p < vec3<f32>(-tol)) || any(p > top + vec3<f32>(tol))) {
+    let outside = any(p < vec3<f32>(-tol)) || any(p > top + vec3<f32>(tol));
+    return vec4<f32>(clamp(p, vec3<f32>(0.0), top), select(1.0, 0.0, outside));
+}
+
+fn trilinear(p: vec3<f32>) -> f32 {
+    let at = in_source(p);
+    if (at.w == 0.0) {
         return params.background.x;
     }
-    let q = clamp(p, vec3<f32>(0.0), top);
+    let q = at.xyz;
     let cell = min(vec3<u32>(q), max(params.src_dims.xyz, vec3<u32>(2u)) - vec3<u32>(2u));
     let f = q - vec3<f32>(cell);
     let nx = params.src_dims.x;
@@ -72,13 +79,11 @@ fn catmull_rom(t: f32) -> vec4<f32> {
 // Tricubic (Catmull-Rom) sample, the twin of volume::tricubic: taps beyond the edges repeat
 // the edge voxel; beyond the sample tolerance outside the voxel-centre box, the background.
 fn tricubic(p: vec3<f32>) -> f32 {
-    let dims = vec3<f32>(params.src_dims.xyz);
-    let tol = params.background.z;
-    let top = dims - vec3<f32>(1.0);
-    if (any(p < vec3<f32>(-tol)) || any(p > top + vec3<f32>(tol))) {
+    let at = in_source(p);
+    if (at.w == 0.0) {
         return params.background.x;
     }
-    let q = clamp(p, vec3<f32>(0.0), top);
+    let q = at.xyz;
     let b = vec3<i32>(floor(q));
     let f = q - vec3<f32>(b);
     let wx = catmull_rom(f.x);
