@@ -156,10 +156,9 @@ fn log_to_rerun(path: &Path, rows: &[Row]) -> Result<()> {
     let name = |text: &str| text.chars().map(|c| if c.is_ascii_alphanumeric() { c } else { '_' }).collect::<String>();
     for stage in STAGES {
         let of_stage: Vec<&Row> = rows.iter().filter(|r| r.stage == stage).collect();
-        for s in report::drawn_series(&of_stage) {
+        for s in report::drawn_series(stage, &of_stage) {
             let entity = format!("bench/{stage}/{}/{}", name(&s.panel), name(&s.label));
-            let decibels = of_stage.iter().any(|r| r.error.as_ref().is_some_and(|e| e.metric.ends_with("_db")));
-            let y = |v: f64| if decibels { v } else { v.log10() };
+            let y = |v: f64| if s.decibels { v } else { v.log10() };
             let points: Vec<[f32; 2]> = s.points.iter().map(|&(t, e)| [t.log10() as f32, y(e) as f32]).collect();
             if !points.is_empty() {
                 log.log_bench_series(&entity, &points, s.rgb, &s.label)?;

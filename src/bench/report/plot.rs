@@ -34,21 +34,33 @@ pub const STRIP_CAPTION: &str =
 type Area<'a> = DrawingArea<SVGBackend<'a>, Shift>;
 type DrawResult = Result<(), Box<dyn std::error::Error>>;
 
-/// What one stage's figure draws: its rows, their series, the seeds, the shared time axis.
+/// What one stage's figure draws: its rows, their series, the series' distinct labels (label
+/// i is colour i), the seeds, the shared time axis.
 struct Figure<'r> {
     rows: &'r [&'r Row],
     series: Vec<Series>,
-    colours: Vec<String>,
+    labels: Vec<String>,
     seeds: Vec<SeedPoint>,
     times: Range<f64>,
 }
 
-impl Figure<'_> {
-    fn colour(&self, s: &Series) -> RGBColor {
-        let index = self.colours.iter().position(|l| *l == s.label).unwrap_or(0);
-        let c = Palette99::pick(index).to_rgba();
-        RGBColor(c.0, c.1, c.2)
+impl<'r> Figure<'r> {
+    fn new(stage: &str, rows: &'r [&'r Row]) -> Self {
+        let series = series_of(rows);
+        let labels = labels(&series).into_iter().map(str::to_owned).collect();
+        let seeds = seed_points(stage);
+        let times = time_range(rows, &seeds, stage == "node");
+        Self { rows, series, labels, seeds, times }
     }
+
+    fn colour(&self, s: &Series) -> RGBColor {
+        palette(self.labels.iter().position(|l| *l == s.label).unwrap_or(0))
+    }
+}
+
+fn palette(index: usize) -> RGBColor {
+    let c = Palette99::pick(index).to_rgba();
+    RGBColor(c.0, c.1, c.2)
 }
 
 /// A series as the report draws it, for other sinks (the rerun log).
@@ -59,15 +71,15 @@ pub struct DrawnSeries {
     pub rgb: [u8; 3],
     /// (median ms, error) of the rows drawn on the curve, in the curve's order.
     pub points: Vec<(f64, f64)>,
+    /// The errors are decibels (PSNR, drawn on a linear axis), not ratios.
+    pub decibels: bool,
     /// Median ms of the rows with no error to draw (the strip).
     pub timed_only: Vec<f64>,
 }
 
 /// The series of one stage's rows, with their colours and points as the SVG draws them.
-pub fn drawn_series(rows: &[&Row]) -> Vec<DrawnSeries> {
-    let series = series_of(rows);
-    let colours: Vec<String> = labels(&series).into_iter().map(str::to_owned).collect();
-    let figure = Figure { rows, series, colours, seeds: Vec::new(), times: 0.1..10.0 };
+pub fn drawn_series(stage: &str, rows: &[&Row]) -> Vec<DrawnSeries> {
+    let figure = Figure::new(stage, rows);
     figure
         .series
         .iter()
@@ -79,6 +91,7 @@ pub fn drawn_series(rows: &[&Row]) -> Vec<DrawnSeries> {
                 label: s.label.clone(),
                 rgb: [c.0, c.1, c.2],
                 points: curve_points(&figure, s, None),
+                decibels: of_series.clone().filter_map(plotted_error).any(|(m, _)| is_decibels(m)),
                 timed_only: of_series.filter(|r| plotted_error(r).is_none()).map(|r| r.time_ms.median).collect(),
             }
         })
@@ -103,11 +116,7 @@ fn curve_points(figure: &Figure, s: &Series, metric: Option<&str>) -> Vec<(f64, 
 
 /// The SVG of one stage's rows (all of `stage`), titled with the machines they ran on.
 pub fn stage_svg(stage: &str, rows: &[&Row]) -> Result<String, Box<dyn std::error::Error>> {
-    let series = series_of(rows);
-    let colours = labels(&series).into_iter().map(str::to_owned).collect();
-    let seeds = seed_points(stage);
-    let times = time_range(rows, &seeds, stage == "node");
-    let figure = Figure { rows, series, colours, seeds, times };
+    let figure = Figure::new(stage, rows);
     let panels = if stage == "node" { vec![(LATENCY_PANEL.to_owned(), String::new())] } else { panels(&figure) };
     let grid_rows = (panels.len() as u32).div_ceil(COLUMNS).max(1);
     let strip = if stage == "node" { 0 } else { STRIP_HEIGHT };
@@ -351,9 +360,8 @@ fn draw_strip(area: &Area, figure: &Figure) -> DrawResult {
 fn draw_legend(area: &Area, figure: &Figure) -> DrawResult {
     let text = ("sans-serif", 12).into_font();
     let mut y = 20;
-    for (index, label) in figure.colours.iter().enumerate() {
-        let c = Palette99::pick(index).to_rgba();
-        area.draw(&Rectangle::new([(4, y - 5), (14, y + 5)], RGBColor(c.0, c.1, c.2).filled()))?;
+    for (index, label) in figure.labels.iter().enumerate() {
+        area.draw(&Rectangle::new([(4, y - 5), (14, y + 5)], palette(index).filled()))?;
         area.draw(&Text::new(label.clone(), (20, y - 6), text.clone()))?;
         y += 18;
     }
