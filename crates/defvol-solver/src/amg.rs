@@ -320,6 +320,13 @@ pub struct Amg {
     pub coarse_sizes: Vec<usize>,
 }
 
+/// Whether a hierarchy has gone stale: a solve with it needed more than twice the
+/// iterations of its first solve, and 4 more (the matrix has drifted from the one it was
+/// built from). Both backends rebuild by this rule.
+pub fn is_stale(iterations_at_build: u32, iterations: u32) -> bool {
+    iterations > 2 * iterations_at_build + 4
+}
+
 /// Coarsening stops below this many unknowns; the rest is solved directly.
 const COARSEST: usize = 600;
 

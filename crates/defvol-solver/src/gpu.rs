@@ -258,9 +258,11 @@ struct Buffers {
     v: wgpu::Buffer,
     external: wgpu::Buffer,
     dv: wgpu::Buffer,
+    z: wgpu::Buffer,
     p: wgpu::Buffer,
     scalars: wgpu::Buffer,
     aux: wgpu::Buffer,
+    force: wgpu::Buffer,
     diag: wgpu::Buffer,
     precond: wgpu::Buffer,
     rhs: wgpu::Buffer,
@@ -277,8 +279,7 @@ struct Multigrid {
     coarse: DeviceCoarseCorrection,
     omega: f32,
     saved_p: wgpu::Buffer,
-    /// Iterations of the first solve with it (0 until then): a solve needing more than
-    /// twice as many (and 4) rebuilds it, the CPU path's rule.
+    /// Iterations of the first solve with it (0 until then), for [`crate::amg::is_stale`].
     iterations_at_build: u32,
 }
 
@@ -434,9 +435,11 @@ impl GpuSimulation {
             precond: bound[13].clone(),
             rhs: bound[14].clone(),
             dv: bound[15].clone(),
+            z: bound[17].clone(),
             p: bound[18].clone(),
             scalars: bound[21].clone(),
             aux: bound[22].clone(),
+            force: bound[23].clone(),
             probe_rhs: ctx.zeroed_buffer("probe_rhs", (CONTACT_ROWS * 16) as u64),
             bound,
             contact_capacity,
@@ -535,7 +538,7 @@ impl GpuSimulation {
             self.multigrid_source = None;
             return Ok(());
         };
-        let (aux, force) = (self.buffers.bound[22].clone(), self.buffers.bound[23].clone());
+        let (aux, force) = (self.buffers.aux.clone(), self.buffers.force.clone());
         match DeviceCoarseCorrection::on(self.ctx.clone(), amg, aux, force, 4) {
             Ok(coarse) => {
                 let saved_p = self.ctx.zeroed_buffer("saved direction", self.buffers.p.size());
@@ -553,15 +556,15 @@ impl GpuSimulation {
     }
 
     /// The preconditioner's rules after a solve of `iterations`: `auto` turns to multigrid
-    /// past [`crate::AUTO_AMG_ABOVE`]; a hierarchy whose solves need more than twice the
-    /// iterations of its first (and 4) is rebuilt before the next step.
+    /// past [`crate::AUTO_AMG_ABOVE`]; a stale hierarchy ([`crate::amg::is_stale`]) is rebuilt
+    /// before the next step.
     fn note_iterations(&mut self, iterations: u32) {
         let auto = self.mirror.params().preconditioner == Preconditioner::Auto;
         self.multigrid_wanted |= auto && iterations > crate::AUTO_AMG_ABOVE;
         if let Some(m) = &mut self.multigrid {
             if m.iterations_at_build == 0 {
                 m.iterations_at_build = iterations.max(1);
-            } else if iterations > 2 * m.iterations_at_build + 4 {
+            } else if crate::amg::is_stale(m.iterations_at_build, iterations) {
                 self.multigrid = None;
             }
         }
@@ -743,7 +746,7 @@ impl GpuSimulation {
         let p = &self.buffers.p;
         let mut first = vec![Piece::Pass(start)];
         first.extend(cycle());
-        first.extend([Piece::Pass(vec![(Kernel::AmgInitReduce, 1)]), Piece::Copy(&self.buffers.bound[17], p)]);
+        first.extend([Piece::Pass(vec![(Kernel::AmgInitReduce, 1)]), Piece::Copy(&self.buffers.z, p)]);
         let mut window = Vec::new();
         for _ in 0..interval {
             window.extend([Piece::Pass(iteration.clone()), Piece::Copy(p, &m.saved_p)]);

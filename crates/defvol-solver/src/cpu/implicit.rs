@@ -70,7 +70,7 @@ impl<T: Real> Simulation<T> {
         if let Some(state) = &mut self.amg {
             if state.iterations_at_build == 0 {
                 state.iterations_at_build = self.last_cg.iterations.max(1);
-            } else if self.last_cg.iterations > 2 * state.iterations_at_build + 4 {
+            } else if crate::amg::is_stale(state.iterations_at_build, self.last_cg.iterations) {
                 state.stale = true;
             }
         }
