@@ -1,10 +1,11 @@
 //! The grid warp on the GPU: `warp.wgsl` beside this file, the `Spans` scheme with trilinear
-//! or tricubic (Catmull-Rom) sampling, after the displacement volumes. The source volume, the rest mesh and the output grid go up once; a warp then
-//! takes the deformed nodes where they are ([`GpuWarp::place_from`]: another stage's device
-//! buffer; [`GpuWarp::place_host`]: from the host), computes every tet's maps on the device
-//! (`tet_maps`, the twin of `tet_map`) and rasterises them into an output buffer
-//! that stays on the device, for the volume raycaster to read and for one read-back
-//! straight into its destination ([`GpuWarp::read_into`]).
+//! or tricubic (Catmull-Rom) sampling, after the displacement volumes. The source volume,
+//! the rest mesh and the output grid go up once; a warp then takes the deformed nodes where
+//! they are ([`GpuWarp::place_from`]: another stage's device buffer; [`GpuWarp::place_host`]:
+//! from the host), computes every tet's maps on the device (`tet_maps`, the twin of
+//! `tet_map`) and rasterises them into an output buffer that stays on the device, for the
+//! volume raycaster to read and for one read-back, with its counts, straight into its
+//! destination ([`GpuWarp::read_into`]).
 //!
 //! Differences from the CPU path: maps and spans are computed in f32 on box-local
 //! coordinates, so voxels within ~1e-5 (in barycentric terms) of a tet face may be decided
