@@ -32,6 +32,9 @@ pub struct RenderBenchOptions {
     pub source_meshes: Vec<usize>,
     /// Also time the GPU raycasters.
     pub gpu: Option<crate::backend::Backend>,
+    /// Write each volume case's work (volume, camera, transfer function, reference) into
+    /// this folder for the peers in benches/peers/.
+    pub export: Option<std::path::PathBuf>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -81,6 +84,11 @@ pub fn run(opts: &RenderBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result
             let camera = phantom_camera(volume, size)?;
             let background = [0.0, 0.0, 0.0, 1.0];
             let reference = volume::reference(volume, &camera, &tf, opts.reference_step, background)?;
+            if let Some(dir) = &opts.export {
+                let work = VolumeWork { volume, camera: &camera, tf: &tf, background, steps: &opts.steps };
+                export_case(&dir.join(format!("{name}_{size}")), &work, &reference)
+                    .map_err(|e| RenderBenchError::Setup(format!("export into {}: {e}", dir.display())))?;
+            }
             for &step in &opts.steps {
                 for (preintegrated, shading) in
                     [(true, Shading::None), (false, Shading::None), (true, Shading::Gradient)]
@@ -198,6 +206,52 @@ pub fn run(opts: &RenderBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result
         source_rows(&source, target, &tf, opts, &mut emit)?;
     }
     Ok(())
+}
+
+/// One volume frame's inputs, as a peer needs them.
+struct VolumeWork<'a> {
+    volume: &'a Volume,
+    camera: &'a Camera,
+    tf: &'a TransferFunction,
+    background: [f64; 4],
+    steps: &'a [f64],
+}
+
+/// Writes a volume frame's work as raw little-endian arrays and a `case.json`: the volume
+/// (f32, x fastest), the f64 reference image (RGBA per pixel, rows top to bottom), and the
+/// camera as a look-at (eye, focal point, up, vertical field of view), the transfer function
+/// resolved to the volume's values, the steps and the background.
+fn export_case(dir: &std::path::Path, work: &VolumeWork, reference: &[[f64; 4]]) -> Result<(), String> {
+    let camera = work.camera;
+    let Projection::Perspective { fov_y_deg } = camera.projection else {
+        return Err("only perspective cameras are exported".into());
+    };
+    let grid = work.volume.grid();
+    if (grid.direction - nalgebra::Matrix3::identity()).abs().max() > 1e-12 {
+        return Err("an oblique volume: the peers take axis-aligned grids".into());
+    }
+    let pose = &camera.world_from_camera;
+    let eye = Point3::from(pose.translation.vector);
+    let (lo, hi) = work.volume.bounds();
+    let distance = (Point3::from((lo + hi) / 2.0) - eye).norm();
+    // The optical frame: z forward, y down the picture.
+    let focal_point = eye + pose.rotation * Vector3::z() * distance;
+    let up = -(pose.rotation * Vector3::y());
+    let tf = work.tf.resolve(work.volume.range()).map_err(|e| e.to_string())?;
+    let case = json!({
+        "case": dir.file_name().map(|n| n.to_string_lossy().into_owned()),
+        "dims": work.volume.dims(), "spacing": grid.spacing, "origin": grid.origin,
+        "camera": {"eye": eye.coords.as_slice(), "focal_point": focal_point.coords.as_slice(), "up": up.as_slice(), "fov_y_deg": fov_y_deg},
+        "width": camera.width, "height": camera.height, "steps": work.steps, "background": work.background,
+        "tf": tf.points,
+    });
+    let bytes = |values: &mut dyn Iterator<Item = [u8; 8]>| values.flatten().collect::<Vec<u8>>();
+    let volume: Vec<u8> = work.volume.data().iter().flat_map(|v| v.to_le_bytes()).collect();
+    let write = |name: &str, data: &[u8]| std::fs::write(dir.join(name), data).map_err(|e| format!("{name}: {e}"));
+    std::fs::create_dir_all(dir).map_err(|e| e.to_string())?;
+    write("volume.f32", &volume)?;
+    write("reference.f64", &bytes(&mut reference.iter().flatten().map(|v| v.to_le_bytes())))?;
+    write("case.json", case.to_string().as_bytes())
 }
 
 /// The phantom bent through a `target`-tet lattice at each size and step: per frame (the

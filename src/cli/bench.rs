@@ -53,6 +53,10 @@ pub enum BenchStage {
         /// beside warp + volume raycast of the same bend; none when given without values.
         #[arg(long, value_delimiter = ',', num_args = 0.., default_value = "5000")]
         source_meshes: Vec<usize>,
+        /// Write each volume case's work (volume, camera, transfer function, f64 reference)
+        /// into this folder for the peers in benches/peers/.
+        #[arg(long)]
+        export: Option<std::path::PathBuf>,
         #[command(flatten)]
         gpu: GpuRows,
         #[arg(long)]
@@ -213,7 +217,18 @@ pub fn run(stage: BenchStage) -> Result<()> {
             };
             bench::node::run(&opts, row_printer(json, bench::node::TABLE_HEADER, bench::node::table_row))?;
         }
-        BenchStage::Render { sizes, steps, runs, reference_step, no_warped, meshes, source_meshes, gpu, json } => {
+        BenchStage::Render {
+            sizes,
+            steps,
+            runs,
+            reference_step,
+            no_warped,
+            meshes,
+            source_meshes,
+            export,
+            gpu,
+            json,
+        } => {
             let opts = bench::render::RenderBenchOptions {
                 sizes,
                 steps,
@@ -223,6 +238,7 @@ pub fn run(stage: BenchStage) -> Result<()> {
                 meshes,
                 source_meshes,
                 gpu: gpu.backend()?,
+                export,
             };
             bench::render::run(&opts, row_printer(json, bench::render::TABLE_HEADER, bench::render::table_row))?;
         }

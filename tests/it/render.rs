@@ -909,3 +909,60 @@ mod source_through_mesh {
         assert!(e.contains("finite"), "{e}");
     }
 }
+
+/// The work `bench render --export` writes for the peers: rebuilt as a look-at from its
+/// `case.json` (as VTK's camera is), the camera casts defvol's own rays, and the volume and
+/// reference arrays hold what the bench used.
+#[test]
+fn an_exported_render_case_rebuilds_the_same_camera_and_arrays() {
+    use defvol::bench::render::{self as bench_render, RenderBenchOptions};
+    let dir = tempfile::tempdir().unwrap();
+    let opts = RenderBenchOptions {
+        sizes: vec![24],
+        steps: vec![2.0],
+        runs: 1,
+        reference_step: 2.0,
+        warped: false,
+        meshes: Vec::new(),
+        source_meshes: Vec::new(),
+        gpu: None,
+        export: Some(dir.path().to_owned()),
+    };
+    bench_render::run(&opts, |_| {}).unwrap();
+    let case_dir = dir.path().join("phantom_24");
+    let case: serde_json::Value = serde_json::from_slice(&std::fs::read(case_dir.join("case.json")).unwrap()).unwrap();
+    let point =
+        |v: &serde_json::Value| Point3::new(v[0].as_f64().unwrap(), v[1].as_f64().unwrap(), v[2].as_f64().unwrap());
+    let cam = &case["camera"];
+    let fov_y_deg = cam["fov_y_deg"].as_f64().unwrap();
+    let rebuilt = Camera::look_at(
+        point(&cam["eye"]),
+        point(&cam["focal_point"]),
+        point(&cam["up"]).coords,
+        Projection::Perspective { fov_y_deg },
+        24,
+        24,
+    )
+    .unwrap();
+    let source = phantom::phantom(phantom::DEFAULT_DIMS, 1.0).unwrap();
+    let camera = bench_render::phantom_camera(&source, 24).unwrap();
+    for (px, py) in [(0, 0), (23, 0), (5, 17), (23, 23)] {
+        let ((o1, d1), (o2, d2)) = (camera.ray(px, py), rebuilt.ray(px, py));
+        assert!((o1 - o2).norm() < 1e-9 && (d1 - d2).norm() < 1e-12, "pixel ({px}, {py}): {d1} against {d2}");
+    }
+    let volume = std::fs::read(case_dir.join("volume.f32")).unwrap();
+    let values: Vec<f32> = volume.chunks_exact(4).map(|b| f32::from_le_bytes(b.try_into().unwrap())).collect();
+    assert_eq!(values, source.data());
+    let reference = std::fs::read(case_dir.join("reference.f64")).unwrap();
+    let expected = volume::reference(
+        &source,
+        &camera,
+        &TransferFunction::preset("ct_soft_tissue").unwrap(),
+        2.0,
+        [0.0, 0.0, 0.0, 1.0],
+    )
+    .unwrap();
+    let read: Vec<f64> = reference.chunks_exact(8).map(|b| f64::from_le_bytes(b.try_into().unwrap())).collect();
+    assert_eq!(read, expected.iter().flatten().copied().collect::<Vec<f64>>());
+    assert_eq!(case["dims"], serde_json::json!(source.dims()));
+}
