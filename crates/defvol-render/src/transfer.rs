@@ -162,6 +162,10 @@ pub struct Tables {
     pub pre_lo: f32,
     pub pre_hi: f32,
     pub step: f32,
+    /// Table entries per scalar unit: (LUT_SIZE - 1) / (hi - lo).
+    lut_scale: f32,
+    /// Pre-integrated levels per scalar unit: (PREINTEGRATED_SIZE - 1) / (pre_hi - pre_lo).
+    pre_scale: f32,
 }
 
 impl Tables {
@@ -196,6 +200,8 @@ impl Tables {
             pre_lo: pre_lo as f32,
             pre_hi: pre_hi as f32,
             step: step as f32,
+            lut_scale: ((LUT_SIZE - 1) as f64 / (hi - lo)) as f32,
+            pre_scale: ((PREINTEGRATED_SIZE - 1) as f64 / (pre_hi - pre_lo)) as f32,
         }
     }
 
@@ -206,29 +212,30 @@ impl Tables {
     }
 
     /// A full step's premultiplied colour and α at `s`, linear between table entries.
-    #[inline]
+    #[inline(always)]
     pub fn sample_step(&self, s: f32) -> [f32; 4] {
         self.interpolate(&self.stepped, s)
     }
 
     /// `table` (one of the `LUT_SIZE` tables over [lo, hi]) at `s`, linear between entries.
-    #[inline]
+    #[inline(always)]
     fn interpolate(&self, table: &[[f32; 4]], s: f32) -> [f32; 4] {
-        let x = ((s - self.lo) / (self.hi - self.lo)).clamp(0.0, 1.0) * (LUT_SIZE - 1) as f32;
-        let i = (x as usize).min(LUT_SIZE - 2);
+        let x = ((s - self.lo) * self.lut_scale).clamp(0.0, (LUT_SIZE - 1) as f32);
+        let i = (x as i32).min(LUT_SIZE as i32 - 2) as usize;
         let f = x - i as f32;
         let (a, b) = (table[i], table[i + 1]);
-        [0, 1, 2, 3].map(|c| a[c] + (b[c] - a[c]) * f)
+        // Written out: `[_; 4].map` is not always inlined, and this runs per sample.
+        [a[0] + (b[0] - a[0]) * f, a[1] + (b[1] - a[1]) * f, a[2] + (b[2] - a[2]) * f, a[3] + (b[3] - a[3]) * f]
     }
 
     /// The segment from `front` to `back` scalars: premultiplied colour and α, bilinear in
     /// the pre-integrated table.
-    #[inline]
+    #[inline(always)]
     pub fn segment(&self, front: f32, back: f32) -> [f32; 4] {
         let n = PREINTEGRATED_SIZE;
-        let level = |s: f32| ((s - self.pre_lo) / (self.pre_hi - self.pre_lo)).clamp(0.0, 1.0) * (n - 1) as f32;
+        let level = |s: f32| ((s - self.pre_lo) * self.pre_scale).clamp(0.0, (n - 1) as f32);
         let (x, y) = (level(front), level(back));
-        let (i, j) = ((x as usize).min(n - 2), (y as usize).min(n - 2));
+        let (i, j) = ((x as i32).min(n as i32 - 2) as usize, (y as i32).min(n as i32 - 2) as usize);
         let (fx, fy) = (x - i as f32, y - j as f32);
         let t = &self.preintegrated;
         let (a, b, c, d) = (t[i * n + j], t[i * n + j + 1], t[(i + 1) * n + j], t[(i + 1) * n + j + 1]);

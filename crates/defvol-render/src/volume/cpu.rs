@@ -313,6 +313,7 @@ impl<'a> VolumeRaycaster<'a> {
         camera.validate()?;
         let caster = Caster {
             volume: self.volume,
+            sampler: Sampler::new(self.volume.data(), self.volume.dims()),
             tables: &self.tables,
             cells: self.cells.as_ref(),
             space: &self.space,
@@ -334,8 +335,7 @@ impl<'a> VolumeRaycaster<'a> {
                             let (origin, direction) = camera.ray(px, band * TILE + dy);
                             let (color, d) = caster.cast(&origin, &direction);
                             let i = dy * w + px;
-                            rows[i * 4..i * 4 + 4]
-                                .copy_from_slice(&color.map(|c| (c.clamp(0.0, 1.0) * 255.0).round() as u8));
+                            rows[i * 4..i * 4 + 4].copy_from_slice(&color.map(to_level));
                             depth_rows[i] = d;
                         }
                     }
@@ -344,6 +344,13 @@ impl<'a> VolumeRaycaster<'a> {
         );
         Ok(Rendered { width: w, height: h, rgba, depth })
     }
+}
+
+/// A channel in 0..1 as its nearest 8-bit level (a plain add and truncation: `round` is a
+/// library call on baseline x86-64, and this runs per pixel).
+#[inline(always)]
+pub(crate) fn to_level(c: f32) -> u8 {
+    (c.clamp(0.0, 1.0) * 255.0 + 0.5) as u8
 }
 
 /// Refuses parameters the tables were not built for, and bad lights and tools.
@@ -394,30 +401,65 @@ pub fn raycast(
 /// Trilinear at a continuous index, the point clamped to the voxel-centre box: the same
 /// arithmetic as `volume::trilinear` without its range checks, for the hot loops.
 #[inline(always)]
-pub(crate) fn sample_clamped(data: &[f32], [nx, ny, nz]: [usize; 3], p: &Vector3<f32>) -> f32 {
-    let axis = |v: f32, n: usize| {
-        // Plain comparisons rather than `clamp` (points are finite here): the hot loop.
-        let top = (n - 1) as f32;
-        let v = if v > 0.0 {
-            if v < top {
-                v
+pub(crate) fn sample_clamped(data: &[f32], dims: [usize; 3], p: &Vector3<f32>) -> f32 {
+    Sampler::new(data, dims).at(p)
+}
+
+/// [`sample_clamped`] with its per-volume constants worked out once: the per-sample work is
+/// 32-bit index arithmetic and one bounds check for the cell's eight corners.
+#[derive(Clone, Copy)]
+pub(crate) struct Sampler<'a> {
+    data: &'a [f32],
+    /// The voxel-centre box's top per axis.
+    top: [f32; 3],
+    /// The highest cell base per axis.
+    last_cell: [i32; 3],
+    /// Steps to the +x, +y and +z corners (0 on an axis one voxel thick).
+    strides: [usize; 3],
+    nx: usize,
+    nxy: usize,
+}
+
+impl<'a> Sampler<'a> {
+    pub(crate) fn new(data: &'a [f32], [nx, ny, nz]: [usize; 3]) -> Self {
+        Self {
+            data,
+            top: [nx, ny, nz].map(|n| n.saturating_sub(1) as f32),
+            last_cell: [nx, ny, nz].map(|n| n.saturating_sub(2) as i32),
+            strides: [usize::from(nx > 1), if ny > 1 { nx } else { 0 }, if nz > 1 { nx * ny } else { 0 }],
+            nx,
+            nxy: nx * ny,
+        }
+    }
+
+    #[inline(always)]
+    pub(crate) fn at(&self, p: &Vector3<f32>) -> f32 {
+        let axis = |v: f32, a: usize| {
+            // Plain comparisons rather than `clamp` (points are finite here): the hot loop.
+            let v = if v > 0.0 {
+                if v < self.top[a] {
+                    v
+                } else {
+                    self.top[a]
+                }
             } else {
-                top
-            }
-        } else {
-            0.0
+                0.0
+            };
+            let i = (v as i32).min(self.last_cell[a]);
+            (i as usize, v - i as f32)
         };
-        let i = (v as usize).min(n.saturating_sub(2));
-        (i, v - i as f32)
-    };
-    let ((i, fx), (j, fy), (k, fz)) = (axis(p.x, nx), axis(p.y, ny), axis(p.z, nz));
-    let (sx, sy, sz) = (usize::from(nx > 1), if ny > 1 { nx } else { 0 }, if nz > 1 { nx * ny } else { 0 });
-    let base = i + nx * (j + ny * k);
-    defvol_core::volume::lerp_cube(|o| data[base + o], [sx, sy, sz], [fx, fy, fz])
+        let ((i, fx), (j, fy), (k, fz)) = (axis(p.x, 0), axis(p.y, 1), axis(p.z, 2));
+        let [sx, sy, sz] = self.strides;
+        let base = i + self.nx * j + self.nxy * k;
+        // One check for the whole cell (the clamps keep it inside the data).
+        let cell = &self.data[base..=base + sx + sy + sz];
+        defvol_core::volume::lerp_cube(|o| cell[o], [sx, sy, sz], [fx, fy, fz])
+    }
 }
 
 struct Caster<'a> {
     volume: &'a Volume,
+    sampler: Sampler<'a>,
     tables: &'a Tables,
     cells: Option<&'a MacroCells>,
     space: &'a IndexSpace,
@@ -430,7 +472,7 @@ impl Caster<'_> {
     /// gradient's neighbours at the border are clamped).
     #[inline(always)]
     fn sample(&self, p: &Vector3<f32>) -> f32 {
-        sample_clamped(self.volume.data(), self.volume.dims(), p)
+        self.sampler.at(p)
     }
 
     /// Lambert factor at p for the light (index-space direction `light_index`, world `light`).
@@ -498,14 +540,18 @@ impl Caster<'_> {
                 (color, if depth.is_finite() { depth } else { behind })
             }
             Mode::Composite => {
-                let (color, depth) = self.composite(&o, &d, t_near, t_far, &light, &light_index, bg);
+                let (color, depth) = match self.params.shading {
+                    Shading::None => self.composite(&o, &d, t_near, t_far, |_| 1.0, bg),
+                    _ => self.composite(&o, &d, t_near, t_far, |p| self.shade(p, &light, &light_index), bg),
+                };
                 (color, if depth.is_finite() { depth } else { behind })
             }
         }
     }
 
     /// Front-to-back over segments of `step` (the last one shorter), each point-sampled at
-    /// its middle or pre-integrated between its ends.
+    /// its middle or pre-integrated between its ends. The full segments go in runs that
+    /// stay inside one visible macro cell (looked up once per cell), each run a tight loop.
     #[allow(clippy::too_many_arguments)]
     fn composite(
         &self,
@@ -513,84 +559,49 @@ impl Caster<'_> {
         d: &Vector3<f32>,
         t_near: f32,
         t_far: f32,
-        light: &Vector3<f64>,
-        light_index: &Vector3<f32>,
+        shade: impl Fn(&Vector3<f32>) -> f32,
         bg: [f32; 4],
     ) -> ([f32; 4], f32) {
         let step = self.params.step as f32;
         let full = ((t_far - t_near) / step).floor() as usize;
         let remainder = (t_far - t_near) - full as f32 * step;
+        let mut ray = Ray { o, d, t_near, step, acc: [0.0; 4], depth: f32::INFINITY, front: None };
         let termination = self.params.early_termination as f32;
-        let mut acc = [0.0f32; 4];
-        let mut depth = f32::INFINITY;
-        let mut front: Option<f32> = None;
-        let mut may_skip = true;
-        // Until where the ray stays in the visible cell it was last found in: cells are
-        // looked up once per cell, not per segment.
-        let mut visible_until = f32::NEG_INFINITY;
         let mut k = 0usize;
-        while k <= full {
-            let len = if k < full { step } else { remainder };
-            if len <= 1e-6 * step {
-                break;
-            }
-            let t0 = t_near + k as f32 * step;
-            if let (Some(cells), true) = (self.cells, may_skip && t0 >= visible_until) {
-                let p0 = o + d * t0;
-                if cells.visible_at(&p0) {
-                    visible_until = cells.exit(&p0, d, t0);
-                } else {
-                    // Segments wholly inside an invisible cell add nothing; the one that
-                    // crosses out of it is integrated.
-                    let inside = ((cells.exit(&p0, d, t0) - t_near) / step).floor() as usize;
-                    if inside > k {
-                        k = inside;
-                        front = None;
-                        may_skip = false;
-                        continue;
+        let mut terminated = false;
+        while k < full && !terminated {
+            let end = match self.cells {
+                None => full,
+                Some(cells) => {
+                    let t0 = t_near + k as f32 * step;
+                    let p0 = o + d * t0;
+                    let exit = cells.exit(&p0, d, t0);
+                    if cells.visible_at(&p0) {
+                        // Every segment that starts inside the cell.
+                        (((exit - t_near) / step).ceil() as usize).clamp(k + 1, full)
+                    } else {
+                        // Segments wholly inside an invisible cell add nothing; the one that
+                        // crosses out of it is integrated.
+                        let inside = ((exit - t_near) / step).floor() as usize;
+                        if inside > k {
+                            k = inside;
+                            ray.front = None;
+                        }
+                        (k + 1).min(full)
                     }
                 }
-            }
-            may_skip = true;
-            let middle = o + d * (t0 + 0.5 * len);
-            let (color, alpha) = if self.params.preintegrated {
-                let f = front.unwrap_or_else(|| self.sample(&(o + d * t0)));
-                let b = self.sample(&(o + d * (t0 + len)));
-                front = Some(b);
-                let seg = self.tables.segment(f, b);
-                if k < full {
-                    ([seg[0], seg[1], seg[2]], seg[3])
-                } else {
-                    // A shorter last segment: the same extinction over less length.
-                    let alpha = 1.0 - (1.0 - seg[3]).max(0.0).powf(len / step);
-                    let scale = if seg[3] > 0.0 { alpha / seg[3] } else { len / step };
-                    ([seg[0] * scale, seg[1] * scale, seg[2] * scale], alpha)
-                }
-            } else if k < full {
-                let e = self.tables.sample_step(self.sample(&middle));
-                ([e[0], e[1], e[2]], e[3])
-            } else {
-                let e = self.tables.sample(self.sample(&middle));
-                let alpha = 1.0 - (-e[3] * len).exp();
-                ([e[0] * alpha, e[1] * alpha, e[2] * alpha], alpha)
             };
-            if alpha > 1e-5 {
-                let shade = self.shade(&middle, light, light_index);
-                let weight = 1.0 - acc[3];
-                for c in 0..3 {
-                    acc[c] += weight * color[c] * shade;
-                }
-                acc[3] += weight * alpha;
-                if depth.is_infinite() && acc[3] >= 0.5 {
-                    depth = t0 + 0.5 * len;
-                }
-                if acc[3] >= termination {
-                    break;
-                }
-            }
-            k += 1;
+            terminated = if self.params.preintegrated {
+                ray.preintegrated_run(self, k..end, &shade, termination)
+            } else {
+                ray.point_run(self, k..end, &shade, termination)
+            };
+            k = end.max(k);
         }
-        let rest = 1.0 - acc[3];
+        if !terminated && remainder > 1e-6 * step {
+            ray.last_segment(self, full, remainder, &shade);
+        }
+        let (acc, rest) = (ray.acc, 1.0 - ray.acc[3]);
         (
             [
                 acc[0] + rest * bg[0] * bg[3],
@@ -598,7 +609,7 @@ impl Caster<'_> {
                 acc[2] + rest * bg[2] * bg[3],
                 acc[3] + rest * bg[3],
             ],
-            depth,
+            ray.depth,
         )
     }
 
@@ -640,6 +651,100 @@ impl Caster<'_> {
             prev = s;
         }
         (bg, f32::INFINITY)
+    }
+}
+
+/// One ray's front-to-back state while its segments are composited.
+struct Ray<'a> {
+    o: &'a Vector3<f32>,
+    d: &'a Vector3<f32>,
+    t_near: f32,
+    step: f32,
+    acc: [f32; 4],
+    /// Where opacity passed 0.5.
+    depth: f32,
+    /// The scalar at the start of the next pre-integrated segment, when it was read.
+    front: Option<f32>,
+}
+
+impl Ray<'_> {
+    /// Adds a segment's premultiplied colour and α, shaded at its middle; whether the ray is
+    /// now opaque enough to stop.
+    #[inline(always)]
+    fn add(&mut self, color: [f32; 4], middle_t: f32, shade: &impl Fn(&Vector3<f32>) -> f32, termination: f32) -> bool {
+        if color[3] <= 1e-5 {
+            return false;
+        }
+        let light = shade(&(self.o + self.d * middle_t));
+        let weight = 1.0 - self.acc[3];
+        for c in 0..3 {
+            self.acc[c] += weight * color[c] * light;
+        }
+        self.acc[3] += weight * color[3];
+        if self.depth.is_infinite() && self.acc[3] >= 0.5 {
+            self.depth = middle_t;
+        }
+        self.acc[3] >= termination
+    }
+
+    /// Full segments `ks`, each point-sampled at its middle; whether the ray terminated.
+    #[inline(always)]
+    fn point_run(
+        &mut self,
+        caster: &Caster,
+        ks: std::ops::Range<usize>,
+        shade: &impl Fn(&Vector3<f32>) -> f32,
+        termination: f32,
+    ) -> bool {
+        for k in ks {
+            let middle_t = self.t_near + k as f32 * self.step + 0.5 * self.step;
+            let e = caster.tables.sample_step(caster.sample(&(self.o + self.d * middle_t)));
+            if self.add(e, middle_t, shade, termination) {
+                return true;
+            }
+        }
+        false
+    }
+
+    /// Full segments `ks`, each pre-integrated between its ends (the back scalar of one is
+    /// the front of the next); whether the ray terminated.
+    #[inline(always)]
+    fn preintegrated_run(
+        &mut self,
+        caster: &Caster,
+        ks: std::ops::Range<usize>,
+        shade: &impl Fn(&Vector3<f32>) -> f32,
+        termination: f32,
+    ) -> bool {
+        for k in ks {
+            let t0 = self.t_near + k as f32 * self.step;
+            let front = self.front.unwrap_or_else(|| caster.sample(&(self.o + self.d * t0)));
+            let back = caster.sample(&(self.o + self.d * (t0 + self.step)));
+            self.front = Some(back);
+            if self.add(caster.tables.segment(front, back), t0 + 0.5 * self.step, shade, termination) {
+                return true;
+            }
+        }
+        false
+    }
+
+    /// The shorter last segment, segment index `k` of length `len`: the same extinction
+    /// over less length.
+    fn last_segment(&mut self, caster: &Caster, k: usize, len: f32, shade: &impl Fn(&Vector3<f32>) -> f32) {
+        let t0 = self.t_near + k as f32 * self.step;
+        let middle_t = t0 + 0.5 * len;
+        let color = if caster.params.preintegrated {
+            let front = self.front.unwrap_or_else(|| caster.sample(&(self.o + self.d * t0)));
+            let seg = caster.tables.segment(front, caster.sample(&(self.o + self.d * (t0 + len))));
+            let alpha = 1.0 - (1.0 - seg[3]).max(0.0).powf(len / self.step);
+            let scale = if seg[3] > 0.0 { alpha / seg[3] } else { len / self.step };
+            [seg[0] * scale, seg[1] * scale, seg[2] * scale, alpha]
+        } else {
+            let e = caster.tables.sample(caster.sample(&(self.o + self.d * middle_t)));
+            let alpha = 1.0 - (-e[3] * len).exp();
+            [e[0] * alpha, e[1] * alpha, e[2] * alpha, alpha]
+        };
+        self.add(color, middle_t, shade, f32::INFINITY);
     }
 }
 
