@@ -350,7 +350,7 @@ impl SegmentTable {
     }
 
     /// A segment no longer than `max_len`: trilinear in (front, back, length).
-    #[inline]
+    #[inline(always)]
     pub fn lookup(&self, front: f32, back: f32, len: f32) -> [f32; 4] {
         let (n, lengths) = (SEGMENT_LEVELS, SEGMENT_LENGTHS);
         // Plain comparisons rather than `clamp`: the callers' values are finite, and this
@@ -371,16 +371,15 @@ impl SegmentTable {
         let z = limit(len * self.length_scale, (lengths - 1) as f32);
         let (i, j, l) = ((x as usize).min(n - 2), (y as usize).min(n - 2), (z as usize).min(lengths - 2));
         let (fx, fy, fz) = (x - i as f32, y - j as f32, z - l as f32);
+        // Lerps written out: `[_; 4].map` is not always inlined, and this runs per segment.
+        let lerp = |a: [f32; 4], b: [f32; 4], f: f32| {
+            [a[0] + (b[0] - a[0]) * f, a[1] + (b[1] - a[1]) * f, a[2] + (b[2] - a[2]) * f, a[3] + (b[3] - a[3]) * f]
+        };
         let at = |i: usize, j: usize| {
-            let a = self.entries[(i * n + j) * lengths + l];
-            let b = self.entries[(i * n + j) * lengths + l + 1];
-            [0, 1, 2, 3].map(|c| a[c] + (b[c] - a[c]) * fz)
+            let at = (i * n + j) * lengths + l;
+            lerp(self.entries[at], self.entries[at + 1], fz)
         };
         let (a, b, c, d) = (at(i, j), at(i, j + 1), at(i + 1, j), at(i + 1, j + 1));
-        [0, 1, 2, 3].map(|k| {
-            let top = a[k] + (b[k] - a[k]) * fy;
-            let bottom = c[k] + (d[k] - c[k]) * fy;
-            top + (bottom - top) * fx
-        })
+        lerp(lerp(a, b, fy), lerp(c, d, fy), fx)
     }
 }

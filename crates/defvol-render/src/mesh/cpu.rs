@@ -417,7 +417,7 @@ impl TetRaycaster {
             let tile_w = (tx + TILE).min(w) - tx;
             for (k, (color, d)) in pixels.iter().enumerate() {
                 let i = (ty + k / tile_w) * w + tx + k % tile_w;
-                rgba[i * 4..i * 4 + 4].copy_from_slice(&color.map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8));
+                rgba[i * 4..i * 4 + 4].copy_from_slice(&color.map(crate::volume::to_level));
                 depth[i] = *d;
             }
         }
