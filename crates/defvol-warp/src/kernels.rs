@@ -6,10 +6,10 @@ use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
 
 use crate::bspline::{self, backward_all, CompiledDisplacement};
-use crate::lanes::{trilinear_lanes, CellLookup};
 use crate::{Sampling, Scheme, WarpError, WarpOptions, WarpStats};
 use defvol_core::math::Real;
 use defvol_core::mesh::TetMesh;
+use defvol_core::volume::lanes::{trilinear_lanes, CellLookup};
 use defvol_core::volume::{tricubic, trilinear, Grid, Volume, SAMPLE_TOLERANCE};
 
 /// A voxel is inside a tet when every barycentric coordinate is ≥ -ε. Without it, voxels on

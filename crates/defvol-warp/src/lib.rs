@@ -27,7 +27,6 @@ pub mod engine;
 #[cfg(feature = "gpu")]
 pub mod gpu;
 pub mod kernels;
-mod lanes;
 
 use serde::{Deserialize, Serialize};
 

@@ -1,6 +1,6 @@
-//! The warp's hot loop, trilinear samples along a run of output voxels, eight at a time
-//! with AVX2 where the CPU has it (detected at run time; elsewhere the scalar loop does all
-//! of it). Each lane does the scalar loop's arithmetic in the same order: multiplies and adds
+//! Trilinear samples at evenly spaced points along a line (a run of warp output voxels, a
+//! ray's samples), eight at a time with AVX2 where the CPU has it (detected at run time;
+//! elsewhere the caller's scalar loop does all of it). Each lane does the scalar loop's arithmetic in the same order: multiplies and adds
 //! unfused, the same truncations and clamps, the corners gathered from the same cell; so
 //! both give the same bits, and the f64 and GPU agreement tests hold the lanes as they hold
 //! the scalar loop.
@@ -8,7 +8,7 @@
 /// The source cell lookup both loops share: clamps keep every corner of a cell inside the
 /// data, so the gathers need no bounds test.
 #[derive(Debug, Clone, Copy)]
-pub(crate) struct CellLookup {
+pub struct CellLookup {
     /// The highest cell base index per axis (dims - 2, at least 0).
     pub top: [i32; 3],
     /// Steps to the +x, +y and +z corners (0 on an axis one voxel thick).
@@ -34,7 +34,7 @@ impl CellLookup {
 /// Writes trilinear samples at `base + step·(start + n)` into `out` where AVX2 serves (a
 /// last group of fewer than eight computes all eight lanes, which the clamps keep inside the
 /// data, and stores its own); returns how many it wrote: all of `out`, or none.
-pub(crate) fn trilinear_lanes(
+pub fn trilinear_lanes(
     data: &[f32],
     cell: &CellLookup,
     out: &mut [f32],
@@ -123,9 +123,9 @@ mod x86 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use defvol_core::volume::{lerp_cube, trilinear};
+    use crate::volume::{lerp_cube, trilinear};
 
-    /// The scalar loop's arithmetic for one voxel, as `Sampler::trilinear_run` does it.
+    /// The scalar loop's arithmetic for one voxel, as the warp's `Sampler::trilinear_run` does it.
     fn scalar(data: &[f32], cell: &CellLookup, base: [f32; 3], step: [f32; 3], n: i32) -> f32 {
         let fi = n as f32;
         let at = [0, 1, 2].map(|a| base[a] + step[a] * fi);

@@ -2,6 +2,7 @@
 //! voxel (i,j,k) at `origin + direction · (i·sx, j·sy, k·sz)`), samples stored x-fastest as f32.
 
 pub mod bspline;
+pub mod lanes;
 pub mod phantom;
 
 use nalgebra::{Matrix3, Vector3};
