@@ -10,20 +10,10 @@
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 tets="${1:-700}" cases="${2:-rot45,upright,bend}" runs="${3:-9}"
-cache="${DEFVOL_CACHE:-${XDG_CACHE_HOME:-$HOME/.cache}/defvol}"
 requirements="taichi==1.7.4 numpy==1.26.4"
-venv="$cache/peers-venv"
-if [ "$(cat "$venv/.requirements" 2>/dev/null)" != "$requirements" ]; then
-    rm -rf "$venv" && python3 -m venv "$venv"
-    "$venv/bin/pip" install -q $requirements
-    echo "$requirements" > "$venv/.requirements"
-fi
-bin="${DEFVOL_BIN:-}"
-if [ -z "$bin" ]; then
-    export CARGO_TARGET_DIR="${CARGO_TARGET_DIR:-$cache/target}"
-    cargo build --locked --release --bin defvol >&2
-    bin="$CARGO_TARGET_DIR/release/defvol"
-fi
+. benches/peers/common.sh
+peer_venv peers-venv "$requirements"
+peer_defvol
 threads=$(nproc)
 work=$(mktemp -d)
 trap 'rm -rf "$work"' EXIT

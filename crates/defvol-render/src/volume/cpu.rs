@@ -609,9 +609,16 @@ impl Caster<'_> {
                 }
             };
             terminated = if self.params.preintegrated {
-                ray.preintegrated_run(self, k..end, &shade, termination)
+                // Between the segment's ends; the back scalar of one is the front of the next.
+                ray.run((self, k..end, 1.0), &shade, termination, |ray, k, back| {
+                    let t0 = ray.t_near + k as f32 * ray.step;
+                    let front = ray.front.unwrap_or_else(|| self.sample(&(ray.o + ray.d * t0)));
+                    ray.front = Some(back);
+                    self.tables.segment(front, back)
+                })
             } else {
-                ray.point_run(self, k..end, &shade, termination)
+                // At the segment's middle.
+                ray.run((self, k..end, 0.5), &shade, termination, |_, _, middle| self.tables.sample_step(middle))
             };
             k = end.max(k);
         }
@@ -708,48 +715,24 @@ impl Ray<'_> {
         self.acc[3] >= termination
     }
 
-    /// Full segments `ks`, each point-sampled at its middle; whether the ray terminated.
+    /// Full segments `ks` in batches: a batch's samples at t_near + (k + offset)·step taken
+    /// at once, then each segment's colour, `segment(ray, k, sample)`, composited; whether
+    /// the ray terminated.
     #[inline(always)]
-    fn point_run(
+    fn run(
         &mut self,
-        caster: &Caster,
-        ks: std::ops::Range<usize>,
+        (caster, ks, offset): (&Caster, std::ops::Range<usize>, f32),
         shade: &impl Fn(&Vector3<f32>) -> f32,
         termination: f32,
+        segment: impl Fn(&mut Self, usize, f32) -> [f32; 4],
     ) -> bool {
         let mut values = [0.0f32; BATCH];
         for first in ks.clone().step_by(BATCH) {
             let values = &mut values[..(ks.end - first).min(BATCH)];
-            caster.samples_along(self, 0.5, first, values);
-            for (k, s) in (first..).zip(values.iter()) {
-                let middle_t = self.t_near + k as f32 * self.step + 0.5 * self.step;
-                if self.add(caster.tables.sample_step(*s), middle_t, shade, termination) {
-                    return true;
-                }
-            }
-        }
-        false
-    }
-
-    /// Full segments `ks`, each pre-integrated between its ends (the back scalar of one is
-    /// the front of the next); whether the ray terminated.
-    #[inline(always)]
-    fn preintegrated_run(
-        &mut self,
-        caster: &Caster,
-        ks: std::ops::Range<usize>,
-        shade: &impl Fn(&Vector3<f32>) -> f32,
-        termination: f32,
-    ) -> bool {
-        let mut backs = [0.0f32; BATCH];
-        for first in ks.clone().step_by(BATCH) {
-            let backs = &mut backs[..(ks.end - first).min(BATCH)];
-            caster.samples_along(self, 1.0, first, backs);
-            for (k, back) in (first..).zip(backs.iter()) {
-                let t0 = self.t_near + k as f32 * self.step;
-                let front = self.front.unwrap_or_else(|| caster.sample(&(self.o + self.d * t0)));
-                self.front = Some(*back);
-                if self.add(caster.tables.segment(front, *back), t0 + 0.5 * self.step, shade, termination) {
+            caster.samples_along(self, offset, first, values);
+            for (k, value) in (first..).zip(values.iter()) {
+                let color = segment(self, k, *value);
+                if self.add(color, self.t_near + k as f32 * self.step + 0.5 * self.step, shade, termination) {
                     return true;
                 }
             }
