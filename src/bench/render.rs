@@ -245,12 +245,12 @@ fn export_case(dir: &std::path::Path, work: &VolumeWork, reference: &[[f64; 4]])
         "width": camera.width, "height": camera.height, "steps": work.steps, "background": work.background,
         "tf": tf.points,
     });
-    let bytes = |values: &mut dyn Iterator<Item = [u8; 8]>| values.flatten().collect::<Vec<u8>>();
     let volume: Vec<u8> = work.volume.data().iter().flat_map(|v| v.to_le_bytes()).collect();
+    let reference: Vec<u8> = reference.iter().flatten().flat_map(|v| v.to_le_bytes()).collect();
     let write = |name: &str, data: &[u8]| std::fs::write(dir.join(name), data).map_err(|e| format!("{name}: {e}"));
     std::fs::create_dir_all(dir).map_err(|e| e.to_string())?;
     write("volume.f32", &volume)?;
-    write("reference.f64", &bytes(&mut reference.iter().flatten().map(|v| v.to_le_bytes())))?;
+    write("reference.f64", &reference)?;
     write("case.json", case.to_string().as_bytes())
 }
 

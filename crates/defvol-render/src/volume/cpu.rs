@@ -315,7 +315,6 @@ impl<'a> VolumeRaycaster<'a> {
         let caster = Caster {
             volume: self.volume,
             sampler: Sampler::new(self.volume.data(), self.volume.dims()),
-            lanes: CellLookup::for_dims(self.volume.dims()),
             tables: &self.tables,
             cells: self.cells.as_ref(),
             space: &self.space,
@@ -408,30 +407,19 @@ pub(crate) fn sample_clamped(data: &[f32], dims: [usize; 3], p: &Vector3<f32>) -
 }
 
 /// [`sample_clamped`] with its per-volume constants worked out once: the per-sample work is
-/// 32-bit index arithmetic and one bounds check for the cell's eight corners.
+/// 32-bit index arithmetic and one bounds check for the cell's eight corners. Its cell
+/// lookup is the one the eight-lane sampler takes.
 #[derive(Clone, Copy)]
 pub(crate) struct Sampler<'a> {
     data: &'a [f32],
+    cell: CellLookup,
     /// The voxel-centre box's top per axis.
     top: [f32; 3],
-    /// The highest cell base per axis.
-    last_cell: [i32; 3],
-    /// Steps to the +x, +y and +z corners (0 on an axis one voxel thick).
-    strides: [usize; 3],
-    nx: usize,
-    nxy: usize,
 }
 
 impl<'a> Sampler<'a> {
-    pub(crate) fn new(data: &'a [f32], [nx, ny, nz]: [usize; 3]) -> Self {
-        Self {
-            data,
-            top: [nx, ny, nz].map(|n| n.saturating_sub(1) as f32),
-            last_cell: [nx, ny, nz].map(|n| n.saturating_sub(2) as i32),
-            strides: [usize::from(nx > 1), if ny > 1 { nx } else { 0 }, if nz > 1 { nx * ny } else { 0 }],
-            nx,
-            nxy: nx * ny,
-        }
+    pub(crate) fn new(data: &'a [f32], dims: [usize; 3]) -> Self {
+        Self { data, cell: CellLookup::for_dims(dims), top: dims.map(|n| n.saturating_sub(1) as f32) }
     }
 
     #[inline(always)]
@@ -447,22 +435,32 @@ impl<'a> Sampler<'a> {
             } else {
                 0.0
             };
-            let i = (v as i32).min(self.last_cell[a]);
-            (i as usize, v - i as f32)
+            let i = (v as i32).min(self.cell.top[a]);
+            (i, v - i as f32)
         };
         let ((i, fx), (j, fy), (k, fz)) = (axis(p.x, 0), axis(p.y, 1), axis(p.z, 2));
-        let [sx, sy, sz] = self.strides;
-        let base = i + self.nx * j + self.nxy * k;
+        let [sx, sy, sz] = self.cell.strides.map(|s| s as usize);
+        let base = (i + self.cell.nx * j + self.cell.nxy * k) as usize;
         // One check for the whole cell (the clamps keep it inside the data).
         let cell = &self.data[base..=base + sx + sy + sz];
         defvol_core::volume::lerp_cube(|o| cell[o], [sx, sy, sz], [fx, fy, fz])
+    }
+
+    /// Samples at `base + step·(first + n)` into `out`: eight at a time where AVX2 serves,
+    /// else one by one.
+    #[inline(always)]
+    fn along(&self, base: Vector3<f32>, step: Vector3<f32>, first: usize, out: &mut [f32]) {
+        if trilinear_lanes(self.data, &self.cell, out, base.into(), step.into(), first as i32) == 0 {
+            for (k, value) in (first..).zip(out.iter_mut()) {
+                *value = self.at(&(base + step * k as f32));
+            }
+        }
     }
 }
 
 struct Caster<'a> {
     volume: &'a Volume,
     sampler: Sampler<'a>,
-    lanes: CellLookup,
     tables: &'a Tables,
     cells: Option<&'a MacroCells>,
     space: &'a IndexSpace,
@@ -478,18 +476,10 @@ impl Caster<'_> {
         self.sampler.at(p)
     }
 
-    /// Samples at the ray's parameters t_near + (first + n + offset)·step into `out`: eight
-    /// at a time where AVX2 serves, else one by one.
+    /// Samples at the ray's parameters t_near + (first + n + offset)·step into `out`.
     #[inline(always)]
     fn samples_along(&self, ray: &Ray, offset: f32, first: usize, out: &mut [f32]) {
-        let base = ray.o + ray.d * (ray.t_near + offset * ray.step);
-        let step = ray.d * ray.step;
-        let data = self.volume.data();
-        if trilinear_lanes(data, &self.lanes, out, base.into(), step.into(), first as i32) == 0 {
-            for (k, value) in (first..).zip(out.iter_mut()) {
-                *value = self.sample(&(ray.o + ray.d * (ray.t_near + k as f32 * ray.step + offset * ray.step)));
-            }
-        }
+        self.sampler.along(ray.o + ray.d * (ray.t_near + offset * ray.step), ray.d * ray.step, first, out);
     }
 
     /// Lambert factor at p for the light (index-space direction `light_index`, world `light`).
