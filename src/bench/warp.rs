@@ -59,8 +59,19 @@ pub struct WarpBenchOptions {
     /// Write each case's work (source, mesh in index space, f64 reference) here, for the
     /// peers in `benches/peers/` to run exactly the same warp.
     pub export: Option<std::path::PathBuf>,
-    /// Also time the CPU path before the speed work (`CpuPath::Baseline`), in the same run.
+    /// Also time the paths before the speed work (`WarpPath::Baseline`), in the same run.
     pub baseline: bool,
+}
+
+impl WarpBenchOptions {
+    fn paths(&self) -> &'static [crate::warp::WarpPath] {
+        use crate::warp::WarpPath;
+        if self.baseline {
+            &[WarpPath::Fast, WarpPath::Baseline]
+        } else {
+            &[WarpPath::Fast]
+        }
+    }
 }
 
 /// Grid warp of the phantom through lattice meshes, against the f64 reference.
@@ -86,10 +97,8 @@ pub fn warp(opts: &WarpBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result<
                     export_case(&dir.join(name), &work, &reference)
                         .map_err(|e| w::WarpError::BadDisplacement { index: 0, why: format!("export: {e}") })?;
                 }
-                let paths: &[w::CpuPath] =
-                    if opts.baseline { &[w::CpuPath::Fast, w::CpuPath::Baseline] } else { &[w::CpuPath::Fast] };
-                for (&scheme, &cpu_path) in opts.schemes.iter().flat_map(|s| paths.iter().map(move |p| (s, p))) {
-                    let options = WarpOptions { scheme, sampling, cpu_path, ..Default::default() };
+                for (&scheme, &path) in opts.schemes.iter().flat_map(|s| opts.paths().iter().map(move |p| (s, p))) {
+                    let options = WarpOptions { scheme, sampling, path, ..Default::default() };
                     // Settle into a buffer reused from run to run, as a publishing node does.
                     let (mut out, mut stats) = w::warp_samples::<f32>(&source, &mesh, &deformed, &grid, &options)?;
                     let mut times = Vec::with_capacity(opts.runs);
@@ -106,7 +115,7 @@ pub fn warp(opts: &WarpBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result<
                         case: format!("lattice{}_{}", mesh.tets().len(), case.name()),
                         backend: "cpu".into(),
                         device: device.clone(),
-                        params: json!({"scheme": format!("{scheme:?}").to_lowercase(), "sampling": format!("{sampling:?}").to_lowercase(), "dims": grid.dims, "path": format!("{cpu_path:?}").to_lowercase()}),
+                        params: json!({"scheme": format!("{scheme:?}").to_lowercase(), "sampling": format!("{sampling:?}").to_lowercase(), "dims": grid.dims, "path": format!("{path:?}").to_lowercase()}),
                         runs: times.len(),
                         time_ms: time_stats(times),
                         error: Some(ErrorMeasure { metric: "max_abs_over_range", value: error, reference: "f64" }),
@@ -119,7 +128,9 @@ pub fn warp(opts: &WarpBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result<
             }
             #[cfg(feature = "gpu")]
             if let Some(ctx) = opts.gpu.as_ref().and_then(crate::backend::Backend::context) {
-                warp_gpu_rows(ctx, &source, &mesh, &deformed, case, &mut emit)?;
+                for &path in opts.paths() {
+                    warp_gpu_rows(ctx, &source, &mesh, &deformed, case, path, &mut emit)?;
+                }
             }
             if opts.incremental {
                 // A local press: the nodes within 15 % of the half-width of the top centre sink
@@ -179,7 +190,7 @@ pub fn warp(opts: &WarpBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result<
     Ok(())
 }
 
-/// GPU rows: the spans scheme with trilinear sampling, including the read-back.
+/// GPU rows: the spans scheme with trilinear sampling on `path`, including the read-back.
 #[cfg(feature = "gpu")]
 fn warp_gpu_rows(
     ctx: &std::sync::Arc<crate::gpu::GpuContext>,
@@ -187,13 +198,14 @@ fn warp_gpu_rows(
     mesh: &crate::mesh::TetMesh,
     deformed: &[Vector3<f64>],
     case: WarpCase,
+    path: crate::warp::WarpPath,
     emit: &mut impl FnMut(&BenchRow),
 ) -> Result<(), crate::warp::WarpError> {
     use crate::warp::gpu::GpuWarp;
     use crate::warp::{self as w, WarpOptions};
     let device = ctx.describe();
     let grid = w::default_grid(source, deformed);
-    let options = WarpOptions::default();
+    let options = WarpOptions { path, ..Default::default() };
     let warper = match GpuWarp::new(ctx.clone(), source, mesh, grid.clone(), &options, 1.0) {
         Ok(w) => w,
         Err(e) => {
@@ -231,7 +243,7 @@ fn warp_gpu_rows(
         case: format!("lattice{}_{}", mesh.tets().len(), case.name()),
         backend: "gpu".into(),
         device,
-        params: json!({"scheme": "spans", "sampling": "trilinear", "dims": grid.dims, "includes_readback": true}),
+        params: json!({"scheme": "spans", "sampling": "trilinear", "dims": grid.dims, "path": format!("{path:?}").to_lowercase(), "includes_readback": true}),
         runs: times.len(),
         time_ms: time_stats(times),
         error: Some(ErrorMeasure { metric: "max_abs_over_range", value: error, reference: "f64" }),

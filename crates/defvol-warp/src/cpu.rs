@@ -8,7 +8,7 @@ use nalgebra::Vector3;
 use rayon::prelude::*;
 
 use crate::kernels::{initial_value, rasterize_slab, tet_maps, Sampler, TetMap};
-use crate::{CpuPath, WarpError, WarpOptions, WarpStats};
+use crate::{WarpError, WarpOptions, WarpPath, WarpStats};
 use defvol_core::math::Real;
 use defvol_core::mesh::TetMesh;
 use defvol_core::volume::{Grid, Volume};
@@ -34,10 +34,10 @@ pub fn default_grid(source: &Volume, deformed: &[Vector3<f64>]) -> Grid {
 /// is read once for all its slices in the slab), at least one.
 const SLAB_BYTES: usize = 1 << 20;
 
-fn slab_depth<T>(nx: usize, ny: usize, path: CpuPath) -> usize {
+fn slab_depth<T>(nx: usize, ny: usize, path: WarpPath) -> usize {
     match path {
-        CpuPath::Fast => (SLAB_BYTES / (nx * ny * std::mem::size_of::<T>())).max(1),
-        CpuPath::Baseline => 1,
+        WarpPath::Fast => (SLAB_BYTES / (nx * ny * std::mem::size_of::<T>())).max(1),
+        WarpPath::Baseline => 1,
     }
 }
 
@@ -102,7 +102,7 @@ pub fn warp_into<T: Real>(
     let sampler = Sampler::new(source, options)?;
     let identity = grid.index_map_to(&source.grid());
     let [nx, ny, nz] = grid.dims;
-    let depth = slab_depth::<T>(nx, ny, options.cpu_path);
+    let depth = slab_depth::<T>(nx, ny, options.path);
     let bins = slab_bins(&maps, 0, nz - 1, depth);
     let mut stats = out
         .par_chunks_mut(nx * ny * depth)
@@ -320,7 +320,7 @@ impl IncrementalWarp {
         let sampler = Sampler::new(&self.source, &self.options)?;
         let identity = self.grid.index_map_to(&self.source.grid());
         let [nx, ny, _] = self.grid.dims;
-        let depth = slab_depth::<f32>(nx, ny, self.options.cpu_path);
+        let depth = slab_depth::<f32>(nx, ny, self.options.path);
         let bins = slab_bins(&self.maps, lo[2], hi[2], depth);
         let (maps, options) = (&self.maps, &self.options);
         let background = options.background;
@@ -373,11 +373,11 @@ mod tests {
         let grid = default_grid(&source, &turned);
         assert!(grid.len() * 4 > 3 * SLAB_BYTES, "tets must cross slabs: {:?}", grid.dims);
         for keep_uncovered in [false, true] {
-            let run = |cpu_path| {
-                let options = WarpOptions { keep_uncovered, cpu_path, background: -7.0, ..Default::default() };
+            let run = |path| {
+                let options = WarpOptions { keep_uncovered, path, background: -7.0, ..Default::default() };
                 warp_samples::<f32>(&source, &mesh, &turned, &grid, &options).unwrap()
             };
-            let ((fast, fast_stats), (baseline, baseline_stats)) = (run(CpuPath::Fast), run(CpuPath::Baseline));
+            let ((fast, fast_stats), (baseline, baseline_stats)) = (run(WarpPath::Fast), run(WarpPath::Baseline));
             assert_eq!(fast_stats, baseline_stats);
             assert!(fast_stats.inside > 10_000, "{fast_stats:?}");
             let differ = fast.iter().zip(&baseline).filter(|(a, b)| a.to_bits() != b.to_bits()).count();

@@ -212,7 +212,7 @@ pub struct Sampler<'a> {
     source: Grid,
     /// How a run finds its cells, fixed by the source's dims.
     cell: CellLookup,
-    /// Eight-lane runs where the CPU has them ([`crate::CpuPath::Fast`]).
+    /// Eight-lane runs where the CPU has them ([`crate::WarpPath::Fast`]).
     lanes: bool,
 }
 
@@ -228,7 +228,7 @@ impl<'a> Sampler<'a> {
             displacements,
             source: source.grid(),
             cell: CellLookup::for_dims(source.dims()),
-            lanes: options.cpu_path == crate::CpuPath::Fast,
+            lanes: options.path == crate::WarpPath::Fast,
         })
     }
 

@@ -1,19 +1,25 @@
 // Grid warp by exact row spans: the GPU twin of the `Spans` scheme in kernels.rs (rasterize_slice).
-// - `fill`: every output voxel gets the background, or with keep_uncovered the source's
-//   value at the same place (Sampler::at through the identity map, as `initial_value`);
 // - `tet_maps`: per tet, its maps from the deformed nodes (output index space) and the rest
 //   nodes (source index space), as `tet_map` computes them in f64; rebased on the tet's box
-//   corner so f32 keeps precision in voxel-local coordinates;
-// - `warp_tets`: one workgroup per tet; its threads take the rows (j, k) of the tet's box in
-//   turn (TetMap::span, rasterize_slice, Sampler::trilinear_run), sampling trilinear or
-//   tricubic (Catmull-Rom) as the CPU's Sampler does.
-
+//   corner so f32 keeps precision in voxel-local coordinates; and its box's row count;
+// - `scan_rows`, `scan_blocks`: a prefix sum of the row counts over all tets, and from its
+//   total the dispatch of `warp_rows`;
+// - `warp_rows`: one invocation a row of any tet's box, so big and small tets spread evenly
+//   over the GPU; its exact span (TetMap::span, rasterize_slice) sampled trilinear or
+//   tricubic (Catmull-Rom) as the CPU's Sampler does (Sampler::trilinear_run); the voxels
+//   written marked covered;
+// - `fill`: every voxel no tet covered gets the background, or with keep_uncovered the
+//   source's value at the same place (Sampler::at through the identity map, as
+//   `initial_value`).
+// `warp_tets`, one workgroup per tet in place of the three passes before `fill`, is the
+// baseline kept for side-by-side timing (WarpPath::Baseline).
 struct Params {
     out_dims: vec4<u32>,   // nx, ny, nz, tet count
     src_dims: vec4<u32>,   // nx, ny, nz, displacement volumes
     background: vec4<f32>, // background, inside tolerance, sample tolerance, keep_uncovered (1/0)
     identity: array<vec4<f32>, 3>, // source index from output index, rows (offset, di, dj, dk)
-    groups: vec4<u32>,     // row widths of the fill, tet-map and warp dispatch grids; sampling (0 trilinear, 1 tricubic)
+    groups: vec4<u32>,     // row widths of the fill, tet-map and warp_tets dispatch grids; sampling (0 trilinear, 1 tricubic)
+    scan: vec4<u32>,       // row width of the scan_rows grid, its blocks (256 tets each)
 }
 
 @group(0) @binding(0) var<uniform> params: Params;
@@ -26,13 +32,21 @@ struct Params {
 @group(0) @binding(4) var<storage, read> nodes: array<vec4<f32>>;
 @group(0) @binding(5) var<storage, read> rest: array<vec4<f32>>;
 @group(0) @binding(6) var<storage, read> tets: array<vec4<u32>>;
-// Voxels written from inside a tet; tets skipped (inverted, flat, or off the grid).
-@group(0) @binding(7) var<storage, read_write> stats: array<atomic<u32>, 2>;
+// Voxels written from inside a tet; tets skipped (inverted, flat, or off the grid); 1 where
+// the tets' rows overflow u32; unused; from COVERAGE on, a bit per output voxel written.
+@group(0) @binding(7) var<storage, read_write> stats: array<atomic<u32>>;
 // Displacement volumes in source index space (CompiledDisplacement::in_space), 4 vec4 each:
 // the rows of l = A·p + a (xyz: A's row, w: a), then the displacement in index units (xyz).
 @group(0) @binding(8) var<storage, read> pushes: array<vec4<f32>>;
 
+// Per tet its box's row count, then (scan_rows) its first row within its block of 256
+// tets; after the tets, per block its first row (scan_blocks). Before ROWS: warp_rows'
+// dispatch (x, y, 1) and the total rows.
+@group(0) @binding(9) var<storage, read_write> rows: array<u32>;
+
 const WG: u32 = 64u;
+const ROWS: u32 = 4u;
+const COVERAGE: u32 = 4u;
 
 fn inside(a: vec4<f32>, c: vec4<f32>, i: f32) -> bool {
     let b = a + c * i;
@@ -145,7 +159,7 @@ fn sample(p: vec3<f32>) -> f32 {
 @compute @workgroup_size(64)
 fn fill(@builtin(global_invocation_id) gid: vec3<u32>) {
     let v = gid.x + gid.y * params.groups.x * WG;
-    if (v >= arrayLength(&out)) {
+    if (v >= arrayLength(&out) || ((atomicLoad(&stats[COVERAGE + v / 32u]) >> (v & 31u)) & 1u) == 1u) {
         return;
     }
     if (params.background.w == 0.0) {
@@ -159,8 +173,9 @@ fn fill(@builtin(global_invocation_id) gid: vec3<u32>) {
     out[v] = sample(vec3<f32>(dot(r[0], vec4<f32>(1.0, ijk)), dot(r[1], vec4<f32>(1.0, ijk)), dot(r[2], vec4<f32>(1.0, ijk))));
 }
 
-fn skip_tet(base: u32) {
+fn skip_tet(t: u32, base: u32) {
     maps[base + 8u] = vec4<f32>(0.0);
+    rows[ROWS + t] = 0u;
     atomicAdd(&stats[1], 1u);
 }
 
@@ -182,7 +197,7 @@ fn tet_maps(@builtin(global_invocation_id) gid: vec3<u32>) {
     let lo = max(ceil(min(min(p0, p1), min(p2, p3)) - vec3<f32>(stol)), vec3<f32>(0.0));
     let hi = min(floor(max(max(p0, p1), max(p2, p3)) + vec3<f32>(stol)), top);
     if (any(lo > hi)) {
-        skip_tet(base);
+        skip_tet(t, base);
         return;
     }
     let e1 = p1 - p0;
@@ -197,7 +212,7 @@ fn tet_maps(@builtin(global_invocation_id) gid: vec3<u32>) {
     // Same orientation as at rest, and not flat: |det| against the cube of the longest edge.
     let longest = max(max(max(length(e1), length(e2)), max(length(e3), length(p2 - p1))), max(length(p3 - p1), length(p3 - p2)));
     if (det * rest_det <= 0.0 || abs(det) < 1e-9 * longest * longest * longest) {
-        skip_tet(base);
+        skip_tet(t, base);
         return;
     }
     // Rows of the inverse of the edge matrix (columns e1, e2, e3).
@@ -220,72 +235,219 @@ fn tet_maps(@builtin(global_invocation_id) gid: vec3<u32>) {
     maps[base + 5u] = vec4<f32>(q0.y - dot(my, l0), my);
     maps[base + 6u] = vec4<f32>(q0.z - dot(mz, l0), mz);
     maps[base + 7u] = vec4<f32>(lo, 0.0);
-    maps[base + 8u] = vec4<f32>(hi - lo + vec3<f32>(1.0), 0.0);
+    let size = hi - lo + vec3<f32>(1.0);
+    maps[base + 8u] = vec4<f32>(size, 0.0);
+    rows[ROWS + t] = u32(size.y) * u32(size.z);
 }
 
+// A tet's maps as warp_row reads them.
+struct TetMaps {
+    b: array<vec4<f32>, 4>,
+    s: array<vec4<f32>, 3>,
+    lo: vec3<u32>,
+    size: vec3<u32>,
+}
+
+fn tet_maps_of(t: u32) -> TetMaps {
+    let base = t * 9u;
+    var m: TetMaps;
+    m.b = array<vec4<f32>, 4>(maps[base], maps[base + 1u], maps[base + 2u], maps[base + 3u]);
+    m.s = array<vec4<f32>, 3>(maps[base + 4u], maps[base + 5u], maps[base + 6u]);
+    m.lo = vec3<u32>(maps[base + 7u].xyz);
+    m.size = vec3<u32>(maps[base + 8u].xyz);
+    return m;
+}
+
+// Marks output voxels first..=last covered, for `fill` to pass over.
+fn cover(first: u32, last: u32) {
+    var v = first;
+    loop {
+        if (v > last) {
+            break;
+        }
+        let end = min(last, v | 31u);
+        let n = end - v + 1u;
+        let bits = select(((1u << n) - 1u) << (v & 31u), 0xffffffffu, n == 32u);
+        atomicOr(&stats[COVERAGE + v / 32u], bits);
+        v = end + 1u;
+    }
+}
+
+// Row r (j fastest) of a tet's box: its exact span (TetMap::span, rasterize_slice) sampled
+// trilinear or tricubic (Sampler::trilinear_run); returns the voxels written.
+fn warp_row(m: TetMaps, r: u32) -> u32 {
+    let jl = f32(r % m.size.y);
+    let kl = f32(r / m.size.y);
+    let b = m.b;
+    let a = vec4<f32>(b[0].x + b[0].z * jl + b[0].w * kl, b[1].x + b[1].z * jl + b[1].w * kl, b[2].x + b[2].z * jl + b[2].w * kl, b[3].x + b[3].z * jl + b[3].w * kl) + vec4<f32>(params.background.y);
+    let c = vec4<f32>(b[0].y, b[1].y, b[2].y, b[3].y);
+    var first = 0.0;
+    var last = f32(m.size.x - 1u);
+    for (var q = 0u; q < 4u; q = q + 1u) {
+        if (c[q] > 0.0) {
+            first = max(first, ceil(-a[q] / c[q]));
+        } else if (c[q] < 0.0) {
+            last = min(last, floor(-a[q] / c[q]));
+        } else if (a[q] < 0.0) {
+            return 0u;
+        }
+    }
+    // Widen by one, then settle on the evaluated predicate (as TetMap::span does).
+    var i0 = i32(clamp(first - 1.0, 0.0, f32(m.size.x - 1u)));
+    var i1 = i32(clamp(last + 1.0, 0.0, f32(m.size.x - 1u)));
+    while (i0 <= i1 && !inside(a, c, f32(i0))) {
+        i0 = i0 + 1;
+    }
+    while (i1 >= i0 && !inside(a, c, f32(i1))) {
+        i1 = i1 - 1;
+    }
+    if (i1 < i0) {
+        return 0u;
+    }
+    let row = (m.lo.y + r % m.size.y) * params.out_dims.x + (m.lo.z + r / m.size.y) * params.out_dims.x * params.out_dims.y + m.lo.x;
+    let s = m.s;
+    for (var i = i0; i <= i1; i = i + 1) {
+        let fi = f32(i);
+        let p = vec3<f32>(s[0].x + s[0].y * fi + s[0].z * jl + s[0].w * kl, s[1].x + s[1].y * fi + s[1].z * jl + s[1].w * kl, s[2].x + s[2].y * fi + s[2].z * jl + s[2].w * kl);
+        out[row + u32(i)] = sample(p);
+    }
+    cover(row + u32(i0), row + u32(i1));
+    return u32(i1 - i0 + 1);
+}
+
+var<workgroup> partial: array<u32, 256>;
+
+// Exclusive prefix sum of the row counts within each block of 256 tets, in place; the
+// block's total after the tets' entries.
+@compute @workgroup_size(256)
+fn scan_rows(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>) {
+    let block = wid.x + wid.y * params.scan.x;
+    let n = params.out_dims.w;
+    let t = block * 256u + lid.x;
+    var count = 0u;
+    if (t < n) {
+        count = rows[ROWS + t];
+    }
+    partial[lid.x] = count;
+    workgroupBarrier();
+    for (var d = 1u; d < 256u; d = d * 2u) {
+        var add = 0u;
+        if (lid.x >= d) {
+            add = partial[lid.x - d];
+        }
+        workgroupBarrier();
+        partial[lid.x] = partial[lid.x] + add;
+        workgroupBarrier();
+    }
+    if (t < n) {
+        rows[ROWS + t] = partial[lid.x] - count;
+    }
+    if (lid.x == 255u && block < params.scan.y) {
+        rows[ROWS + n + block] = partial[255u];
+    }
+}
+
+var<workgroup> wrapped: atomic<u32>;
+
+// Exclusive prefix sum of the blocks' totals, the total rows, and the dispatch of
+// warp_rows: a 2D grid of 64-wide workgroups; none where the rows overflow u32 (stats[2]).
+@compute @workgroup_size(256)
+fn scan_blocks(@builtin(local_invocation_id) lid: vec3<u32>) {
+    let blocks = params.scan.y;
+    let at = ROWS + params.out_dims.w;
+    let chunk = (blocks + 255u) / 256u;
+    let first = min(lid.x * chunk, blocks);
+    let last = min(first + chunk, blocks);
+    var sum = 0u;
+    for (var b = first; b < last; b = b + 1u) {
+        if (sum + rows[at + b] < sum) {
+            atomicStore(&wrapped, 1u);
+        }
+        sum = sum + rows[at + b];
+    }
+    partial[lid.x] = sum;
+    workgroupBarrier();
+    if (lid.x == 0u) {
+        var running = 0u;
+        for (var i = 0u; i < 256u; i = i + 1u) {
+            let v = partial[i];
+            partial[i] = running;
+            if (running + v < running) {
+                atomicStore(&wrapped, 1u);
+            }
+            running = running + v;
+        }
+        let over = atomicLoad(&wrapped) != 0u;
+        if (over) {
+            atomicStore(&stats[2], 1u);
+        }
+        let groups = select(running / WG + select(0u, 1u, running % WG != 0u), 0u, over);
+        let x = min(groups, 65535u);
+        rows[0] = x;
+        rows[1] = select((groups + x - 1u) / max(x, 1u), 0u, groups == 0u);
+        rows[2] = 1u;
+        rows[3] = running;
+    }
+    workgroupBarrier();
+    var start = partial[lid.x];
+    for (var b = first; b < last; b = b + 1u) {
+        let total = rows[at + b];
+        rows[at + b] = start;
+        start = start + total;
+    }
+}
+
+// The first row of tet t in the flat order of every tet's rows.
+fn row_start(t: u32) -> u32 {
+    return rows[ROWS + params.out_dims.w + t / 256u] + rows[ROWS + t];
+}
+
+var<workgroup> written_here: atomic<u32>;
+
+// One invocation a row of any tet's box: the tet found by bisection over the row starts.
+@compute @workgroup_size(64)
+fn warp_rows(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>) {
+    let g = gid.x + gid.y * groups.x * WG;
+    var written = 0u;
+    if (g < rows[3]) {
+        var lo = 0u;
+        var hi = params.out_dims.w - 1u;
+        while (lo < hi) {
+            let mid = (lo + hi + 1u) / 2u;
+            if (row_start(mid) <= g) {
+                lo = mid;
+            } else {
+                hi = mid - 1u;
+            }
+        }
+        written = warp_row(tet_maps_of(lo), g - row_start(lo));
+    }
+    if (written > 0u) {
+        atomicAdd(&written_here, written);
+    }
+    workgroupBarrier();
+    if (lid.x == 0u) {
+        let total = atomicLoad(&written_here);
+        if (total > 0u) {
+            atomicAdd(&stats[0], total);
+        }
+    }
+}
+
+// The baseline: one workgroup per tet, its threads taking the rows of the tet's box in turn.
 @compute @workgroup_size(64)
 fn warp_tets(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>) {
     let t = wid.x + wid.y * params.groups.z;
     if (t >= params.out_dims.w) {
         return;
     }
-    let base = t * 9u;
-    let size = vec3<u32>(maps[base + 8u].xyz);
-    if (size.x == 0u) {
+    let m = tet_maps_of(t);
+    if (m.size.x == 0u) {
         return;
     }
-    let lo = vec3<u32>(maps[base + 7u].xyz);
-    // Barycentric rows as columns of per-coordinate vectors: a(j, k) and the i slope.
-    let b0 = maps[base];
-    let b1 = maps[base + 1u];
-    let b2 = maps[base + 2u];
-    let b3 = maps[base + 3u];
-    let c = vec4<f32>(b0.y, b1.y, b2.y, b3.y);
-    let s0 = maps[base + 4u];
-    let s1 = maps[base + 5u];
-    let s2 = maps[base + 6u];
-    let rows = size.y * size.z;
-    let nx = params.out_dims.x;
-    let nxy = params.out_dims.x * params.out_dims.y;
-    let tol = params.background.y;
     var written = 0u;
-    for (var r = lid.x; r < rows; r = r + WG) {
-        let jl = f32(r % size.y);
-        let kl = f32(r / size.y);
-        let a = vec4<f32>(b0.x + b0.z * jl + b0.w * kl, b1.x + b1.z * jl + b1.w * kl, b2.x + b2.z * jl + b2.w * kl, b3.x + b3.z * jl + b3.w * kl) + vec4<f32>(tol);
-        var first = 0.0;
-        var last = f32(size.x - 1u);
-        var empty = false;
-        for (var m = 0u; m < 4u; m = m + 1u) {
-            if (c[m] > 0.0) {
-                first = max(first, ceil(-a[m] / c[m]));
-            } else if (c[m] < 0.0) {
-                last = min(last, floor(-a[m] / c[m]));
-            } else if (a[m] < 0.0) {
-                empty = true;
-            }
-        }
-        if (empty) {
-            continue;
-        }
-        // Widen by one, then settle on the evaluated predicate (as TetMap::span does).
-        var i0 = i32(clamp(first - 1.0, 0.0, f32(size.x - 1u)));
-        var i1 = i32(clamp(last + 1.0, 0.0, f32(size.x - 1u)));
-        while (i0 <= i1 && !inside(a, c, f32(i0))) {
-            i0 = i0 + 1;
-        }
-        while (i1 >= i0 && !inside(a, c, f32(i1))) {
-            i1 = i1 - 1;
-        }
-        let row = (lo.y + r % size.y) * nx + (lo.z + r / size.y) * nxy + lo.x;
-        for (var i = i0; i <= i1; i = i + 1) {
-            let fi = f32(i);
-            let p = vec3<f32>(s0.x + s0.y * fi + s0.z * jl + s0.w * kl, s1.x + s1.y * fi + s1.z * jl + s1.w * kl, s2.x + s2.y * fi + s2.z * jl + s2.w * kl);
-            out[row + u32(i)] = sample(p);
-        }
-        if (i1 >= i0) {
-            written = written + u32(i1 - i0 + 1);
-        }
+    for (var r = lid.x; r < m.size.y * m.size.z; r = r + WG) {
+        written = written + warp_row(m, r);
     }
     if (written > 0u) {
         atomicAdd(&stats[0], written);
