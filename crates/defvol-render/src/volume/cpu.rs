@@ -449,7 +449,7 @@ impl<'a> Sampler<'a> {
     /// Samples at `base + step·(first + n)` into `out`: eight at a time where AVX2 serves,
     /// else one by one.
     #[inline(always)]
-    fn along(&self, base: Vector3<f32>, step: Vector3<f32>, first: usize, out: &mut [f32]) {
+    pub(crate) fn along(&self, base: Vector3<f32>, step: Vector3<f32>, first: usize, out: &mut [f32]) {
         if trilinear_lanes(self.data, &self.cell, out, base.into(), step.into(), first as i32) == 0 {
             for (k, value) in (first..).zip(out.iter_mut()) {
                 *value = self.at(&(base + step * k as f32));
