@@ -223,9 +223,7 @@ impl Tables {
         let x = ((s - self.lo) * self.lut_scale).clamp(0.0, (LUT_SIZE - 1) as f32);
         let i = (x as i32).min(LUT_SIZE as i32 - 2) as usize;
         let f = x - i as f32;
-        let (a, b) = (table[i], table[i + 1]);
-        // Written out: `[_; 4].map` is not always inlined, and this runs per sample.
-        [a[0] + (b[0] - a[0]) * f, a[1] + (b[1] - a[1]) * f, a[2] + (b[2] - a[2]) * f, a[3] + (b[3] - a[3]) * f]
+        lerp4(table[i], table[i + 1], f)
     }
 
     /// The segment from `front` to `back` scalars: premultiplied colour and α, bilinear in
@@ -238,12 +236,9 @@ impl Tables {
         let (i, j) = ((x as i32).min(n as i32 - 2) as usize, (y as i32).min(n as i32 - 2) as usize);
         let (fx, fy) = (x - i as f32, y - j as f32);
         let t = &self.preintegrated;
-        let (a, b, c, d) = (t[i * n + j], t[i * n + j + 1], t[(i + 1) * n + j], t[(i + 1) * n + j + 1]);
-        [0, 1, 2, 3].map(|k| {
-            let top = a[k] + (b[k] - a[k]) * fy;
-            let bottom = c[k] + (d[k] - c[k]) * fy;
-            top + (bottom - top) * fx
-        })
+        let top = lerp4(t[i * n + j], t[i * n + j + 1], fy);
+        let bottom = lerp4(t[(i + 1) * n + j], t[(i + 1) * n + j + 1], fy);
+        lerp4(top, bottom, fx)
     }
 
     /// The largest extinction over the scalar interval [a, b] (for empty-space skipping).
@@ -252,6 +247,13 @@ impl Tables {
         let (i, j) = (index(a), (index(b) + 1).min(LUT_SIZE - 1));
         self.lut[i..=j].iter().map(|e| e[3]).fold(0.0, f32::max)
     }
+}
+
+/// `a + (b - a)·f` per channel, written out: `[_; 4].map` is not always inlined (profiled:
+/// the pre-integrated lookup's was a call per sample), and this runs per sample.
+#[inline(always)]
+fn lerp4(a: [f32; 4], b: [f32; 4], f: f32) -> [f32; 4] {
+    [a[0] + (b[0] - a[0]) * f, a[1] + (b[1] - a[1]) * f, a[2] + (b[2] - a[2]) * f, a[3] + (b[3] - a[3]) * f]
 }
 
 /// Each segment integrated front to back in 64 sub-steps, the scalar linear along it.
