@@ -373,15 +373,11 @@ impl SegmentTable {
         let z = limit(len * self.length_scale, (lengths - 1) as f32);
         let (i, j, l) = ((x as usize).min(n - 2), (y as usize).min(n - 2), (z as usize).min(lengths - 2));
         let (fx, fy, fz) = (x - i as f32, y - j as f32, z - l as f32);
-        // Lerps written out: `[_; 4].map` is not always inlined, and this runs per segment.
-        let lerp = |a: [f32; 4], b: [f32; 4], f: f32| {
-            [a[0] + (b[0] - a[0]) * f, a[1] + (b[1] - a[1]) * f, a[2] + (b[2] - a[2]) * f, a[3] + (b[3] - a[3]) * f]
-        };
         let at = |i: usize, j: usize| {
             let at = (i * n + j) * lengths + l;
-            lerp(self.entries[at], self.entries[at + 1], fz)
+            lerp4(self.entries[at], self.entries[at + 1], fz)
         };
         let (a, b, c, d) = (at(i, j), at(i, j + 1), at(i + 1, j), at(i + 1, j + 1));
-        lerp(lerp(a, b, fy), lerp(c, d, fy), fx)
+        lerp4(lerp4(a, b, fy), lerp4(c, d, fy), fx)
     }
 }
