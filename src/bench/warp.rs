@@ -128,8 +128,11 @@ pub fn warp(opts: &WarpBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result<
             }
             #[cfg(feature = "gpu")]
             if let Some(ctx) = opts.gpu.as_ref().and_then(crate::backend::Backend::context) {
+                let grid = w::default_grid(&source, &deformed);
+                let (reference, _) = w::warp_samples::<f64>(&source, &mesh, &deformed, &grid, &WarpOptions::default())?;
                 for &path in opts.paths() {
-                    warp_gpu_rows(ctx, &source, &mesh, &deformed, case, path, &mut emit)?;
+                    let work = WarpWork { source: &source, mesh: &mesh, deformed: &deformed, grid: &grid };
+                    warp_gpu_rows(ctx, &work, &reference, case, path, &mut emit)?;
                 }
             }
             if opts.incremental {
@@ -190,21 +193,21 @@ pub fn warp(opts: &WarpBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result<
     Ok(())
 }
 
-/// GPU rows: the spans scheme with trilinear sampling on `path`, including the read-back.
+/// GPU rows: the spans scheme with trilinear sampling on `path`, including the read-back,
+/// against the f64 `reference` of the same work.
 #[cfg(feature = "gpu")]
 fn warp_gpu_rows(
     ctx: &std::sync::Arc<crate::gpu::GpuContext>,
-    source: &crate::volume::Volume,
-    mesh: &crate::mesh::TetMesh,
-    deformed: &[Vector3<f64>],
+    work: &WarpWork,
+    reference: &[f64],
     case: WarpCase,
     path: crate::warp::WarpPath,
     emit: &mut impl FnMut(&BenchRow),
 ) -> Result<(), crate::warp::WarpError> {
     use crate::warp::gpu::GpuWarp;
-    use crate::warp::{self as w, WarpOptions};
+    use crate::warp::WarpOptions;
+    let WarpWork { source, mesh, deformed, grid } = *work;
     let device = ctx.describe();
-    let grid = w::default_grid(source, deformed);
     let options = WarpOptions { path, ..Default::default() };
     let warper = match GpuWarp::new(ctx.clone(), source, mesh, grid.clone(), &options, 1.0) {
         Ok(w) => w,
@@ -213,7 +216,6 @@ fn warp_gpu_rows(
             return Ok(());
         }
     };
-    let (reference, _) = w::warp_samples::<f64>(source, mesh, deformed, &grid, &options)?;
     let mut times = Vec::new();
     let mut out = Vec::new();
     let mut meter = None;
@@ -236,7 +238,7 @@ fn warp_gpu_rows(
     let cost = meter.and_then(|m| m.finish(times.len()));
     let (vmin, vmax) = source.range();
     let error =
-        out.iter().zip(&reference).map(|(a, b)| (*a as f64 - b).abs()).fold(0.0, f64::max) / (vmax - vmin) as f64;
+        out.iter().zip(reference).map(|(a, b)| (*a as f64 - b).abs()).fold(0.0, f64::max) / (vmax - vmin) as f64;
     let median = time_stats(times.clone()).median;
     emit(&BenchRow {
         stage: "warp",

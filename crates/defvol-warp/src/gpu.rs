@@ -110,7 +110,8 @@ impl GpuWarp {
         ctx.require_binding_size("the source volume", source.len() as u64 * 4)?;
         ctx.require_binding_size("the output grid", grid.len() as u64 * 4)?;
         ctx.require_binding_size("the tet maps", rest.tets().len() as u64 * 144)?;
-        ctx.require_binding_size("the coverage marks", STATS_HEADER + grid.len().div_ceil(32) as u64 * 4)?;
+        let stats_bytes = STATS_HEADER + grid.len().div_ceil(32) as u64 * 4;
+        ctx.require_binding_size("the coverage marks", stats_bytes)?;
         let source_grid = source.grid();
         // Deformed nodes in output index space: the rest nodes there, moved by the
         // displacement's image under the grid's linear map.
@@ -167,7 +168,7 @@ impl GpuWarp {
         let out = ctx.zeroed_buffer("warp out", grid.len() as u64 * 4);
         let rest_buffer = ctx.storage_buffer("warp rest nodes", bytemuck::cast_slice(&rest_src));
         let tets = ctx.storage_buffer("warp tets", bytemuck::cast_slice(rest.tets()));
-        let stats = ctx.zeroed_buffer("warp stats", STATS_HEADER + grid.len().div_ceil(32) as u64 * 4);
+        let stats = ctx.zeroed_buffer("warp stats", stats_bytes);
         let rows = ctx.zeroed_buffer("warp rows", 4 * (4 + u64::from(tet_count) + u64::from(blocks)));
         let dispatch = ctx.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("warp dispatch"),

@@ -220,17 +220,18 @@ impl SourceLook {
             }
             return;
         }
+        // Trilinear samples without displacement volumes lie on a line: read them in batches.
+        let lanes = (self.displacements.is_empty() && self.sampling == Sampling::Trilinear)
+            .then(|| Sampler::new(self.volume.data(), self.volume.dims()));
         let mut values = [0.0f32; BATCH];
         while march.k < end {
             let values = &mut values[..(end - march.k).min(BATCH as u32) as usize];
-            let lanes = self.displacements.is_empty() && self.sampling == Sampling::Trilinear;
-            if lanes {
-                let sampler = Sampler::new(self.volume.data(), self.volume.dims());
+            if let Some(sampler) = &lanes {
                 sampler.along(ray.base, ray.step, march.k as usize, values);
             }
             for value in values.iter() {
                 let q = ray.q(march.k);
-                let value = if lanes { self.in_box(&q).then_some(*value) } else { self.value(&q) };
+                let value = if lanes.is_some() { self.in_box(&q).then_some(*value) } else { self.value(&q) };
                 if self.composite(&ray, march, value, acc, depth) {
                     return;
                 }
