@@ -43,15 +43,10 @@ pub fn trilinear_lanes(
     start: i32,
 ) -> usize {
     #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") {
-        let max_offset =
-            cell.top[0] + cell.nx * cell.top[1] + cell.nxy * cell.top[2] + cell.strides.iter().sum::<i32>();
-        // The clamps bound every gathered index by max_offset; the data must hold it.
-        if max_offset >= 0 && (max_offset as usize) < data.len() {
-            // SAFETY: AVX2 is present (checked above), and every index the gathers read is
-            // clamped to at most max_offset, which lies inside `data`.
-            return unsafe { x86::trilinear_avx2(data, cell, out, base, step, start) };
-        }
+    if std::arch::is_x86_feature_detected!("avx2") && x86::fits(data, cell) {
+        // SAFETY: AVX2 is present, and every index the gathers read is clamped to at most
+        // the lookup's largest, which lies inside `data`.
+        return unsafe { x86::trilinear_avx2(data, cell, out, base, step, start) };
     }
     #[cfg(not(target_arch = "x86_64"))]
     let _ = (data, cell, out, base, step, start);
@@ -63,11 +58,104 @@ mod x86 {
     use super::CellLookup;
     use std::arch::x86_64::*;
 
-    /// Eight voxels a loop: positions, cell indices and fractions as the scalar loop takes
-    /// them, the eight corners gathered, then the seven lerps of `lerp_cube` in its order.
+    /// Whether `data` holds the largest index the clamps let a cell's corners reach.
+    pub(super) fn fits(data: &[f32], cell: &CellLookup) -> bool {
+        let max_offset =
+            cell.top[0] + cell.nx * cell.top[1] + cell.nxy * cell.top[2] + cell.strides.iter().sum::<i32>();
+        max_offset >= 0 && (max_offset as usize) < data.len()
+    }
+
+    /// The cell lookup in vector lanes, set up once per run.
+    struct Lanes {
+        corner: [isize; 8],
+        nx: __m256i,
+        nxy: __m256i,
+        top: [__m256i; 3],
+    }
+
+    /// Trilinear samples in one vector width: cell indices and fractions as the scalar loop
+    /// takes them, the eight corners gathered, then the seven lerps of `lerp_cube` in its
+    /// order. Written once for eight lanes (ymm) and four (xmm), which a run's last few
+    /// voxels take at half the gathers.
+    macro_rules! sample_fn {
+        ($name:ident, $ps:ty, $si:ty, $cvtt:ident, $cvt:ident, $max:ident, $min:ident, $add_i:ident,
+         $mullo:ident, $gather:ident, $add:ident, $sub:ident, $mul:ident, $zero:ident, $narrow:expr) => {
+            /// # Safety
+            /// The CPU must have AVX2, and `ptr` must lead data that [`fits`] the lookup.
+            #[inline]
+            #[target_feature(enable = "avx2")]
+            unsafe fn $name(&self, ptr: *const f32, at: [$ps; 3]) -> $ps {
+                let narrow: fn(__m256i) -> $si = $narrow;
+                let zero = $zero();
+                let index = [0, 1, 2].map(|a| $min($max($cvtt(at[a]), zero), narrow(self.top[a])));
+                let frac = [0, 1, 2].map(|a| $sub(at[a], $cvt(index[a])));
+                let b = $add_i($add_i(index[0], $mullo(narrow(self.nx), index[1])), $mullo(narrow(self.nxy), index[2]));
+                // SAFETY: b + corner is at most the lookup's largest index, inside the data.
+                let v = self.corner.map(|c| unsafe { $gather::<4>(ptr.offset(c), b) });
+                let lerp = |a: $ps, b: $ps, f: $ps| $add(a, $mul($sub(b, a), f));
+                let c00 = lerp(v[0], v[1], frac[0]);
+                let c10 = lerp(v[2], v[3], frac[0]);
+                let c01 = lerp(v[4], v[5], frac[0]);
+                let c11 = lerp(v[6], v[7], frac[0]);
+                lerp(lerp(c00, c10, frac[1]), lerp(c01, c11, frac[1]), frac[2])
+            }
+        };
+    }
+
+    impl Lanes {
+        #[inline]
+        #[target_feature(enable = "avx2")]
+        fn new(cell: &CellLookup) -> Self {
+            let [sx, sy, sz] = cell.strides.map(|s| s as isize);
+            Self {
+                corner: [0, sx, sy, sy + sx, sz, sz + sx, sz + sy, sz + sy + sx],
+                nx: _mm256_set1_epi32(cell.nx),
+                nxy: _mm256_set1_epi32(cell.nxy),
+                top: cell.top.map(|t| _mm256_set1_epi32(t)),
+            }
+        }
+
+        sample_fn!(
+            sample8,
+            __m256,
+            __m256i,
+            _mm256_cvttps_epi32,
+            _mm256_cvtepi32_ps,
+            _mm256_max_epi32,
+            _mm256_min_epi32,
+            _mm256_add_epi32,
+            _mm256_mullo_epi32,
+            _mm256_i32gather_ps,
+            _mm256_add_ps,
+            _mm256_sub_ps,
+            _mm256_mul_ps,
+            _mm256_setzero_si256,
+            |v| v
+        );
+        sample_fn!(
+            sample4,
+            __m128,
+            __m128i,
+            _mm_cvttps_epi32,
+            _mm_cvtepi32_ps,
+            _mm_max_epi32,
+            _mm_min_epi32,
+            _mm_add_epi32,
+            _mm_mullo_epi32,
+            _mm_i32gather_ps,
+            _mm_add_ps,
+            _mm_sub_ps,
+            _mm_mul_ps,
+            _mm_setzero_si128,
+            |v| _mm256_castsi256_si128(v)
+        );
+    }
+
+    /// Eight voxels a loop at `base + step·(start + n)`; a last group of at most four
+    /// takes four lanes, and a last group stores only its own voxels.
     ///
     /// # Safety
-    /// The CPU must have AVX2, and the cell lookup's largest index must lie in `data`.
+    /// The CPU must have AVX2, and `data` must [`fits`] the lookup.
     #[target_feature(enable = "avx2")]
     pub(super) unsafe fn trilinear_avx2(
         data: &[f32],
@@ -77,44 +165,37 @@ mod x86 {
         step: [f32; 3],
         start: i32,
     ) -> usize {
-        let len = out.len();
-        let ptr = data.as_ptr();
-        let [sx, sy, sz] = cell.strides.map(|s| s as isize);
-        let corner = [0, sx, sy, sy + sx, sz, sz + sx, sz + sy, sz + sy + sx];
+        let (len, ptr) = (out.len(), data.as_ptr());
+        let lanes = Lanes::new(cell);
         let iota = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
-        let (nx, nxy) = (_mm256_set1_epi32(cell.nx), _mm256_set1_epi32(cell.nxy));
-        let zero = _mm256_setzero_si256();
-        let top = cell.top.map(|t| _mm256_set1_epi32(t));
-        let base = base.map(|b| _mm256_set1_ps(b));
-        let step = step.map(|s| _mm256_set1_ps(s));
-        for n in (0..len).step_by(8) {
+        let base8 = base.map(|b| _mm256_set1_ps(b));
+        let step8 = step.map(|s| _mm256_set1_ps(s));
+        let mut n = 0;
+        while len - n > 4 {
             let fi = _mm256_cvtepi32_ps(_mm256_add_epi32(_mm256_set1_epi32(start + n as i32), iota));
-            let at = [0, 1, 2].map(|a| _mm256_add_ps(base[a], _mm256_mul_ps(step[a], fi)));
-            let index = [0, 1, 2].map(|a| _mm256_min_epi32(_mm256_max_epi32(_mm256_cvttps_epi32(at[a]), zero), top[a]));
-            let frac = [0, 1, 2].map(|a| _mm256_sub_ps(at[a], _mm256_cvtepi32_ps(index[a])));
-            let b = _mm256_add_epi32(
-                _mm256_add_epi32(index[0], _mm256_mullo_epi32(nx, index[1])),
-                _mm256_mullo_epi32(nxy, index[2]),
-            );
-            // SAFETY: b + corner is at most the lookup's largest index, inside `data`.
-            let v = corner.map(|c| unsafe { _mm256_i32gather_ps::<4>(ptr.offset(c), b) });
-            let lerp = |a: __m256, b: __m256, f: __m256| _mm256_add_ps(a, _mm256_mul_ps(_mm256_sub_ps(b, a), f));
-            let c00 = lerp(v[0], v[1], frac[0]);
-            let c10 = lerp(v[2], v[3], frac[0]);
-            let c01 = lerp(v[4], v[5], frac[0]);
-            let c11 = lerp(v[6], v[7], frac[0]);
-            let value = lerp(lerp(c00, c10, frac[1]), lerp(c01, c11, frac[1]), frac[2]);
-            if n + 8 <= len {
-                // SAFETY: n + 8 <= out.len().
-                unsafe { _mm256_storeu_ps(out.as_mut_ptr().add(n), value) };
+            let at = [0, 1, 2].map(|a| _mm256_add_ps(base8[a], _mm256_mul_ps(step8[a], fi)));
+            // SAFETY: the caller's data fits the lookup.
+            let value = unsafe { lanes.sample8(ptr, at) };
+            let dst = out[n..].as_mut_ptr();
+            if len - n >= 8 {
+                // SAFETY: out holds eight floats from n.
+                unsafe { _mm256_storeu_ps(dst, value) };
             } else {
-                let mut group = [0f32; 8];
-                // SAFETY: `group` holds eight floats.
-                unsafe { _mm256_storeu_ps(group.as_mut_ptr(), value) };
-                for (slot, value) in out[n..].iter_mut().zip(group) {
-                    *slot = value;
-                }
+                let mask = _mm256_cmpgt_epi32(_mm256_set1_epi32((len - n) as i32), iota);
+                // SAFETY: the mask writes only the len - n floats out holds from n.
+                unsafe { _mm256_maskstore_ps(dst, mask, value) };
             }
+            n = (n + 8).min(len);
+        }
+        if n < len {
+            let iota = _mm256_castsi256_si128(iota);
+            let fi = _mm_cvtepi32_ps(_mm_add_epi32(_mm_set1_epi32(start + n as i32), iota));
+            let at = [0, 1, 2].map(|a| _mm_add_ps(_mm_set1_ps(base[a]), _mm_mul_ps(_mm_set1_ps(step[a]), fi)));
+            // SAFETY: the caller's data fits the lookup.
+            let value = unsafe { lanes.sample4(ptr, at) };
+            let mask = _mm_cmpgt_epi32(_mm_set1_epi32((len - n) as i32), iota);
+            // SAFETY: the mask writes only the len - n ≤ 4 floats out holds from n.
+            unsafe { _mm_maskstore_ps(out[n..].as_mut_ptr(), mask, value) };
         }
         len
     }
