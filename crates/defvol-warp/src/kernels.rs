@@ -502,3 +502,42 @@ pub(crate) fn write_run<T: Real>(
         *out = sampler.at(base[0] + step[0] * fi, base[1] + step[1] * fi, base[2] + step[2] * fi);
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Tets with random vertices in a 24³ grid, half of them on lattice points (their
+    /// faces then pass through voxel centres: the ties): every row's span, found from its
+    /// estimated bounds, is exactly the run of voxels the predicate holds for.
+    #[test]
+    fn row_spans_are_exactly_the_voxels_inside() {
+        let mut state = 0x9E37_79B9_7F4A_7C15u64;
+        let mut next = move || {
+            state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            (state >> 11) as f64 / (1u64 << 53) as f64 * 24.0
+        };
+        let (mut rows, mut ties) = (0, 0);
+        for t in 0..300 {
+            let on_lattice = t % 2 == 0;
+            let nodes: Vec<Vector3<f64>> = (0..4)
+                .map(|_| Vector3::new(next(), next(), next()).map(|v| if on_lattice { v.round() } else { v }))
+                .collect();
+            let Some(m) = tet_map(&[0, 1, 2, 3], &nodes, &nodes, [25, 25, 25]) else { continue };
+            for k in m.lo[2]..=m.hi[2] {
+                for j in m.lo[1]..=m.hi[1] {
+                    let a = m.row(j, k);
+                    let inside: Vec<usize> = (m.lo[0]..=m.hi[0]).filter(|&i| m.inside(&a, i)).collect();
+                    let expected = inside.first().map(|&first| (first, *inside.last().unwrap_or(&first)));
+                    if let Some((first, last)) = expected {
+                        assert_eq!(inside.len(), last - first + 1, "a row's inside voxels are a run");
+                        ties += usize::from((0..4).any(|m_| (a[m_] - INSIDE_TOLERANCE).fract() == 0.0));
+                    }
+                    assert_eq!(m.span(&a), expected, "tet {t}, row ({j}, {k})");
+                    rows += 1;
+                }
+            }
+        }
+        assert!(rows > 10_000 && ties > 100, "{rows} rows, {ties} on a tie");
+    }
+}
