@@ -9,7 +9,7 @@ use crate::bspline::{self, backward_all, CompiledDisplacement};
 use crate::{Sampling, Scheme, WarpError, WarpOptions, WarpStats};
 use defvol_core::math::Real;
 use defvol_core::mesh::TetMesh;
-use defvol_core::volume::lanes::{trilinear_lanes, CellLookup};
+use defvol_core::volume::lanes::{trilinear_bricked, trilinear_lanes, Bricks, CellLookup};
 use defvol_core::volume::{tricubic, trilinear, Grid, Volume, SAMPLE_TOLERANCE};
 
 /// A voxel is inside a tet when every barycentric coordinate is ≥ -ε. Without it, voxels on
@@ -214,6 +214,8 @@ pub struct Sampler<'a> {
     cell: CellLookup,
     /// Eight-lane runs where the CPU has them ([`crate::WarpPath::Fast`]).
     lanes: bool,
+    /// The source in bricks, which the lanes read where they run.
+    bricks: Option<&'a Bricks>,
 }
 
 impl<'a> Sampler<'a> {
@@ -229,6 +231,12 @@ impl<'a> Sampler<'a> {
             source: source.grid(),
             cell: CellLookup::for_dims(source.dims()),
             lanes: options.path == crate::WarpPath::Fast,
+            // Only plain trilinear runs take the lanes: no copy for the other samplings.
+            bricks: (options.path == crate::WarpPath::Fast
+                && options.sampling == Sampling::Trilinear
+                && options.displacements.is_empty())
+            .then(|| source.bricks())
+            .flatten(),
         })
     }
 
@@ -268,7 +276,13 @@ impl<'a> Sampler<'a> {
         let done = match T::as_f32_mut(inside).filter(|_| self.lanes) {
             Some(lanes) => {
                 let (base, step) = (base.map(|v| v.to_f64() as f32), step.map(|v| v.to_f64() as f32));
-                trilinear_lanes(self.data, cell, lanes, base, step, start as i32)
+                // Bricks pay where a run crosses rows and slices (a rotated source); along
+                // its rows the row-major samples are read in order already.
+                let across = step[1].abs() + step[2].abs() > 0.5;
+                match self.bricks.filter(|_| across) {
+                    Some(bricks) => trilinear_bricked(bricks, lanes, base, step, start as i32),
+                    None => trilinear_lanes(self.data, cell, lanes, base, step, start as i32),
+                }
             }
             None => 0,
         };

@@ -5,6 +5,8 @@ pub mod bspline;
 pub mod lanes;
 pub mod phantom;
 
+use std::sync::OnceLock;
+
 use nalgebra::{Matrix3, Vector3};
 
 #[derive(Debug, thiserror::Error)]
@@ -71,13 +73,24 @@ impl Grid {
 }
 
 /// A scalar voxel volume in file units (millimetres for medical formats).
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone)]
 pub struct Volume {
     dims: [usize; 3],
     spacing: [f64; 3],
     origin: [f64; 3],
     direction: Matrix3<f64>,
     data: Vec<f32>,
+    /// The samples in bricks for the eight-lane samplers, made on first use.
+    bricks: OnceLock<Option<lanes::Bricks>>,
+}
+
+/// Geometry and samples: the bricked copy is derived from them.
+impl PartialEq for Volume {
+    fn eq(&self, other: &Self) -> bool {
+        (self.dims, self.spacing, self.origin, self.direction)
+            == (other.dims, other.spacing, other.origin, other.direction)
+            && self.data == other.data
+    }
 }
 
 impl Volume {
@@ -118,7 +131,7 @@ impl Volume {
             let voxel = [index % dims[0], (index / dims[0]) % dims[1], index / (dims[0] * dims[1])];
             return Err(VolumeError::NonFiniteSample { file: src(), index, voxel });
         }
-        Ok(Self { dims, spacing, origin, direction, data })
+        Ok(Self { dims, spacing, origin, direction, data, bricks: OnceLock::new() })
     }
 
     pub fn dims(&self) -> [usize; 3] {
@@ -139,7 +152,13 @@ impl Volume {
     /// The samples in place, for a stage that rewrites them (the warp's host copy); what it
     /// writes must stay finite, as `new` checks.
     pub fn data_mut(&mut self) -> &mut [f32] {
+        self.bricks = OnceLock::new();
         &mut self.data
+    }
+    /// The samples in bricks ([`lanes::Bricks`]), made on the first call (1.42x the
+    /// samples' memory, kept while the volume lives); none where the CPU has no lanes.
+    pub fn bricks(&self) -> Option<&lanes::Bricks> {
+        self.bricks.get_or_init(|| lanes::Bricks::new(&self.data, self.dims)).as_ref()
     }
     pub fn len(&self) -> usize {
         self.data.len()
