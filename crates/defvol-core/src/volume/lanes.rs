@@ -53,8 +53,6 @@ pub fn trilinear_lanes(
     0
 }
 
-use rayon::prelude::*;
-
 /// Cells along a brick's edge: 2^BRICK_SHIFT.
 const BRICK_SHIFT: i32 = 3;
 const BRICK_CELLS: usize = 1 << BRICK_SHIFT;
@@ -94,17 +92,23 @@ impl Bricks {
         if len > i32::MAX as usize {
             return None;
         }
-        let [nx, ny, _] = dims;
+        let [nx, ny, nz] = dims;
         let mut bricked = vec![0f32; len];
-        bricked.par_chunks_exact_mut(BRICK_VOXELS).enumerate().for_each(|(brick, out)| {
-            let corner =
+        // One thread: a rayon worker building this inside `Volume::bricks` could steal a
+        // task that asks for the same bricks, and wait on itself. A brick row at a time.
+        for (brick, out) in bricked.chunks_exact_mut(BRICK_VOXELS).enumerate() {
+            let [x0, y0, z0] =
                 [brick % count[0], brick / count[0] % count[1], brick / (count[0] * count[1])].map(|b| b * BRICK_CELLS);
-            for (l, value) in out.iter_mut().enumerate() {
-                let local = [l % BRICK_EDGE, l / BRICK_EDGE % BRICK_EDGE, l / (BRICK_EDGE * BRICK_EDGE)];
-                let [x, y, z] = [0, 1, 2].map(|a| (corner[a] + local[a]).min(dims[a] - 1));
-                *value = data[x + nx * (y + ny * z)];
+            for (r, dst) in out.chunks_exact_mut(BRICK_EDGE).enumerate() {
+                // Voxels past the far faces repeat the last one.
+                let (y, z) = ((y0 + r % BRICK_EDGE).min(ny - 1), (z0 + r / BRICK_EDGE).min(nz - 1));
+                let row = &data[nx * (y + ny * z)..][..nx];
+                match row.get(x0..x0 + BRICK_EDGE) {
+                    Some(src) => dst.copy_from_slice(src),
+                    None => dst.iter_mut().enumerate().for_each(|(l, v)| *v = row[(x0 + l).min(nx - 1)]),
+                }
             }
-        });
+        }
         Some(Self { data: bricked, bricks: [count[0], count[1]], top: dims.map(|n| n.saturating_sub(2) as i32) })
     }
 }
