@@ -137,7 +137,9 @@ pub fn trilinear_bricked(bricks: &Bricks, out: &mut [f32], base: [f32; 3], step:
 
 #[cfg(target_arch = "x86_64")]
 mod x86 {
-    use super::CellLookup;
+    // Named from the crate root, not `super`: the layer test reads `super` as the file's
+    // parent module.
+    use crate::volume::lanes::{Bricks, CellLookup, BRICK_CELLS, BRICK_EDGE, BRICK_SHIFT, BRICK_VOXELS};
     use std::arch::x86_64::*;
 
     /// Whether `data` holds the largest index the clamps let a cell's corners reach.
@@ -240,13 +242,12 @@ mod x86 {
     /// The CPU must have AVX2.
     #[target_feature(enable = "avx2")]
     pub(super) unsafe fn trilinear_bricked_avx2(
-        bricks: &super::Bricks,
+        bricks: &Bricks,
         out: &mut [f32],
         base: [f32; 3],
         step: [f32; 3],
         start: i32,
     ) -> usize {
-        use super::{BRICK_EDGE, BRICK_VOXELS};
         let (len, ptr) = (out.len(), bricks.data.as_ptr());
         let iota = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
         let (base, step) = (base.map(|b| _mm256_set1_ps(b)), step.map(|s| _mm256_set1_ps(s)));
@@ -258,14 +259,14 @@ mod x86 {
         let (edge, slice) = (BRICK_EDGE as isize, (BRICK_EDGE * BRICK_EDGE) as isize);
         let local_stride = [1, edge, slice].map(|s| _mm256_set1_epi32(s as i32));
         let corner = [0, 1, edge, edge + 1, slice, slice + 1, slice + edge, slice + edge + 1];
-        let low = _mm256_set1_epi32(super::BRICK_CELLS as i32 - 1);
+        let low = _mm256_set1_epi32(BRICK_CELLS as i32 - 1);
         for n in (0..len).step_by(8) {
             let fi = _mm256_cvtepi32_ps(_mm256_add_epi32(_mm256_set1_epi32(start + n as i32), iota));
             let at = [0, 1, 2].map(|a| _mm256_add_ps(base[a], _mm256_mul_ps(step[a], fi)));
             let index = [0, 1, 2].map(|a| _mm256_min_epi32(_mm256_max_epi32(_mm256_cvttps_epi32(at[a]), zero), top[a]));
             let frac = [0, 1, 2].map(|a| _mm256_sub_ps(at[a], _mm256_cvtepi32_ps(index[a])));
             let part = [0, 1, 2].map(|a| {
-                let brick = _mm256_mullo_epi32(_mm256_srli_epi32::<{ super::BRICK_SHIFT }>(index[a]), brick_stride[a]);
+                let brick = _mm256_mullo_epi32(_mm256_srli_epi32::<{ BRICK_SHIFT }>(index[a]), brick_stride[a]);
                 _mm256_add_epi32(brick, _mm256_mullo_epi32(_mm256_and_si256(index[a], low), local_stride[a]))
             });
             let b = _mm256_add_epi32(_mm256_add_epi32(part[0], part[1]), part[2]);
