@@ -32,8 +32,9 @@ impl CellLookup {
 }
 
 /// Writes trilinear samples at `base + step·(start + n)` into `out` where AVX2 serves (a
-/// last group of fewer than eight computes all eight lanes, which the clamps keep inside the
-/// data, and stores its own); returns how many it wrote: all of `out`, or none.
+/// last group of at most four takes four lanes; a last group's spare lanes sample points the
+/// clamps keep inside the data, and only its own are stored); returns how many it wrote:
+/// all of `out`, or none.
 pub fn trilinear_lanes(
     data: &[f32],
     cell: &CellLookup,
@@ -249,7 +250,6 @@ mod x86 {
         start: i32,
     ) -> usize {
         let (len, ptr) = (out.len(), bricks.data.as_ptr());
-        let iota = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
         let (base, step) = (base.map(|b| _mm256_set1_ps(b)), step.map(|s| _mm256_set1_ps(s)));
         let zero = _mm256_setzero_si256();
         let top = bricks.top.map(|t| _mm256_set1_epi32(t));
@@ -261,8 +261,7 @@ mod x86 {
         let corner = [0, 1, edge, edge + 1, slice, slice + 1, slice + edge, slice + edge + 1];
         let low = _mm256_set1_epi32(BRICK_CELLS as i32 - 1);
         for n in (0..len).step_by(8) {
-            let fi = _mm256_cvtepi32_ps(_mm256_add_epi32(_mm256_set1_epi32(start + n as i32), iota));
-            let at = [0, 1, 2].map(|a| _mm256_add_ps(base[a], _mm256_mul_ps(step[a], fi)));
+            let at = along8(base, step, start + n as i32);
             let index = [0, 1, 2].map(|a| _mm256_min_epi32(_mm256_max_epi32(_mm256_cvttps_epi32(at[a]), zero), top[a]));
             let frac = [0, 1, 2].map(|a| _mm256_sub_ps(at[a], _mm256_cvtepi32_ps(index[a])));
             let part = [0, 1, 2].map(|a| {
@@ -273,17 +272,35 @@ mod x86 {
             // SAFETY: b + corner lies in the cell's brick, inside the bricked samples.
             let v = corner.map(|c| unsafe { _mm256_i32gather_ps::<4>(ptr.offset(c), b) });
             let value = lerp_corners(v, frac);
-            let dst = out[n..].as_mut_ptr();
-            if len - n >= 8 {
-                // SAFETY: out holds eight floats from n.
-                unsafe { _mm256_storeu_ps(dst, value) };
-            } else {
-                let mask = _mm256_cmpgt_epi32(_mm256_set1_epi32((len - n) as i32), iota);
-                // SAFETY: the mask writes only the len - n floats out holds from n.
-                unsafe { _mm256_maskstore_ps(dst, mask, value) };
-            }
+            store8(&mut out[n..], value);
         }
         len
+    }
+
+    /// The eight points `base + step·(first + l)`, lane l, multiplied and added unfused as
+    /// the scalar loop does.
+    #[inline]
+    #[target_feature(enable = "avx2")]
+    fn along8(base: [__m256; 3], step: [__m256; 3], first: i32) -> [__m256; 3] {
+        let iota = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
+        let fi = _mm256_cvtepi32_ps(_mm256_add_epi32(_mm256_set1_epi32(first), iota));
+        [0, 1, 2].map(|a| _mm256_add_ps(base[a], _mm256_mul_ps(step[a], fi)))
+    }
+
+    /// Stores the first `out.len()` lanes of `value`, at most eight.
+    #[inline]
+    #[target_feature(enable = "avx2")]
+    fn store8(out: &mut [f32], value: __m256) {
+        let dst = out.as_mut_ptr();
+        if out.len() >= 8 {
+            // SAFETY: out holds eight floats.
+            unsafe { _mm256_storeu_ps(dst, value) };
+        } else {
+            let iota = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
+            let mask = _mm256_cmpgt_epi32(_mm256_set1_epi32(out.len() as i32), iota);
+            // SAFETY: the mask writes only the floats out holds.
+            unsafe { _mm256_maskstore_ps(dst, mask, value) };
+        }
     }
 
     /// The seven lerps of `lerp_cube`, in its order, over eight lanes of corners.
@@ -319,19 +336,10 @@ mod x86 {
         let step8 = step.map(|s| _mm256_set1_ps(s));
         let mut n = 0;
         while len - n > 4 {
-            let fi = _mm256_cvtepi32_ps(_mm256_add_epi32(_mm256_set1_epi32(start + n as i32), iota));
-            let at = [0, 1, 2].map(|a| _mm256_add_ps(base8[a], _mm256_mul_ps(step8[a], fi)));
+            let at = along8(base8, step8, start + n as i32);
             // SAFETY: the caller's data fits the lookup.
             let value = unsafe { lanes.sample8(ptr, at) };
-            let dst = out[n..].as_mut_ptr();
-            if len - n >= 8 {
-                // SAFETY: out holds eight floats from n.
-                unsafe { _mm256_storeu_ps(dst, value) };
-            } else {
-                let mask = _mm256_cmpgt_epi32(_mm256_set1_epi32((len - n) as i32), iota);
-                // SAFETY: the mask writes only the len - n floats out holds from n.
-                unsafe { _mm256_maskstore_ps(dst, mask, value) };
-            }
+            store8(&mut out[n..], value);
             n = (n + 8).min(len);
         }
         if n < len {
