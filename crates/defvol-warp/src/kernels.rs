@@ -545,7 +545,7 @@ mod tests {
                     let expected = inside.first().map(|&first| (first, *inside.last().unwrap_or(&first)));
                     if let Some((first, last)) = expected {
                         assert_eq!(inside.len(), last - first + 1, "a row's inside voxels are a run");
-                        ties += usize::from((0..4).any(|m_| (a[m_] - INSIDE_TOLERANCE).fract() == 0.0));
+                        ties += usize::from(a.iter().any(|offset| (offset - INSIDE_TOLERANCE).fract() == 0.0));
                     }
                     assert_eq!(m.span(&a), expected, "tet {t}, row ({j}, {k})");
                     rows += 1;

@@ -44,7 +44,7 @@ pub fn trilinear_lanes(
     start: i32,
 ) -> usize {
     #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") && x86::fits(data, cell) {
+    if lanes_available() && x86::fits(data, cell) {
         // SAFETY: AVX2 is present, and every index the gathers read is clamped to at most
         // the lookup's largest, which lies inside `data`.
         return unsafe { x86::trilinear_avx2(data, cell, out, base, step, start) };
