@@ -150,7 +150,7 @@ mod x86 {
         max_offset >= 0 && (max_offset as usize) < data.len()
     }
 
-    /// The cell lookup in vector lanes, set up once per run.
+    /// The cell lookup in vector lanes for row-major samples, set up once per run.
     struct Lanes {
         corner: [isize; 8],
         nx: __m256i,
@@ -158,15 +158,46 @@ mod x86 {
         top: [__m256i; 3],
     }
 
+    /// The cell lookup in vector lanes for bricked samples, set up once per run.
+    struct BrickLanes {
+        corner: [isize; 8],
+        top: [__m256i; 3],
+        /// Per axis: a brick's step in samples, and a voxel's within the brick.
+        brick_stride: [__m256i; 3],
+        local_stride: [__m256i; 3],
+        /// A cell's index within its brick: the low bits.
+        low: __m256i,
+    }
+
+    /// A cell's first corner in row-major samples: i + nx·j + nxy·k.
+    macro_rules! row_major_base {
+        ($lanes:ident, $index:ident, $narrow:ident, $add_i:ident, $mullo:ident, $srli:ident, $and:ident) => {
+            $add_i($add_i($index[0], $mullo($narrow($lanes.nx), $index[1])), $mullo($narrow($lanes.nxy), $index[2]))
+        };
+    }
+
+    /// A cell's first corner in bricked samples: its brick's start plus its place in it.
+    macro_rules! bricked_base {
+        ($lanes:ident, $index:ident, $narrow:ident, $add_i:ident, $mullo:ident, $srli:ident, $and:ident) => {{
+            let part = [0, 1, 2].map(|a| {
+                let brick = $mullo($srli::<{ BRICK_SHIFT }>($index[a]), $narrow($lanes.brick_stride[a]));
+                $add_i(brick, $mullo($and($index[a], $narrow($lanes.low)), $narrow($lanes.local_stride[a])))
+            });
+            $add_i($add_i(part[0], part[1]), part[2])
+        }};
+    }
+
     /// Trilinear samples in one vector width: cell indices and fractions as the scalar loop
-    /// takes them, the eight corners gathered, then the seven lerps of `lerp_cube` in its
-    /// order. Written once for eight lanes (ymm) and four (xmm), which a run's last few
-    /// voxels take at half the gathers.
+    /// takes them, the eight corners gathered (the cell's first corner found by `$base`,
+    /// for the layout), then the seven lerps of `lerp_cube` in its order. Written once for
+    /// eight lanes (ymm) and four (xmm), which a run's last few voxels take at half the
+    /// gathers.
     macro_rules! sample_fn {
-        ($name:ident, $ps:ty, $si:ty, $cvtt:ident, $cvt:ident, $max:ident, $min:ident, $add_i:ident,
-         $mullo:ident, $gather:ident, $add:ident, $sub:ident, $mul:ident, $zero:ident, $narrow:expr) => {
+        ($name:ident, $base:ident, $ps:ty, $si:ty, $cvtt:ident, $cvt:ident, $max:ident, $min:ident,
+         $add_i:ident, $mullo:ident, $srli:ident, $and:ident, $gather:ident, $add:ident, $sub:ident,
+         $mul:ident, $zero:ident, $narrow:expr) => {
             /// # Safety
-            /// The CPU must have AVX2, and `ptr` must lead data that [`fits`] the lookup.
+            /// The CPU must have AVX2, and `ptr` must lead the samples the lookup was made for.
             #[inline]
             #[target_feature(enable = "avx2")]
             unsafe fn $name(&self, ptr: *const f32, at: [$ps; 3]) -> $ps {
@@ -174,8 +205,8 @@ mod x86 {
                 let zero = $zero();
                 let index = [0, 1, 2].map(|a| $min($max($cvtt(at[a]), zero), narrow(self.top[a])));
                 let frac = [0, 1, 2].map(|a| $sub(at[a], $cvt(index[a])));
-                let b = $add_i($add_i(index[0], $mullo(narrow(self.nx), index[1])), $mullo(narrow(self.nxy), index[2]));
-                // SAFETY: b + corner is at most the lookup's largest index, inside the data.
+                let b = $base!(self, index, narrow, $add_i, $mullo, $srli, $and);
+                // SAFETY: b + corner is at most the lookup's largest index, inside the samples.
                 let v = self.corner.map(|c| unsafe { $gather::<4>(ptr.offset(c), b) });
                 let lerp = |a: $ps, b: $ps, f: $ps| $add(a, $mul($sub(b, a), f));
                 let c00 = lerp(v[0], v[1], frac[0]);
@@ -184,6 +215,52 @@ mod x86 {
                 let c11 = lerp(v[6], v[7], frac[0]);
                 lerp(lerp(c00, c10, frac[1]), lerp(c01, c11, frac[1]), frac[2])
             }
+        };
+    }
+
+    /// sample8 and sample4 for a layout.
+    macro_rules! sample_fns {
+        ($base:ident) => {
+            sample_fn!(
+                sample8,
+                $base,
+                __m256,
+                __m256i,
+                _mm256_cvttps_epi32,
+                _mm256_cvtepi32_ps,
+                _mm256_max_epi32,
+                _mm256_min_epi32,
+                _mm256_add_epi32,
+                _mm256_mullo_epi32,
+                _mm256_srli_epi32,
+                _mm256_and_si256,
+                _mm256_i32gather_ps,
+                _mm256_add_ps,
+                _mm256_sub_ps,
+                _mm256_mul_ps,
+                _mm256_setzero_si256,
+                |v| v
+            );
+            sample_fn!(
+                sample4,
+                $base,
+                __m128,
+                __m128i,
+                _mm_cvttps_epi32,
+                _mm_cvtepi32_ps,
+                _mm_max_epi32,
+                _mm_min_epi32,
+                _mm_add_epi32,
+                _mm_mullo_epi32,
+                _mm_srli_epi32,
+                _mm_and_si128,
+                _mm_i32gather_ps,
+                _mm_add_ps,
+                _mm_sub_ps,
+                _mm_mul_ps,
+                _mm_setzero_si128,
+                |v| _mm256_castsi256_si128(v)
+            );
         };
     }
 
@@ -200,44 +277,28 @@ mod x86 {
             }
         }
 
-        sample_fn!(
-            sample8,
-            __m256,
-            __m256i,
-            _mm256_cvttps_epi32,
-            _mm256_cvtepi32_ps,
-            _mm256_max_epi32,
-            _mm256_min_epi32,
-            _mm256_add_epi32,
-            _mm256_mullo_epi32,
-            _mm256_i32gather_ps,
-            _mm256_add_ps,
-            _mm256_sub_ps,
-            _mm256_mul_ps,
-            _mm256_setzero_si256,
-            |v| v
-        );
-        sample_fn!(
-            sample4,
-            __m128,
-            __m128i,
-            _mm_cvttps_epi32,
-            _mm_cvtepi32_ps,
-            _mm_max_epi32,
-            _mm_min_epi32,
-            _mm_add_epi32,
-            _mm_mullo_epi32,
-            _mm_i32gather_ps,
-            _mm_add_ps,
-            _mm_sub_ps,
-            _mm_mul_ps,
-            _mm_setzero_si128,
-            |v| _mm256_castsi256_si128(v)
-        );
+        sample_fns!(row_major_base);
     }
 
-    /// Eight voxels a loop from bricked samples, as [`trilinear_avx2`] (its last group in
-    /// eight lanes, stored with a mask).
+    impl BrickLanes {
+        #[inline]
+        #[target_feature(enable = "avx2")]
+        fn new(bricks: &Bricks) -> Self {
+            let [bx, by] = bricks.bricks.map(|b| b as i32);
+            let (edge, slice) = (BRICK_EDGE as isize, (BRICK_EDGE * BRICK_EDGE) as isize);
+            Self {
+                corner: [0, 1, edge, edge + 1, slice, slice + 1, slice + edge, slice + edge + 1],
+                top: bricks.top.map(|t| _mm256_set1_epi32(t)),
+                brick_stride: [1, bx, bx * by].map(|s| _mm256_set1_epi32(s * BRICK_VOXELS as i32)),
+                local_stride: [1, edge, slice].map(|s| _mm256_set1_epi32(s as i32)),
+                low: _mm256_set1_epi32(BRICK_CELLS as i32 - 1),
+            }
+        }
+
+        sample_fns!(bricked_base);
+    }
+
+    /// Eight voxels a loop from bricked samples, as [`trilinear_avx2`].
     ///
     /// # Safety
     /// The CPU must have AVX2.
@@ -249,32 +310,10 @@ mod x86 {
         step: [f32; 3],
         start: i32,
     ) -> usize {
-        let (len, ptr) = (out.len(), bricks.data.as_ptr());
-        let (base, step) = (base.map(|b| _mm256_set1_ps(b)), step.map(|s| _mm256_set1_ps(s)));
-        let zero = _mm256_setzero_si256();
-        let top = bricks.top.map(|t| _mm256_set1_epi32(t));
-        let [bx, by] = bricks.bricks.map(|b| b as i32);
-        // Per axis: a brick's step in samples, and a voxel's within the brick.
-        let brick_stride = [1, bx, bx * by].map(|s| _mm256_set1_epi32(s * BRICK_VOXELS as i32));
-        let (edge, slice) = (BRICK_EDGE as isize, (BRICK_EDGE * BRICK_EDGE) as isize);
-        let local_stride = [1, edge, slice].map(|s| _mm256_set1_epi32(s as i32));
-        let corner = [0, 1, edge, edge + 1, slice, slice + 1, slice + edge, slice + edge + 1];
-        let low = _mm256_set1_epi32(BRICK_CELLS as i32 - 1);
-        for n in (0..len).step_by(8) {
-            let at = along8(base, step, start + n as i32);
-            let index = [0, 1, 2].map(|a| _mm256_min_epi32(_mm256_max_epi32(_mm256_cvttps_epi32(at[a]), zero), top[a]));
-            let frac = [0, 1, 2].map(|a| _mm256_sub_ps(at[a], _mm256_cvtepi32_ps(index[a])));
-            let part = [0, 1, 2].map(|a| {
-                let brick = _mm256_mullo_epi32(_mm256_srli_epi32::<{ BRICK_SHIFT }>(index[a]), brick_stride[a]);
-                _mm256_add_epi32(brick, _mm256_mullo_epi32(_mm256_and_si256(index[a], low), local_stride[a]))
-            });
-            let b = _mm256_add_epi32(_mm256_add_epi32(part[0], part[1]), part[2]);
-            // SAFETY: b + corner lies in the cell's brick, inside the bricked samples.
-            let v = corner.map(|c| unsafe { _mm256_i32gather_ps::<4>(ptr.offset(c), b) });
-            let value = lerp_corners(v, frac);
-            store8(&mut out[n..], value);
-        }
-        len
+        let (lanes, ptr) = (BrickLanes::new(bricks), bricks.data.as_ptr());
+        // SAFETY: every bricked index lies in the bricks (clamped cells, corners within
+        // their brick).
+        run(out, base, step, start, |at| unsafe { lanes.sample8(ptr, at) }, |at| unsafe { lanes.sample4(ptr, at) })
     }
 
     /// The eight points `base + step·(first + l)`, lane l, multiplied and added unfused as
@@ -303,20 +342,7 @@ mod x86 {
         }
     }
 
-    /// The seven lerps of `lerp_cube`, in its order, over eight lanes of corners.
-    #[inline]
-    #[target_feature(enable = "avx2")]
-    fn lerp_corners(v: [__m256; 8], frac: [__m256; 3]) -> __m256 {
-        let lerp = |a: __m256, b: __m256, f: __m256| _mm256_add_ps(a, _mm256_mul_ps(_mm256_sub_ps(b, a), f));
-        let c00 = lerp(v[0], v[1], frac[0]);
-        let c10 = lerp(v[2], v[3], frac[0]);
-        let c01 = lerp(v[4], v[5], frac[0]);
-        let c11 = lerp(v[6], v[7], frac[0]);
-        lerp(lerp(c00, c10, frac[1]), lerp(c01, c11, frac[1]), frac[2])
-    }
-
-    /// Eight voxels a loop at `base + step·(start + n)`; a last group of at most four
-    /// takes four lanes, and a last group stores only its own voxels.
+    /// Eight voxels a loop at `base + step·(start + n)`, from row-major samples.
     ///
     /// # Safety
     /// The CPU must have AVX2, and `data` must [`fits`] the lookup.
@@ -329,25 +355,38 @@ mod x86 {
         step: [f32; 3],
         start: i32,
     ) -> usize {
-        let (len, ptr) = (out.len(), data.as_ptr());
-        let lanes = Lanes::new(cell);
+        let (lanes, ptr) = (Lanes::new(cell), data.as_ptr());
+        // SAFETY: the caller's data fits the lookup.
+        run(out, base, step, start, |at| unsafe { lanes.sample8(ptr, at) }, |at| unsafe { lanes.sample4(ptr, at) })
+    }
+
+    /// The samples at `base + step·(start + n)` into `out`, eight lanes a loop; a last group
+    /// of at most four takes four lanes, and a last group stores only its own voxels.
+    /// Returns `out.len()`.
+    #[inline]
+    #[target_feature(enable = "avx2")]
+    fn run(
+        out: &mut [f32],
+        base: [f32; 3],
+        step: [f32; 3],
+        start: i32,
+        sample8: impl Fn([__m256; 3]) -> __m256,
+        sample4: impl Fn([__m128; 3]) -> __m128,
+    ) -> usize {
+        let len = out.len();
         let iota = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
         let base8 = base.map(|b| _mm256_set1_ps(b));
         let step8 = step.map(|s| _mm256_set1_ps(s));
         let mut n = 0;
         while len - n > 4 {
-            let at = along8(base8, step8, start + n as i32);
-            // SAFETY: the caller's data fits the lookup.
-            let value = unsafe { lanes.sample8(ptr, at) };
-            store8(&mut out[n..], value);
+            store8(&mut out[n..], sample8(along8(base8, step8, start + n as i32)));
             n = (n + 8).min(len);
         }
         if n < len {
             let iota = _mm256_castsi256_si128(iota);
             let fi = _mm_cvtepi32_ps(_mm_add_epi32(_mm_set1_epi32(start + n as i32), iota));
             let at = [0, 1, 2].map(|a| _mm_add_ps(_mm_set1_ps(base[a]), _mm_mul_ps(_mm_set1_ps(step[a]), fi)));
-            // SAFETY: the caller's data fits the lookup.
-            let value = unsafe { lanes.sample4(ptr, at) };
+            let value = sample4(at);
             let mask = _mm_cmpgt_epi32(_mm_set1_epi32((len - n) as i32), iota);
             // SAFETY: the mask writes only the len - n ≤ 4 floats out holds from n.
             unsafe { _mm_maskstore_ps(out[n..].as_mut_ptr(), mask, value) };
