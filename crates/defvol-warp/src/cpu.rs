@@ -57,6 +57,31 @@ fn slab_bins(maps: &[Option<TetMap>], first: usize, last: usize, depth: usize) -
     bins
 }
 
+/// Sets every sample of `out` to `value`. f32 samples are stored by `rep stosd` on x86-64:
+/// the CPU's fast-string stores write whole cache lines without reading them first, where a
+/// loop of vector stores reads each line of the (uncached) output before overwriting it;
+/// 5-8 % of a whole rotated warp on one thread.
+fn fill<T: Real>(out: &mut [T], value: f32) {
+    match T::as_f32_mut(out) {
+        #[cfg(target_arch = "x86_64")]
+        Some(samples) => {
+            // SAFETY: `rep stosd` writes rcx = samples.len() 32-bit values from rdi, the
+            // start of the slice, forwards (the ABI keeps the direction flag clear), and
+            // touches no flags and no stack.
+            unsafe {
+                std::arch::asm!(
+                    "rep stosd",
+                    inout("rcx") samples.len() => _,
+                    inout("rdi") samples.as_mut_ptr() => _,
+                    in("eax") value.to_bits(),
+                    options(nostack, preserves_flags),
+                );
+            }
+        }
+        _ => out.fill(T::of(value as f64)),
+    }
+}
+
 fn check_size(grid: &Grid, bytes_per_voxel: u64, options: &WarpOptions) -> Result<(), WarpError> {
     let needed = grid.len() as u64 * bytes_per_voxel;
     if needed > options.max_bytes {
@@ -118,7 +143,7 @@ pub fn warp_into<T: Real>(
                     }
                 }
             } else {
-                slab.fill(T::of(options.background as f64));
+                fill(slab, options.background);
             }
             rasterize_slab(slab, [nx, ny], k0, &bins[s], &maps, &sampler, options.scheme, [0, 0], [nx - 1, ny - 1])
         })
@@ -337,7 +362,7 @@ impl IncrementalWarp {
                                 *v = initial_value(&sampler, &identity, true, lo[0] + di, j, k0 + dk);
                             }
                         } else {
-                            row.fill(background);
+                            fill(row, background);
                         }
                     }
                 }
@@ -382,6 +407,24 @@ mod tests {
             assert!(fast_stats.inside > 10_000, "{fast_stats:?}");
             let differ = fast.iter().zip(&baseline).filter(|(a, b)| a.to_bits() != b.to_bits()).count();
             assert_eq!(differ, 0, "{differ} voxels differ (keep_uncovered {keep_uncovered})");
+        }
+    }
+
+    /// The background fill writes exactly its slice, every sample the value's bits, at any
+    /// length and alignment, in f32 (`rep stosd`) and f64.
+    #[test]
+    fn the_fill_writes_exactly_its_samples() {
+        for len in 0..70 {
+            for offset in 0..4 {
+                let mut samples = vec![f32::NAN; len + 8];
+                fill(&mut samples[offset..offset + len], -7.25);
+                let changed: Vec<usize> = (0..samples.len()).filter(|&i| !samples[i].is_nan()).collect();
+                assert_eq!(changed, (offset..offset + len).collect::<Vec<_>>(), "f32, {len} at {offset}");
+                assert!(changed.iter().all(|&i| samples[i].to_bits() == (-7.25f32).to_bits()));
+                let mut wide = vec![f64::NAN; len + 8];
+                fill(&mut wide[offset..offset + len], -7.25);
+                assert!(wide.iter().enumerate().all(|(i, v)| (offset..offset + len).contains(&i) == (*v == -7.25)));
+            }
         }
     }
 
