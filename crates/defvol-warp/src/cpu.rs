@@ -59,8 +59,8 @@ fn slab_bins(maps: &[Option<TetMap>], first: usize, last: usize, depth: usize) -
 
 /// Sets every sample of `out` to `value`. f32 samples are stored by `rep stosd` on x86-64:
 /// the CPU's fast-string stores write whole cache lines without reading them first, where a
-/// loop of vector stores reads each line of the (uncached) output before overwriting it;
-/// 5-8 % of a whole rotated warp on one thread.
+/// loop of vector stores reads each line of the (uncached) output before overwriting it
+/// (3-8 % of a rotated warp on one thread, side by side).
 fn fill<T: Real>(out: &mut [T], value: f32) {
     match T::as_f32_mut(out) {
         #[cfg(target_arch = "x86_64")]
