@@ -145,6 +145,24 @@ mod rows4 {
         all
     }
 
+    /// Steps each live lane's bound `at` by `delta` (±1) while its voxel is outside and it
+    /// has not passed the lane's other bound, `other`.
+    #[inline]
+    #[target_feature(enable = "avx")]
+    fn settle(m: &TetMap, a: &[__m256d; 4], dead: __m256d, mut at: __m256d, other: __m256d, delta: f64) -> __m256d {
+        loop {
+            let open = match delta > 0.0 {
+                true => _mm256_cmp_pd::<_CMP_LE_OQ>(at, other),
+                false => _mm256_cmp_pd::<_CMP_GE_OQ>(at, other),
+            };
+            let step = _mm256_andnot_pd(inside(m, a, at), _mm256_andnot_pd(dead, open));
+            if _mm256_movemask_pd(step) == 0 {
+                return at;
+            }
+            at = _mm256_add_pd(at, _mm256_and_pd(step, _mm256_set1_pd(delta)));
+        }
+    }
+
     /// # Safety
     /// The CPU must have AVX.
     #[target_feature(enable = "avx")]
@@ -172,25 +190,11 @@ mod rows4 {
         }
         let one = _mm256_set1_pd(1.0);
         let clamp = |v: __m256d| _mm256_min_pd(_mm256_max_pd(v, box_lo), box_hi);
-        let mut lo = clamp(_mm256_sub_pd(lo, one));
-        let mut hi = clamp(_mm256_add_pd(hi, one));
+        let lo = clamp(_mm256_sub_pd(lo, one));
+        let hi = clamp(_mm256_add_pd(hi, one));
         // Each lane's lower bound up to its first inside voxel, then its upper bound down.
-        loop {
-            let open = _mm256_cmp_pd::<_CMP_LE_OQ>(lo, hi);
-            let step = _mm256_andnot_pd(inside(m, &a, lo), _mm256_andnot_pd(dead, open));
-            if _mm256_movemask_pd(step) == 0 {
-                break;
-            }
-            lo = _mm256_add_pd(lo, _mm256_and_pd(step, one));
-        }
-        loop {
-            let open = _mm256_cmp_pd::<_CMP_GE_OQ>(hi, lo);
-            let step = _mm256_andnot_pd(inside(m, &a, hi), _mm256_andnot_pd(dead, open));
-            if _mm256_movemask_pd(step) == 0 {
-                break;
-            }
-            hi = _mm256_sub_pd(hi, _mm256_and_pd(step, one));
-        }
+        let lo = settle(m, &a, dead, lo, hi, 1.0);
+        let hi = settle(m, &a, dead, hi, lo, -1.0);
         let (mut los, mut his) = ([0.0f64; 4], [0.0f64; 4]);
         // SAFETY: four f64 each.
         unsafe {
@@ -624,23 +628,32 @@ pub(crate) fn write_run<T: Real>(
 mod tests {
     use super::*;
 
-    /// Tets with random vertices in a 24³ grid, half of them on lattice points (their
-    /// faces then pass through voxel centres: the ties): every row's span, found from its
-    /// estimated bounds, is exactly the run of voxels the predicate holds for.
-    #[test]
-    fn row_spans_are_exactly_the_voxels_inside() {
-        let mut state = 0x9E37_79B9_7F4A_7C15u64;
+    /// 300 tets with random vertices in a 24³ grid (an LCG from `seed`), half of them on
+    /// lattice points (their faces then pass through voxel centres: the ties); the
+    /// degenerate ones left out.
+    fn random_tets(seed: u64) -> Vec<TetMap> {
+        let mut state = seed;
         let mut next = move || {
             state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
             (state >> 11) as f64 / (1u64 << 53) as f64 * 24.0
         };
+        (0..300)
+            .filter_map(|t| {
+                let on_lattice = t % 2 == 0;
+                let nodes: Vec<Vector3<f64>> = (0..4)
+                    .map(|_| Vector3::new(next(), next(), next()).map(|v| if on_lattice { v.round() } else { v }))
+                    .collect();
+                tet_map(&[0, 1, 2, 3], &nodes, &nodes, [25, 25, 25])
+            })
+            .collect()
+    }
+
+    /// On random tets, ties included, every row's span, found from its estimated bounds, is
+    /// exactly the run of voxels the predicate holds for.
+    #[test]
+    fn row_spans_are_exactly_the_voxels_inside() {
         let (mut rows, mut ties) = (0, 0);
-        for t in 0..300 {
-            let on_lattice = t % 2 == 0;
-            let nodes: Vec<Vector3<f64>> = (0..4)
-                .map(|_| Vector3::new(next(), next(), next()).map(|v| if on_lattice { v.round() } else { v }))
-                .collect();
-            let Some(m) = tet_map(&[0, 1, 2, 3], &nodes, &nodes, [25, 25, 25]) else { continue };
+        for (t, m) in random_tets(0x9E37_79B9_7F4A_7C15).iter().enumerate() {
             for k in m.lo[2]..=m.hi[2] {
                 for j in m.lo[1]..=m.hi[1] {
                     let a = m.row(j, k);
@@ -658,22 +671,12 @@ mod tests {
         assert!(rows > 10_000 && ties > 100, "{rows} rows, {ties} on a tie");
     }
 
-    /// Four rows at a time (AVX) give each row's span exactly, on the same random tets, ties
+    /// Four rows at a time (AVX) give each row's span exactly, on random tets, ties
     /// included, from every row of every slice of the box and one past it.
     #[test]
     fn four_rows_at_a_time_give_each_rows_span() {
-        let mut state = 0x2545_F491_4F6C_DD1Du64;
-        let mut next = move || {
-            state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-            (state >> 11) as f64 / (1u64 << 53) as f64 * 24.0
-        };
         let mut compared = 0;
-        for t in 0..300 {
-            let on_lattice = t % 2 == 0;
-            let nodes: Vec<Vector3<f64>> = (0..4)
-                .map(|_| Vector3::new(next(), next(), next()).map(|v| if on_lattice { v.round() } else { v }))
-                .collect();
-            let Some(m) = tet_map(&[0, 1, 2, 3], &nodes, &nodes, [25, 25, 25]) else { continue };
+        for (t, m) in random_tets(0x2545_F491_4F6C_DD1D).iter().enumerate() {
             for k in m.lo[2]..=m.hi[2] {
                 for j in m.lo[1]..=m.hi[1] + 1 {
                     let Some(four) = m.spans4(j, k) else {
