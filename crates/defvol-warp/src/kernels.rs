@@ -518,29 +518,24 @@ fn rasterize_tet_slice<T: Real>(
         Scheme::Spans => {
             let Some((s0, s1)) = m.section_rows(k) else { return };
             let (first, last) = (s0.max(j0), s1.min(j1));
-            // The fast path finds four rows' spans at a time.
-            let mut four = [None; 4];
-            for j in first..=last {
-                let span = match sampler.lanes {
-                    true => {
-                        if (j - first) % 4 == 0 {
-                            four = m.spans4(j, k).unwrap_or_else(|| {
-                                [0, 1, 2, 3].map(|r| (j + r <= last).then(|| m.span(&m.row(j + r, k))).flatten())
-                            });
-                        }
-                        four[(j - first) % 4]
+            // Rows in fours: the fast path finds a four's spans at once, else row by row.
+            for j4 in (first..=last).step_by(4) {
+                let rows = (last + 1 - j4).min(4);
+                let four =
+                    sampler.lanes.then(|| m.spans4(j4, k)).flatten().unwrap_or_else(|| {
+                        [0, 1, 2, 3].map(|r| (r < rows).then(|| m.span(&m.row(j4 + r, k))).flatten())
+                    });
+                for (j, span) in (j4..).zip(&four[..rows]) {
+                    let Some((s0, s1)) = *span else { continue };
+                    let (s0, s1) = (s0.max(i0), s1.min(i1));
+                    if s0 > s1 {
+                        continue;
                     }
-                    false => m.span(&m.row(j, k)),
-                };
-                let Some((s0, s1)) = span else { continue };
-                let (s0, s1) = (s0.max(i0), s1.min(i1));
-                if s0 > s1 {
-                    continue;
+                    write_run(&mut slice[j * nx..], m, j, k, s0, s1, sampler);
+                    let n = (s1 - s0 + 1) as u64;
+                    stats.candidates += n;
+                    stats.inside += n;
                 }
-                write_run(&mut slice[j * nx..], m, j, k, s0, s1, sampler);
-                let n = (s1 - s0 + 1) as u64;
-                stats.candidates += n;
-                stats.inside += n;
             }
         }
         Scheme::Bbox => {
