@@ -79,6 +79,7 @@ pub fn run(opts: &RenderBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result
     let tf = TransferFunction::preset("ct_soft_tissue")?;
     #[cfg(feature = "gpu")]
     let gpu = opts.gpu.as_ref().and_then(crate::backend::Backend::context).cloned();
+    let mut volume_medians = VolumeMedians::default();
     for (name, volume) in &volumes {
         for &size in &opts.sizes {
             let camera = phantom_camera(volume, size)?;
@@ -113,14 +114,19 @@ pub fn run(opts: &RenderBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result
                         value: image.psnr(&reference),
                         reference: "f64 point sampling",
                     });
+                    let runs = samples.len();
+                    let time_ms = time_stats(samples);
+                    if (*name, preintegrated, shading) == ("phantom", true, Shading::None) {
+                        volume_medians.0.push(((size, step), time_ms.median));
+                    }
                     emit(&BenchRow {
                         stage: "render",
                         case: format!("{name}_{size}"),
                         backend: "cpu".into(),
                         device: device.clone(),
                         params: json!({"mode": "composite", "prepare_ms": prepare_ms, "step_mm": step, "preintegrated": preintegrated, "shading": shading, "reference_step_mm": opts.reference_step, "tf": "ct_soft_tissue"}),
-                        runs: samples.len(),
-                        time_ms: time_stats(samples),
+                        runs,
+                        time_ms,
                         error,
                         work: json!({"rays": size * size, "voxels": volume.len()}),
                         gpu: None,
@@ -203,9 +209,21 @@ pub fn run(opts: &RenderBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result
         }
     }
     for &target in &opts.source_meshes {
-        source_rows(&source, target, &tf, opts, &mut emit)?;
+        source_rows(&source, target, &tf, opts, &volume_medians, &mut emit)?;
     }
     Ok(())
+}
+
+/// The volume raycaster's CPU medians on the phantom, pre-integrated and unshaded, by
+/// (size, step): what the source through the mesh is held to at the same settings (its
+/// row's `vs_volume_raycast`).
+#[derive(Default)]
+struct VolumeMedians(Vec<((usize, f64), f64)>);
+
+impl VolumeMedians {
+    fn at(&self, size: usize, step: f64) -> Option<f64> {
+        self.0.iter().find(|(key, _)| *key == (size, step)).map(|(_, ms)| *ms)
+    }
 }
 
 /// One volume frame's inputs, as a peer needs them.
@@ -264,6 +282,7 @@ fn source_rows(
     target: usize,
     tf: &TransferFunction,
     opts: &RenderBenchOptions,
+    volume_medians: &VolumeMedians,
     emit: &mut impl FnMut(&BenchRow),
 ) -> Result<(), RenderBenchError> {
     use crate::backend::Backend;
@@ -319,7 +338,11 @@ fn source_rows(
                     mesh.render(&[], &camera).map_err(|e| setup(&e))
                 };
                 let (image, samples, cost) = timed(opts.runs, (backend, on), &mut frame)?;
-                let row = source_row(&case(size), on, device, "source_through_mesh", step, samples, &image, &reference);
+                let mut row =
+                    source_row(&case(size), on, device, "source_through_mesh", step, samples, &image, &reference);
+                if let (RunsOn::Cpu, Some(volume_ms)) = (on, volume_medians.at(size, step)) {
+                    row.params["vs_volume_raycast"] = json!(row.time_ms.median / volume_ms);
+                }
                 emit(&BenchRow { gpu: cost, ..row });
                 // Warp + volume raycast: onto the source's spacing (what the node does),
                 // and onto half of it (what it takes to come near the source's accuracy).
@@ -537,13 +560,15 @@ fn mesh_gpu_row(
     Ok(())
 }
 
-pub const TABLE_HEADER: &str = "case                   backend  step  preint shading     median ms    fps   PSNR dB";
+pub const TABLE_HEADER: &str =
+    "case                   backend  step  preint shading     median ms    fps   PSNR dB  vs volume";
 
 pub fn table_row(row: &BenchRow) -> String {
     let p = &row.params;
     let error = row.error.as_ref().map_or("-".to_owned(), |e| format!("{:.1}", e.value));
+    let vs_volume = p["vs_volume_raycast"].as_f64().map_or("-".to_owned(), |r| format!("{r:.2}x"));
     format!(
-        "{:<22} {:<7} {:>5} {:>6} {:<10} {:>10.1} {:>6.1} {:>9}",
+        "{:<22} {:<7} {:>5} {:>6} {:<10} {:>10.1} {:>6.1} {:>9} {:>10}",
         row.case,
         row.backend,
         p["step_mm"],
@@ -551,6 +576,7 @@ pub fn table_row(row: &BenchRow) -> String {
         p["shading"].as_str().unwrap_or("?"),
         row.time_ms.median,
         1e3 / row.time_ms.median,
-        error
+        error,
+        vs_volume
     )
 }

@@ -966,3 +966,36 @@ fn an_exported_render_case_rebuilds_the_same_camera_and_arrays() {
     assert_eq!(read, expected.iter().flatten().copied().collect::<Vec<f64>>());
     assert_eq!(case["dims"], serde_json::json!(source.dims()));
 }
+
+/// `bench render` holds the source through the mesh to the volume raycaster: the CPU source
+/// row's `vs_volume_raycast` is its median over the median of the phantom's pre-integrated,
+/// unshaded row at the same size and step (not the point-sampled or shaded one), and no
+/// other row carries one.
+#[test]
+fn the_source_rows_ratio_is_to_the_pre_integrated_unshaded_volume_row() {
+    use defvol::bench::render::{self as bench_render, RenderBenchOptions};
+    let opts = RenderBenchOptions {
+        sizes: vec![24],
+        steps: vec![3.0],
+        runs: 1,
+        reference_step: 3.0,
+        warped: false,
+        meshes: Vec::new(),
+        source_meshes: vec![300],
+        gpu: None,
+        export: None,
+    };
+    let mut rows = Vec::new();
+    bench_render::run(&opts, |row| rows.push((row.case.clone(), row.params.clone(), row.time_ms.median))).unwrap();
+    let volume: Vec<f64> = rows
+        .iter()
+        .filter(|(case, p, _)| case == "phantom_24" && p["preintegrated"] == true && p["shading"] == "none")
+        .map(|(_, _, median)| *median)
+        .collect();
+    assert_eq!(volume.len(), 1, "{rows:?}");
+    let with_ratio: Vec<_> = rows.iter().filter(|(_, p, _)| p.get("vs_volume_raycast").is_some()).collect();
+    assert_eq!(with_ratio.len(), 1, "{rows:?}");
+    let (case, params, median) = with_ratio[0];
+    assert!(case.ends_with(" source") && params["mode"] == "source_through_mesh", "{case}");
+    assert_eq!(params["vs_volume_raycast"].as_f64(), Some(median / volume[0]));
+}
