@@ -163,9 +163,9 @@ pub struct Tables {
     pub pre_hi: f32,
     pub step: f32,
     /// Table entries per scalar unit: (LUT_SIZE - 1) / (hi - lo).
-    lut_scale: f32,
+    pub(crate) lut_scale: f32,
     /// Pre-integrated levels per scalar unit: (PREINTEGRATED_SIZE - 1) / (pre_hi - pre_lo).
-    pre_scale: f32,
+    pub(crate) pre_scale: f32,
 }
 
 impl Tables {

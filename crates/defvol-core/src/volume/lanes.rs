@@ -54,6 +54,9 @@ pub fn trilinear_lanes(
     0
 }
 
+#[cfg(target_arch = "x86_64")]
+pub use x86::Trilinear8;
+
 /// Cells along a brick's edge: 2^BRICK_SHIFT.
 const BRICK_SHIFT: i32 = 3;
 const BRICK_CELLS: usize = 1 << BRICK_SHIFT;
@@ -151,6 +154,7 @@ mod x86 {
     }
 
     /// The cell lookup in vector lanes for row-major samples, set up once per run.
+    #[derive(Clone, Copy)]
     struct Lanes {
         corner: [isize; 8],
         nx: __m256i,
@@ -296,6 +300,40 @@ mod x86 {
         }
 
         sample_fns!(bricked_base);
+    }
+
+    /// Trilinear samples at eight points of one vector: the row-major lanes with the samples
+    /// they read, checked once to hold every index the clamps let a cell's corners reach.
+    #[derive(Clone, Copy)]
+    pub struct Trilinear8<'a> {
+        lanes: Lanes,
+        data: &'a [f32],
+    }
+
+    impl<'a> Trilinear8<'a> {
+        /// The sampler for x-fastest `data` looked up by `cell`, where AVX2 serves and the
+        /// data holds the lookup's largest index.
+        pub fn new(data: &'a [f32], cell: &CellLookup) -> Option<Self> {
+            if !super::lanes_available() || !fits(data, cell) {
+                return None;
+            }
+            // SAFETY: AVX2 is present.
+            Some(Self { lanes: unsafe { Lanes::new(cell) }, data })
+        }
+
+        /// The samples at the eight points `at` (x, y, z lanes), each as the scalar loop
+        /// takes it.
+        ///
+        /// # Safety
+        /// The CPU must have AVX2 (a `Trilinear8` exists only where it does, so a caller
+        /// holding one may call this).
+        #[inline]
+        #[target_feature(enable = "avx2")]
+        pub fn sample(&self, at: [__m256; 3]) -> __m256 {
+            // SAFETY: the data fits the lookup (checked in `new`); the clamps keep every
+            // corner inside it.
+            unsafe { self.lanes.sample8(self.data.as_ptr(), at) }
+        }
     }
 
     /// Eight voxels a loop from bricked samples, as [`trilinear_avx2`].

@@ -16,6 +16,9 @@ use crate::{RenderError, Rendered};
 use defvol_core::volume::lanes::{trilinear_lanes, CellLookup};
 use defvol_core::volume::{trilinear, Grid, Volume};
 
+#[cfg(target_arch = "x86_64")]
+mod packet;
+
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Mode {
@@ -312,15 +315,7 @@ impl<'a> VolumeRaycaster<'a> {
     /// One frame seen by `camera`.
     pub fn render(&self, camera: &Camera) -> Result<Rendered, RenderError> {
         camera.validate()?;
-        let caster = Caster {
-            volume: self.volume,
-            sampler: Sampler::new(self.volume.data(), self.volume.dims()),
-            tables: &self.tables,
-            cells: self.cells.as_ref(),
-            space: &self.space,
-            params: &self.params,
-            gradient_scale: self.gradient_scale,
-        };
+        let caster = self.caster();
         let (w, h) = (camera.width, camera.height);
         let mut rgba = vec![0u8; w * h * 4];
         let mut depth = vec![f32::INFINITY; w * h];
@@ -332,18 +327,36 @@ impl<'a> VolumeRaycaster<'a> {
                 let band_h = depth_rows.len() / w;
                 for tx in (0..w).step_by(TILE) {
                     for dy in 0..band_h {
-                        for px in tx..(tx + TILE).min(w) {
-                            let (origin, direction) = camera.ray(px, band * TILE + dy);
-                            let (color, d) = caster.cast(&origin, &direction);
+                        caster.cast_row(camera, band * TILE + dy, tx..(tx + TILE).min(w), |px, (color, d)| {
                             let i = dy * w + px;
                             rows[i * 4..i * 4 + 4].copy_from_slice(&color.map(to_level));
                             depth_rows[i] = d;
-                        }
+                        });
                     }
                 }
             },
         );
         Ok(Rendered { width: w, height: h, rgba, depth })
+    }
+
+    /// The caster of this volume, tables and parameters, with packets where they serve.
+    fn caster(&self) -> Caster<'_> {
+        let mut caster = Caster {
+            #[cfg(target_arch = "x86_64")]
+            packets: None,
+            volume: self.volume,
+            sampler: Sampler::new(self.volume.data(), self.volume.dims()),
+            tables: &self.tables,
+            cells: self.cells.as_ref(),
+            space: &self.space,
+            params: &self.params,
+            gradient_scale: self.gradient_scale,
+        };
+        #[cfg(target_arch = "x86_64")]
+        {
+            caster.packets = packet::Packets::new(&caster);
+        }
+        caster
     }
 }
 
@@ -458,7 +471,38 @@ impl<'a> Sampler<'a> {
     }
 }
 
+/// A ray in the volume's index space, clipped to it and to a tool in front.
+struct Clipped {
+    o: Vector3<f32>,
+    d: Vector3<f32>,
+    t_near: f32,
+    t_far: f32,
+    /// What lies behind the volume on this ray (the background or the tool), and where.
+    bg: [f32; 4],
+    behind: f32,
+    /// Toward the light, world frame.
+    light: Vector3<f64>,
+    tool: bool,
+}
+
+/// A ray as the caster sets it up.
+enum Setup {
+    /// It misses the volume: the pixel and its depth.
+    Missed([f32; 4], f32),
+    Inside(Clipped),
+}
+
+/// The full segments of `step` in [t_near, t_far], and the length left after them.
+#[inline(always)]
+fn segments(t_near: f32, t_far: f32, step: f32) -> (usize, f32) {
+    let full = ((t_far - t_near) / step).floor() as usize;
+    (full, (t_far - t_near) - full as f32 * step)
+}
+
 struct Caster<'a> {
+    /// Eight rays at once, where they serve (see `packet`).
+    #[cfg(target_arch = "x86_64")]
+    packets: Option<packet::Packets<'a>>,
     volume: &'a Volume,
     sampler: Sampler<'a>,
     tables: &'a Tables,
@@ -469,6 +513,32 @@ struct Caster<'a> {
 }
 
 impl Caster<'_> {
+    /// The pixels `xs` of row `py`, each handed to `put` with its x: eight rays at once
+    /// where packets serve these parameters, else one by one.
+    fn cast_row(
+        &self,
+        camera: &Camera,
+        py: usize,
+        xs: std::ops::Range<usize>,
+        mut put: impl FnMut(usize, ([f32; 4], f32)),
+    ) {
+        #[cfg(target_arch = "x86_64")]
+        if let Some(packets) = &self.packets {
+            for px0 in xs.clone().step_by(packet::LANES) {
+                let count = (xs.end - px0).min(packet::LANES);
+                let pixels = packets.cast(self, camera, (px0, py), count);
+                for (px, pixel) in (px0..px0 + count).zip(pixels) {
+                    put(px, pixel);
+                }
+            }
+            return;
+        }
+        for px in xs {
+            let (origin, direction) = camera.ray(px, py);
+            put(px, self.cast(&origin, &direction));
+        }
+    }
+
     /// Trilinear, clamped (rays are clipped to the box, so only round-off and the
     /// gradient's neighbours at the border are clamped).
     #[inline(always)]
@@ -508,9 +578,9 @@ impl Caster<'_> {
         }
     }
 
-    /// Premultiplied RGBA over the background (or the tool), and the depth where opacity
-    /// passed 0.5 (or the tool's surface).
-    fn cast(&self, origin: &Point3<f64>, direction: &Vector3<f64>) -> ([f32; 4], f32) {
+    /// The ray in index space clipped to the volume (and to the tool in front), or the
+    /// pixel itself where the ray misses the volume.
+    fn clip_ray(&self, origin: &Point3<f64>, direction: &Vector3<f64>) -> Setup {
         let light = self.params.light.map_or(-direction, |l| Vector3::from(l).normalize());
         let tool = nearest_tool(&self.params.tools, self.params.ambient, origin, direction, &light);
         // A tool hides what lies behind it: it is the background of the ray from its surface.
@@ -520,19 +590,37 @@ impl Caster<'_> {
         };
         let (o, d) = self.space.ray(origin, direction);
         let Some((t_near, t_far)) = clip(self.volume.dims(), &o, &d) else {
-            return (bg, behind);
+            return Setup::Missed(bg, behind);
         };
-        let light_index = (self.space.index_from_world * light).cast::<f32>();
-        let (o, d) = (o.cast::<f32>(), d.cast::<f32>());
-        let step = self.params.step as f32;
         let (t_near, t_far) = (t_near as f32, (t_far as f32).min(behind));
         if t_far < t_near {
-            return (bg, behind);
+            return Setup::Missed(bg, behind);
         }
+        Setup::Inside(Clipped {
+            o: o.cast::<f32>(),
+            d: d.cast::<f32>(),
+            t_near,
+            t_far,
+            bg,
+            behind,
+            light,
+            tool: tool.is_some(),
+        })
+    }
+
+    /// Premultiplied RGBA over the background (or the tool), and the depth where opacity
+    /// passed 0.5 (or the tool's surface).
+    fn cast(&self, origin: &Point3<f64>, direction: &Vector3<f64>) -> ([f32; 4], f32) {
+        let Clipped { o, d, t_near, t_far, bg, behind, light, tool } = match self.clip_ray(origin, direction) {
+            Setup::Missed(bg, behind) => return (bg, behind),
+            Setup::Inside(clipped) => clipped,
+        };
+        let light_index = (self.space.index_from_world * light).cast::<f32>();
+        let step = self.params.step as f32;
         let steps = ((t_far - t_near) / step).floor() as usize;
         match self.params.mode {
             Mode::Mip => {
-                if tool.is_some() {
+                if tool {
                     return (bg, behind);
                 }
                 let mut peak = f32::NEG_INFINITY;
@@ -547,11 +635,11 @@ impl Caster<'_> {
                 (color, if depth.is_finite() { depth } else { behind })
             }
             Mode::Composite => {
-                let (color, depth) = match self.params.shading {
-                    Shading::None => self.composite(&o, &d, t_near, t_far, |_| 1.0, bg),
-                    _ => self.composite(&o, &d, t_near, t_far, |p| self.shade(p, &light, &light_index), bg),
+                let ray = match self.params.shading {
+                    Shading::None => self.composite(&o, &d, t_near, t_far, |_| 1.0),
+                    _ => self.composite(&o, &d, t_near, t_far, |p| self.shade(p, &light, &light_index)),
                 };
-                (color, if depth.is_finite() { depth } else { behind })
+                ray.over(bg, behind)
             }
         }
     }
@@ -559,50 +647,26 @@ impl Caster<'_> {
     /// Front-to-back over segments of `step` (the last one shorter), each point-sampled at
     /// its middle or pre-integrated between its ends. The full segments go in runs that
     /// stay inside one visible macro cell (looked up once per cell), each run a tight loop.
-    #[allow(clippy::too_many_arguments)]
-    fn composite(
+    fn composite<'r>(
         &self,
-        o: &Vector3<f32>,
-        d: &Vector3<f32>,
+        o: &'r Vector3<f32>,
+        d: &'r Vector3<f32>,
         t_near: f32,
         t_far: f32,
         shade: impl Fn(&Vector3<f32>) -> f32,
-        bg: [f32; 4],
-    ) -> ([f32; 4], f32) {
+    ) -> Ray<'r> {
         let step = self.params.step as f32;
-        let full = ((t_far - t_near) / step).floor() as usize;
-        let remainder = (t_far - t_near) - full as f32 * step;
+        let (full, remainder) = segments(t_near, t_far, step);
         let mut ray = Ray { o, d, t_near, step, acc: [0.0; 4], depth: f32::INFINITY, front: None };
         let termination = self.params.early_termination as f32;
         let mut k = 0usize;
         let mut terminated = false;
         while k < full && !terminated {
-            let end = match self.cells {
-                None => full,
-                Some(cells) => {
-                    let t0 = t_near + k as f32 * step;
-                    let p0 = o + d * t0;
-                    let exit = cells.exit(&p0, d, t0);
-                    if cells.visible_at(&p0) {
-                        // Every segment that starts inside the cell.
-                        (((exit - t_near) / step).ceil() as usize).clamp(k + 1, full)
-                    } else {
-                        // Segments wholly inside an invisible cell add nothing; the one that
-                        // crosses out of it is integrated.
-                        let inside = ((exit - t_near) / step).floor() as usize;
-                        if inside > k {
-                            k = inside;
-                            ray.front = None;
-                        }
-                        (k + 1).min(full)
-                    }
-                }
-            };
+            let end = self.run_end(&mut ray, &mut k, full);
             terminated = if self.params.preintegrated {
                 // Between the segment's ends; the back scalar of one is the front of the next.
                 ray.run((self, k..end, 1.0), &shade, termination, |ray, k, back| {
-                    let t0 = ray.t_near + k as f32 * ray.step;
-                    let front = ray.front.unwrap_or_else(|| self.sample(&(ray.o + ray.d * t0)));
+                    let front = ray.front.unwrap_or_else(|| self.front(ray, k));
                     ray.front = Some(back);
                     self.tables.segment(front, back)
                 })
@@ -615,16 +679,36 @@ impl Caster<'_> {
         if !terminated && remainder > 1e-6 * step {
             ray.last_segment(self, full, remainder, &shade);
         }
-        let (acc, rest) = (ray.acc, 1.0 - ray.acc[3]);
-        (
-            [
-                acc[0] + rest * bg[0] * bg[3],
-                acc[1] + rest * bg[1] * bg[3],
-                acc[2] + rest * bg[2] * bg[3],
-                acc[3] + rest * bg[3],
-            ],
-            ray.depth,
-        )
+        ray
+    }
+
+    /// The end of the run of full segments from `k` (< `full`): every segment that starts
+    /// inside a visible macro cell, or only the one that crosses out of an invisible cell,
+    /// after `k` jumped over the segments wholly inside it (which add nothing; the scalar at
+    /// the next segment's front is then read anew).
+    #[inline(always)]
+    fn run_end(&self, ray: &mut Ray, k: &mut usize, full: usize) -> usize {
+        let Some(cells) = self.cells else { return full };
+        let t0 = ray.t_near + *k as f32 * ray.step;
+        let p0 = ray.o + ray.d * t0;
+        let exit = cells.exit(&p0, ray.d, t0);
+        if cells.visible_at(&p0) {
+            // Every segment that starts inside the cell.
+            (((exit - ray.t_near) / ray.step).ceil() as usize).clamp(*k + 1, full)
+        } else {
+            let inside = ((exit - ray.t_near) / ray.step).floor() as usize;
+            if inside > *k {
+                *k = inside;
+                ray.front = None;
+            }
+            (*k + 1).min(full)
+        }
+    }
+
+    /// The scalar at the front of segment `k`.
+    #[inline(always)]
+    fn front(&self, ray: &Ray, k: usize) -> f32 {
+        self.sample(&(ray.o + ray.d * (ray.t_near + k as f32 * ray.step)))
     }
 
     #[allow(clippy::too_many_arguments)]
@@ -686,6 +770,18 @@ struct Ray<'a> {
 }
 
 impl Ray<'_> {
+    /// The composited colour over what lies behind it (`bg` at `behind`), and the depth.
+    fn over(&self, bg: [f32; 4], behind: f32) -> ([f32; 4], f32) {
+        let (acc, rest) = (self.acc, 1.0 - self.acc[3]);
+        let color = [
+            acc[0] + rest * bg[0] * bg[3],
+            acc[1] + rest * bg[1] * bg[3],
+            acc[2] + rest * bg[2] * bg[3],
+            acc[3] + rest * bg[3],
+        ];
+        (color, if self.depth.is_finite() { self.depth } else { behind })
+    }
+
     /// Adds a segment's premultiplied colour and α, shaded at its middle; whether the ray is
     /// now opaque enough to stop.
     #[inline(always)]
