@@ -314,7 +314,7 @@ mod x86 {
         /// The sampler for x-fastest `data` looked up by `cell`, where AVX2 serves and the
         /// data holds the lookup's largest index.
         pub fn new(data: &'a [f32], cell: &CellLookup) -> Option<Self> {
-            if !super::lanes_available() || !fits(data, cell) {
+            if !crate::volume::lanes::lanes_available() || !fits(data, cell) {
                 return None;
             }
             // SAFETY: AVX2 is present.

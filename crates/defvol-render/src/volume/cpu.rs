@@ -18,6 +18,8 @@ use defvol_core::volume::{trilinear, Grid, Volume};
 
 #[cfg(target_arch = "x86_64")]
 mod packet;
+#[cfg(target_arch = "x86_64")]
+use defvol_core::volume::lanes::Trilinear8;
 
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -354,7 +356,7 @@ impl<'a> VolumeRaycaster<'a> {
         };
         #[cfg(target_arch = "x86_64")]
         {
-            caster.packets = packet::Packets::new(&caster);
+            caster.packets = caster.packet_sampler();
         }
         caster
     }
@@ -500,9 +502,9 @@ fn segments(t_near: f32, t_far: f32, step: f32) -> (usize, f32) {
 }
 
 struct Caster<'a> {
-    /// Eight rays at once, where they serve (see `packet`).
+    /// Eight rays at once, where they serve (see `cast_packet`).
     #[cfg(target_arch = "x86_64")]
-    packets: Option<packet::Packets<'a>>,
+    packets: Option<Trilinear8<'a>>,
     volume: &'a Volume,
     sampler: Sampler<'a>,
     tables: &'a Tables,
@@ -523,10 +525,10 @@ impl Caster<'_> {
         mut put: impl FnMut(usize, ([f32; 4], f32)),
     ) {
         #[cfg(target_arch = "x86_64")]
-        if let Some(packets) = &self.packets {
+        if let Some(trilinear) = self.packets {
             for px0 in xs.clone().step_by(packet::LANES) {
                 let count = (xs.end - px0).min(packet::LANES);
-                let pixels = packets.cast(self, camera, (px0, py), count);
+                let pixels = self.cast_packet(trilinear, camera, (px0, py), count);
                 for (px, pixel) in (px0..px0 + count).zip(pixels) {
                     put(px, pixel);
                 }
@@ -752,6 +754,150 @@ impl Caster<'_> {
     }
 }
 
+/// Packets of eight rays for the composite, unshaded picture (the vector half in
+/// `cpu/packet.rs`): each lane's macro-cell runs (`run_end`) and the front of a run are
+/// scalar, as in `composite`, the steps through the runs eight wide; the pixels are
+/// `cast`'s bits.
+#[cfg(target_arch = "x86_64")]
+impl<'a> Caster<'a> {
+    /// The eight-point sampler where packets give this caster's pictures: composite,
+    /// unshaded, AVX2 present and the volume inside the sampler's reach.
+    fn packet_sampler(&self) -> Option<Trilinear8<'a>> {
+        if self.params.mode != Mode::Composite || self.params.shading != Shading::None {
+            return None;
+        }
+        Trilinear8::new(self.volume.data(), &self.sampler.cell)
+    }
+
+    /// The pixels (px0 + l, py) for l < `count` (at most [`packet::LANES`]): colour and
+    /// depth, as `cast` gives them.
+    fn cast_packet(
+        &self,
+        trilinear: Trilinear8<'a>,
+        camera: &Camera,
+        (px0, py): (usize, usize),
+        count: usize,
+    ) -> [([f32; 4], f32); packet::LANES] {
+        let mut pixels = [([0.0; 4], f32::INFINITY); packet::LANES];
+        let mut clipped: [Option<Clipped>; packet::LANES] = Default::default();
+        for (l, lane) in clipped.iter_mut().enumerate().take(count) {
+            let (origin, direction) = camera.ray(px0 + l, py);
+            match self.clip_ray(&origin, &direction) {
+                Setup::Missed(bg, behind) => pixels[l] = (bg, behind),
+                Setup::Inside(c) => *lane = Some(c),
+            }
+        }
+        let step = self.params.step as f32;
+        let mut rays = clipped.each_ref().map(|c| {
+            c.as_ref().map(|c| Ray {
+                o: &c.o,
+                d: &c.d,
+                t_near: c.t_near,
+                step,
+                acc: [0.0; 4],
+                depth: f32::INFINITY,
+                front: None,
+            })
+        });
+        // SAFETY: a Trilinear8 exists only where the CPU has AVX2.
+        let terminated = unsafe { self.composite_packet(trilinear, &mut rays, &clipped) };
+        for l in 0..count {
+            let (Some(ray), Some(c)) = (&mut rays[l], &clipped[l]) else { continue };
+            let (full, remainder) = segments(c.t_near, c.t_far, step);
+            if !terminated[l] && remainder > 1e-6 * step {
+                ray.last_segment(self, full, remainder, &|_: &Vector3<f32>| 1.0);
+            }
+            pixels[l] = ray.over(c.bg, c.behind);
+        }
+        pixels
+    }
+
+    /// The full segments of the packet's rays, front to back, into each ray's `acc`,
+    /// `depth` and `front`; which rays terminated.
+    #[target_feature(enable = "avx2")]
+    fn composite_packet(
+        &self,
+        trilinear: Trilinear8<'a>,
+        rays: &mut [Option<Ray>; packet::LANES],
+        clipped: &[Option<Clipped>; packet::LANES],
+    ) -> [bool; packet::LANES] {
+        const LANES: usize = packet::LANES;
+        let preintegrated = self.params.preintegrated;
+        let step = self.params.step as f32;
+        let full = clipped.each_ref().map(|c| c.as_ref().map_or(0, |c| segments(c.t_near, c.t_far, step).0));
+        let (mut k, mut end) = ([0usize; LANES], [0usize; LANES]);
+        let mut live = rays.each_ref().map(Option::is_some);
+        let mut terminated = [false; LANES];
+        let mut lanes = self.packet_lanes(trilinear, rays);
+        loop {
+            // Lanes at the end of a run start their next one, or are done.
+            let mut fronts = [0.0f32; LANES];
+            for l in 0..LANES {
+                let Some(ray) = rays[l].as_mut().filter(|_| live[l]) else { continue };
+                if k[l] >= end[l] {
+                    if k[l] < full[l] {
+                        end[l] = self.run_end(ray, &mut k[l], full[l]);
+                    }
+                    if k[l] >= end[l] {
+                        live[l] = false;
+                        continue;
+                    }
+                }
+                if preintegrated {
+                    let front = ray.front.unwrap_or_else(|| self.front(ray, k[l]));
+                    (ray.front, fronts[l]) = (Some(front), front);
+                }
+            }
+            if !live.contains(&true) {
+                break;
+            }
+            let (ks, stopped, backs) = lanes.runs((k, end, live), fronts);
+            for l in 0..LANES {
+                let Some(ray) = rays[l].as_mut().filter(|_| live[l]) else { continue };
+                if stopped[l] {
+                    (terminated[l], live[l]) = (true, false);
+                } else {
+                    k[l] = ks[l];
+                    if preintegrated {
+                        ray.front = Some(backs[l]);
+                    }
+                }
+            }
+        }
+        let (acc, depth) = lanes.colour();
+        for (l, ray) in rays.iter_mut().enumerate() {
+            if let Some(ray) = ray {
+                (ray.acc, ray.depth) = ([acc[0][l], acc[1][l], acc[2][l], acc[3][l]], depth[l]);
+            }
+        }
+        terminated
+    }
+
+    /// The rays' first samples and steps in the lanes, as `Ray::run` hands them to the
+    /// sampler (at the segments' back ends pre-integrated, at their middles point-sampled).
+    #[target_feature(enable = "avx2")]
+    fn packet_lanes(&self, trilinear: Trilinear8<'a>, rays: &[Option<Ray>; packet::LANES]) -> packet::Lanes<'_> {
+        let preintegrated = self.params.preintegrated;
+        let offset = if preintegrated { 1.0 } else { 0.5 };
+        let (mut base, mut delta) = ([[0.0f32; packet::LANES]; 3], [[0.0f32; packet::LANES]; 3]);
+        let mut t_near = [0.0f32; packet::LANES];
+        for (l, ray) in rays.iter().enumerate() {
+            let Some(ray) = ray else { continue };
+            let (b, s) = (ray.o + ray.d * (ray.t_near + offset * ray.step), ray.d * ray.step);
+            for a in 0..3 {
+                (base[a][l], delta[a][l]) = (b[a], s[a]);
+            }
+            t_near[l] = ray.t_near;
+        }
+        packet::Lanes::new(
+            (trilinear, self.tables, preintegrated),
+            (base, delta),
+            (t_near, self.params.step as f32),
+            self.params.early_termination as f32,
+        )
+    }
+}
+
 /// Samples a run reads at once (eight-lane groups where AVX2 serves) before compositing
 /// them: a ray that turns opaque wastes at most this many minus one.
 const BATCH: usize = 16;
@@ -892,4 +1038,104 @@ pub fn reference(
             })
         })
         .collect())
+}
+
+#[cfg(all(test, target_arch = "x86_64"))]
+mod tests {
+    use nalgebra::{Matrix3, Point3, Vector3};
+
+    use super::{nearest_tool, RaycastParams, Shading, ToolPicture, VolumeRaycaster};
+    use crate::camera::{Camera, Projection};
+    use crate::transfer::TransferFunction;
+    use defvol_core::volume::{phantom, Volume};
+
+    /// An oblique perspective view of `volume` from outside its box, `size` a side.
+    fn oblique(volume: &Volume, (width, height): (usize, usize)) -> Camera {
+        let (lo, hi) = volume.bounds();
+        let centre = Point3::from((lo + hi) / 2.0);
+        let eye = centre + (hi - lo).component_mul(&Vector3::new(-0.6, -1.7, 0.9));
+        Camera::look_at(eye, centre, Vector3::z(), Projection::Perspective { fov_y_deg: 40.0 }, width, height).unwrap()
+    }
+
+    /// A ball of tissue in a box of air (most macro cells invisible, so rays jump over
+    /// runs of them).
+    fn ball_in_air() -> Volume {
+        let n = [40usize, 33, 29];
+        let data = (0..n[0] * n[1] * n[2])
+            .map(|i| {
+                let p = Vector3::new((i % n[0]) as f64, (i / n[0] % n[1]) as f64, (i / (n[0] * n[1])) as f64);
+                let r = (p - Vector3::new(22.0, 15.0, 13.0)).norm();
+                (-1000.0 + 1100.0 * (1.0 - r / 9.0).clamp(0.0, 1.0)) as f32
+            })
+            .collect();
+        Volume::new(n, [1.5, 1.0, 1.2], [3.0, -2.0, 1.0], Matrix3::identity(), data, "ball").unwrap()
+    }
+
+    /// Every pixel of eight-ray packets is the one-ray caster's, colour and depth to the
+    /// bit: point-sampled and pre-integrated, with and without empty-space skipping, early
+    /// termination often and rarely reached, a tool in view, a row not a multiple of eight,
+    /// over the phantom (tissue everywhere) and a ball in air (rays jumping invisible cells).
+    #[test]
+    fn packets_give_the_one_ray_casters_bits() {
+        let tf = TransferFunction::preset("ct_soft_tissue").unwrap();
+        let (mut compared, mut tissue, mut tool_hits, mut jumped) = (0usize, 0usize, 0usize, false);
+        for volume in [phantom::phantom([64, 40, 31], 4.0).unwrap(), ball_in_air()] {
+            let camera = oblique(&volume, (45, 37));
+            let (lo, hi) = volume.bounds();
+            let tip = ((lo + hi) / 2.0 - (hi - lo).component_mul(&Vector3::new(0.1, 0.45, -0.1))).into();
+            let tool = ToolPicture { tip, tail: [tip[0], tip[1], hi.z + 10.0], radius: 3.0, color: [0.9, 0.8, 0.1] };
+            for (preintegrated, empty_space_skipping, early_termination, tools) in [
+                (false, true, 0.999, vec![]),
+                (true, true, 0.999, vec![]),
+                (false, false, 0.9, vec![tool]),
+                (true, true, 0.9, vec![tool]),
+                (true, false, 0.999, vec![]),
+            ] {
+                let params = RaycastParams {
+                    step: 0.7,
+                    preintegrated,
+                    shading: Shading::None,
+                    empty_space_skipping,
+                    early_termination,
+                    background: [0.2, 0.3, 0.4, 1.0],
+                    tools,
+                    ..Default::default()
+                };
+                let raycaster = VolumeRaycaster::new(&volume, &tf, &params).unwrap();
+                let caster = raycaster.caster();
+                let Some(trilinear) = caster.packets else {
+                    eprintln!("skipped: no AVX2 on this CPU");
+                    return;
+                };
+                jumped |= caster
+                    .cells
+                    .is_some_and(|cells| 2 * cells.visible.iter().filter(|v| !**v).count() > cells.visible.len());
+                for py in 0..camera.height {
+                    for px0 in (0..camera.width).step_by(super::packet::LANES) {
+                        let count = (camera.width - px0).min(super::packet::LANES);
+                        let pixels = caster.cast_packet(trilinear, &camera, (px0, py), count);
+                        for (l, (color, depth)) in pixels.iter().take(count).enumerate() {
+                            let (origin, direction) = camera.ray(px0 + l, py);
+                            let (want, want_depth) = caster.cast(&origin, &direction);
+                            assert_eq!(
+                                (color.map(f32::to_bits), depth.to_bits()),
+                                (want.map(f32::to_bits), want_depth.to_bits()),
+                                "pixel ({}, {py}), {params:?}: {color:?} at {depth} against {want:?} at {want_depth}",
+                                px0 + l
+                            );
+                            tissue += usize::from(depth.is_finite());
+                            let light = -direction;
+                            tool_hits += usize::from(
+                                nearest_tool(&params.tools, params.ambient, &origin, &direction, &light).is_some(),
+                            );
+                            compared += 1;
+                        }
+                    }
+                }
+            }
+        }
+        assert_eq!(compared, 2 * 5 * 45 * 37);
+        // Both scenes show tissue and the tool; the ball's box is mostly invisible cells.
+        assert!(jumped && tissue > 2000 && tool_hits > 100, "{jumped} {tissue} {tool_hits}");
+    }
 }
