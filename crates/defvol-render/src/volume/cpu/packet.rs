@@ -38,6 +38,10 @@ impl<'a> Lanes<'a> {
         (t_near, step): ([f32; LANES], f32),
         termination: f32,
     ) -> Self {
+        // The lookups' gathers read within tables of these sizes (checked once here, not
+        // per step).
+        assert_eq!(tables.stepped.len(), LUT_SIZE);
+        assert!(!preintegrated || tables.preintegrated.len() == PREINTEGRATED_SIZE * PREINTEGRATED_SIZE);
         Self {
             trilinear,
             tables,
@@ -73,11 +77,13 @@ impl<'a> Lanes<'a> {
             let at = [0, 1, 2].map(|a| _mm256_add_ps(self.base[a], _mm256_mul_ps(self.delta[a], kf)));
             let value = self.trilinear.sample(at);
             let color = if self.preintegrated {
-                let color = segment8(self.tables, front, value);
+                // SAFETY: the table's size was checked in `new`.
+                let color = unsafe { segment8(self.tables, front, value) };
                 front = value;
                 color
             } else {
-                interpolate8(self.tables, &self.tables.stepped, value)
+                // SAFETY: the table's size was checked in `new`.
+                unsafe { interpolate8(self.tables, &self.tables.stepped, value) }
             };
             // `Ray::add` in the running lanes whose segment adds something.
             let adds = _mm256_and_ps(running, _mm256_cmp_ps::<_CMP_GT_OQ>(color[3], tiny));
@@ -166,10 +172,12 @@ unsafe fn gather(ptr: *const f32, at: __m256i) -> __m256 {
 }
 
 /// `Tables::interpolate` in the lanes: `table` (`LUT_SIZE` entries over [lo, hi]) at `s`.
+///
+/// # Safety
+/// `table` must hold `LUT_SIZE` entries.
 #[inline]
 #[target_feature(enable = "avx2")]
-fn interpolate8(tables: &Tables, table: &[[f32; 4]], s: __m256) -> [__m256; 4] {
-    assert_eq!(table.len(), LUT_SIZE);
+unsafe fn interpolate8(tables: &Tables, table: &[[f32; 4]], s: __m256) -> [__m256; 4] {
     let x = _mm256_mul_ps(_mm256_sub_ps(s, _mm256_set1_ps(tables.lo)), _mm256_set1_ps(tables.lut_scale));
     let x = clamp8(x, (LUT_SIZE - 1) as f32);
     let i = _mm256_min_epi32(_mm256_cvttps_epi32(x), _mm256_set1_epi32(LUT_SIZE as i32 - 2));
@@ -181,11 +189,13 @@ fn interpolate8(tables: &Tables, table: &[[f32; 4]], s: __m256) -> [__m256; 4] {
 }
 
 /// `Tables::segment` in the lanes: the pre-integrated segments from `front` to `back`.
+///
+/// # Safety
+/// The pre-integrated table must hold `PREINTEGRATED_SIZE`² entries.
 #[inline]
 #[target_feature(enable = "avx2")]
-fn segment8(tables: &Tables, front: __m256, back: __m256) -> [__m256; 4] {
+unsafe fn segment8(tables: &Tables, front: __m256, back: __m256) -> [__m256; 4] {
     let n = PREINTEGRATED_SIZE;
-    assert_eq!(tables.preintegrated.len(), n * n);
     let (lo, scale) = (_mm256_set1_ps(tables.pre_lo), _mm256_set1_ps(tables.pre_scale));
     let level = |s| clamp8(_mm256_mul_ps(_mm256_sub_ps(s, lo), scale), (n - 1) as f32);
     let (x, y) = (level(front), level(back));
