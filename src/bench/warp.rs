@@ -129,10 +129,14 @@ pub fn warp(opts: &WarpBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result<
             #[cfg(feature = "gpu")]
             if let Some(ctx) = opts.gpu.as_ref().and_then(crate::backend::Backend::context) {
                 let grid = w::default_grid(&source, &deformed);
-                let (reference, _) = w::warp_samples::<f64>(&source, &mesh, &deformed, &grid, &WarpOptions::default())?;
-                for &path in opts.paths() {
-                    let work = WarpWork { source: &source, mesh: &mesh, deformed: &deformed, grid: &grid };
-                    warp_gpu_rows(ctx, &work, &reference, case, path, &mut emit)?;
+                let work = WarpWork { source: &source, mesh: &mesh, deformed: &deformed, grid: &grid };
+                for &sampling in &opts.samplings {
+                    let reference_opts = WarpOptions { sampling, ..Default::default() };
+                    let (reference, _) = w::warp_samples::<f64>(&source, &mesh, &deformed, &grid, &reference_opts)?;
+                    for &path in opts.paths() {
+                        let options = WarpOptions { sampling, path, ..Default::default() };
+                        warp_gpu_rows(ctx, &work, &reference, case, &options, opts.runs, &mut emit)?;
+                    }
                 }
             }
             if opts.incremental {
@@ -193,23 +197,22 @@ pub fn warp(opts: &WarpBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result<
     Ok(())
 }
 
-/// GPU rows: the spans scheme with trilinear sampling on `path`, including the read-back,
-/// against the f64 `reference` of the same work.
+/// GPU rows: the spans scheme with `options`' sampling and path, `runs` warps each with its
+/// read-back, against the f64 `reference` of the same work.
 #[cfg(feature = "gpu")]
 fn warp_gpu_rows(
     ctx: &std::sync::Arc<crate::gpu::GpuContext>,
     work: &WarpWork,
     reference: &[f64],
     case: WarpCase,
-    path: crate::warp::WarpPath,
+    options: &crate::warp::WarpOptions,
+    runs: usize,
     emit: &mut impl FnMut(&BenchRow),
 ) -> Result<(), crate::warp::WarpError> {
     use crate::warp::gpu::GpuWarp;
-    use crate::warp::WarpOptions;
     let WarpWork { source, mesh, deformed, grid } = *work;
     let device = ctx.describe();
-    let options = WarpOptions { path, ..Default::default() };
-    let warper = match GpuWarp::new(ctx.clone(), source, mesh, grid.clone(), &options, 1.0) {
+    let warper = match GpuWarp::new(ctx.clone(), source, mesh, grid.clone(), options, 1.0) {
         Ok(w) => w,
         Err(e) => {
             tracing::warn!("GPU warp unavailable: {e}");
@@ -217,19 +220,17 @@ fn warp_gpu_rows(
         }
     };
     let mut times = Vec::new();
-    let mut out = Vec::new();
+    // Kept from run to run, as the node keeps its shared-memory samples.
+    let mut out = vec![0f32; grid.len()];
     let mut meter = None;
-    for run in 0..=3 {
+    for run in 0..=runs.max(3) {
         if run == 1 {
             meter = Some(super::GpuMeter::on(ctx));
         }
         let start = Instant::now();
-        match warper.warp(mesh, deformed) {
-            Ok((data, _)) => out = data,
-            Err(e) => {
-                tracing::warn!("GPU warp failed: {e}");
-                return Ok(());
-            }
+        if let Err(e) = warper.warp_into(mesh, deformed, &mut out) {
+            tracing::warn!("GPU warp failed: {e}");
+            return Ok(());
         }
         if run > 0 {
             times.push(start.elapsed().as_secs_f64() * 1e3);
@@ -245,7 +246,8 @@ fn warp_gpu_rows(
         case: format!("lattice{}_{}", mesh.tets().len(), case.name()),
         backend: "gpu".into(),
         device,
-        params: json!({"scheme": "spans", "sampling": "trilinear", "dims": grid.dims, "path": format!("{path:?}").to_lowercase(), "includes_readback": true}),
+        params: json!({"scheme": "spans", "sampling": format!("{:?}", options.sampling).to_lowercase(), "dims": grid.dims,
+            "path": format!("{:?}", options.path).to_lowercase(), "includes_readback": true}),
         runs: times.len(),
         time_ms: time_stats(times),
         error: Some(ErrorMeasure { metric: "max_abs_over_range", value: error, reference: "f64" }),

@@ -318,17 +318,28 @@ impl GpuWarp {
     }
 
     /// Warps to `deformed` (positions in the source's units, `to_file` = 1) and reads the
-    /// samples back: the one-shot path of `defvol warp` and the benches.
+    /// samples back: the one-shot path of `defvol warp`.
     pub fn warp(&self, rest: &TetMesh, deformed: &[Vector3<f64>]) -> Result<(Vec<f32>, WarpStats), GpuWarpError> {
+        let mut out = vec![0f32; self.grid.len()];
+        let stats = self.warp_into(rest, deformed, &mut out)?;
+        Ok((out, stats))
+    }
+
+    /// As [`GpuWarp::warp`], read back into `out` (the grid's length), which a caller keeps
+    /// from step to step: the benches, as the node keeps its shared-memory samples.
+    pub fn warp_into(
+        &self,
+        rest: &TetMesh,
+        deformed: &[Vector3<f64>],
+        out: &mut [f32],
+    ) -> Result<WarpStats, GpuWarpError> {
         if deformed.len() != rest.nodes().len() {
             return Err(WarpError::NodeCount { got: deformed.len(), expected: rest.nodes().len() }.into());
         }
         let displacements: Vec<Vector3<f64>> = deformed.iter().zip(rest.nodes()).map(|(p, r)| p - r).collect();
         self.place_host(&displacements)?;
         self.run();
-        let mut out = vec![0f32; self.grid.len()];
-        let stats = self.read_into(&mut out)?;
-        Ok((out, stats))
+        self.read_into(out)
     }
 
     /// Tets in the mesh.

@@ -16,6 +16,7 @@ pub use nodes::DeviceNodes;
 pub use staging::PendingRead;
 pub use timing::{GpuTimes, Timestamps};
 
+use staging::StagingPool;
 use timing::{SpanKind, Timer};
 
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -120,6 +121,8 @@ pub struct GpuContext {
     counters: [AtomicU64; 3],
     /// Timestamp queries, where the adapter offers them.
     timer: Option<Timer>,
+    /// Read-backs' staging buffers, kept for the next read.
+    staging: StagingPool,
 }
 
 /// What the plumbing counted since the context was opened: queue submissions, blocking
@@ -199,7 +202,14 @@ impl GpuContext {
             .await
             .map_err(|e| GpuError::Device { adapter: info.name.clone(), message: e.to_string() })?;
         let timer = Timer::new(&device, &queue);
-        Ok(Self { device, queue, adapter_info: info, counters: Default::default(), timer })
+        Ok(Self {
+            device,
+            queue,
+            adapter_info: info,
+            counters: Default::default(),
+            timer,
+            staging: StagingPool::default(),
+        })
     }
 
     /// Whether the adapter is a software one (lavapipe, llvmpipe): its timings say nothing
@@ -419,12 +429,7 @@ impl GpuContext {
         let size: u64 = parts.iter().map(|(_, bytes)| bytes).sum();
         self.counters[1].fetch_add(1, Ordering::Relaxed);
         self.counters[2].fetch_add(size, Ordering::Relaxed);
-        let staging = self.device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("read-back"),
-            size: size.max(4),
-            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        });
+        let staging = self.staging.take(&self.device, size);
         let mut at = 0;
         for (buffer, bytes) in parts {
             self.copy_buffer(&mut encoder, buffer, 0, &staging, at, *bytes);
@@ -443,7 +448,9 @@ impl GpuContext {
     /// As [`GpuContext::finish_read`], the parts of a read of several buffers each into its
     /// own destination (a volume into a shared-memory sample, its counters beside).
     pub fn finish_read_parts(&self, pending: PendingRead, outs: &mut [&mut [u8]]) -> Result<(), GpuError> {
-        pending.wait_into(&self.device, outs).map_err(GpuError::Readback)
+        let staging = pending.wait_into(&self.device, outs).map_err(GpuError::Readback)?;
+        self.staging.give(staging);
+        Ok(())
     }
 }
 
@@ -567,5 +574,23 @@ mod tests {
         ctx.finish_read(pending, &mut bytes).unwrap();
         assert_eq!((bytes[..32].to_vec(), bytes[32..].to_vec()), (vec![0u8; 32], vec![7u8; 16]));
         assert_eq!(ctx.counters().since(&start), GpuCounters { submissions: 3, readbacks: 2, bytes_read_back: 112 });
+    }
+
+    /// Read-backs keep their staging buffer: a large read (copied on every thread), then a
+    /// small read and a two-part read through that same larger buffer, each give exactly
+    /// its own buffers' bytes.
+    #[test]
+    fn read_backs_through_a_kept_staging_buffer_give_each_buffers_own_bytes() {
+        let Some(ctx) = test_context() else { return };
+        let large: Vec<u8> = (0..6u32 << 20).map(|i| (i % 251) as u8).collect();
+        let (big, small) = (ctx.storage_buffer("large", &large), ctx.storage_buffer("small", &[9u8; 4096]));
+        assert_eq!(ctx.read_back(&big, large.len() as u64).unwrap(), large);
+        assert_eq!(ctx.staging.kept(), vec![large.len() as u64]);
+        assert_eq!(ctx.read_back(&small, 4096).unwrap(), vec![9u8; 4096]);
+        let pending = ctx.read_back_later(&[(&small, 100), (&big, 5 << 20)]);
+        let (mut head, mut tail) = (vec![0u8; 100], vec![0u8; 5 << 20]);
+        ctx.finish_read_parts(pending, &mut [&mut head, &mut tail]).unwrap();
+        assert_eq!((head, &tail[..]), (vec![9u8; 100], &large[..5 << 20]));
+        assert_eq!(ctx.staging.kept(), vec![large.len() as u64]);
     }
 }
