@@ -59,7 +59,7 @@ pub struct WarpBenchOptions {
     /// Write each case's work (source, mesh in index space, f64 reference) here, for the
     /// peers in `benches/peers/` to run exactly the same warp.
     pub export: Option<std::path::PathBuf>,
-    /// Also time the paths before the speed work (`WarpPath::Baseline`), in the same run.
+    /// Also time the CPU path before the speed work (`WarpPath::Baseline`), in the same run.
     pub baseline: bool,
 }
 
@@ -133,10 +133,8 @@ pub fn warp(opts: &WarpBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result<
                 for &sampling in &opts.samplings {
                     let reference_opts = WarpOptions { sampling, ..Default::default() };
                     let (reference, _) = w::warp_samples::<f64>(&source, &mesh, &deformed, &grid, &reference_opts)?;
-                    for &path in opts.paths() {
-                        let options = WarpOptions { sampling, path, ..Default::default() };
-                        warp_gpu_rows(ctx, &work, &reference, case, &options, opts.runs, &mut emit)?;
-                    }
+                    let options = WarpOptions { sampling, ..Default::default() };
+                    warp_gpu_rows(ctx, &work, &reference, case, &options, opts.runs, &mut emit)?;
                 }
             }
             if opts.incremental {
@@ -197,7 +195,7 @@ pub fn warp(opts: &WarpBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result<
     Ok(())
 }
 
-/// GPU rows: the spans scheme with `options`' sampling and path, `runs` warps each with its
+/// GPU rows: the spans scheme with `options`' sampling, `runs` warps each with its
 /// read-back, against the f64 `reference` of the same work.
 #[cfg(feature = "gpu")]
 fn warp_gpu_rows(
@@ -247,7 +245,7 @@ fn warp_gpu_rows(
         backend: "gpu".into(),
         device,
         params: json!({"scheme": "spans", "sampling": format!("{:?}", options.sampling).to_lowercase(), "dims": grid.dims,
-            "path": format!("{:?}", options.path).to_lowercase(), "includes_readback": true}),
+            "includes_readback": true}),
         runs: times.len(),
         time_ms: time_stats(times),
         error: Some(ErrorMeasure { metric: "max_abs_over_range", value: error, reference: "f64" }),

@@ -110,8 +110,8 @@ pub enum BenchStage {
         /// in benches/peers/.
         #[arg(long)]
         export: Option<std::path::PathBuf>,
-        /// Also time the paths before the speed work (CPU: scalar samples, a slice a task;
-        /// GPU: a workgroup a tet), in the same run: rows with `"path": "baseline"`.
+        /// Also time the CPU path before the speed work (scalar samples, a slice a task), in
+        /// the same run: rows with `"path": "baseline"`.
         #[arg(long)]
         baseline: bool,
         #[command(flatten)]

@@ -8,7 +8,9 @@
 //! destination ([`GpuWarp::read_into`]). The rows of all tets' boxes are one flat range (a
 //! prefix sum of their counts on the device, dispatched indirectly), an invocation a row,
 //! so a tet a hundred times bigger than the rest does not leave the GPU waiting on it; the
-//! background is written afterwards, only where no tet wrote.
+//! background is written afterwards, only where no tet wrote. (One workgroup a tet, the
+//! first kernel, ran up to 2.6x slower on an H100 where tets are large and was removed:
+//! `WarpOptions::path` chooses among the CPU's loops only.)
 //!
 //! Differences from the CPU path: maps and spans are computed in f32 on box-local
 //! coordinates, so voxels within ~1e-5 (in barycentric terms) of a tet face may be decided
@@ -19,7 +21,7 @@ use std::sync::Arc;
 use bytemuck::{Pod, Zeroable};
 use nalgebra::{Matrix3, Vector3};
 
-use crate::{Sampling, WarpError, WarpOptions, WarpPath, WarpStats};
+use crate::{Sampling, WarpError, WarpOptions, WarpStats};
 use defvol_core::mesh::TetMesh;
 use defvol_core::volume::{Grid, Volume};
 use defvol_gpu::gpu::{self, DeviceNodes, GpuContext, GpuError, Kernels};
@@ -74,10 +76,9 @@ pub struct GpuWarp {
     /// `warp_rows`' dispatch, copied out of `rows` (a buffer bound for writing cannot be
     /// read as the dispatch that binds it).
     dispatch: wgpu::Buffer,
-    kernels: Kernels<6>,
+    kernels: Kernels<5>,
     bind_group: wgpu::BindGroup,
     groups: Groups,
-    path: WarpPath,
     /// The last warp's work, once read back with its volume (a later `stats` then costs no
     /// round trip).
     read: std::sync::Mutex<Option<WarpStats>>,
@@ -87,7 +88,6 @@ pub struct GpuWarp {
 struct Groups {
     fill: (u32, u32),
     maps: (u32, u32),
-    tets: (u32, u32),
     scan: (u32, u32),
 }
 
@@ -131,7 +131,6 @@ impl GpuWarp {
         let groups = Groups {
             fill: gpu::groups_2d(grid.len() as u32, WORKGROUP),
             maps: gpu::groups_2d(tet_count, WORKGROUP),
-            tets: gpu::groups_2d(tet_count, 1),
             scan: gpu::groups_2d(blocks, 1),
         };
         let d = |dims: [usize; 3], w: u32| [dims[0] as u32, dims[1] as u32, dims[2] as u32, w];
@@ -145,7 +144,7 @@ impl GpuWarp {
                 if options.keep_uncovered { 1.0 } else { 0.0 },
             ],
             identity,
-            groups: [groups.fill.0, groups.maps.0, groups.tets.0, u32::from(options.sampling == Sampling::Tricubic)],
+            groups: [groups.fill.0, groups.maps.0, 0, u32::from(options.sampling == Sampling::Tricubic)],
             scan: [groups.scan.0, blocks, 0, 0],
         };
         use defvol_gpu::gpu::Binding::{Read, ReadWrite, Uniform};
@@ -153,7 +152,7 @@ impl GpuWarp {
             "warp.wgsl",
             include_str!("warp.wgsl"),
             &[Uniform, ReadWrite, Read, ReadWrite, Read, Read, Read, ReadWrite, Read, ReadWrite],
-            ["fill", "tet_maps", "warp_tets", "scan_rows", "scan_blocks", "warp_rows"],
+            ["fill", "tet_maps", "scan_rows", "scan_blocks", "warp_rows"],
         );
         let params = wgpu::util::DeviceExt::create_buffer_init(
             &ctx.device,
@@ -195,7 +194,6 @@ impl GpuWarp {
             kernels,
             bind_group,
             groups,
-            path: options.path,
             read: Default::default(),
         })
     }
@@ -235,23 +233,19 @@ impl GpuWarp {
     /// Queues one warp of the placed nodes: tet maps, their rows counted and summed, the
     /// rows' spans, then the background (or source) where no tet wrote.
     pub fn run(&self) {
-        let [fill, tet_maps, warp_tets, scan_rows, scan_blocks, warp_rows] = &self.kernels.pipelines;
+        let [fill, tet_maps, scan_rows, scan_blocks, warp_rows] = &self.kernels.pipelines;
         let g = &self.groups;
         let mut encoder =
             self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("warp") });
         encoder.clear_buffer(&self.stats, 0, None);
-        match self.path {
-            WarpPath::Fast => {
-                self.pass(&mut encoder, &[(tet_maps, g.maps), (scan_rows, g.scan), (scan_blocks, (1, 1))]);
-                encoder.copy_buffer_to_buffer(&self.rows, 0, &self.dispatch, 0, 12);
-                let mut pass = self.begin_pass(&mut encoder);
-                pass.set_pipeline(warp_rows);
-                pass.dispatch_workgroups_indirect(&self.dispatch, 0);
-                pass.set_pipeline(fill);
-                pass.dispatch_workgroups(g.fill.0, g.fill.1, 1);
-            }
-            WarpPath::Baseline => self.pass(&mut encoder, &[(tet_maps, g.maps), (warp_tets, g.tets), (fill, g.fill)]),
-        }
+        self.pass(&mut encoder, &[(tet_maps, g.maps), (scan_rows, g.scan), (scan_blocks, (1, 1))]);
+        encoder.copy_buffer_to_buffer(&self.rows, 0, &self.dispatch, 0, 12);
+        let mut pass = self.begin_pass(&mut encoder);
+        pass.set_pipeline(warp_rows);
+        pass.dispatch_workgroups_indirect(&self.dispatch, 0);
+        pass.set_pipeline(fill);
+        pass.dispatch_workgroups(g.fill.0, g.fill.1, 1);
+        drop(pass);
         self.ctx.submit(encoder.finish());
         *self.read_stats() = None;
     }
@@ -408,21 +402,12 @@ mod tests {
             (bent.clone(), true, Vec::new()),
             (bent, true, pushes),
         ];
-        let variants = [Sampling::Trilinear, Sampling::Tricubic]
-            .into_iter()
-            .flat_map(|s| [WarpPath::Fast, WarpPath::Baseline].map(|p| (s, p)));
-        for ((deformed, keep_uncovered, displacements), (sampling, path)) in
-            cases.iter().flat_map(|case| variants.clone().map(|v| (case.clone(), v)))
+        for ((deformed, keep_uncovered, displacements), sampling) in
+            cases.iter().flat_map(|case| [Sampling::Trilinear, Sampling::Tricubic].map(|s| (case.clone(), s)))
         {
             let grid = warp::default_grid(&source, &deformed);
-            let options = WarpOptions {
-                background: -2000.0,
-                keep_uncovered,
-                sampling,
-                displacements,
-                path,
-                ..Default::default()
-            };
+            let options =
+                WarpOptions { background: -2000.0, keep_uncovered, sampling, displacements, ..Default::default() };
             let (cpu, stats) = warp::warp_samples::<f32>(&source, &mesh, &deformed, &grid, &options).unwrap();
             let gpu = GpuWarp::new(ctx.clone(), &source, &mesh, grid, &options, 1.0).unwrap();
             let (gpu_out, gpu_stats) = gpu.warp(&mesh, &deformed).unwrap();
@@ -435,7 +420,7 @@ mod tests {
             // Measured on lavapipe: 0 of 73,719 decided differently, values within 6e-6 of the range.
             assert!(
                 (off.len() as f64) <= 1e-4 * stats.inside as f64,
-                "{} voxels differ (keep_uncovered {keep_uncovered}, {sampling:?}, {path:?}, {} pushes) of {} inside",
+                "{} voxels differ (keep_uncovered {keep_uncovered}, {sampling:?}, {} pushes) of {} inside",
                 off.len(),
                 options.displacements.len(),
                 stats.inside
@@ -495,6 +480,28 @@ mod tests {
         let err = gpu.warp(&mesh, &huge).unwrap_err();
         assert!(matches!(err, GpuWarpError::TooManyRows), "{err}");
         assert!(err.to_string().contains("more than 2^32 rows"), "{err}");
+    }
+
+    /// An output grid past what one GPU buffer may hold is refused before anything is
+    /// allocated, naming the grid, its size and the adapter's limit.
+    #[test]
+    fn an_output_grid_over_the_buffer_limit_is_refused_naming_the_limit() {
+        let Some(ctx) = defvol_gpu::gpu::test_context() else { return };
+        let limits = ctx.device.limits();
+        let limit = limits.max_storage_buffer_binding_size.min(limits.max_buffer_size);
+        let source = phantom::phantom([16, 16, 16], 1.0).unwrap();
+        let (lo, hi) = source.bounds();
+        let mesh = generate::lattice_for_box(lo, hi, 40, CellSplit::Five).unwrap();
+        // One slice of 1024x1024 voxels (4 MiB) more than the limit holds.
+        let slices = (limit / 4).div_ceil(1 << 20) as usize + 1;
+        let grid =
+            Grid { dims: [1024, 1024, slices], spacing: [1.0; 3], origin: [0.0; 3], direction: Matrix3::identity() };
+        let err = GpuWarp::new(ctx, &source, &mesh, grid, &WarpOptions::default(), 1.0).err().unwrap();
+        let GpuWarpError::Gpu(GpuError::BufferTooLarge { what, needed_mib, limit_mib, .. }) = &err else {
+            panic!("{err}")
+        };
+        assert_eq!((*what, *needed_mib, *limit_mib), ("the output grid", 4 * slices as u64, limit >> 20), "{err}");
+        assert!(err.to_string().contains(&format!("allows {} MiB", limit >> 20)), "{err}");
     }
 
     /// A read-back of a warp is one round trip, its work counted in it (asking for the

@@ -73,19 +73,17 @@ pub struct WarpOptions {
     pub displacements: Vec<DisplacementVolume>,
     /// Refuse output grids larger than this (bytes of f32 samples).
     pub max_bytes: u64,
-    /// Which inner loops run, on the CPU and on the GPU (benchmarks measure both side by
-    /// side).
+    /// Which inner loops run on the CPU (benchmarks measure both side by side; the GPU has
+    /// one kernel).
     pub path: WarpPath,
 }
 
-/// The warp's inner loops: the fast ones, or the paths before the speed work, kept so a
-/// benchmark measures both in one run: on the CPU scalar samples, one output slice a task;
-/// on the GPU one workgroup a tet.
+/// The CPU warp's inner loops: the fast ones, or the path before the speed work (scalar
+/// samples, one output slice a task), kept so a benchmark measures both in one run.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum WarpPath {
-    /// Eight-lane samples where the CPU has AVX2, tets through 1 MiB slabs of slices; on
-    /// the GPU an invocation a row span of any tet (a prefix sum over the tets' rows).
+    /// Eight-lane samples where the CPU has AVX2, tets through 1 MiB slabs of slices.
     #[default]
     Fast,
     Baseline,

@@ -11,14 +11,12 @@
 // - `fill`: every voxel no tet covered gets the background, or with keep_uncovered the
 //   source's value at the same place (Sampler::at through the identity map, as
 //   `initial_value`).
-// `warp_tets`, one workgroup per tet in place of the three passes before `fill`, is the
-// baseline kept for side-by-side timing (WarpPath::Baseline).
 struct Params {
     out_dims: vec4<u32>,   // nx, ny, nz, tet count
     src_dims: vec4<u32>,   // nx, ny, nz, displacement volumes
     background: vec4<f32>, // background, inside tolerance, sample tolerance, keep_uncovered (1/0)
     identity: array<vec4<f32>, 3>, // source index from output index, rows (offset, di, dj, dk)
-    groups: vec4<u32>,     // row widths of the fill, tet-map and warp_tets dispatch grids; sampling (0 trilinear, 1 tricubic)
+    groups: vec4<u32>,     // row widths of the fill and tet-map dispatch grids, 0, sampling (0 trilinear, 1 tricubic)
     scan: vec4<u32>,       // row width of the scan_rows grid, its blocks (256 tets each)
 }
 
@@ -431,25 +429,5 @@ fn warp_rows(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgro
         if (total > 0u) {
             atomicAdd(&stats[0], total);
         }
-    }
-}
-
-// The baseline: one workgroup per tet, its threads taking the rows of the tet's box in turn.
-@compute @workgroup_size(64)
-fn warp_tets(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>) {
-    let t = wid.x + wid.y * params.groups.z;
-    if (t >= params.out_dims.w) {
-        return;
-    }
-    let m = tet_maps_of(t);
-    if (m.size.x == 0u) {
-        return;
-    }
-    var written = 0u;
-    for (var r = lid.x; r < m.size.y * m.size.z; r = r + WG) {
-        written = written + warp_row(m, r);
-    }
-    if (written > 0u) {
-        atomicAdd(&stats[0], written);
     }
 }
