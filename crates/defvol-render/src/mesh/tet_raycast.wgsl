@@ -202,7 +202,11 @@ fn integrate(state: ptr<function, Accumulator>, t0: f32, t1: f32, s0: f32, s1: f
     if !(len > 0.0) {
         return;
     }
-    let step = p.proj.w;
+    // Pre-integrated pieces as long as the table reaches, point samples a step apart.
+    var step = p.proj.w;
+    if (p.image.w & 1u) != 0u {
+        step = p.table.z;
+    }
     var n = 1u;
     if len > step {
         n = min(u32(ceil(len / step)), MAX_PIECES);
