@@ -131,9 +131,8 @@ pub fn warp(opts: &WarpBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result<
                 let grid = w::default_grid(&source, &deformed);
                 let work = WarpWork { source: &source, mesh: &mesh, deformed: &deformed, grid: &grid };
                 for &sampling in &opts.samplings {
-                    let reference_opts = WarpOptions { sampling, ..Default::default() };
-                    let (reference, _) = w::warp_samples::<f64>(&source, &mesh, &deformed, &grid, &reference_opts)?;
                     let options = WarpOptions { sampling, ..Default::default() };
+                    let (reference, _) = w::warp_samples::<f64>(&source, &mesh, &deformed, &grid, &options)?;
                     warp_gpu_rows(ctx, &work, &reference, case, &options, opts.runs, &mut emit)?;
                 }
             }
