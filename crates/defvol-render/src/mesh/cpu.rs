@@ -6,7 +6,11 @@
 //!   goes on in the face neighbour; the scalar is linear inside a tet (a gradient per tet);
 //! - each tet's segment is one lookup in the 3D pre-integrated table on (front scalar, back
 //!   scalar, length) ([`SegmentTable`]), or point samples when pre-integration is off;
-//! - a ray that leaves a non-convex mesh looks for its next boundary hit and re-enters;
+//! - the air around the tissue is cut out once, at creation (`cut_outer_air`): tets whose
+//!   node scalars are all invisible and that reach the mesh's surface through such tets
+//!   are not walked, so rays enter where the tissue starts;
+//! - a ray that leaves a non-convex mesh looks for its next boundary hit and re-enters
+//!   (from a tolerance behind where it left: through an edge, the next tet starts there);
 //! - a ray that starts inside the mesh (the camera in the organ) meets an exit face first:
 //!   it walks back from there to the tet holding its origin and starts there;
 //! - a tool hit ends the ray: the tool is what lies behind the tissue in front of it.
@@ -122,13 +126,68 @@ fn tet_geometry_f32(x: &[V3; 4], s: &[f32; 4]) -> TetGeometry {
     g
 }
 
-/// The faces with no neighbour, as tet · 4 + face.
-fn boundary_faces(neighbours: &[[i32; 4]]) -> Vec<u32> {
+/// Per tet and face: the neighbour across it as tet · 4 + its face, or -1.
+fn face_links(neighbours: &[[i32; 4]]) -> Vec<[i32; 4]> {
     neighbours
         .iter()
         .enumerate()
-        .flat_map(|(t, n)| (0..4u32).filter(move |&k| n[k as usize] < 0).map(move |k| t as u32 * 4 + k))
+        .map(|(t, n)| {
+            n.map(|m| match usize::try_from(m) {
+                Ok(m) => neighbours[m].iter().position(|&b| b == t as i32).map_or(-1, |face| (m * 4 + face) as i32),
+                Err(_) => -1,
+            })
+        })
         .collect()
+}
+
+/// The faces of walked tets with no neighbour, as tet · 4 + face.
+fn boundary_faces(links: &[[i32; 4]], walked: &[bool]) -> Vec<u32> {
+    links
+        .iter()
+        .zip(walked)
+        .enumerate()
+        .filter(|(_, (_, &w))| w)
+        .flat_map(|(t, (n, _))| (0..4u32).filter(move |&k| n[k as usize] < 0).map(move |k| t as u32 * 4 + k))
+        .collect()
+}
+
+/// Which tets rays walk: all but the air around the tissue, the tets whose node scalars all
+/// lie outside the visible span (`visible`, as the walk tests it) and that reach the mesh's
+/// surface through such tets. They contribute nothing, so the mesh is rendered without them
+/// (their links cut): a ray enters where visible tissue starts instead of walking from the
+/// mesh's bounding surface through the air (a lattice over a scan is mostly air around the
+/// body). Invisible pockets inside the tissue stay walked: cut out, each would be another
+/// surface to find and re-enter through.
+fn cut_outer_air(tets: &[[u32; 4]], scalars: &[f32], links: &mut [[i32; 4]], visible: (f32, f32)) -> Vec<bool> {
+    let invisible = |tet: &[u32; 4]| {
+        let (lo, hi) = tet.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), &i| {
+            (lo.min(scalars[i as usize]), hi.max(scalars[i as usize]))
+        });
+        hi <= visible.0 || lo >= visible.1
+    };
+    let mut walked = vec![true; tets.len()];
+    let mut stack: Vec<usize> =
+        (0..tets.len()).filter(|&t| links[t].iter().any(|&l| l < 0) && invisible(&tets[t])).collect();
+    for &t in &stack {
+        walked[t] = false;
+    }
+    while let Some(t) = stack.pop() {
+        for &link in &links[t] {
+            let Ok(next) = usize::try_from(link >> 2) else { continue };
+            if walked[next] && invisible(&tets[next]) {
+                walked[next] = false;
+                stack.push(next);
+            }
+        }
+    }
+    for (t, tet_links) in links.iter_mut().enumerate() {
+        for link in tet_links.iter_mut() {
+            if !walked[t] || usize::try_from(*link >> 2).is_ok_and(|next| !walked[next]) {
+                *link = -1;
+            }
+        }
+    }
+    walked
 }
 
 /// Boundary faces (tet · 4 + face) binned into the image's tiles: tile t holds
@@ -304,18 +363,17 @@ impl TetRaycaster {
         }
         let range = scalars.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), s| (lo.min(*s), hi.max(*s)));
         let tf = tf.resolve(range)?;
+        let far = |v: f64| v.clamp(-1e30, 1e30) as f32;
+        let visible = tf.visible_span();
+        let visible = (far(visible.0), far(visible.1));
         let neighbours = mesh.neighbours();
-        let links = neighbours
-            .iter()
-            .enumerate()
-            .map(|(t, n)| {
-                n.map(|m| match usize::try_from(m) {
-                    Ok(m) => neighbours[m].iter().position(|&b| b == t as i32).map_or(-1, |face| (m * 4 + face) as i32),
-                    Err(_) => -1,
-                })
-            })
-            .collect();
-        let boundary = boundary_faces(neighbours);
+        let mut links = face_links(neighbours);
+        // The source's own visibility is per sample, not per node: its tets are all walked.
+        let walked = match source {
+            None => cut_outer_air(mesh.tets(), scalars, &mut links, visible),
+            Some(_) => vec![true; links.len()],
+        };
+        let boundary = boundary_faces(&links, &walked);
         let (lo, hi) = mesh
             .nodes()
             .iter()
@@ -329,8 +387,6 @@ impl TetRaycaster {
         } else {
             SegmentTable { lo: 0.0, hi: 1.0, max_len: 1.0, level_scale: 1.0, length_scale: 1.0, entries: Vec::new() }
         };
-        let far = |v: f64| v.clamp(-1e30, 1e30) as f32;
-        let visible = tf.visible_span();
         let mut raycaster = Self {
             tets: mesh.tets().to_vec(),
             scalars: scalars.to_vec(),
@@ -342,7 +398,7 @@ impl TetRaycaster {
             table,
             tables: Tables::new(&tf, range, params.step, false),
             tolerance: (1e-5 * diagonal.max(1e-9)) as f32,
-            visible: (far(visible.0), far(visible.1)),
+            visible,
             params: params.clone(),
             source,
         };
@@ -377,14 +433,15 @@ impl TetRaycaster {
     /// New node positions (a deformation step): face planes and gradients recomputed.
     pub fn update(&mut self, positions: &[Vector3<f64>]) -> Result<(), RenderError> {
         check_positions(positions, self.scalars.len())?;
-        self.positions = positions.to_vec();
+        // Written in place: a fresh 12 MB at 155k tets would fault its pages in every frame.
+        self.positions.clear();
+        self.positions.extend_from_slice(positions);
         let anchored: Vec<V3> = positions.iter().map(|p| (p - self.anchor).cast::<f32>()).collect();
-        let scalars = &self.scalars;
-        self.geometry = self
-            .tets
-            .par_iter()
-            .map(|tet| tet_geometry_f32(&tet.map(|i| anchored[i as usize]), &tet.map(|i| scalars[i as usize])))
-            .collect();
+        let (tets, scalars) = (&self.tets, &self.scalars);
+        self.geometry.resize(tets.len(), TetGeometry::default());
+        self.geometry.par_iter_mut().zip(tets.par_iter()).for_each(|(g, tet)| {
+            *g = tet_geometry_f32(&tet.map(|i| anchored[i as usize]), &tet.map(|i| scalars[i as usize]));
+        });
         if let Some(source) = &mut self.source {
             source.update_maps(&self.tets, &anchored);
         }
@@ -442,26 +499,28 @@ impl TetRaycaster {
         let mut depth = f32::INFINITY;
         let mut t_from = 0.0f32;
         let mut walked = false;
+        let mut last_start = f32::NEG_INFINITY;
         for _ in 0..MAX_ENTRIES {
-            let after = if walked { t_from + self.tolerance } else { t_from };
-            let (hit, fronts_until) = self.nearest_hit(faces, o, d, after);
+            // Once walked, only entries count, from a tolerance behind where the walk left
+            // (a ray leaving through an edge or a vertex enters the next tet there) but past
+            // where the last walk started, so every walk starts further on.
+            let after = if walked { (t_from - self.tolerance).max(last_start) } else { t_from };
+            let (hit, fronts_until) = self.nearest_hit(faces, o, d, after, walked);
             let Some(hit) = hit else { break };
             if hit.t >= t_stop {
                 break;
             }
             let start = if hit.front {
                 (hit.tet, hit.face, hit.t)
-            } else if !walked {
+            } else {
                 // The first boundary ahead is an exit: the ray starts inside the mesh.
                 self.locate_back(hit.tet, o, d, t_from)
-            } else {
-                t_from = hit.t;
-                continue;
             };
             walked = true;
+            last_start = start.2;
             t_from = self.walk(start, o, d, t_stop, &mut acc, &mut depth);
             // No front face's plane lies ahead: the ray cannot enter the mesh again.
-            if acc[3] >= termination || t_from >= t_stop || t_from + self.tolerance >= fronts_until {
+            if acc[3] >= termination || t_from >= t_stop || t_from - self.tolerance >= fronts_until {
                 break;
             }
         }
@@ -475,11 +534,12 @@ impl TetRaycaster {
         (color, if depth.is_finite() { depth } else { t_stop })
     }
 
-    /// The nearest boundary face of the tile crossed beyond `after`: the hit on the face's
-    /// plane counts when it lies within `tolerance` of the tet's three other planes.
+    /// The nearest boundary face of the tile crossed beyond `after` (only front-facing ones
+    /// when `fronts_only`): the hit on the face's plane counts when it lies within
+    /// `tolerance` of the tet's three other planes.
     /// Also: the farthest crossing of a front-facing face's plane beyond `after`, a bound
     /// on where the ray could enter again (beyond it, no rescan is needed).
-    fn nearest_hit(&self, faces: &[u32], o: &V3, d: &V3, after: f32) -> (Option<Hit>, f32) {
+    fn nearest_hit(&self, faces: &[u32], o: &V3, d: &V3, after: f32, fronts_only: bool) -> (Option<Hit>, f32) {
         let mut best: Option<Hit> = None;
         let mut fronts_until = f32::NEG_INFINITY;
         for &id in faces {
@@ -491,6 +551,8 @@ impl TetRaycaster {
             }
             if denom < 0.0 {
                 fronts_until = fronts_until.max(t);
+            } else if fronts_only {
+                continue;
             }
             if best.is_some_and(|b| t >= b.t) {
                 continue;
@@ -700,7 +762,7 @@ pub(crate) fn reference_walk(
     let geometry: Vec<_> =
         mesh.tets().iter().map(|tet| tet_geometry(&tet.map(|i| positions[i as usize]), &[0.0; 4])).collect();
     let neighbours = mesh.neighbours();
-    let boundary = boundary_faces(neighbours);
+    let boundary = boundary_faces(neighbours, &vec![true; neighbours.len()]);
     let bins = bin_boundary(mesh.tets(), &boundary, positions, camera);
     let containing = |p: &Vector3<f64>| {
         geometry.iter().position(|(planes, _)| {
@@ -810,4 +872,132 @@ fn ray_triangle(o: &Vector3<f64>, d: &Vector3<f64>, pts: &[Vector3<f64>; 3]) -> 
     }
     let t = e2.dot(&q) * inv;
     (t >= 0.0).then_some(t)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::transfer::TfPoint;
+    use defvol_core::mesh::generate::{lattice, CellSplit};
+
+    const AIR: f32 = -1000.0;
+
+    /// A ball of tissue with a bumpy surface and a pocket of air at its centre, in the air
+    /// of a 14³-cell lattice (2 mm cells).
+    fn ball_in_air() -> (TetMesh, Vec<f32>) {
+        let mesh = lattice(Vector3::zeros(), Vector3::repeat(28.0), [14; 3], CellSplit::Five).unwrap();
+        let centre = Vector3::repeat(14.0);
+        let scalars = mesh
+            .nodes()
+            .iter()
+            .map(|p| {
+                let r = (p - centre).norm();
+                let bump = 2.0 * (0.7 * p.x).sin() * (0.5 * p.y).cos();
+                if r < 3.0 || r > 9.0 + bump {
+                    AIR
+                } else {
+                    (100.0 + 60.0 * (0.4 * p.z).sin()) as f32
+                }
+            })
+            .collect();
+        (mesh, scalars)
+    }
+
+    fn tissue() -> TransferFunction {
+        TransferFunction {
+            points: vec![
+                TfPoint { value: 0.0, color: [0.2, 0.3, 0.9], opacity: 0.0 },
+                TfPoint { value: 100.0, color: [1.0, 0.6, 0.2], opacity: 0.15 },
+                TfPoint { value: 200.0, color: [1.0, 1.0, 1.0], opacity: 0.05 },
+            ],
+            relative: false,
+        }
+    }
+
+    fn invisible(tet: &[u32; 4], scalars: &[f32]) -> bool {
+        tet.iter().all(|&i| scalars[i as usize] <= 0.0)
+    }
+
+    #[test]
+    fn the_air_around_the_tissue_is_cut_and_pockets_inside_are_kept() {
+        let (mesh, scalars) = ball_in_air();
+        let raycaster = TetRaycaster::new(&mesh, &scalars, &tissue(), &TetRaycastParams::default()).unwrap();
+        let full = face_links(mesh.neighbours());
+        let cut: Vec<bool> =
+            full.iter().zip(&raycaster.links).map(|(f, l)| f.iter().any(|&x| x >= 0) && l == &[-1; 4]).collect();
+        let centre = Vector3::repeat(14.0);
+        let mut pocket = 0;
+        for (t, tet) in mesh.tets().iter().enumerate() {
+            let mid = tet.iter().map(|&i| mesh.nodes()[i as usize]).sum::<Vector3<f64>>() / 4.0;
+            if cut[t] {
+                assert!(invisible(tet, &scalars), "tet {t} is cut but has visible scalars");
+            } else if invisible(tet, &scalars) {
+                // Kept although invisible: it must not touch the cut air (else it is air too).
+                assert!(
+                    full[t].iter().all(|&l| l < 0 || !cut[(l >> 2) as usize]),
+                    "invisible tet {t} touches the cut air but is kept"
+                );
+                assert!(full[t].iter().all(|&l| l >= 0), "invisible tet {t} on the mesh's surface is kept");
+            }
+            if (mid - centre).norm() < 2.0 {
+                assert!(!cut[t], "tet {t} of the pocket inside the tissue is cut");
+                pocket += 1;
+            }
+            if (mid - Vector3::repeat(1.0)).norm() < 2.0 {
+                assert!(cut[t], "tet {t} in the corner's air is walked");
+            }
+            for (k, &l) in raycaster.links[t].iter().enumerate() {
+                assert!(l < 0 || !cut[(l >> 2) as usize], "tet {t} links to a cut tet");
+                let boundary = raycaster.boundary.contains(&(t as u32 * 4 + k as u32));
+                assert_eq!(boundary, !cut[t] && l < 0, "tet {t} face {k}: boundary {boundary}");
+            }
+        }
+        assert!(pocket > 0);
+        assert!(cut.iter().filter(|&&c| c).count() > mesh.tets().len() / 3, "little air was cut");
+    }
+
+    #[test]
+    fn cutting_the_air_changes_no_pixel() {
+        let (mesh, scalars) = ball_in_air();
+        let centre = Point3::from(Vector3::repeat(14.0));
+        let cameras = [
+            Camera::look_at(
+                centre + Vector3::new(-40.0, -55.0, 30.0),
+                centre,
+                Vector3::z(),
+                Projection::Perspective { fov_y_deg: 30.0 },
+                400,
+                400,
+            )
+            .unwrap(),
+            Camera::look_at(
+                centre + Vector3::new(50.0, -20.0, -35.0),
+                centre,
+                Vector3::z(),
+                Projection::Orthographic { height: 30.0 },
+                400,
+                300,
+            )
+            .unwrap(),
+        ];
+        for preintegrated in [true, false] {
+            let params = TetRaycastParams { preintegrated, step: 1.0, early_termination: 1.0, ..Default::default() };
+            let cut = TetRaycaster::new(&mesh, &scalars, &tissue(), &params).unwrap();
+            let mut whole = TetRaycaster::new(&mesh, &scalars, &tissue(), &params).unwrap();
+            whole.links = face_links(mesh.neighbours());
+            whole.boundary = boundary_faces(&whole.links, &vec![true; whole.links.len()]);
+            assert!(cut.boundary.len() != whole.boundary.len());
+            for camera in &cameras {
+                let (a, b) = (cut.render(camera).unwrap(), whole.render(camera).unwrap());
+                let lit = a.rgba.chunks_exact(4).filter(|p| p[0] > 40).count();
+                assert!(lit > a.rgba.len() / 4 / 10, "the view is nearly empty ({lit} pixels)");
+                for (i, (p, q)) in a.rgba.chunks_exact(4).zip(b.rgba.chunks_exact(4)).enumerate() {
+                    let worst = p.iter().zip(q).map(|(x, y)| x.abs_diff(*y)).max().unwrap_or(0);
+                    assert!(worst <= 1, "pixel {i}: {p:?} cut, {q:?} whole (pre-integrated {preintegrated})");
+                    let (da, db) = (a.depth[i], b.depth[i]);
+                    assert!(da == db || (da - db).abs() <= 1e-3 * da.abs(), "pixel {i}: depth {da} cut, {db} whole");
+                }
+            }
+        }
+    }
 }

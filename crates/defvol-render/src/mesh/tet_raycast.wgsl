@@ -233,7 +233,7 @@ fn integrate(state: ptr<function, Accumulator>, t0: f32, t1: f32, s0: f32, s1: f
 }
 
 // TetRaycaster::nearest_hit
-fn nearest_hit(first: u32, last: u32, o: vec3<f32>, d: vec3<f32>, after: f32) -> Hit {
+fn nearest_hit(first: u32, last: u32, o: vec3<f32>, d: vec3<f32>, after: f32, fronts_only: bool) -> Hit {
     var best = Hit(0.0, 0u, 0u, false, false, -FAR);
     var fronts_until = -FAR;
     let base = p.counts.w + 1u;
@@ -247,6 +247,8 @@ fn nearest_hit(first: u32, last: u32, o: vec3<f32>, d: vec3<f32>, after: f32) ->
         }
         if pt.x < 0.0 {
             fronts_until = max(fronts_until, pt.y);
+        } else if fronts_only {
+            continue;
         }
         if best.found && pt.y >= best.t {
             continue;
@@ -594,27 +596,25 @@ fn render(@builtin(global_invocation_id) gid: vec3<u32>) {
     var state = Accumulator(vec4<f32>(0.0), FAR);
     var t_from = 0.0;
     var walked = false;
+    var last_start = -FAR;
     for (var e = 0u; e < MAX_ENTRIES; e++) {
         var after = t_from;
         if walked {
-            after = t_from + p.table.w;
+            after = max(t_from - p.table.w, last_start);
         }
-        let hit = nearest_hit(first, last, o, d, after);
+        let hit = nearest_hit(first, last, o, d, after, walked);
         if !hit.found || hit.t >= t_stop {
             break;
         }
         var start = Start(hit.tet, hit.face, hit.t);
         if !hit.front {
-            if walked {
-                t_from = hit.t;
-                continue;
-            }
             // The first boundary ahead is an exit: the ray starts inside the mesh.
             start = locate_back(hit.tet, o, d, t_from);
         }
         walked = true;
+        last_start = start.t;
         t_from = walk(&state, start, o, d, t_stop);
-        if state.acc.w >= p.lut.z || t_from >= t_stop || t_from + p.table.w >= hit.fronts_until {
+        if state.acc.w >= p.lut.z || t_from >= t_stop || t_from - p.table.w >= hit.fronts_until {
             break;
         }
     }
