@@ -667,6 +667,11 @@ impl TetRaycaster {
         if len <= 0.0 || len.is_nan() {
             return;
         }
+        if self.params.preintegrated && len <= self.table.max_len {
+            // Most segments: the loop's one piece (the same bits), without its set-up.
+            composite(acc, depth, self.table.lookup(s0, s0 + (s1 - s0), len), t0 + 0.5 * len);
+            return;
+        }
         let step = if self.params.preintegrated { self.table.max_len } else { self.params.step as f32 };
         let n = if len <= step { 1 } else { ((len / step).ceil() as usize).min(MAX_PIECES) };
         let inv_n = 1.0 / n as f32;
@@ -680,14 +685,21 @@ impl TetRaycaster {
                 let alpha = 1.0 - (-e[3] * piece).exp();
                 [e[0] * alpha, e[1] * alpha, e[2] * alpha, alpha]
             };
-            let weight = 1.0 - acc[3];
-            for c in 0..4 {
-                acc[c] += weight * e[c];
-            }
-            if depth.is_infinite() && acc[3] >= 0.5 {
-                *depth = t0 + (m as f32 + 0.5) * piece;
-            }
+            composite(acc, depth, e, t0 + (m as f32 + 0.5) * piece);
         }
+    }
+}
+
+/// A piece's premultiplied colour and opacity `e` behind what the ray has gathered; the
+/// depth is where opacity first passes 0.5 (the piece's middle, `t_mid`).
+#[inline(always)]
+fn composite(acc: &mut [f32; 4], depth: &mut f32, e: [f32; 4], t_mid: f32) {
+    let weight = 1.0 - acc[3];
+    for c in 0..4 {
+        acc[c] += weight * e[c];
+    }
+    if depth.is_infinite() && acc[3] >= 0.5 {
+        *depth = t_mid;
     }
 }
 
