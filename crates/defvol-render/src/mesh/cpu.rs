@@ -451,7 +451,7 @@ impl TetRaycaster {
     /// One frame seen by `camera`.
     pub fn render(&self, camera: &Camera) -> Result<Rendered, RenderError> {
         camera.validate()?;
-        let bins = bin_boundary(&self.tets, &self.boundary, &self.positions, camera);
+        let bins = bin_boundary(&self.tets, &self.first_faces(camera), &self.positions, camera);
         let (w, h) = (camera.width, camera.height);
         // Tile by tile, as the GPU's workgroups: neighbouring rays cross the same tets while
         // their geometry is still in cache.
@@ -485,6 +485,41 @@ impl TetRaycaster {
             }
         }
         Ok(Rendered { width: w, height: h, rgba, depth })
+    }
+
+    /// The boundary faces a ray of `camera` can meet: all of them when a ray may start
+    /// inside the mesh; else (the mesh wholly in front of the eye's plane) only those facing
+    /// the rays, about half, since a ray from outside enters the mesh before it leaves it
+    /// and, once walked, looks for entries only.
+    fn first_faces(&self, camera: &Camera) -> Vec<u32> {
+        let camera_from_world = camera.world_from_camera.inverse();
+        let tets = &self.tets;
+        let in_front = self.boundary.par_iter().all(|&f| {
+            let nodes = tets[(f >> 2) as usize];
+            TET_FACES[(f & 3) as usize]
+                .iter()
+                .all(|&i| (camera_from_world * Point3::from(self.positions[nodes[i] as usize])).z > 0.0)
+        });
+        if !in_front {
+            return self.boundary.clone();
+        }
+        let (origin, direction) = camera.ray(0, 0);
+        let (o, d) = ((origin.coords - self.anchor).cast::<f32>(), direction.cast::<f32>());
+        let perspective = matches!(camera.projection, Projection::Perspective { .. });
+        self.boundary
+            .par_iter()
+            .copied()
+            .filter(|&f| {
+                let plane = &self.geometry[(f >> 2) as usize].planes[(f & 3) as usize];
+                if perspective {
+                    // The eye strictly inside the face's plane: every ray from it crosses
+                    // the plane going out.
+                    plane[3] - (plane[0] * o.x + plane[1] * o.y + plane[2] * o.z) <= 0.0
+                } else {
+                    plane_t(plane, &o, &d).0 <= 0.0
+                }
+            })
+            .collect()
     }
 
     /// One ray: premultiplied RGBA over the background (or the tool), and the depth where
@@ -966,6 +1001,37 @@ mod tests {
         }
         assert!(pocket > 0);
         assert!(cut.iter().filter(|&&c| c).count() > mesh.tets().len() / 3, "little air was cut");
+    }
+
+    #[test]
+    fn a_camera_outside_the_mesh_bins_only_the_faces_rays_enter_through() {
+        let (mesh, scalars) = ball_in_air();
+        let raycaster = TetRaycaster::new(&mesh, &scalars, &tissue(), &TetRaycastParams::default()).unwrap();
+        let centre = Point3::from(Vector3::repeat(14.0));
+        let look =
+            |eye: Vector3<f64>, projection| Camera::look_at(centre + eye, centre, Vector3::z(), projection, 40, 30);
+        let outside = [
+            look(Vector3::new(-40.0, -55.0, 30.0), Projection::Perspective { fov_y_deg: 30.0 }).unwrap(),
+            look(Vector3::new(50.0, -20.0, -35.0), Projection::Orthographic { height: 30.0 }).unwrap(),
+        ];
+        let all = raycaster.boundary.len();
+        for camera in &outside {
+            let kept = raycaster.first_faces(camera);
+            assert!(kept.len() > all / 3 && kept.len() < all * 2 / 3, "{} of {all} faces kept", kept.len());
+            // No ray of the camera crosses a dropped face going in.
+            for &f in raycaster.boundary.iter().filter(|f| !kept.contains(f)) {
+                let plane = &raycaster.geometry[(f >> 2) as usize].planes[(f & 3) as usize];
+                for (px, py) in (0..40).flat_map(|x| (0..30).map(move |y| (x, y))) {
+                    let (origin, direction) = camera.ray(px, py);
+                    let o = (origin.coords - raycaster.anchor).cast::<f32>();
+                    let (denom, t) = plane_t(plane, &o, &direction.cast::<f32>());
+                    assert!(!(denom < 0.0 && t > 0.0), "face {f} dropped, but pixel ({px}, {py}) enters through it");
+                }
+            }
+        }
+        // The eye in the tissue: a ray's first face is an exit, so every face is kept.
+        let inside = look(Vector3::new(6.0, 0.0, 0.0), Projection::Perspective { fov_y_deg: 60.0 }).unwrap();
+        assert_eq!(raycaster.first_faces(&inside), raycaster.boundary);
     }
 
     #[test]
