@@ -306,6 +306,8 @@ pub struct TetRaycaster {
     pub(crate) links: Vec<[i32; 4]>,
     /// Boundary faces as tet · 4 + face.
     pub(crate) boundary: Vec<u32>,
+    /// Per tet: rays walk it (false: the air cut out around the tissue, `cut_outer_air`).
+    walked: Vec<bool>,
     pub(crate) table: SegmentTable,
     pub(crate) tables: Tables,
     /// How far outside a face's triangle a hit still counts (world units).
@@ -395,6 +397,7 @@ impl TetRaycaster {
             geometry: Vec::new(),
             links,
             boundary,
+            walked,
             table,
             tables: Tables::new(&tf, range, params.step, false),
             tolerance: (1e-5 * diagonal.max(1e-9)) as f32,
@@ -439,8 +442,11 @@ impl TetRaycaster {
         let anchored: Vec<V3> = positions.iter().map(|p| (p - self.anchor).cast::<f32>()).collect();
         let (tets, scalars) = (&self.tets, &self.scalars);
         self.geometry.resize(tets.len(), TetGeometry::default());
-        self.geometry.par_iter_mut().zip(tets.par_iter()).for_each(|(g, tet)| {
-            *g = tet_geometry_f32(&tet.map(|i| anchored[i as usize]), &tet.map(|i| scalars[i as usize]));
+        // Tets cut out are never read: their geometry is left as it was.
+        self.geometry.par_iter_mut().zip(tets.par_iter()).zip(&self.walked).for_each(|((g, tet), &walked)| {
+            if walked {
+                *g = tet_geometry_f32(&tet.map(|i| anchored[i as usize]), &tet.map(|i| scalars[i as usize]));
+            }
         });
         if let Some(source) = &mut self.source {
             source.update_maps(&self.tets, &anchored);
@@ -1063,7 +1069,9 @@ mod tests {
             let cut = TetRaycaster::new(&mesh, &scalars, &tissue(), &params).unwrap();
             let mut whole = TetRaycaster::new(&mesh, &scalars, &tissue(), &params).unwrap();
             whole.links = face_links(mesh.neighbours());
-            whole.boundary = boundary_faces(&whole.links, &vec![true; whole.links.len()]);
+            whole.walked = vec![true; whole.links.len()];
+            whole.boundary = boundary_faces(&whole.links, &whole.walked);
+            whole.update(mesh.nodes()).unwrap();
             assert!(cut.boundary.len() != whole.boundary.len());
             for camera in &cameras {
                 let (a, b) = (cut.render(camera).unwrap(), whole.render(camera).unwrap());
