@@ -1,7 +1,8 @@
 //! The tetrahedral-mesh raycaster (seed 000, section 5), CPU path, line by line the twin of
 //! `tet_raycast.wgsl` beside it:
-//! - boundary faces are binned into 8x8-pixel tiles (`bin_boundary`); a ray's entry is
-//!   the nearest front-facing boundary face of its tile;
+//! - boundary faces are binned into 8x8-pixel tiles (`bin_boundary`; only those facing the
+//!   camera when the mesh lies wholly in front of it, `first_faces`); a ray's entry is the
+//!   nearest front-facing boundary face of its tile;
 //! - the walk leaves each tet through the face with the smallest ray parameter ahead and
 //!   goes on in the face neighbour; the scalar is linear inside a tet (a gradient per tet);
 //! - each tet's segment is one lookup in the 3D pre-integrated table on (front scalar, back
@@ -976,8 +977,7 @@ mod tests {
         let (mesh, scalars) = ball_in_air();
         let raycaster = TetRaycaster::new(&mesh, &scalars, &tissue(), &TetRaycastParams::default()).unwrap();
         let full = face_links(mesh.neighbours());
-        let cut: Vec<bool> =
-            full.iter().zip(&raycaster.links).map(|(f, l)| f.iter().any(|&x| x >= 0) && l == &[-1; 4]).collect();
+        let cut: Vec<bool> = raycaster.walked.iter().map(|w| !w).collect();
         let centre = Vector3::repeat(14.0);
         let mut pocket = 0;
         for (t, tet) in mesh.tets().iter().enumerate() {
