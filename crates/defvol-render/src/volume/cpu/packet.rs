@@ -38,7 +38,7 @@ impl<'a> Lanes<'a> {
         (t_near, step): ([f32; LANES], f32),
         termination: f32,
     ) -> Self {
-        // The lookups' gathers read within tables of these sizes (checked once here, not
+        // The lookups read within tables of these sizes (checked once here, not
         // per step).
         assert_eq!(tables.stepped.len(), LUT_SIZE);
         assert!(!preintegrated || tables.preintegrated.len() == PREINTEGRATED_SIZE * PREINTEGRATED_SIZE);
@@ -146,13 +146,6 @@ fn store(v: __m256) -> [f32; LANES] {
     out
 }
 
-/// `a + (b - a)·f`, unfused, as `lerp4` takes it.
-#[inline]
-#[target_feature(enable = "avx2")]
-fn lerp8(a: __m256, b: __m256, f: __m256) -> __m256 {
-    _mm256_add_ps(a, _mm256_mul_ps(_mm256_sub_ps(b, a), f))
-}
-
 /// `x.clamp(0, top)` for finite x.
 #[inline]
 #[target_feature(enable = "avx2")]
@@ -160,18 +153,54 @@ fn clamp8(x: __m256, top: f32) -> __m256 {
     _mm256_min_ps(_mm256_max_ps(x, _mm256_setzero_ps()), _mm256_set1_ps(top))
 }
 
-/// The floats at `ptr` + `at` (in floats), eight lanes.
-///
-/// # Safety
-/// Every `ptr + at` must lie in one allocation.
+/// The lanes of `v` as eight i32 or f32.
 #[inline]
 #[target_feature(enable = "avx2")]
-unsafe fn gather(ptr: *const f32, at: __m256i) -> __m256 {
+fn lanes_i32(v: __m256i) -> [i32; LANES] {
+    let mut out = [0i32; LANES];
+    // SAFETY: out holds eight i32.
+    unsafe { _mm256_storeu_si256(out.as_mut_ptr().cast(), v) };
+    out
+}
+
+/// Eight RGBA entries (lane l's in `rgba[l]`) as four channels of eight lanes.
+#[inline]
+#[target_feature(enable = "avx2")]
+fn channels(rgba: [__m128; LANES]) -> [__m256; 4] {
+    // Lanes l and l + 4 share a register, then each 128-bit half is a 4x4 transpose.
+    let m = [0, 1, 2, 3].map(|l| _mm256_insertf128_ps::<1>(_mm256_castps128_ps256(rgba[l]), rgba[l + 4]));
+    let (rg01, ba01) = (_mm256_unpacklo_ps(m[0], m[1]), _mm256_unpackhi_ps(m[0], m[1]));
+    let (rg23, ba23) = (_mm256_unpacklo_ps(m[2], m[3]), _mm256_unpackhi_ps(m[2], m[3]));
+    [
+        _mm256_shuffle_ps::<0x44>(rg01, rg23),
+        _mm256_shuffle_ps::<0xEE>(rg01, rg23),
+        _mm256_shuffle_ps::<0x44>(ba01, ba23),
+        _mm256_shuffle_ps::<0xEE>(ba01, ba23),
+    ]
+}
+
+/// `a + (b - a)·f` on an entry's four channels, unfused, as `transfer.rs`'s `lerp4` takes it.
+#[inline]
+#[target_feature(enable = "avx2")]
+fn lerp4(a: __m128, b: __m128, f: f32) -> __m128 {
+    _mm_add_ps(a, _mm_mul_ps(_mm_sub_ps(b, a), _mm_set1_ps(f)))
+}
+
+/// The RGBA entry `at` entries past `ptr`.
+///
+/// # Safety
+/// The entry must lie in the table at `ptr`.
+#[inline]
+#[target_feature(enable = "avx2")]
+unsafe fn entry(ptr: *const [f32; 4], at: usize) -> __m128 {
     // SAFETY: the caller's.
-    unsafe { _mm256_i32gather_ps::<4>(ptr, at) }
+    unsafe { _mm_loadu_ps(ptr.add(at).cast()) }
 }
 
 /// `Tables::interpolate` in the lanes: `table` (`LUT_SIZE` entries over [lo, hi]) at `s`.
+/// Each lane's two entries are read whole (16 bytes each, where gathers would fetch their
+/// floats one channel at a time) and lerped per channel, then the lanes turned into
+/// channels.
 ///
 /// # Safety
 /// `table` must hold `LUT_SIZE` entries.
@@ -181,14 +210,17 @@ unsafe fn interpolate8(tables: &Tables, table: &[[f32; 4]], s: __m256) -> [__m25
     let x = _mm256_mul_ps(_mm256_sub_ps(s, _mm256_set1_ps(tables.lo)), _mm256_set1_ps(tables.lut_scale));
     let x = clamp8(x, (LUT_SIZE - 1) as f32);
     let i = _mm256_min_epi32(_mm256_cvttps_epi32(x), _mm256_set1_epi32(LUT_SIZE as i32 - 2));
-    let f = _mm256_sub_ps(x, _mm256_cvtepi32_ps(i));
-    let at = _mm256_slli_epi32::<2>(i);
-    let ptr = table.as_ptr().cast::<f32>();
+    let (f, i) = (store(_mm256_sub_ps(x, _mm256_cvtepi32_ps(i))), lanes_i32(i));
+    let ptr = table.as_ptr();
     // SAFETY: 0 ≤ i ≤ LUT_SIZE - 2, so entries i and i + 1 lie in the table.
-    [0, 1, 2, 3].map(|c| unsafe { lerp8(gather(ptr.add(c), at), gather(ptr.add(4 + c), at), f) })
+    channels(std::array::from_fn(|l| unsafe {
+        let at = i[l] as usize;
+        lerp4(entry(ptr, at), entry(ptr, at + 1), f[l])
+    }))
 }
 
-/// `Tables::segment` in the lanes: the pre-integrated segments from `front` to `back`.
+/// `Tables::segment` in the lanes: the pre-integrated segments from `front` to `back`,
+/// each lane's four entries read whole as in [`interpolate8`].
 ///
 /// # Safety
 /// The pre-integrated table must hold `PREINTEGRATED_SIZE`² entries.
@@ -201,13 +233,13 @@ unsafe fn segment8(tables: &Tables, front: __m256, back: __m256) -> [__m256; 4] 
     let (x, y) = (level(front), level(back));
     let highest = _mm256_set1_epi32(n as i32 - 2);
     let (i, j) = (_mm256_min_epi32(_mm256_cvttps_epi32(x), highest), _mm256_min_epi32(_mm256_cvttps_epi32(y), highest));
-    let (fx, fy) = (_mm256_sub_ps(x, _mm256_cvtepi32_ps(i)), _mm256_sub_ps(y, _mm256_cvtepi32_ps(j)));
-    let at = _mm256_slli_epi32::<2>(_mm256_add_epi32(_mm256_mullo_epi32(i, _mm256_set1_epi32(n as i32)), j));
-    let ptr = tables.preintegrated.as_ptr().cast::<f32>();
-    let row = 4 * n;
-    [0, 1, 2, 3].map(|c| {
-        // SAFETY: 0 ≤ i, j ≤ n - 2, so entries (i, j) to (i + 1, j + 1) lie in the table.
-        let g = |o: usize| unsafe { gather(ptr.add(o + c), at) };
-        lerp8(lerp8(g(0), g(4), fy), lerp8(g(row), g(row + 4), fy), fx)
-    })
+    let (fx, fy) = (store(_mm256_sub_ps(x, _mm256_cvtepi32_ps(i))), store(_mm256_sub_ps(y, _mm256_cvtepi32_ps(j))));
+    let at = lanes_i32(_mm256_add_epi32(_mm256_mullo_epi32(i, _mm256_set1_epi32(n as i32)), j));
+    let ptr = tables.preintegrated.as_ptr();
+    // SAFETY: 0 ≤ i, j ≤ n - 2, so entries (i, j) to (i + 1, j + 1) lie in the table.
+    channels(std::array::from_fn(|l| unsafe {
+        let at = at[l] as usize;
+        let near = lerp4(entry(ptr, at), entry(ptr, at + 1), fy[l]);
+        lerp4(near, lerp4(entry(ptr, at + n), entry(ptr, at + n + 1), fy[l]), fx[l])
+    }))
 }
