@@ -153,10 +153,26 @@ mod x86 {
         max_offset >= 0 && (max_offset as usize) < data.len()
     }
 
+    /// Where a cell's eight corners lie from its first, and the last first corner from
+    /// which the samples hold eight floats past every corner.
+    #[derive(Clone, Copy)]
+    struct Corners {
+        offsets: [isize; 8],
+        reach: i32,
+    }
+
+    impl Corners {
+        /// The corners at `offsets` (the last the farthest) in `len` samples.
+        fn new(offsets: [isize; 8], len: usize) -> Self {
+            let reach = (len as i64 - 8 - offsets[7] as i64).clamp(-1, i32::MAX as i64) as i32;
+            Self { offsets, reach }
+        }
+    }
+
     /// The cell lookup in vector lanes for row-major samples, set up once per run.
     #[derive(Clone, Copy)]
     struct Lanes {
-        corner: [isize; 8],
+        corners: Corners,
         nx: __m256i,
         nxy: __m256i,
         top: [__m256i; 3],
@@ -164,7 +180,7 @@ mod x86 {
 
     /// The cell lookup in vector lanes for bricked samples, set up once per run.
     struct BrickLanes {
-        corner: [isize; 8],
+        corners: Corners,
         top: [__m256i; 3],
         /// Per axis: a brick's step in samples, and a voxel's within the brick.
         brick_stride: [__m256i; 3],
@@ -183,12 +199,39 @@ mod x86 {
     /// A cell's first corner in bricked samples: its brick's start plus its place in it.
     macro_rules! bricked_base {
         ($lanes:ident, $index:ident, $narrow:ident, $add_i:ident, $mullo:ident, $srli:ident, $and:ident) => {{
-            let part = [0, 1, 2].map(|a| {
+            let part = per_axis!(a => {
                 let brick = $mullo($srli::<{ BRICK_SHIFT }>($index[a]), $narrow($lanes.brick_stride[a]));
                 $add_i(brick, $mullo($and($index[a], $narrow($lanes.low)), $narrow($lanes.local_stride[a])))
             });
             $add_i($add_i(part[0], part[1]), part[2])
         }};
+    }
+
+    /// `[e(0), e(1), e(2)]`, written out: the samplers hold no closures, which LLVM may leave
+    /// out of line once their function grows (a rotated warp ran 2.6x slower so).
+    macro_rules! per_axis {
+        ($a:ident => $e:expr) => {
+            [
+                {
+                    let $a = 0;
+                    $e
+                },
+                {
+                    let $a = 1;
+                    $e
+                },
+                {
+                    let $a = 2;
+                    $e
+                },
+            ]
+        };
+    }
+
+    /// The lanes of an `__m256i` as they are (the eight-lane samplers' narrowing).
+    #[inline]
+    fn same(v: __m256i) -> __m256i {
+        v
     }
 
     /// Trilinear samples in one vector width: cell indices and fractions as the scalar loop
@@ -199,20 +242,23 @@ mod x86 {
     macro_rules! sample_fn {
         ($name:ident, $base:ident, $ps:ty, $si:ty, $cvtt:ident, $cvt:ident, $max:ident, $min:ident,
          $add_i:ident, $mullo:ident, $srli:ident, $and:ident, $corners:ident, $add:ident, $sub:ident,
-         $mul:ident, $zero:ident, $narrow:expr) => {
+         $mul:ident, $zero:ident, $narrow:ident) => {
             /// # Safety
             /// The CPU must have AVX2, and `ptr` must lead the samples the lookup was made for.
             #[inline]
             #[target_feature(enable = "avx2")]
             unsafe fn $name(&self, ptr: *const f32, at: [$ps; 3]) -> $ps {
-                let narrow: fn(__m256i) -> $si = $narrow;
                 let zero = $zero();
-                let index = [0, 1, 2].map(|a| $min($max($cvtt(at[a]), zero), narrow(self.top[a])));
-                let frac = [0, 1, 2].map(|a| $sub(at[a], $cvt(index[a])));
-                let b = $base!(self, index, narrow, $add_i, $mullo, $srli, $and);
-                // SAFETY: b + corner is at most the lookup's largest index, inside the samples.
-                let v = unsafe { $corners(ptr, b, &self.corner) };
-                let lerp = |a: $ps, b: $ps, f: $ps| $add(a, $mul($sub(b, a), f));
+                let index: [$si; 3] = per_axis!(a => $min($max($cvtt(at[a]), zero), $narrow(self.top[a])));
+                let frac = per_axis!(a => $sub(at[a], $cvt(index[a])));
+                let b = $base!(self, index, $narrow, $add_i, $mullo, $srli, $and);
+                // b + corner is at most the lookup's largest index, inside the samples.
+                let v = $corners!(ptr, b, self.corners);
+                #[inline]
+                #[target_feature(enable = "avx2")]
+                fn lerp(a: $ps, b: $ps, f: $ps) -> $ps {
+                    $add(a, $mul($sub(b, a), f))
+                }
                 let c00 = lerp(v[0], v[1], frac[0]);
                 let c10 = lerp(v[2], v[3], frac[0]);
                 let c01 = lerp(v[4], v[5], frac[0]);
@@ -222,52 +268,122 @@ mod x86 {
         };
     }
 
-    /// A cell's eight corners in eight lanes (cells from `b`): scalar loads, which on AMD's
-    /// Zen 4 cores take half the time of `vgatherdps` fetching the same floats (a rotated warp
-    /// 1.3x faster, side by side); the floats, and so the bits, are the same.
-    ///
-    /// # Safety
-    /// Every `b + corner` must index inside the samples at `ptr`.
-    #[inline]
-    #[target_feature(enable = "avx2")]
-    unsafe fn corners8(ptr: *const f32, b: __m256i, corner: &[isize; 8]) -> [__m256; 8] {
-        let mut index = [0i32; 8];
-        // SAFETY: index holds eight i32.
-        unsafe { _mm256_storeu_si256(index.as_mut_ptr().cast(), b) };
-        let at = index.map(|i| ptr.wrapping_offset(i as isize));
-        // SAFETY: the caller's indices are inside the samples.
-        corner.map(|c| unsafe {
-            _mm256_setr_ps(
-                *at[0].offset(c),
-                *at[1].offset(c),
-                *at[2].offset(c),
-                *at[3].offset(c),
-                *at[4].offset(c),
-                *at[5].offset(c),
-                *at[6].offset(c),
-                *at[7].offset(c),
-            )
-        })
+    /// The eight corners of `$width` cells (first corners `$b`, lane for lane) by scalar
+    /// loads, which on AMD's Zen 4 take half the time of `vgatherdps` fetching the same
+    /// floats (so the same bits). Macros, as is [`window!`]: as functions LLVM left them out
+    /// of line, spilling the lanes (a rotated warp 2.6x slower).
+    macro_rules! loads {
+        ($ptr:ident, $b:ident, $corners:expr, $width:literal, $ps:ty, $store:ident, $set:ident, $($l:literal),+) => {{
+            let mut index = [0i32; $width];
+            // SAFETY: index holds $width i32.
+            unsafe { $store(index.as_mut_ptr().cast(), $b) };
+            let at = index.map(|i| $ptr.wrapping_offset(i as isize));
+            let mut v: [$ps; 8] = [std::mem::zeroed(); 8];
+            for (v, &c) in v.iter_mut().zip(&$corners.offsets) {
+                // SAFETY: the caller's cells have their corners inside the samples.
+                *v = unsafe { $set($(*at[$l].offset(c)),+) };
+            }
+            v
+        }};
     }
 
-    /// [`corners8`] for four lanes.
-    ///
-    /// # Safety
-    /// Every `b + corner` must index inside the samples at `ptr`.
-    #[inline]
-    #[target_feature(enable = "avx2")]
-    unsafe fn corners4(ptr: *const f32, b: __m128i, corner: &[isize; 8]) -> [__m128; 8] {
-        let mut index = [0i32; 4];
-        // SAFETY: index holds four i32.
-        unsafe { _mm_storeu_si128(index.as_mut_ptr().cast(), b) };
-        let at = index.map(|i| ptr.wrapping_offset(i as isize));
-        // SAFETY: the caller's indices are inside the samples.
-        corner.map(|c| unsafe { _mm_setr_ps(*at[0].offset(c), *at[1].offset(c), *at[2].offset(c), *at[3].offset(c)) })
+    /// [`loads!`], but where the cells start within `$width` floats of lane 0's (a run
+    /// along a row; a packet's neighbouring rays) a corner is one load of `$width` floats
+    /// that each lane picks its own from.
+    macro_rules! window {
+        ($ptr:ident, $b:ident, $corners:expr, $width:literal, $ps:ty, $store:ident, $set:ident,
+         $first:ident, $sub:ident, $set1:ident, $min_u:ident, $cmpeq:ident, $mask:ident, $all:literal,
+         $loadu:ident, $permute:ident, $($l:literal),+) => {{
+            let first = $first($b);
+            let from_first = $sub($b, $set1(first));
+            let within = $cmpeq($min_u(from_first, $set1($width - 1)), from_first);
+            if $mask(within) == $all && first <= $corners.reach {
+                // SAFETY: first + offset + width - 1 ≤ reach + offset + 7 < the samples' length.
+                let at = unsafe { $ptr.offset(first as isize) };
+                let mut v: [$ps; 8] = [std::mem::zeroed(); 8];
+                for (v, &c) in v.iter_mut().zip(&$corners.offsets) {
+                    // SAFETY: as above.
+                    *v = $permute(unsafe { $loadu(at.offset(c)) }, from_first);
+                }
+                v
+            } else {
+                loads!($ptr, $b, $corners, $width, $ps, $store, $set, $($l),+)
+            }
+        }};
+    }
+
+    /// Both corner readers in eight lanes and in four.
+    macro_rules! loads8 {
+        ($ptr:ident, $b:ident, $corners:expr) => {
+            loads!($ptr, $b, $corners, 8, __m256, _mm256_storeu_si256, _mm256_setr_ps, 0, 1, 2, 3, 4, 5, 6, 7)
+        };
+    }
+    macro_rules! loads4 {
+        ($ptr:ident, $b:ident, $corners:expr) => {
+            loads!($ptr, $b, $corners, 4, __m128, _mm_storeu_si128, _mm_setr_ps, 0, 1, 2, 3)
+        };
+    }
+    macro_rules! window8 {
+        ($ptr:ident, $b:ident, $corners:expr) => {
+            window!(
+                $ptr,
+                $b,
+                $corners,
+                8,
+                __m256,
+                _mm256_storeu_si256,
+                _mm256_setr_ps,
+                _mm256_cvtsi256_si32,
+                _mm256_sub_epi32,
+                _mm256_set1_epi32,
+                _mm256_min_epu32,
+                _mm256_cmpeq_epi32,
+                _mm256_movemask_epi8,
+                -1,
+                _mm256_loadu_ps,
+                _mm256_permutevar8x32_ps,
+                0,
+                1,
+                2,
+                3,
+                4,
+                5,
+                6,
+                7
+            )
+        };
+    }
+    macro_rules! window4 {
+        ($ptr:ident, $b:ident, $corners:expr) => {
+            window!(
+                $ptr,
+                $b,
+                $corners,
+                4,
+                __m128,
+                _mm_storeu_si128,
+                _mm_setr_ps,
+                _mm_cvtsi128_si32,
+                _mm_sub_epi32,
+                _mm_set1_epi32,
+                _mm_min_epu32,
+                _mm_cmpeq_epi32,
+                _mm_movemask_epi8,
+                0xFFFF,
+                _mm_loadu_ps,
+                _mm_permutevar_ps,
+                0,
+                1,
+                2,
+                3
+            )
+        };
     }
 
     /// sample8 and sample4 for a layout.
+    /// sample8 and sample4 for a layout, with its corner readers.
     macro_rules! sample_fns {
-        ($base:ident) => {
+        ($base:ident, $corners8:ident, $corners4:ident) => {
             sample_fn!(
                 sample8,
                 $base,
@@ -281,12 +397,12 @@ mod x86 {
                 _mm256_mullo_epi32,
                 _mm256_srli_epi32,
                 _mm256_and_si256,
-                corners8,
+                $corners8,
                 _mm256_add_ps,
                 _mm256_sub_ps,
                 _mm256_mul_ps,
                 _mm256_setzero_si256,
-                |v| v
+                same
             );
             sample_fn!(
                 sample4,
@@ -301,12 +417,12 @@ mod x86 {
                 _mm_mullo_epi32,
                 _mm_srli_epi32,
                 _mm_and_si128,
-                corners4,
+                $corners4,
                 _mm_add_ps,
                 _mm_sub_ps,
                 _mm_mul_ps,
                 _mm_setzero_si128,
-                |v| _mm256_castsi256_si128(v)
+                _mm256_castsi256_si128
             );
         };
     }
@@ -314,17 +430,18 @@ mod x86 {
     impl Lanes {
         #[inline]
         #[target_feature(enable = "avx2")]
-        fn new(cell: &CellLookup) -> Self {
+        fn new(cell: &CellLookup, len: usize) -> Self {
             let [sx, sy, sz] = cell.strides.map(|s| s as isize);
             Self {
-                corner: [0, sx, sy, sy + sx, sz, sz + sx, sz + sy, sz + sy + sx],
+                corners: Corners::new([0, sx, sy, sy + sx, sz, sz + sx, sz + sy, sz + sy + sx], len),
                 nx: _mm256_set1_epi32(cell.nx),
                 nxy: _mm256_set1_epi32(cell.nxy),
                 top: cell.top.map(|t| _mm256_set1_epi32(t)),
             }
         }
 
-        sample_fns!(row_major_base);
+        // Rows: a run along them, or a packet's neighbouring rays, reads windows.
+        sample_fns!(row_major_base, window8, window4);
     }
 
     impl BrickLanes {
@@ -334,7 +451,10 @@ mod x86 {
             let [bx, by] = bricks.bricks.map(|b| b as i32);
             let (edge, slice) = (BRICK_EDGE as isize, (BRICK_EDGE * BRICK_EDGE) as isize);
             Self {
-                corner: [0, 1, edge, edge + 1, slice, slice + 1, slice + edge, slice + edge + 1],
+                corners: Corners::new(
+                    [0, 1, edge, edge + 1, slice, slice + 1, slice + edge, slice + edge + 1],
+                    bricks.data.len(),
+                ),
                 top: bricks.top.map(|t| _mm256_set1_epi32(t)),
                 brick_stride: [1, bx, bx * by].map(|s| _mm256_set1_epi32(s * BRICK_VOXELS as i32)),
                 local_stride: [1, edge, slice].map(|s| _mm256_set1_epi32(s as i32)),
@@ -342,7 +462,8 @@ mod x86 {
             }
         }
 
-        sample_fns!(bricked_base);
+        // Bricks serve runs across rows, where windows seldom hold.
+        sample_fns!(bricked_base, loads8, loads4);
     }
 
     /// Trilinear samples at eight points of one vector: the row-major lanes with the samples
@@ -361,7 +482,7 @@ mod x86 {
                 return None;
             }
             // SAFETY: AVX2 is present.
-            Some(Self { lanes: unsafe { Lanes::new(cell) }, data })
+            Some(Self { lanes: unsafe { Lanes::new(cell, data.len()) }, data })
         }
 
         /// The samples at the eight points `at` (x, y, z lanes), each as the scalar loop
@@ -436,7 +557,7 @@ mod x86 {
         step: [f32; 3],
         start: i32,
     ) -> usize {
-        let (lanes, ptr) = (Lanes::new(cell), data.as_ptr());
+        let (lanes, ptr) = (Lanes::new(cell, data.len()), data.as_ptr());
         // SAFETY: the caller's data fits the lookup.
         run(out, base, step, start, |at| unsafe { lanes.sample8(ptr, at) }, |at| unsafe { lanes.sample4(ptr, at) })
     }
@@ -523,6 +644,47 @@ mod tests {
             }
         }
         assert_eq!(checked, 190);
+    }
+
+    /// Runs along rows (0.3-1 voxel a step in x, forwards and back, a little across), where
+    /// a group's cells lie within eight floats of its first cell's and the corners are read
+    /// a window at a time, up to the samples' last floats, and in sources too small for a
+    /// window: both layouts give the row-major scalar loop's bits.
+    #[test]
+    fn runs_along_rows_give_the_scalar_loops_bits() {
+        let mut checked = 0;
+        for dims in [[29usize, 6, 5], [9, 2, 2], [5, 1, 1]] {
+            let len = dims.iter().product::<usize>();
+            let data: Vec<f32> = (0..len).map(|v| ((v * 37) % 101) as f32 - 50.0).collect();
+            let cell = CellLookup::for_dims(dims);
+            let Some(bricks) = Bricks::new(&data, dims) else {
+                eprintln!("skipped: no AVX2 on this CPU");
+                return;
+            };
+            let far = dims.map(|n| (n - 1) as f32);
+            for across in [[0.0, 0.0], [far[1] - 0.25, far[2]], [0.5, far[2] * 0.5]] {
+                for dx in [0.3f32, 0.5, 1.0, -0.5, -1.0] {
+                    for run in 1..24usize {
+                        // Each run ends on the source's far x face (forwards) or starts there.
+                        let reach = dx.abs() * run as f32;
+                        let x0 = if dx > 0.0 { (far[0] - reach).max(0.0) } else { far[0] };
+                        let step = [dx, 1e-3, -1e-3];
+                        let base = [x0 - dx, across[0], across[1]];
+                        let mut rows = vec![f32::NAN; run];
+                        let mut bricked = vec![f32::NAN; run];
+                        assert_eq!(trilinear_lanes(&data, &cell, &mut rows, base, step, 1), run);
+                        assert_eq!(trilinear_bricked(&bricks, &mut bricked, base, step, 1), run);
+                        for n in 0..run {
+                            let expected = scalar(&data, &cell, base, step, 1 + n as i32).to_bits();
+                            assert_eq!(rows[n].to_bits(), expected, "{dims:?} {dx} run of {run}, voxel {n}");
+                            assert_eq!(bricked[n].to_bits(), expected, "bricked {dims:?} {dx} run of {run}, voxel {n}");
+                            checked += 1;
+                        }
+                    }
+                }
+            }
+        }
+        assert_eq!(checked, 3 * 3 * 5 * 276);
     }
 
     /// Runs in tilted directions through sources of several bricks a side, one of them
