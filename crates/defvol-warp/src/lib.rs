@@ -83,7 +83,7 @@ pub struct WarpOptions {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum WarpPath {
-    /// Eight-lane samples where the CPU has AVX2, tets through 1 MiB slabs of slices.
+    /// Eight-lane samples where the CPU has AVX2, tets through 512 KiB slabs of slices.
     #[default]
     Fast,
     Baseline,
