@@ -646,6 +646,15 @@ mod tests {
         assert_eq!(checked, 190);
     }
 
+    /// Samples of `dims` with varied values, their lookup and their bricks (none without
+    /// AVX2).
+    fn varied_source(dims: [usize; 3]) -> Option<(Vec<f32>, CellLookup, Bricks)> {
+        let len = dims.iter().product::<usize>();
+        let data: Vec<f32> = (0..len).map(|v| ((v * 37) % 101) as f32 - 50.0).collect();
+        let bricks = Bricks::new(&data, dims)?;
+        Some((data, CellLookup::for_dims(dims), bricks))
+    }
+
     /// Runs along rows (0.3-1 voxel a step in x, forwards and back, a little across), where
     /// a group's cells lie within eight floats of its first cell's and the corners are read
     /// a window at a time, up to the samples' last floats, and in sources too small for a
@@ -654,10 +663,7 @@ mod tests {
     fn runs_along_rows_give_the_scalar_loops_bits() {
         let mut checked = 0;
         for dims in [[29usize, 6, 5], [9, 2, 2], [5, 1, 1]] {
-            let len = dims.iter().product::<usize>();
-            let data: Vec<f32> = (0..len).map(|v| ((v * 37) % 101) as f32 - 50.0).collect();
-            let cell = CellLookup::for_dims(dims);
-            let Some(bricks) = Bricks::new(&data, dims) else {
+            let Some((data, cell, bricks)) = varied_source(dims) else {
                 eprintln!("skipped: no AVX2 on this CPU");
                 return;
             };
@@ -694,10 +700,7 @@ mod tests {
     fn bricked_lanes_give_the_scalar_loops_bits() {
         let mut checked = 0;
         for dims in [[19usize, 11, 10], [17, 1, 9]] {
-            let len = dims.iter().product::<usize>();
-            let data: Vec<f32> = (0..len).map(|v| ((v * 37) % 101) as f32 - 50.0).collect();
-            let cell = CellLookup::for_dims(dims);
-            let Some(bricks) = Bricks::new(&data, dims) else {
+            let Some((data, cell, bricks)) = varied_source(dims) else {
                 eprintln!("skipped: no AVX2 on this CPU");
                 return;
             };
