@@ -498,6 +498,41 @@ mod x86 {
             // corner inside it.
             unsafe { self.lanes.sample8(self.data.as_ptr(), at) }
         }
+
+        /// Asks the cache for the rows of the cells of lanes 0 and 7 at `at` (a packet's ends;
+        /// the lanes between mostly share their lines), ahead of their samples. Any points:
+        /// the cells are clamped as [`Self::sample`] clamps them, and a prefetch reads
+        /// nothing.
+        ///
+        /// # Safety
+        /// As [`Self::sample`]: a `Trilinear8` exists only where the CPU has AVX2.
+        #[inline]
+        #[target_feature(enable = "avx2")]
+        pub fn prefetch(&self, at: [__m256; 3]) {
+            let l = &self.lanes;
+            let zero = _mm256_setzero_si256();
+            let index: [__m256i; 3] =
+                per_axis!(a => _mm256_min_epi32(_mm256_max_epi32(_mm256_cvttps_epi32(at[a]), zero), l.top[a]));
+            let b = row_major_base!(
+                l,
+                index,
+                same,
+                _mm256_add_epi32,
+                _mm256_mullo_epi32,
+                _mm256_srli_epi32,
+                _mm256_and_si256
+            );
+            let mut cells = [0i32; 8];
+            // SAFETY: cells holds eight i32.
+            unsafe { _mm256_storeu_si256(cells.as_mut_ptr().cast(), b) };
+            let ptr = self.data.as_ptr();
+            for cell in [cells[0], cells[7]] {
+                for c in [0, 2, 4, 6] {
+                    let at = ptr.wrapping_offset(cell as isize + l.corners.offsets[c]);
+                    _mm_prefetch::<_MM_HINT_T0>(at.cast());
+                }
+            }
+        }
     }
 
     /// Eight voxels a loop from bricked samples, as [`trilinear_avx2`].

@@ -9,6 +9,12 @@ use std::arch::x86_64::*;
 use crate::transfer::{Tables, LUT_SIZE, PREINTEGRATED_SIZE};
 use defvol_core::volume::lanes::Trilinear8;
 
+/// Steps ahead whose cells a packet asks the cache for: a step (eight rays' samples, table
+/// lookups and compositing) is too long for the core to run the next ones' loads early
+/// on its own. 512², 1-1.25 mm, 2 threads, three alternating rounds on a 2-core AMD EPYC:
+/// 5-10 % faster; 8 steps the same as 4.
+const AHEAD: f32 = 4.0;
+
 /// Rays in a packet.
 pub(super) const LANES: usize = 8;
 
@@ -75,6 +81,10 @@ impl<'a> Lanes<'a> {
         loop {
             let kf = _mm256_cvtepi32_ps(kv);
             let at = [0, 1, 2].map(|a| _mm256_add_ps(self.base[a], _mm256_mul_ps(self.delta[a], kf)));
+            let ahead = _mm256_add_ps(kf, _mm256_set1_ps(AHEAD));
+            // Points past a lane's run or the volume only cost a wasted prefetch.
+            self.trilinear
+                .prefetch([0, 1, 2].map(|a| _mm256_add_ps(self.base[a], _mm256_mul_ps(self.delta[a], ahead))));
             let value = self.trilinear.sample(at);
             let color = if self.preintegrated {
                 // SAFETY: the table's size was checked in `new`.
