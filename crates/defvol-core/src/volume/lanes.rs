@@ -380,7 +380,6 @@ mod x86 {
         };
     }
 
-    /// sample8 and sample4 for a layout.
     /// sample8 and sample4 for a layout, with its corner readers.
     macro_rules! sample_fns {
         ($base:ident, $corners8:ident, $corners4:ident) => {

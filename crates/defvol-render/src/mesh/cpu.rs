@@ -141,7 +141,8 @@ fn face_links(neighbours: &[[i32; 4]]) -> Vec<[i32; 4]> {
         .collect()
 }
 
-/// The faces of walked tets with no neighbour, as tet · 4 + face.
+/// The faces of walked tets with no neighbour, as tet · 4 + face (`links` or the mesh's
+/// neighbours: a negative entry is no neighbour in both).
 fn boundary_faces(links: &[[i32; 4]], walked: &[bool]) -> Vec<u32> {
     links
         .iter()
