@@ -351,7 +351,15 @@ impl<'a> Sampler<'a> {
 
     /// Trilinear samples along a run of output voxels, source index base + step·i: the hot
     /// loop of the warp, with the limits and strides hoisted out of it.
-    fn trilinear_run<T: Real>(&self, out: &mut [T], base: [T; 3], step: [T; 3], i0: usize, src_inside: bool) {
+    /// `ahead`: the offset to the run the caller samples next, whose cells are prefetched.
+    fn trilinear_run<T: Real>(
+        &self,
+        out: &mut [T],
+        [base, step]: [[T; 3]; 2],
+        i0: usize,
+        src_inside: bool,
+        ahead: [f32; 3],
+    ) {
         let cell = &self.cell;
         let background = T::of(self.background as f64);
         // The run is affine in n. A rest tet inside the source box samples inside it (only
@@ -375,7 +383,7 @@ impl<'a> Sampler<'a> {
                 let across = step[1].abs() + step[2].abs() > 0.5;
                 match self.bricks.filter(|_| across) {
                     Some(bricks) => trilinear_bricked(bricks, lanes, base, step, start as i32),
-                    None => trilinear_lanes(self.data, cell, lanes, base, step, start as i32),
+                    None => trilinear_lanes(self.data, cell, lanes, base, step, start as i32, Some(ahead)),
                 }
             }
             None => 0,
@@ -595,6 +603,9 @@ fn rasterize_tet_slice<T: Real>(
 /// Coarse cell size of the culling scheme (the seed's 8x8x8).
 pub const CELL: usize = 8;
 
+/// How many rows ahead a run prefetches the source cells of.
+const ROWS_AHEAD: f64 = 2.0;
+
 /// Samples the source for output voxels i0..=i1 of row (j, k); `row` starts at i = 0.
 #[inline]
 pub(crate) fn write_run<T: Real>(
@@ -610,7 +621,10 @@ pub(crate) fn write_run<T: Real>(
     let base = m.src.map(|s| T::of(s[0] + s[2] * jf + s[3] * kf));
     let step = m.src.map(|s| T::of(s[1]));
     if sampler.is_plain_trilinear() {
-        sampler.trilinear_run(&mut row[i0..=i1], base, step, i0, m.src_inside);
+        // The same tet's row ROWS_AHEAD on is sampled soon after: its cells are fetched
+        // while this row computes (a short run would otherwise wait on its first cells).
+        let ahead = m.src.map(|s| (ROWS_AHEAD * s[2]) as f32);
+        sampler.trilinear_run(&mut row[i0..=i1], [base, step], i0, m.src_inside, ahead);
         return;
     }
     for (i, out) in row[i0..=i1].iter_mut().enumerate() {

@@ -34,7 +34,8 @@ impl CellLookup {
 /// Writes trilinear samples at `base + step·(start + n)` into `out` where AVX2 serves (a
 /// last group of at most four takes four lanes; a last group's spare lanes sample points the
 /// clamps keep inside the data, and only its own are stored); returns how many it wrote:
-/// all of `out`, or none.
+/// all of `out`, or none. `ahead`: the offset from this run to the one the caller samples
+/// next, whose cells it asks the cache for as it goes (no effect on the samples).
 pub fn trilinear_lanes(
     data: &[f32],
     cell: &CellLookup,
@@ -42,15 +43,16 @@ pub fn trilinear_lanes(
     base: [f32; 3],
     step: [f32; 3],
     start: i32,
+    ahead: Option<[f32; 3]>,
 ) -> usize {
     #[cfg(target_arch = "x86_64")]
     if lanes_available() && x86::fits(data, cell) {
         // SAFETY: AVX2 is present, and every index the loads read is clamped to at most
         // the lookup's largest, which lies inside `data`.
-        return unsafe { x86::trilinear_avx2(data, cell, out, base, step, start) };
+        return unsafe { x86::trilinear_avx2(data, cell, out, base, step, start, ahead) };
     }
     #[cfg(not(target_arch = "x86_64"))]
-    let _ = (data, cell, out, base, step, start);
+    let _ = (data, cell, out, base, step, start, ahead);
     0
 }
 
@@ -441,6 +443,35 @@ mod x86 {
 
         // Rows: a run along them, or a packet's neighbouring rays, reads windows.
         sample_fns!(row_major_base, window8, window4);
+
+        /// Asks the cache for the corner rows of the cells of lanes 0 and 7 at `at` (a
+        /// group's ends; the lanes between mostly share their lines). Any points: the cells
+        /// are clamped as the samplers clamp them, and a prefetch reads nothing.
+        #[inline]
+        #[target_feature(enable = "avx2")]
+        fn prefetch8(&self, ptr: *const f32, at: [__m256; 3]) {
+            let zero = _mm256_setzero_si256();
+            let index: [__m256i; 3] =
+                per_axis!(a => _mm256_min_epi32(_mm256_max_epi32(_mm256_cvttps_epi32(at[a]), zero), self.top[a]));
+            let b = row_major_base!(
+                self,
+                index,
+                same,
+                _mm256_add_epi32,
+                _mm256_mullo_epi32,
+                _mm256_srli_epi32,
+                _mm256_and_si256
+            );
+            let mut cells = [0i32; 8];
+            // SAFETY: cells holds eight i32.
+            unsafe { _mm256_storeu_si256(cells.as_mut_ptr().cast(), b) };
+            for cell in [cells[0], cells[7]] {
+                for c in [0, 2, 4, 6] {
+                    let at = ptr.wrapping_offset(cell as isize + self.corners.offsets[c]);
+                    _mm_prefetch::<_MM_HINT_T0>(at.cast());
+                }
+            }
+        }
     }
 
     impl BrickLanes {
@@ -508,29 +539,7 @@ mod x86 {
         #[inline]
         #[target_feature(enable = "avx2")]
         pub fn prefetch(&self, at: [__m256; 3]) {
-            let l = &self.lanes;
-            let zero = _mm256_setzero_si256();
-            let index: [__m256i; 3] =
-                per_axis!(a => _mm256_min_epi32(_mm256_max_epi32(_mm256_cvttps_epi32(at[a]), zero), l.top[a]));
-            let b = row_major_base!(
-                l,
-                index,
-                same,
-                _mm256_add_epi32,
-                _mm256_mullo_epi32,
-                _mm256_srli_epi32,
-                _mm256_and_si256
-            );
-            let mut cells = [0i32; 8];
-            // SAFETY: cells holds eight i32.
-            unsafe { _mm256_storeu_si256(cells.as_mut_ptr().cast(), b) };
-            let ptr = self.data.as_ptr();
-            for cell in [cells[0], cells[7]] {
-                for c in [0, 2, 4, 6] {
-                    let at = ptr.wrapping_offset(cell as isize + l.corners.offsets[c]);
-                    _mm_prefetch::<_MM_HINT_T0>(at.cast());
-                }
-            }
+            self.lanes.prefetch8(self.data.as_ptr(), at)
         }
     }
 
@@ -549,7 +558,11 @@ mod x86 {
         let (lanes, ptr) = (BrickLanes::new(bricks), bricks.data.as_ptr());
         // SAFETY: every bricked index lies in the bricks (clamped cells, corners within
         // their brick).
-        run(out, base, step, start, |at| unsafe { lanes.sample8(ptr, at) }, |at| unsafe { lanes.sample4(ptr, at) })
+        let sample8 = |at| unsafe { lanes.sample8(ptr, at) };
+        let sample4 = |at| unsafe { lanes.sample4(ptr, at) };
+        // No prefetch: a rotated run's cells spread over more lines than a few prefetches
+        // reach, and prefetching all eight lanes' bought nothing (side by side, rot45).
+        run(out, [base, step], start, sample8, sample4, None::<([f32; 3], fn([__m256; 3]))>)
     }
 
     /// The eight points `base + step·(first + l)`, lane l, multiplied and added unfused as
@@ -590,24 +603,29 @@ mod x86 {
         base: [f32; 3],
         step: [f32; 3],
         start: i32,
+        ahead: Option<[f32; 3]>,
     ) -> usize {
         let (lanes, ptr) = (Lanes::new(cell, data.len()), data.as_ptr());
         // SAFETY: the caller's data fits the lookup.
-        run(out, base, step, start, |at| unsafe { lanes.sample8(ptr, at) }, |at| unsafe { lanes.sample4(ptr, at) })
+        let sample8 = |at| unsafe { lanes.sample8(ptr, at) };
+        let sample4 = |at| unsafe { lanes.sample4(ptr, at) };
+        run(out, [base, step], start, sample8, sample4, ahead.map(|ahead| (ahead, |at| lanes.prefetch8(ptr, at))))
     }
 
     /// The samples at `base + step·(start + n)` into `out`, eight lanes a loop; a last group
     /// of at most four takes four lanes, and a last group stores only its own voxels.
-    /// Returns `out.len()`.
+    /// With `ahead` (an offset and a prefetcher), each group also asks the cache for the
+    /// cells of the run that far away: the one the caller samples next, whose first cells
+    /// a short run would otherwise wait for. Returns `out.len()`.
     #[inline]
     #[target_feature(enable = "avx2")]
     fn run(
         out: &mut [f32],
-        base: [f32; 3],
-        step: [f32; 3],
+        [base, step]: [[f32; 3]; 2],
         start: i32,
         sample8: impl Fn([__m256; 3]) -> __m256,
         sample4: impl Fn([__m128; 3]) -> __m128,
+        ahead: Option<([f32; 3], impl Fn([__m256; 3]))>,
     ) -> usize {
         let len = out.len();
         let iota = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
@@ -615,6 +633,10 @@ mod x86 {
         let step8 = step.map(|s| _mm256_set1_ps(s));
         let mut n = 0;
         while len - n > 4 {
+            if let Some((offset, prefetch8)) = &ahead {
+                let later = per_axis!(a => _mm256_set1_ps(base[a] + offset[a]));
+                prefetch8(along8(later, step8, start + n as i32));
+            }
             store8(&mut out[n..], sample8(along8(base8, step8, start + n as i32)));
             n = (n + 8).min(len);
         }
@@ -663,7 +685,7 @@ mod tests {
             let reach = (start + len as i32 - 1).max(1) as f32;
             let step = [6.0 / reach, -3.9 / reach, 2.7 / reach];
             let mut out = vec![f32::NAN; len];
-            if trilinear_lanes(&data, &cell, &mut out, base, step, start) == 0 {
+            if trilinear_lanes(&data, &cell, &mut out, base, step, start, None) == 0 {
                 eprintln!("skipped: no AVX2 on this CPU");
                 return;
             }
@@ -712,7 +734,7 @@ mod tests {
                         let base = [x0 - dx, across[0], across[1]];
                         let mut rows = vec![f32::NAN; run];
                         let mut bricked = vec![f32::NAN; run];
-                        assert_eq!(trilinear_lanes(&data, &cell, &mut rows, base, step, 1), run);
+                        assert_eq!(trilinear_lanes(&data, &cell, &mut rows, base, step, 1, Some([0.0, 2.0, 0.0])), run);
                         assert_eq!(trilinear_bricked(&bricks, &mut bricked, base, step, 1), run);
                         for n in 0..run {
                             let expected = scalar(&data, &cell, base, step, 1 + n as i32).to_bits();

@@ -465,7 +465,7 @@ impl<'a> Sampler<'a> {
     /// else one by one.
     #[inline(always)]
     pub(crate) fn along(&self, base: Vector3<f32>, step: Vector3<f32>, first: usize, out: &mut [f32]) {
-        if trilinear_lanes(self.data, &self.cell, out, base.into(), step.into(), first as i32) == 0 {
+        if trilinear_lanes(self.data, &self.cell, out, base.into(), step.into(), first as i32, None) == 0 {
             for (k, value) in (first..).zip(out.iter_mut()) {
                 *value = self.at(&(base + step * k as f32));
             }
