@@ -351,7 +351,8 @@ impl<'a> Sampler<'a> {
 
     /// Trilinear samples along a run of output voxels, source index base + step·i: the hot
     /// loop of the warp, with the limits and strides hoisted out of it.
-    /// `ahead`: the offset to the run the caller samples next, whose cells are prefetched.
+    /// `ahead`: the offset to the run the caller samples next, whose cells a run along the
+    /// source's rows prefetches (bricked runs take none: no gain measured).
     fn trilinear_run<T: Real>(
         &self,
         out: &mut [T],
