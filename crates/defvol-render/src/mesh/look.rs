@@ -262,33 +262,32 @@ impl SourceLook {
         queue.sample(&mut values[..n]);
         let preintegrated = self.params.preintegrated;
         let (step, offset) = (self.params.step as f32, if preintegrated { 0.0 } else { 0.5 });
+        let inside: [bool; BATCH] =
+            std::array::from_fn(|i| i < n && self.in_box(&V3::new(queue.q[0][i], queue.q[1][i], queue.q[2][i])));
         // Every entry looked up before any is composited: independent loads (see
-        // `composite_batch`).
-        let mut fronts = [None; BATCH];
+        // `composite_batch`), eight wide.
         let mut entries = [[0.0f32; 4]; BATCH];
-        let mut front = march.front;
-        for i in 0..n {
-            let q = V3::new(queue.q[0][i], queue.q[1][i], queue.q[2][i]);
-            let value = self.in_box(&q).then_some(values[i]);
-            entries[i] = match (preintegrated, front, value) {
-                (true, Some(f), Some(v)) => self.tables.segment(f, v),
-                (false, _, Some(v)) => self.tables.sample_step(v),
-                _ => [0.0; 4],
-            };
-            (fronts[i], front) = (front, value);
+        if preintegrated {
+            let mut fronts = [0.0f32; BATCH];
+            fronts[0] = march.front.unwrap_or(values[0]);
+            fronts[1..].copy_from_slice(&values[..BATCH - 1]);
+            queue.segments(&self.tables, &fronts, &values, &mut entries[..n]);
+        } else {
+            for i in 0..n {
+                entries[i] = self.tables.sample_step(values[i]);
+            }
         }
         for i in 0..n {
             let k = queue.k[i];
             let t = march.t0 + (k as f32 + offset) * step;
-            let q = V3::new(queue.q[0][i], queue.q[1][i], queue.q[2][i]);
-            let inside = self.in_box(&q);
-            let adds = queue.adds[i] && inside && (!preintegrated || (fronts[i].is_some() && k > 0));
+            let front_inside = if i == 0 { march.front.is_some() } else { inside[i - 1] };
+            let adds = queue.adds[i] && inside[i] && (!preintegrated || (front_inside && k > 0));
             if adds && entries[i][3] > 1e-5 {
                 // Unshaded: `add`'s shade is exactly 1.
                 blend(acc, depth, entries[i], 1.0, if preintegrated { t - 0.5 * step } else { t });
             }
             if preintegrated {
-                march.front = inside.then_some(values[i]);
+                march.front = inside[i].then_some(values[i]);
             }
             if acc[3] >= self.params.early_termination as f32 {
                 return true;
@@ -526,6 +525,19 @@ fn blend(acc: &mut [f32; 4], depth: &mut f32, e: [f32; 4], shade: f32, t_mid: f3
 }
 
 impl Queue<'_> {
+    /// `Tables::segment(fronts[i], backs[i])` into `out[i]`; both hold `BATCH` values.
+    fn segments(&self, tables: &Tables, fronts: &[f32; BATCH], backs: &[f32; BATCH], out: &mut [[f32; 4]]) {
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: a `Trilinear8` (the queue's sampler) exists only where the CPU has AVX2.
+        unsafe {
+            crate::volume::packet::segments_into(tables, fronts, backs, out)
+        };
+        #[cfg(not(target_arch = "x86_64"))]
+        for ((entry, &front), &back) in out.iter_mut().zip(fronts).zip(backs) {
+            *entry = tables.segment(front, back);
+        }
+    }
+
     /// The queued samples, the first `out.len()`, into `out`.
     fn sample(&self, out: &mut [f32]) {
         #[cfg(target_arch = "x86_64")]

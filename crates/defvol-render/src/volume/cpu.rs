@@ -17,7 +17,7 @@ use defvol_core::volume::lanes::{trilinear_lanes, CellLookup};
 use defvol_core::volume::{trilinear, Grid, Volume};
 
 #[cfg(target_arch = "x86_64")]
-mod packet;
+pub(crate) mod packet;
 #[cfg(target_arch = "x86_64")]
 use defvol_core::volume::lanes::Trilinear8;
 

@@ -237,6 +237,43 @@ unsafe fn interpolate8(tables: &Tables, table: &[[f32; 4]], s: __m256) -> [__m25
 #[inline]
 #[target_feature(enable = "avx2")]
 unsafe fn segment8(tables: &Tables, front: __m256, back: __m256) -> [__m256; 4] {
+    // SAFETY: the caller's.
+    channels(unsafe { segment8_entries(tables, front, back) })
+}
+
+/// `Tables::segment(fronts[i], backs[i])` into `out[i]` for every i, in groups of eight
+/// (the same bits; the last group's spare lanes read `fronts` and `backs` past `out`'s
+/// length, which must hold a whole group). One ray's queued samples: independent lookups,
+/// whose index arithmetic the lanes share and whose loads they issue together.
+///
+/// # Safety
+/// AVX2 must be present (a `Trilinear8` shows it is).
+#[target_feature(enable = "avx2")]
+pub(crate) unsafe fn segments_into(tables: &Tables, fronts: &[f32], backs: &[f32], out: &mut [[f32; 4]]) {
+    assert!(tables.preintegrated.len() == PREINTEGRATED_SIZE * PREINTEGRATED_SIZE);
+    let groups = out.len().div_ceil(LANES);
+    assert!(fronts.len() >= groups * LANES && backs.len() >= groups * LANES);
+    for g in 0..groups {
+        let at = g * LANES;
+        // SAFETY: at + LANES ≤ groups · LANES floats, which both slices hold.
+        let (front, back) =
+            unsafe { (_mm256_loadu_ps(fronts.as_ptr().add(at)), _mm256_loadu_ps(backs.as_ptr().add(at))) };
+        // SAFETY: the table's size is checked above.
+        let entries = unsafe { segment8_entries(tables, front, back) };
+        for (slot, entry) in out[at..].iter_mut().zip(entries) {
+            // SAFETY: slot holds four floats.
+            unsafe { _mm_storeu_ps(slot.as_mut_ptr(), entry) };
+        }
+    }
+}
+
+/// [`segment8`]'s entries, lane l's premultiplied colour and α in `[l]`.
+///
+/// # Safety
+/// The pre-integrated table must hold `PREINTEGRATED_SIZE`² entries.
+#[inline]
+#[target_feature(enable = "avx2")]
+unsafe fn segment8_entries(tables: &Tables, front: __m256, back: __m256) -> [__m128; LANES] {
     let n = PREINTEGRATED_SIZE;
     let (lo, scale) = (_mm256_set1_ps(tables.pre_lo), _mm256_set1_ps(tables.pre_scale));
     let level = |s| clamp8(_mm256_mul_ps(_mm256_sub_ps(s, lo), scale), (n - 1) as f32);
@@ -247,9 +284,9 @@ unsafe fn segment8(tables: &Tables, front: __m256, back: __m256) -> [__m256; 4] 
     let at = lanes_i32(_mm256_add_epi32(_mm256_mullo_epi32(i, _mm256_set1_epi32(n as i32)), j));
     let ptr = tables.preintegrated.as_ptr();
     // SAFETY: 0 ≤ i, j ≤ n - 2, so entries (i, j) to (i + 1, j + 1) lie in the table.
-    channels(std::array::from_fn(|l| unsafe {
+    std::array::from_fn(|l| unsafe {
         let at = at[l] as usize;
         let near = lerp4(entry(ptr, at), entry(ptr, at + 1), fy[l]);
         lerp4(near, lerp4(entry(ptr, at + n), entry(ptr, at + n + 1), fy[l]), fx[l])
-    }))
+    })
 }
