@@ -105,7 +105,9 @@ impl SampleLine {
 
     /// One past the last sample at or before `t_out`, from sample `k` on.
     fn end(&self, k: u32, t_out: f32) -> u32 {
-        let guess = ((t_out - self.t0) / self.dt - self.offset).floor();
+        let guess = (t_out - self.t0) / self.dt - self.offset;
+        // Truncation is the floor from 0 up; `floor` would be a libm call on baseline x86-64
+        // (profiled: 2.5 % of the source's time).
         let mut end = if guess.is_finite() { (guess.max(0.0) as u32 + 1).max(k) } else { k };
         while end > k && self.t(end - 1) > t_out {
             end -= 1;
