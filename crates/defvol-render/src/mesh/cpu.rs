@@ -649,66 +649,71 @@ impl TetRaycaster {
         let mut march = self.source.as_ref().map(|s| s.march(o, d, t_in));
         let scalar =
             |g: &[f32; 4], t: f32| g[0] * (o.x + d.x * t) + g[1] * (o.y + d.y * t) + g[2] * (o.z + d.z * t) + g[3];
-        let stopped_at = 'walk: {
-            // The scalar is continuous across faces: a tet's entry value is the last exit value.
-            let mut s_in = scalar(&self.geometry[tet as usize].gradient, t_in);
-            for _ in 0..MAX_WALK {
-                self.prefetch_neighbours(tet, face_in);
-                let g = &self.geometry[tet as usize];
-                // The exit is the smallest num/denom over faces ahead, compared without dividing.
-                let (mut num, mut den) = (0.0f32, 0.0f32);
-                let mut exit_k = NO_FACE;
-                for (k, plane) in g.planes.iter().enumerate() {
-                    let denom = plane[0] * d.x + plane[1] * d.y + plane[2] * d.z;
-                    if k as u32 == face_in || denom <= 1e-7 || denom.is_nan() {
-                        continue;
-                    }
-                    let n = plane[3] - (plane[0] * o.x + plane[1] * o.y + plane[2] * o.z);
-                    if exit_k == NO_FACE || n * den < num * denom {
-                        (num, den, exit_k) = (n, denom, k as u32);
-                    }
+        // The scalar is continuous across faces: a tet's entry value is the last exit value.
+        let mut s_in = scalar(&self.geometry[tet as usize].gradient, t_in);
+        for _ in 0..MAX_WALK {
+            self.prefetch_neighbours(tet, face_in);
+            let g = &self.geometry[tet as usize];
+            // The exit is the smallest num/denom over faces ahead, compared without dividing.
+            let (mut num, mut den) = (0.0f32, 0.0f32);
+            let mut exit_k = NO_FACE;
+            for (k, plane) in g.planes.iter().enumerate() {
+                let denom = plane[0] * d.x + plane[1] * d.y + plane[2] * d.z;
+                if k as u32 == face_in || denom <= 1e-7 || denom.is_nan() {
+                    continue;
                 }
-                if exit_k == NO_FACE {
-                    break 'walk t_in;
+                let n = plane[3] - (plane[0] * o.x + plane[1] * o.y + plane[2] * o.z);
+                if exit_k == NO_FACE || n * den < num * denom {
+                    (num, den, exit_k) = (n, denom, k as u32);
                 }
-                let t_out = (num / den).max(t_in).min(t_stop);
-                stalled = if t_out - t_in <= 1e-6 * (1.0 + t_in.abs()) { stalled + 1 } else { 0 };
-                if stalled > MAX_STALL {
-                    break 'walk t_out;
-                }
-                let s_out = match (&self.source, &mut march) {
-                    (Some(source), Some(march)) => {
-                        source.cross(march, tet as usize, t_out, acc, depth);
-                        s_in
-                    }
-                    _ => {
-                        let s_out = scalar(&g.gradient, t_out);
-                        if s_in.max(s_out) > self.visible.0 && s_in.min(s_out) < self.visible.1 {
-                            self.integrate(acc, depth, t_in, t_out, s_in, s_out);
-                        }
-                        s_out
-                    }
-                };
-                if acc[3] >= termination {
-                    break 'walk t_out;
-                }
-                let link = self.links[tet as usize][exit_k as usize];
-                if t_out >= t_stop || link < 0 {
-                    // The ray leaves the mesh or meets a tool: the source's last, shorter segment.
-                    if let (Some(source), Some(march)) = (&self.source, &mut march) {
-                        source.finish(march, tet as usize, t_out, acc, depth);
-                    }
-                    break 'walk t_out;
-                }
-                (tet, face_in, t_in, s_in) = ((link >> 2) as u32, (link & 3) as u32, t_out, s_out);
             }
-            t_in
-        };
-        if let (Some(source), Some(march)) = (&self.source, &mut march) {
-            // Samples still queued where the walk stopped inside the mesh.
+            if exit_k == NO_FACE {
+                self.flush(&mut march, acc, depth);
+                return t_in;
+            }
+            let t_out = (num / den).max(t_in).min(t_stop);
+            stalled = if t_out - t_in <= 1e-6 * (1.0 + t_in.abs()) { stalled + 1 } else { 0 };
+            if stalled > MAX_STALL {
+                self.flush(&mut march, acc, depth);
+                return t_out;
+            }
+            let s_out = match (&self.source, &mut march) {
+                (Some(source), Some(march)) => {
+                    source.cross(march, tet as usize, t_out, acc, depth);
+                    s_in
+                }
+                _ => {
+                    let s_out = scalar(&g.gradient, t_out);
+                    if s_in.max(s_out) > self.visible.0 && s_in.min(s_out) < self.visible.1 {
+                        self.integrate(acc, depth, t_in, t_out, s_in, s_out);
+                    }
+                    s_out
+                }
+            };
+            if acc[3] >= termination {
+                return t_out;
+            }
+            let link = self.links[tet as usize][exit_k as usize];
+            if t_out >= t_stop || link < 0 {
+                // The ray leaves the mesh or meets a tool: the source's last, shorter segment.
+                if let (Some(source), Some(march)) = (&self.source, &mut march) {
+                    source.finish(march, tet as usize, t_out, acc, depth);
+                }
+                return t_out;
+            }
+            (tet, face_in, t_in, s_in) = ((link >> 2) as u32, (link & 3) as u32, t_out, s_out);
+        }
+        self.flush(&mut march, acc, depth);
+        t_in
+    }
+
+    /// The source's samples still queued where a walk stopped inside the mesh (it leaves
+    /// it through `SourceLook::finish`, which composites them first).
+    #[cold]
+    fn flush(&self, march: &mut Option<super::look::March>, acc: &mut [f32; 4], depth: &mut f32) {
+        if let (Some(source), Some(march)) = (&self.source, march) {
             source.flush(march, acc, depth);
         }
-        stopped_at
     }
 
     /// Asks the cache for the geometry of the tets past `tet`'s faces other than `face_in`:
