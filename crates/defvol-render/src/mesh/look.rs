@@ -13,9 +13,8 @@ use super::field::{linear_field, V3};
 use crate::transfer::Tables;
 use crate::volume::{RaycastParams, Sampler, Shading};
 use defvol_core::volume::bspline::{backward_all, CompiledDisplacement};
-use defvol_core::volume::lanes::CellLookup;
 #[cfg(target_arch = "x86_64")]
-use defvol_core::volume::lanes::Trilinear8;
+use defvol_core::volume::lanes::{CellLookup, Trilinear8};
 use defvol_core::volume::{tricubic, Grid, Sampling, Volume};
 
 /// Samples this far (source voxels) outside the voxel-centre box are read on its edge: a
@@ -235,7 +234,6 @@ impl SourceLook {
 
     /// Queues sample `k` of `ray` (`adds`: see [`Queue::adds`]), compositing the queue once
     /// full; whether the ray is now opaque enough to stop.
-    #[allow(clippy::too_many_arguments)]
     fn enqueue(
         &self,
         march: &mut March,
