@@ -264,8 +264,9 @@ impl SourceLook {
         let (step, offset) = (self.params.step as f32, if preintegrated { 0.0 } else { 0.5 });
         let inside: [bool; BATCH] =
             std::array::from_fn(|i| i < n && self.in_box(&V3::new(queue.q[0][i], queue.q[1][i], queue.q[2][i])));
-        // Every entry looked up before any is composited: independent loads (see
-        // `composite_batch`), eight wide.
+        // Every entry looked up before any is composited, eight wide: independent loads
+        // from a table larger than the core's cache, which the core then overlaps
+        // (profiled: one per sample, each waited for, was a fifth of the source's time).
         let mut entries = [[0.0f32; 4]; BATCH];
         if preintegrated {
             let mut fronts = [0.0f32; BATCH];
@@ -329,12 +330,6 @@ impl SourceLook {
             let values = &mut values[..(end - march.k).min(BATCH as u32) as usize];
             if let Some(sampler) = &lanes {
                 sampler.along(ray.base, ray.step, march.k as usize, values);
-                if self.batch_in_box(&ray, march.k, values.len()) {
-                    if self.composite_batch(&ray, march, values, acc, depth) {
-                        return;
-                    }
-                    continue;
-                }
             }
             for value in values.iter() {
                 let q = ray.q(march.k);
@@ -372,55 +367,6 @@ impl SourceLook {
         } else if self.params.preintegrated && !self.enqueue(march, ray, first, true, acc, depth) && end - 1 > first {
             self.enqueue(march, ray, end - 1, false, acc, depth);
         }
-    }
-
-    /// Whether samples `k..k + n` of `ray` all lie in the source's box: its ends do (each
-    /// coordinate is monotone in k, in f32 as exactly, and the box convex).
-    #[inline]
-    fn batch_in_box(&self, ray: &SampleLine, k: u32, n: usize) -> bool {
-        self.in_box(&ray.q(k)) && self.in_box(&ray.q(k + n as u32 - 1))
-    }
-
-    /// [`Self::composite`] over a batch of samples inside the source's box, their table
-    /// entries looked up first: the lookups are independent loads from a table larger
-    /// than the core's cache, which the core then overlaps (profiled: one per sample,
-    /// each waited for, was a fifth of the source's time). Same order, same bits.
-    fn composite_batch(
-        &self,
-        ray: &SampleLine,
-        march: &mut March,
-        values: &[f32],
-        acc: &mut [f32; 4],
-        depth: &mut f32,
-    ) -> bool {
-        let mut entries = [[0.0f32; 4]; BATCH];
-        let preintegrated = self.params.preintegrated;
-        if preintegrated {
-            let mut front = march.front.unwrap_or(values[0]);
-            for (entry, &back) in entries.iter_mut().zip(values) {
-                (*entry, front) = (self.tables.segment(front, back), back);
-            }
-        } else {
-            for (entry, &value) in entries.iter_mut().zip(values) {
-                *entry = self.tables.sample_step(value);
-            }
-        }
-        for (entry, &value) in entries.iter().zip(values) {
-            let k = march.k;
-            let t = ray.t(k);
-            if !preintegrated {
-                self.add(acc, depth, *entry, &ray.q(k), &ray.map, &march.light, t);
-            } else if march.front.is_some() && k > 0 {
-                let middle = ray.base + ray.step * (k as f32 - 0.5);
-                self.add(acc, depth, *entry, &middle, &ray.map, &march.light, t - 0.5 * ray.dt);
-            }
-            march.front = Some(value);
-            march.k += 1;
-            if acc[3] >= self.params.early_termination as f32 {
-                return true;
-            }
-        }
-        false
     }
 
     /// Where the samples of `march` lie in `tet`'s source index space.
