@@ -103,18 +103,43 @@ impl Camera {
 
     /// The ray through the centre of pixel (px, py): origin and unit direction, world frame.
     pub fn ray(&self, px: usize, py: usize) -> (Point3<f64>, Vector3<f64>) {
-        let u = ((px as f64 + 0.5) / self.width as f64) * 2.0 - 1.0;
-        let v = ((py as f64 + 0.5) / self.height as f64) * 2.0 - 1.0;
+        self.rays().ray(px, py)
+    }
+
+    /// This camera's rays, what is the same for every pixel worked out once: the field of
+    /// view's tangent was a libm call per ray (about 2 % of a tet raycast, profiled).
+    pub fn rays(&self) -> Rays<'_> {
         let aspect = self.width as f64 / self.height as f64;
-        let (origin, direction) = match self.projection {
-            Projection::Perspective { fov_y_deg } => {
-                let t = (fov_y_deg.to_radians() / 2.0).tan();
-                (Point3::origin(), Vector3::new(u * t * aspect, v * t, 1.0).normalize())
-            }
+        let tangent = match self.projection {
+            Projection::Perspective { fov_y_deg } => (fov_y_deg.to_radians() / 2.0).tan(),
+            Projection::Orthographic { .. } => 0.0,
+        };
+        Rays { camera: self, aspect, tangent }
+    }
+}
+
+/// A camera's rays ([`Camera::rays`]): [`Rays::ray`] gives [`Camera::ray`]'s bits.
+#[derive(Debug, Clone, Copy)]
+pub struct Rays<'a> {
+    camera: &'a Camera,
+    aspect: f64,
+    /// tan(fov_y / 2) for a perspective camera.
+    tangent: f64,
+}
+
+impl Rays<'_> {
+    /// The ray through the centre of pixel (px, py): origin and unit direction, world frame.
+    pub fn ray(&self, px: usize, py: usize) -> (Point3<f64>, Vector3<f64>) {
+        let camera = self.camera;
+        let u = ((px as f64 + 0.5) / camera.width as f64) * 2.0 - 1.0;
+        let v = ((py as f64 + 0.5) / camera.height as f64) * 2.0 - 1.0;
+        let (aspect, t) = (self.aspect, self.tangent);
+        let (origin, direction) = match camera.projection {
+            Projection::Perspective { .. } => (Point3::origin(), Vector3::new(u * t * aspect, v * t, 1.0).normalize()),
             Projection::Orthographic { height } => {
                 (Point3::new(u * height / 2.0 * aspect, v * height / 2.0, 0.0), Vector3::z())
             }
         };
-        (self.world_from_camera * origin, self.world_from_camera * direction)
+        (camera.world_from_camera * origin, camera.world_from_camera * direction)
     }
 }

@@ -460,6 +460,7 @@ impl TetRaycaster {
     pub fn render(&self, camera: &Camera) -> Result<Rendered, RenderError> {
         camera.validate()?;
         let bins = bin_boundary(&self.tets, &self.first_faces(camera), &self.positions, camera);
+        let rays = camera.rays();
         let (w, h) = (camera.width, camera.height);
         // Tile by tile, as the GPU's workgroups: neighbouring rays cross the same tets while
         // their geometry is still in cache.
@@ -471,7 +472,7 @@ impl TetRaycaster {
                 let mut pixels = Vec::with_capacity(TILE * TILE);
                 for py in ty..(ty + TILE).min(h) {
                     for px in tx..(tx + TILE).min(w) {
-                        let (origin, direction) = camera.ray(px, py);
+                        let (origin, direction) = rays.ray(px, py);
                         let tool =
                             nearest_tool(&self.params.tools, self.params.ambient, &origin, &direction, &-direction);
                         let o = (origin.coords - self.anchor).cast::<f32>();

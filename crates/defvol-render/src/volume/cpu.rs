@@ -10,7 +10,7 @@ use nalgebra::{Matrix3, Point3, Vector3};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use crate::camera::Camera;
+use crate::camera::{Camera, Rays};
 use crate::transfer::{Tables, TransferFunction};
 use crate::{RenderError, Rendered};
 use defvol_core::volume::lanes::{trilinear_lanes, CellLookup};
@@ -318,6 +318,7 @@ impl<'a> VolumeRaycaster<'a> {
     pub fn render(&self, camera: &Camera) -> Result<Rendered, RenderError> {
         camera.validate()?;
         let caster = self.caster();
+        let rays = camera.rays();
         let (w, h) = (camera.width, camera.height);
         let mut rgba = vec![0u8; w * h * 4];
         let mut depth = vec![f32::INFINITY; w * h];
@@ -329,7 +330,7 @@ impl<'a> VolumeRaycaster<'a> {
                 let band_h = depth_rows.len() / w;
                 for tx in (0..w).step_by(TILE) {
                     for dy in 0..band_h {
-                        caster.cast_row(camera, band * TILE + dy, tx..(tx + TILE).min(w), |px, (color, d)| {
+                        caster.cast_row(&rays, band * TILE + dy, tx..(tx + TILE).min(w), |px, (color, d)| {
                             let i = dy * w + px;
                             rows[i * 4..i * 4 + 4].copy_from_slice(&color.map(to_level));
                             depth_rows[i] = d;
@@ -519,7 +520,7 @@ impl Caster<'_> {
     /// where packets serve these parameters, else one by one.
     fn cast_row(
         &self,
-        camera: &Camera,
+        rays: &Rays,
         py: usize,
         xs: std::ops::Range<usize>,
         mut put: impl FnMut(usize, ([f32; 4], f32)),
@@ -528,7 +529,7 @@ impl Caster<'_> {
         if let Some(trilinear) = self.packets {
             for px0 in xs.clone().step_by(packet::LANES) {
                 let count = (xs.end - px0).min(packet::LANES);
-                let pixels = self.cast_packet(trilinear, camera, (px0, py), count);
+                let pixels = self.cast_packet(trilinear, rays, (px0, py), count);
                 for (px, pixel) in (px0..px0 + count).zip(pixels) {
                     put(px, pixel);
                 }
@@ -536,7 +537,7 @@ impl Caster<'_> {
             return;
         }
         for px in xs {
-            let (origin, direction) = camera.ray(px, py);
+            let (origin, direction) = rays.ray(px, py);
             put(px, self.cast(&origin, &direction));
         }
     }
@@ -774,14 +775,14 @@ impl<'a> Caster<'a> {
     fn cast_packet(
         &self,
         trilinear: Trilinear8<'a>,
-        camera: &Camera,
+        rays: &Rays,
         (px0, py): (usize, usize),
         count: usize,
     ) -> [([f32; 4], f32); packet::LANES] {
         let mut pixels = [([0.0; 4], f32::INFINITY); packet::LANES];
         let mut clipped: [Option<Clipped>; packet::LANES] = Default::default();
         for (l, lane) in clipped.iter_mut().enumerate().take(count) {
-            let (origin, direction) = camera.ray(px0 + l, py);
+            let (origin, direction) = rays.ray(px0 + l, py);
             match self.clip_ray(&origin, &direction) {
                 Setup::Missed(bg, behind) => pixels[l] = (bg, behind),
                 Setup::Inside(c) => *lane = Some(c),
@@ -1113,7 +1114,7 @@ mod tests {
                 for py in 0..camera.height {
                     for px0 in (0..camera.width).step_by(super::packet::LANES) {
                         let count = (camera.width - px0).min(super::packet::LANES);
-                        let pixels = caster.cast_packet(trilinear, &camera, (px0, py), count);
+                        let pixels = caster.cast_packet(trilinear, &camera.rays(), (px0, py), count);
                         for (l, (color, depth)) in pixels.iter().take(count).enumerate() {
                             let (origin, direction) = camera.ray(px0 + l, py);
                             let (want, want_depth) = caster.cast(&origin, &direction);
