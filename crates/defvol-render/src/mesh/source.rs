@@ -11,7 +11,8 @@
 //! Compositing is the volume raycaster's (point-sampled or pre-integrated segments, early
 //! termination), shading its gradient or forward difference carried through the tet's map.
 //! Empty-space skipping is per tet: a tet whose rest box reads only invisible values is
-//! crossed without sampling (fixed at creation: the rest mesh does not move).
+//! crossed without sampling (fixed at creation: the rest mesh does not move), and such
+//! tets around the tissue are not walked at all (the tet raycaster's `cut_outer_air`).
 //!
 //! `tet_raycast.wgsl` holds the GPU twin (`source_cross`, `source_finish`, the `geometry`
 //! kernel's maps). [`reference()`] is the f64 integral mapping each sample exactly.
