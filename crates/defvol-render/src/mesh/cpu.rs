@@ -156,11 +156,12 @@ fn boundary_faces(links: &[[i32; 4]], walked: &[bool]) -> Vec<u32> {
 
 /// Which tets rays walk: all but the air around the tissue, the tets that are `invisible`
 /// (node scalars all outside the visible span, or a source's tet that reads only invisible
-/// values) and that reach the mesh's surface through such tets. They contribute nothing, so the mesh is rendered without them
-/// (their links cut): a ray enters where visible tissue starts instead of walking from the
-/// mesh's bounding surface through the air (a lattice over a scan is mostly air around the
-/// body). Invisible pockets inside the tissue stay walked: cut out, each would be another
-/// surface to find and re-enter through.
+/// values) and that reach the mesh's surface through such tets. They contribute nothing (a
+/// source: its samples' grid then starts at the tissue, as accurate), so the mesh is
+/// rendered without them (their links cut): a ray enters where visible tissue starts
+/// instead of walking from the mesh's bounding surface through the air (a lattice over a
+/// scan is mostly air around the body). Invisible pockets inside the tissue stay walked:
+/// cut out, each would be another surface to find and re-enter through.
 fn cut_outer_air(links: &mut [[i32; 4]], invisible: impl Fn(usize) -> bool) -> Vec<bool> {
     let mut walked = vec![true; links.len()];
     let mut stack: Vec<usize> = (0..links.len()).filter(|&t| links[t].iter().any(|&l| l < 0) && invisible(t)).collect();
