@@ -1165,8 +1165,9 @@ mod tests {
         whole.update(mesh.nodes()).unwrap();
         let cut_tets = cut.walked.iter().filter(|w| !**w).count();
         assert!(cut_tets > mesh.tets().len() / 4, "{cut_tets} of {} tets cut", mesh.tets().len());
-        let visible = cut.source.as_ref().map(|s| s.visible.clone()).unwrap_or_default();
-        assert!(cut.walked.iter().zip(&visible).all(|(w, v)| *w || *v == 0), "a tet that may be seen is cut");
+        let visible = &cut.source.as_ref().unwrap().visible;
+        assert_eq!(visible.len(), cut.walked.len());
+        assert!(cut.walked.iter().zip(visible).all(|(w, v)| *w || *v == 0), "a tet that may be seen is cut");
         let centre = Point3::from(Vector3::repeat(14.0));
         let camera = Camera::look_at(
             centre + Vector3::new(-16.0, -22.0, 12.0),
