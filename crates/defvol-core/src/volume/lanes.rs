@@ -771,14 +771,24 @@ mod tests {
                 let step = top.map(|t| t / run as f32);
                 let mut out = vec![f32::NAN; run];
                 assert_eq!(trilinear_lanes(&data, &cell, &mut out, [0.0; 3], step, 1, None), run);
-                for (n, value) in out.iter().enumerate() {
-                    let expected = scalar(&data, &cell, [0.0; 3], step, 1 + n as i32);
-                    assert_eq!(value.to_bits(), expected.to_bits(), "{dims:?}, run of {run}, voxel {n}");
-                    checked += 1;
-                }
+                checked += assert_scalar_bits(&out, (&data, &cell), [[0.0; 3], step], &format!("{dims:?}"));
             }
         }
         assert_eq!(checked, 2 * 190);
+    }
+
+    /// Asserts that a run's samples from n = 1 on are the scalar loop's bits; how many.
+    fn assert_scalar_bits(
+        out: &[f32],
+        (data, cell): (&[f32], &CellLookup),
+        [base, step]: [[f32; 3]; 2],
+        what: &str,
+    ) -> usize {
+        for (n, value) in out.iter().enumerate() {
+            let expected = scalar(data, cell, base, step, 1 + n as i32);
+            assert_eq!(value.to_bits(), expected.to_bits(), "{what}, run of {}, voxel {n}", out.len());
+        }
+        out.len()
     }
 
     /// Samples of `dims` with varied values, their lookup and their bricks (none without
@@ -849,11 +859,7 @@ mod tests {
                     let step = [0, 1, 2].map(|a| (end[a] - base[a]) / run as f32);
                     let mut out = vec![f32::NAN; run];
                     assert_eq!(trilinear_bricked(&bricks, &mut out, base, step, 1), run);
-                    for (n, value) in out.iter().enumerate() {
-                        let expected = scalar(&data, &cell, base, step, 1 + n as i32);
-                        assert_eq!(value.to_bits(), expected.to_bits(), "{dims:?}, run of {run}, voxel {n}");
-                        checked += 1;
-                    }
+                    checked += assert_scalar_bits(&out, (&data, &cell), [base, step], &format!("{dims:?}"));
                 }
             }
         }
