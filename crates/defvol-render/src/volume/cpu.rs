@@ -852,7 +852,19 @@ impl<'a> Caster<'a> {
             if !live.contains(&true) {
                 break;
             }
-            let (ks, stopped, backs) = lanes.runs((k, end, live), fronts);
+            let next = |l: usize, mut k: usize| {
+                let ray = rays[l].as_mut()?;
+                if k >= full[l] {
+                    return None;
+                }
+                let from = k;
+                let end = self.run_end(ray, &mut k, full[l]);
+                // A jump leaves the front to be read anew, as the loop above reads it; one past
+                // the full segments, it is the last, shorter segment's (`last_segment`'s).
+                let front = (preintegrated && k > from).then(|| self.front(ray, k.min(full[l])));
+                Some((k, end, front))
+            };
+            let (ks, stopped, backs) = lanes.runs((k, end, live), fronts, next);
             for l in 0..LANES {
                 let Some(ray) = rays[l].as_mut().filter(|_| live[l]) else { continue };
                 if stopped[l] {
