@@ -826,55 +826,40 @@ impl<'a> Caster<'a> {
         let preintegrated = self.params.preintegrated;
         let step = self.params.step as f32;
         let full = clipped.each_ref().map(|c| c.as_ref().map_or(0, |c| segments(c.t_near, c.t_far, step).0));
-        let (mut k, mut end) = ([0usize; LANES], [0usize; LANES]);
-        let mut live = rays.each_ref().map(Option::is_some);
         let mut terminated = [false; LANES];
         let mut lanes = self.packet_lanes(trilinear, rays);
-        loop {
-            // Lanes at the end of a run start their next one, or are done.
-            let mut fronts = [0.0f32; LANES];
-            for l in 0..LANES {
-                let Some(ray) = rays[l].as_mut().filter(|_| live[l]) else { continue };
-                if k[l] >= end[l] {
-                    if k[l] < full[l] {
-                        end[l] = self.run_end(ray, &mut k[l], full[l]);
-                    }
-                    if k[l] >= end[l] {
-                        live[l] = false;
-                        continue;
-                    }
-                }
-                if preintegrated {
-                    let front = ray.front.unwrap_or_else(|| self.front(ray, k[l]));
-                    (ray.front, fronts[l]) = (Some(front), front);
-                }
+        // Each lane's first run here; the lanes take their next ones inside `runs`.
+        let (mut k, mut end, mut fronts, mut live) =
+            ([0usize; LANES], [0usize; LANES], [0.0f32; LANES], [false; LANES]);
+        for l in 0..LANES {
+            let Some(ray) = rays[l].as_mut().filter(|_| full[l] > 0) else { continue };
+            end[l] = self.run_end(ray, &mut k[l], full[l]);
+            live[l] = k[l] < end[l];
+            if live[l] && preintegrated {
+                fronts[l] = self.front(ray, k[l]);
             }
-            if !live.contains(&true) {
-                break;
+        }
+        if !live.contains(&true) {
+            return terminated;
+        }
+        let next = |l: usize, mut k: usize| {
+            let ray = rays[l].as_mut()?;
+            if k >= full[l] {
+                return None;
             }
-            let next = |l: usize, mut k: usize| {
-                let ray = rays[l].as_mut()?;
-                if k >= full[l] {
-                    return None;
-                }
-                let from = k;
-                let end = self.run_end(ray, &mut k, full[l]);
-                // A jump leaves the front to be read anew, as the loop above reads it; one past
-                // the full segments, it is the last, shorter segment's (`last_segment`'s).
-                let front = (preintegrated && k > from).then(|| self.front(ray, k.min(full[l])));
-                Some((k, end, front))
-            };
-            let (ks, stopped, backs) = lanes.runs((k, end, live), fronts, next);
-            for l in 0..LANES {
-                let Some(ray) = rays[l].as_mut().filter(|_| live[l]) else { continue };
-                if stopped[l] {
-                    (terminated[l], live[l]) = (true, false);
-                } else {
-                    k[l] = ks[l];
-                    if preintegrated {
-                        ray.front = Some(backs[l]);
-                    }
-                }
+            let from = k;
+            let end = self.run_end(ray, &mut k, full[l]);
+            // A jump leaves the front to be read anew; one past the full segments, it is the
+            // last, shorter segment's (`last_segment`'s).
+            let front = (preintegrated && k > from).then(|| self.front(ray, k.min(full[l])));
+            Some((k, end, front))
+        };
+        let (stopped, backs) = lanes.runs((k, end, live), fronts, next);
+        for l in 0..LANES {
+            let Some(ray) = rays[l].as_mut().filter(|_| live[l]) else { continue };
+            terminated[l] = stopped[l];
+            if !stopped[l] && preintegrated {
+                ray.front = Some(backs[l]);
             }
         }
         let (acc, depth) = lanes.colour();

@@ -66,15 +66,15 @@ impl<'a> Lanes<'a> {
     /// done or has terminated. A lane at the end of its run (up to its `end`) asks
     /// `next(lane, k)` for its next one, `(k, end, front)`, in the loop (`front`: the
     /// scalar at the new run's front where it jumped, else the last back goes on; an empty
-    /// run ends the lane), or `None` when it is done. Returns each lane's next segment, whether it terminated, and the
-    /// scalar at its last segment's back.
+    /// run ends the lane), or `None` when it is done. Returns whether each lane terminated,
+    /// and the scalar at its last segment's back.
     #[target_feature(enable = "avx2")]
     pub(super) fn runs(
         &mut self,
         (k, end, live): ([usize; LANES], [usize; LANES], [bool; LANES]),
         fronts: [f32; LANES],
         mut next: impl FnMut(usize, usize) -> Option<(usize, usize, Option<f32>)>,
-    ) -> ([usize; LANES], [bool; LANES], [f32; LANES]) {
+    ) -> ([bool; LANES], [f32; LANES]) {
         let mut kv = load_i32(k.map(|k| k as i32));
         let mut end = load_i32(end.map(|e| e as i32));
         let mut running = _mm256_castsi256_ps(load_i32(live.map(|l| -i32::from(l))));
@@ -149,11 +149,8 @@ impl<'a> Lanes<'a> {
                 break;
             }
         }
-        let mut ks = [0i32; LANES];
-        // SAFETY: ks holds eight i32.
-        unsafe { _mm256_storeu_si256(ks.as_mut_ptr().cast(), kv) };
         let stopped = _mm256_movemask_ps(stopped);
-        (ks.map(|k| k as usize), std::array::from_fn(|l| stopped >> l & 1 == 1), store(front))
+        (std::array::from_fn(|l| stopped >> l & 1 == 1), store(front))
     }
 
     /// Each lane's premultiplied colour and α, and its depth.
