@@ -973,6 +973,12 @@ mod tests {
 
     const AIR: f32 = -1000.0;
 
+    /// A camera at `eye` from the centre of [`ball_in_air`]'s lattice, looking at it.
+    fn onto_ball(eye: Vector3<f64>, projection: Projection, [width, height]: [usize; 2]) -> Camera {
+        let centre = Point3::from(Vector3::repeat(14.0));
+        Camera::look_at(centre + eye, centre, Vector3::z(), projection, width, height).unwrap()
+    }
+
     /// A ball of tissue with a bumpy surface and a pocket of air at its centre, in the air
     /// of a 14³-cell lattice (2 mm cells).
     fn ball_in_air() -> (TetMesh, Vec<f32>) {
@@ -1050,12 +1056,10 @@ mod tests {
     fn a_camera_outside_the_mesh_bins_only_the_faces_rays_enter_through() {
         let (mesh, scalars) = ball_in_air();
         let raycaster = TetRaycaster::new(&mesh, &scalars, &tissue(), &TetRaycastParams::default()).unwrap();
-        let centre = Point3::from(Vector3::repeat(14.0));
-        let look =
-            |eye: Vector3<f64>, projection| Camera::look_at(centre + eye, centre, Vector3::z(), projection, 40, 30);
+        let look = |eye: Vector3<f64>, projection| onto_ball(eye, projection, [40, 30]);
         let outside = [
-            look(Vector3::new(-40.0, -55.0, 30.0), Projection::Perspective { fov_y_deg: 30.0 }).unwrap(),
-            look(Vector3::new(50.0, -20.0, -35.0), Projection::Orthographic { height: 30.0 }).unwrap(),
+            look(Vector3::new(-40.0, -55.0, 30.0), Projection::Perspective { fov_y_deg: 30.0 }),
+            look(Vector3::new(50.0, -20.0, -35.0), Projection::Orthographic { height: 30.0 }),
         ];
         let all = raycaster.boundary.len();
         for camera in &outside {
@@ -1073,33 +1077,16 @@ mod tests {
             }
         }
         // The eye in the tissue: a ray's first face is an exit, so every face is kept.
-        let inside = look(Vector3::new(6.0, 0.0, 0.0), Projection::Perspective { fov_y_deg: 60.0 }).unwrap();
+        let inside = look(Vector3::new(6.0, 0.0, 0.0), Projection::Perspective { fov_y_deg: 60.0 });
         assert_eq!(raycaster.first_faces(&inside), raycaster.boundary);
     }
 
     #[test]
     fn cutting_the_air_changes_no_pixel() {
         let (mesh, scalars) = ball_in_air();
-        let centre = Point3::from(Vector3::repeat(14.0));
         let cameras = [
-            Camera::look_at(
-                centre + Vector3::new(-40.0, -55.0, 30.0),
-                centre,
-                Vector3::z(),
-                Projection::Perspective { fov_y_deg: 30.0 },
-                400,
-                400,
-            )
-            .unwrap(),
-            Camera::look_at(
-                centre + Vector3::new(50.0, -20.0, -35.0),
-                centre,
-                Vector3::z(),
-                Projection::Orthographic { height: 30.0 },
-                400,
-                300,
-            )
-            .unwrap(),
+            onto_ball(Vector3::new(-40.0, -55.0, 30.0), Projection::Perspective { fov_y_deg: 30.0 }, [400, 400]),
+            onto_ball(Vector3::new(50.0, -20.0, -35.0), Projection::Orthographic { height: 30.0 }, [400, 300]),
         ];
         for preintegrated in [true, false] {
             let params = TetRaycastParams { preintegrated, step: 1.0, early_termination: 1.0, ..Default::default() };
@@ -1168,16 +1155,8 @@ mod tests {
         let visible = &cut.source.as_ref().unwrap().visible;
         assert_eq!(visible.len(), cut.walked.len());
         assert!(cut.walked.iter().zip(visible).all(|(w, v)| *w || *v == 0), "a tet that may be seen is cut");
-        let centre = Point3::from(Vector3::repeat(14.0));
-        let camera = Camera::look_at(
-            centre + Vector3::new(-16.0, -22.0, 12.0),
-            centre,
-            Vector3::z(),
-            Projection::Perspective { fov_y_deg: 30.0 },
-            120,
-            120,
-        )
-        .unwrap();
+        let camera =
+            onto_ball(Vector3::new(-16.0, -22.0, 12.0), Projection::Perspective { fov_y_deg: 30.0 }, [120, 120]);
         let (a, b) = (cut.render(&camera).unwrap(), whole.render(&camera).unwrap());
         let lit = a.rgba.chunks_exact(4).filter(|p| p[0] > 40).count();
         assert!(lit > 120 * 120 / 10, "the view is nearly empty ({lit} pixels)");
