@@ -25,6 +25,7 @@ use bytemuck::{Pod, Zeroable};
 use nalgebra::{Matrix3, Point3, Vector3};
 use rayon::prelude::*;
 
+use super::entry::TileFaces;
 use super::field::{linear_field, V3};
 use super::look::SourceLook;
 use crate::camera::{Camera, Projection};
@@ -112,7 +113,7 @@ fn tet_geometry(x: &[Vector3<f64>; 4], s: &[f64; 4]) -> ([[f64; 4]; 4], [f64; 4]
 
 /// The `geometry` kernel's arithmetic, in f32 on anchored positions: planes and gradient of
 /// one tet.
-fn tet_geometry_f32(x: &[V3; 4], s: &[f32; 4]) -> TetGeometry {
+pub(crate) fn tet_geometry_f32(x: &[V3; 4], s: &[f32; 4]) -> TetGeometry {
     let mut g = TetGeometry::default();
     for (k, face) in TET_FACES.iter().enumerate() {
         let a = x[face[0]];
@@ -278,12 +279,12 @@ pub(crate) fn bin_boundary(tets: &[[u32; 4]], boundary: &[u32], positions: &[Vec
 
 /// A boundary face a ray crosses.
 #[derive(Debug, Clone, Copy)]
-struct Hit {
-    t: f32,
-    tet: u32,
-    face: u32,
+pub(crate) struct Hit {
+    pub(crate) t: f32,
+    pub(crate) tet: u32,
+    pub(crate) face: u32,
     /// The face looks toward the ray (an entry), not away (an exit).
-    front: bool,
+    pub(crate) front: bool,
 }
 
 #[inline]
@@ -469,7 +470,7 @@ impl TetRaycaster {
             .into_par_iter()
             .map(|tile| {
                 let (tx, ty) = (tile % bins.tiles[0] * TILE, tile / bins.tiles[0] * TILE);
-                let faces = bins.tile(tx, ty);
+                let faces = TileFaces::new(bins.tile(tx, ty), &self.geometry);
                 let mut pixels = Vec::with_capacity(TILE * TILE);
                 for py in ty..(ty + TILE).min(h) {
                     for px in tx..(tx + TILE).min(w) {
@@ -477,7 +478,7 @@ impl TetRaycaster {
                         let tool =
                             nearest_tool(&self.params.tools, self.params.ambient, &origin, &direction, &-direction);
                         let o = (origin.coords - self.anchor).cast::<f32>();
-                        pixels.push(self.cast(faces, &o, &direction.cast::<f32>(), tool));
+                        pixels.push(self.cast(&faces, &o, &direction.cast::<f32>(), tool));
                     }
                 }
                 pixels
@@ -534,7 +535,7 @@ impl TetRaycaster {
 
     /// One ray: premultiplied RGBA over the background (or the tool), and the depth where
     /// opacity passed 0.5 (or the tool's surface).
-    fn cast(&self, faces: &[u32], o: &V3, d: &V3, tool: Option<(f32, [f32; 4])>) -> ([f32; 4], f32) {
+    fn cast(&self, faces: &TileFaces, o: &V3, d: &V3, tool: Option<(f32, [f32; 4])>) -> ([f32; 4], f32) {
         let (bg, t_stop) = match tool {
             Some((t, color)) => (color, t),
             None => (self.params.background.map(|c| c as f32), f32::INFINITY),
@@ -550,7 +551,7 @@ impl TetRaycaster {
             // (a ray leaving through an edge or a vertex enters the next tet there) but past
             // where the last walk started, so every walk starts further on.
             let after = if walked { (t_from - self.tolerance).max(last_start) } else { t_from };
-            let (hit, fronts_until) = self.nearest_hit(faces, o, d, after, walked);
+            let (hit, fronts_until) = faces.nearest_hit(o, d, after, walked, self.tolerance);
             let Some(hit) = hit else { break };
             if hit.t >= t_stop {
                 break;
@@ -577,41 +578,6 @@ impl TetRaycaster {
             acc[3] + rest * bg[3],
         ];
         (color, if depth.is_finite() { depth } else { t_stop })
-    }
-
-    /// The nearest boundary face of the tile crossed beyond `after` (only front-facing ones
-    /// when `fronts_only`): the hit on the face's plane counts when it lies within
-    /// `tolerance` of the tet's three other planes.
-    /// Also: the farthest crossing of a front-facing face's plane beyond `after`, a bound
-    /// on where the ray could enter again (beyond it, no rescan is needed).
-    fn nearest_hit(&self, faces: &[u32], o: &V3, d: &V3, after: f32, fronts_only: bool) -> (Option<Hit>, f32) {
-        let mut best: Option<Hit> = None;
-        let mut fronts_until = f32::NEG_INFINITY;
-        for &id in faces {
-            let (tet, k) = (id >> 2, id & 3);
-            let planes = &self.geometry[tet as usize].planes;
-            let (denom, t) = plane_t(&planes[k as usize], o, d);
-            if denom == 0.0 || t <= after || t.is_nan() {
-                continue;
-            }
-            if denom < 0.0 {
-                fronts_until = fronts_until.max(t);
-            } else if fronts_only {
-                continue;
-            }
-            if best.is_some_and(|b| t >= b.t) {
-                continue;
-            }
-            let p = o + d * t;
-            let on_face = (0..4).filter(|&j| j != k as usize).all(|j| {
-                let q = &planes[j];
-                q[0] * p.x + q[1] * p.y + q[2] * p.z - q[3] <= self.tolerance
-            });
-            if on_face {
-                best = Some(Hit { t, tet, face: k, front: denom < 0.0 });
-            }
-        }
-        (best, fronts_until)
     }
 
     /// From the tet behind an exit face, back along the ray to the tet holding the point at
