@@ -4,8 +4,18 @@
 //! a time where the CPU has AVX2: the same arithmetic in the same order as one face at a
 //! time (unfused, the same comparisons), so the same hit.
 
-use super::cpu::{Hit, TetGeometry};
 use super::field::V3;
+use super::geometry::TetGeometry;
+
+/// A boundary face a ray crosses, `t` along it.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Hit {
+    pub(crate) t: f32,
+    pub(crate) tet: u32,
+    pub(crate) face: u32,
+    /// The face looks toward the ray (an entry), not away (an exit).
+    pub(crate) front: bool,
+}
 
 /// Faces a vector holds.
 const LANES: usize = 8;
@@ -188,7 +198,7 @@ impl TileFaces {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::mesh::cpu::tet_geometry_f32;
+    use crate::mesh::geometry::tet_geometry_f32;
     use defvol_core::mesh::generate::{lattice, CellSplit};
     use defvol_core::mesh::TetMesh;
     use nalgebra::{Rotation3, Vector3};

@@ -14,7 +14,8 @@ use bytemuck::{Pod, Zeroable};
 use nalgebra::{Matrix3, Vector3};
 use wgpu::util::DeviceExt;
 
-use super::cpu::{TetGeometry, TetRaycaster, TILE};
+use super::cpu::{TetRaycaster, TILE};
+use super::geometry::TetGeometry;
 use super::look::{SourceLook, TetMap, EDGE_TOLERANCE};
 use crate::camera::Camera;
 use crate::volume::gpu::{camera_block, GpuRenderError};
