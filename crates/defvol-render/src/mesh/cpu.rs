@@ -24,7 +24,7 @@
 use nalgebra::{Point3, Vector3};
 use rayon::prelude::*;
 
-use super::entry::TileFaces;
+use super::entry::{Search, TileFaces};
 use super::field::V3;
 use super::geometry::{tet_geometry, tet_geometry_8, tet_geometry_f32, TetGeometry};
 use super::look::SourceLook;
@@ -502,7 +502,8 @@ impl TetRaycaster {
             // (a ray leaving through an edge or a vertex enters the next tet there) but past
             // where the last walk started, so every walk starts further on.
             let after = if walked { (t_from - self.tolerance).max(last_start) } else { t_from };
-            let (hit, fronts_until) = faces.nearest_hit(o, d, after, walked, self.tolerance);
+            let search = Search { o, d, after, fronts_only: walked, tolerance: self.tolerance };
+            let (hit, fronts_until) = faces.nearest_hit(search);
             let Some(hit) = hit else { break };
             if hit.t >= t_stop {
                 break;

@@ -17,6 +17,18 @@ pub(crate) struct Hit {
     pub(crate) front: bool,
 }
 
+/// What an entry search asks: the ray (anchored origin, unit direction), the distance
+/// along it beyond which hits count, whether only front faces do, and how far off a
+/// face's other planes a hit may lie.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Search<'a> {
+    pub(crate) o: &'a V3,
+    pub(crate) d: &'a V3,
+    pub(crate) after: f32,
+    pub(crate) fronts_only: bool,
+    pub(crate) tolerance: f32,
+}
+
 /// Faces a vector holds.
 const LANES: usize = 8;
 
@@ -64,31 +76,18 @@ impl TileFaces {
     /// three other planes; on equal distances the first face in the bin's order.
     /// Also: the farthest crossing of a front-facing face's plane beyond `after`, a bound
     /// on where the ray could enter again (beyond it, no rescan is needed).
-    pub(crate) fn nearest_hit(
-        &self,
-        o: &V3,
-        d: &V3,
-        after: f32,
-        fronts_only: bool,
-        tolerance: f32,
-    ) -> (Option<Hit>, f32) {
+    pub(crate) fn nearest_hit(&self, search: Search) -> (Option<Hit>, f32) {
         #[cfg(target_arch = "x86_64")]
         if defvol_core::volume::lanes::lanes_available() {
             // SAFETY: AVX2 is present.
-            return unsafe { self.nearest_hit_avx2(o, d, after, fronts_only, tolerance) };
+            return unsafe { self.nearest_hit_avx2(search) };
         }
-        self.nearest_hit_one_by_one(o, d, after, fronts_only, tolerance)
+        self.nearest_hit_one_by_one(search)
     }
 
     /// [`Self::nearest_hit`] one face at a time.
-    pub(crate) fn nearest_hit_one_by_one(
-        &self,
-        o: &V3,
-        d: &V3,
-        after: f32,
-        fronts_only: bool,
-        tolerance: f32,
-    ) -> (Option<Hit>, f32) {
+    pub(crate) fn nearest_hit_one_by_one(&self, search: Search) -> (Option<Hit>, f32) {
+        let Search { o, d, after, fronts_only, tolerance } = search;
         let mut best: Option<Hit> = None;
         let mut fronts_until = f32::NEG_INFINITY;
         for f in 0..self.ids.len() {
@@ -125,15 +124,9 @@ impl TileFaces {
     /// AVX2 must be present.
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2")]
-    unsafe fn nearest_hit_avx2(
-        &self,
-        o: &V3,
-        d: &V3,
-        after: f32,
-        fronts_only: bool,
-        tolerance: f32,
-    ) -> (Option<Hit>, f32) {
+    unsafe fn nearest_hit_avx2(&self, search: Search) -> (Option<Hit>, f32) {
         use std::arch::x86_64::*;
+        let Search { o, d, after, fronts_only, tolerance } = search;
         let [ox, oy, oz, dx, dy, dz] = [o.x, o.y, o.z, d.x, d.y, d.z].map(|v| _mm256_set1_ps(v));
         let (zero, after_v, tolerance_v) = (_mm256_setzero_ps(), _mm256_set1_ps(after), _mm256_set1_ps(tolerance));
         let backs_count = if fronts_only { _mm256_setzero_ps() } else { _mm256_castsi256_ps(_mm256_set1_epi32(-1)) };
@@ -250,8 +243,9 @@ mod tests {
                 let d = (aim - o).try_normalize(1e-6).unwrap_or(V3::x());
                 for (after, fronts_only) in [(0.0, false), (0.0, true), (3.0, false), (-1.0, true)] {
                     // SAFETY: AVX2 is present (checked above).
-                    let lanes = unsafe { bin.nearest_hit_avx2(&o, &d, after, fronts_only, 1e-4) };
-                    let one = bin.nearest_hit_one_by_one(&o, &d, after, fronts_only, 1e-4);
+                    let search = Search { o: &o, d: &d, after, fronts_only, tolerance: 1e-4 };
+                    let lanes = unsafe { bin.nearest_hit_avx2(search) };
+                    let one = bin.nearest_hit_one_by_one(search);
                     let key = |(hit, until): (Option<Hit>, f32)| {
                         (hit.map(|h| (h.tet, h.face, h.t.to_bits(), h.front)), until)
                     };
