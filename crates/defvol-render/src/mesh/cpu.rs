@@ -393,13 +393,21 @@ impl TetRaycaster {
         chunks.for_each(|((geometry, tets), walked)| {
             let x = |tet: &[u32; 4]| tet.map(|i| anchored[i as usize]);
             let s = |tet: &[u32; 4]| tet.map(|i| scalars[i as usize]);
-            let fresh: Vec<TetGeometry> = match <&[[u32; 4]; 8]>::try_from(tets) {
-                Ok(eight) => tet_geometry_8(&eight.map(|t| x(&t)), &eight.map(|t| s(&t))).to_vec(),
-                Err(_) => tets.iter().map(|t| tet_geometry_f32(&x(t), &s(t))).collect(),
-            };
-            for ((g, fresh), &walked) in geometry.iter_mut().zip(fresh).zip(walked) {
-                if walked {
-                    *g = fresh;
+            match <&[[u32; 4]; 8]>::try_from(tets) {
+                Ok(eight) => {
+                    let fresh = tet_geometry_8(&eight.map(|t| x(&t)), &eight.map(|t| s(&t)));
+                    for ((g, fresh), &walked) in geometry.iter_mut().zip(fresh).zip(walked) {
+                        if walked {
+                            *g = fresh;
+                        }
+                    }
+                }
+                Err(_) => {
+                    for ((g, tet), &walked) in geometry.iter_mut().zip(tets).zip(walked) {
+                        if walked {
+                            *g = tet_geometry_f32(&x(tet), &s(tet));
+                        }
+                    }
                 }
             }
         });
