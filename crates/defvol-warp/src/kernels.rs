@@ -9,7 +9,7 @@ use crate::bspline::{self, backward_all, CompiledDisplacement};
 use crate::{Sampling, Scheme, WarpError, WarpOptions, WarpStats};
 use defvol_core::math::Real;
 use defvol_core::mesh::TetMesh;
-use defvol_core::volume::lanes::{trilinear_bricked, trilinear_lanes, Bricks, CellLookup};
+use defvol_core::volume::lanes::{trilinear_bricked, trilinear_lanes, Bricks, CellLookup, RunStream};
 use defvol_core::volume::{tricubic, trilinear, Grid, Volume, SAMPLE_TOLERANCE};
 
 /// A voxel is inside a tet when every barycentric coordinate is ≥ -ε. Without it, voxels on
@@ -345,6 +345,14 @@ impl<'a> Sampler<'a> {
         self.at_index(T::of(moved.x), T::of(moved.y), T::of(moved.z))
     }
 
+    /// The bricks a tet's spans are sampled from as one stream: plain trilinear on the
+    /// fast path, a rest tet inside the source (no box tests), stepping across the
+    /// source's rows (as [`Self::trilinear_run`] picks bricks).
+    fn streams(&self, m: &TetMap) -> Option<&'a Bricks> {
+        let across = m.src[1][1].abs() as f32 + m.src[2][1].abs() as f32 > 0.5;
+        self.bricks.filter(|_| self.lanes && m.src_inside && across)
+    }
+
     fn is_plain_trilinear(&self) -> bool {
         self.sampling == Sampling::Trilinear && self.displacements.is_empty()
     }
@@ -479,7 +487,8 @@ pub(crate) fn initial_value<T: Real>(
 /// Rasterizes `maps` into a slab of output slices from k0 (x-fastest rows, slices of
 /// `nx` x `ny`), restricted to the inclusive box `[lo, hi]` in (i, j). Tet by tet, in tet
 /// order (a later tet wins a shared face's voxels, as on the GPU), each through all its
-/// slices in the slab: its source footprint is read while still in cache.
+/// slices in the slab: its source footprint is read while still in cache. A tet whose
+/// runs take the bricks has all its spans in the slab sampled as one [`RunStream`].
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn rasterize_slab<T: Real>(
     slab: &mut [T],
@@ -494,14 +503,88 @@ pub(crate) fn rasterize_slab<T: Real>(
 ) -> WarpStats {
     let mut stats = WarpStats::default();
     let last = k0 + slab.len() / (nx * ny) - 1;
+    let mut stream = RunStream::default();
     for &t in tets {
         let Some(m) = &maps[t as usize] else { continue };
+        if scheme == Scheme::Spans {
+            if let (Some(bricks), Some(out)) = (sampler.streams(m), T::as_f32_mut(slab)) {
+                if let Some(n) = stream_tet(&mut stream, out, [nx, ny], [k0, last], m, bricks, sampler.lanes, [lo, hi])
+                {
+                    stats.candidates += n;
+                    stats.inside += n;
+                    continue;
+                }
+            }
+        }
         for k in m.lo[2].max(k0)..=m.hi[2].min(last) {
             let slice = &mut slab[(k - k0) * nx * ny..(k - k0 + 1) * nx * ny];
             rasterize_tet_slice(slice, nx, k, m, sampler, scheme, lo, hi, &mut stats);
         }
     }
     stats
+}
+
+/// Calls `run(j, s0, s1)` for each row j of slice k with inside voxels s0..=s1 within the
+/// box `[lo, hi]` in (i, j). Rows in fours: with `lanes`, a four's spans are found at once.
+fn for_each_span(
+    m: &TetMap,
+    k: usize,
+    lanes: bool,
+    lo: [usize; 2],
+    hi: [usize; 2],
+    mut run: impl FnMut(usize, usize, usize),
+) {
+    let Some((s0, s1)) = m.section_rows(k) else { return };
+    let (first, last) = (s0.max(lo[1]), s1.min(hi[1]));
+    for j4 in (first..=last).step_by(4) {
+        let rows = (last + 1 - j4).min(4);
+        let four = lanes
+            .then(|| m.spans4(j4, k))
+            .flatten()
+            .unwrap_or_else(|| [0, 1, 2, 3].map(|r| (r < rows).then(|| m.span(&m.row(j4 + r, k))).flatten()));
+        for (j, span) in (j4..).zip(&four[..rows]) {
+            let Some((s0, s1)) = *span else { continue };
+            let (s0, s1) = (s0.max(lo[0]), s1.min(hi[0]));
+            if s0 <= s1 {
+                run(j, s0, s1);
+            }
+        }
+    }
+}
+
+/// Rasterizes one tet into the slices k0..=last of a slab as one [`RunStream`] of its
+/// spans; how many voxels it wrote, or None (nothing written) where the CPU lacks the lanes.
+#[allow(clippy::too_many_arguments)]
+fn stream_tet(
+    stream: &mut RunStream,
+    slab: &mut [f32],
+    [nx, ny]: [usize; 2],
+    [k0, last]: [usize; 2],
+    m: &TetMap,
+    bricks: &Bricks,
+    lanes: bool,
+    [lo, hi]: [[usize; 2]; 2],
+) -> Option<u64> {
+    let (i0, i1) = (m.lo[0].max(lo[0]), m.hi[0].min(hi[0]));
+    let (j0, j1) = (m.lo[1].max(lo[1]), m.hi[1].min(hi[1]));
+    stream.clear();
+    let mut voxels = 0;
+    for k in m.lo[2].max(k0)..=m.hi[2].min(last) {
+        for_each_span(m, k, lanes, [i0, j0], [i1, j1], |j, s0, s1| {
+            let base = run_base(m, j, k);
+            stream.push(base, s0 as i32, s1 - s0 + 1, (k - k0) * nx * ny + j * nx + s0);
+            voxels += (s1 - s0 + 1) as u64;
+        });
+    }
+    let step = m.src.map(|s| s[1] as f32);
+    stream.sample_into(bricks, step, slab).then_some(voxels)
+}
+
+/// The source point of output voxel i = 0 of row (j, k), in precision T.
+#[inline]
+fn run_base<T: Real>(m: &TetMap, j: usize, k: usize) -> [T; 3] {
+    let (jf, kf) = (j as f64, k as f64);
+    m.src.map(|s| T::of(s[0] + s[2] * jf + s[3] * kf))
 }
 
 /// Rasterizes one tet into output slice k, within the box `[lo, hi]` in (i, j). The CPU
@@ -524,29 +607,12 @@ fn rasterize_tet_slice<T: Real>(
         return;
     }
     match scheme {
-        Scheme::Spans => {
-            let Some((s0, s1)) = m.section_rows(k) else { return };
-            let (first, last) = (s0.max(j0), s1.min(j1));
-            // Rows in fours: the fast path finds a four's spans at once, else row by row.
-            for j4 in (first..=last).step_by(4) {
-                let rows = (last + 1 - j4).min(4);
-                let four =
-                    sampler.lanes.then(|| m.spans4(j4, k)).flatten().unwrap_or_else(|| {
-                        [0, 1, 2, 3].map(|r| (r < rows).then(|| m.span(&m.row(j4 + r, k))).flatten())
-                    });
-                for (j, span) in (j4..).zip(&four[..rows]) {
-                    let Some((s0, s1)) = *span else { continue };
-                    let (s0, s1) = (s0.max(i0), s1.min(i1));
-                    if s0 > s1 {
-                        continue;
-                    }
-                    write_run(&mut slice[j * nx..], m, j, k, s0, s1, sampler);
-                    let n = (s1 - s0 + 1) as u64;
-                    stats.candidates += n;
-                    stats.inside += n;
-                }
-            }
-        }
+        Scheme::Spans => for_each_span(m, k, sampler.lanes, [i0, j0], [i1, j1], |j, s0, s1| {
+            write_run(&mut slice[j * nx..], m, j, k, s0, s1, sampler);
+            let n = (s1 - s0 + 1) as u64;
+            stats.candidates += n;
+            stats.inside += n;
+        }),
         Scheme::Bbox => {
             for j in j0..=j1 {
                 let a = m.row(j, k);
@@ -618,8 +684,7 @@ pub(crate) fn write_run<T: Real>(
     i1: usize,
     sampler: &Sampler,
 ) {
-    let (jf, kf) = (j as f64, k as f64);
-    let base = m.src.map(|s| T::of(s[0] + s[2] * jf + s[3] * kf));
+    let base = run_base::<T>(m, j, k);
     let step = m.src.map(|s| T::of(s[1]));
     if sampler.is_plain_trilinear() {
         // The same tet's row ROWS_AHEAD on is sampled soon after: its cells are fetched

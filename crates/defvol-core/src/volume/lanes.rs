@@ -73,7 +73,7 @@ const BRICK_VOXELS: usize = BRICK_EDGE * BRICK_EDGE * BRICK_EDGE;
 /// put each step on other cache lines and pages.
 #[derive(Clone)]
 pub struct Bricks {
-    data: Vec<f32>,
+    samples: BrickSamples,
     /// Bricks along x and y.
     bricks: [usize; 2],
     /// The highest cell index per axis (dims - 2, at least 0), as in [`CellLookup`].
@@ -82,8 +82,61 @@ pub struct Bricks {
 
 impl std::fmt::Debug for Bricks {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Bricks").field("bricks", &self.bricks).field("samples", &self.data.len()).finish()
+        f.debug_struct("Bricks").field("bricks", &self.bricks).field("samples", &self.samples.len()).finish()
     }
+}
+
+/// The bricks' samples: floats, or where every sample is q·2⁻ˢ for a 16-bit integer q
+/// (CT numbers, s = 0; the phantom's eighths, s = 3), the q: half the memory and cache
+/// lines, and read back exactly. The lanes lerp the q and scale the result by 2⁻ˢ, which
+/// commutes with every rounding on the way: the floats' bits wherever the sample is a
+/// normal float or zero.
+#[derive(Clone)]
+enum BrickSamples {
+    Floats(Vec<f32>),
+    Fixed { q: Vec<i16>, scale: f32 },
+}
+
+/// The most fraction bits a fixed-point sample may have.
+const MAX_FRACTION_BITS: u32 = 15;
+
+impl BrickSamples {
+    /// Fixed point where every sample fits it exactly (-0.0 excluded: its sign would be lost), else floats.
+    fn of(floats: Vec<f32>) -> Self {
+        let bits = floats.iter().try_fold(0, |most, &v| fraction_bits(v).map(|b| b.max(most)));
+        let scale = bits.filter(|&b| b <= MAX_FRACTION_BITS).map(|b| (1u32 << b) as f32);
+        let fits = |scale: f32| floats.iter().all(|v| (v * scale).abs() <= i16::MAX as f32);
+        match scale.filter(|&scale| fits(scale)) {
+            Some(scale) => Self::Fixed { q: floats.iter().map(|v| (v * scale) as i16).collect(), scale: 1.0 / scale },
+            None => Self::Floats(floats),
+        }
+    }
+
+    fn len(&self) -> usize {
+        match self {
+            Self::Floats(v) => v.len(),
+            Self::Fixed { q, .. } => q.len(),
+        }
+    }
+}
+
+/// The fraction bits `v` needs as a binary fixed-point number (0 for integers); None for
+/// -0.0, infinities and NaN.
+fn fraction_bits(v: f32) -> Option<u32> {
+    if v == 0.0 {
+        return v.is_sign_positive().then_some(0);
+    }
+    if !v.is_finite() {
+        return None;
+    }
+    let bits = v.to_bits();
+    let (exponent, mantissa) = ((bits >> 23 & 0xFF) as i32, bits & 0x7F_FFFF);
+    // v = significand · 2^power, the significand an integer.
+    let (significand, power) = match exponent {
+        0 => (mantissa, -149),
+        _ => (mantissa | 0x80_0000, exponent - 150),
+    };
+    Some((-(power + significand.trailing_zeros() as i32)).max(0) as u32)
 }
 
 impl Bricks {
@@ -115,7 +168,11 @@ impl Bricks {
                 }
             }
         }
-        Some(Self { data: bricked, bricks: [count[0], count[1]], top: dims.map(|n| n.saturating_sub(2) as i32) })
+        Some(Self {
+            samples: BrickSamples::of(bricked),
+            bricks: [count[0], count[1]],
+            top: dims.map(|n| n.saturating_sub(2) as i32),
+        })
     }
 }
 
@@ -141,11 +198,85 @@ pub fn trilinear_bricked(bricks: &Bricks, out: &mut [f32], base: [f32; 3], step:
     0
 }
 
+/// Runs of samples along parallel lines (one step, each run on its own line), sampled from
+/// bricks as one stream of eight-lane groups: a group takes the voxels of as many runs as
+/// it reaches, so short runs (a tet's rows) fill every lane, and the loop runs long
+/// instead of one or two groups and a set-up per run. Each voxel's point and sample are
+/// those [`trilinear_bricked`] takes for its run: the same bits.
+#[derive(Debug, Default)]
+pub struct RunStream {
+    /// Per run: the index along its line of its first voxel, the line's base point, and
+    /// where its samples go in the output.
+    first: Vec<i32>,
+    base: [Vec<f32>; 3],
+    to: Vec<usize>,
+    /// Where each run's samples begin in the stream, and one entry more: its length.
+    begin: Vec<i32>,
+    samples: Vec<f32>,
+}
+
+impl RunStream {
+    /// Empties the stream, keeping its memory.
+    pub fn clear(&mut self) {
+        self.first.clear();
+        self.base.iter_mut().for_each(Vec::clear);
+        self.to.clear();
+        self.begin.clear();
+    }
+
+    /// Adds the run of `len` (≥ 1) voxels at `base + step·(first + n)`, written from `out[to]`.
+    pub fn push(&mut self, base: [f32; 3], first: i32, len: usize, to: usize) {
+        let end = self.begin.last().copied().unwrap_or(0);
+        if self.begin.is_empty() {
+            self.begin.push(0);
+        }
+        self.first.push(first);
+        (0..3).for_each(|a| self.base[a].push(base[a]));
+        self.to.push(to);
+        self.begin.push(end + len as i32);
+    }
+
+    /// Samples every run from `bricks` along `step` and writes each to its place in `out`;
+    /// false (nothing written) where the CPU lacks the lanes.
+    pub fn sample_into(&mut self, bricks: &Bricks, step: [f32; 3], out: &mut [f32]) -> bool {
+        let runs = self.first.len();
+        if runs == 0 {
+            return true;
+        }
+        #[cfg(target_arch = "x86_64")]
+        if lanes_available() {
+            let total = self.begin[runs] as usize;
+            // Padding: a group reads the entries of the eight runs from its first one;
+            // lanes past the end take the last run's line (their samples are not written).
+            for _ in 0..8 {
+                self.first.push(self.first[runs - 1]);
+                (0..3).for_each(|a| self.base[a].push(self.base[a][runs - 1]));
+                self.begin.push(i32::MAX);
+            }
+            self.samples.resize(total.next_multiple_of(8), 0.0);
+            // SAFETY: AVX2 is present; the entries are padded as the stream reads them.
+            unsafe { x86::stream_bricked_avx2(bricks, self, step) };
+            self.first.truncate(runs);
+            self.base.iter_mut().for_each(|b| b.truncate(runs));
+            self.begin.truncate(runs + 1);
+            for (r, &to) in self.to.iter().enumerate() {
+                let (from, end) = (self.begin[r] as usize, self.begin[r + 1] as usize);
+                out[to..to + end - from].copy_from_slice(&self.samples[from..end]);
+            }
+            return true;
+        }
+        let _ = (bricks, step, out);
+        false
+    }
+}
+
 #[cfg(target_arch = "x86_64")]
 mod x86 {
     // Named from the crate root, not `super`: the layer test reads `super` as the file's
     // parent module.
-    use crate::volume::lanes::{Bricks, CellLookup, BRICK_CELLS, BRICK_EDGE, BRICK_SHIFT, BRICK_VOXELS};
+    use crate::volume::lanes::{
+        BrickSamples, Bricks, CellLookup, RunStream, BRICK_CELLS, BRICK_EDGE, BRICK_SHIFT, BRICK_VOXELS,
+    };
     use std::arch::x86_64::*;
 
     /// Whether `data` holds the largest index the clamps let a cell's corners reach.
@@ -246,14 +377,14 @@ mod x86 {
     /// eight lanes (ymm) and four (xmm), which a run's last few voxels take at half the
     /// loads.
     macro_rules! sample_fn {
-        ($name:ident, $base:ident, $ps:ty, $si:ty, $cvtt:ident, $cvt:ident, $max:ident, $min:ident,
+        ($name:ident, $elem:ty, $base:ident, $ps:ty, $si:ty, $cvtt:ident, $cvt:ident, $max:ident, $min:ident,
          $add_i:ident, $mullo:ident, $srli:ident, $and:ident, $corners:ident, $add:ident, $sub:ident,
          $mul:ident, $zero:ident, $narrow:ident) => {
             /// # Safety
             /// The CPU must have AVX2, and `ptr` must lead the samples the lookup was made for.
             #[inline]
             #[target_feature(enable = "avx2")]
-            unsafe fn $name(&self, ptr: *const f32, at: [$ps; 3]) -> $ps {
+            unsafe fn $name(&self, ptr: *const $elem, at: [$ps; 3]) -> $ps {
                 let zero = $zero();
                 let index: [$si; 3] = per_axis!(a => $min($max($cvtt(at[a]), zero), $narrow(self.top[a])));
                 let frac = per_axis!(a => $sub(at[a], $cvt(index[a])));
@@ -343,6 +474,70 @@ mod x86 {
             }
             v
         }};
+    }
+    /// [`pairs!`] for fixed-point bricks: a lane's two x-corners are one 4-byte load of two
+    /// i16, sign-extended into the two corners' lanes (the low half shifted up and back
+    /// down, the high half down) and converted to floats, which hold them exactly.
+    macro_rules! fixed_pairs {
+        ($ptr:ident, $b:ident, $corners:expr, $width:literal, $ps:ty, $store:ident, $set:ident, $slli:ident,
+         $srai:ident, $cvt:ident, $($l:literal),+) => {{
+            let mut index = [0i32; $width];
+            // SAFETY: index holds $width i32.
+            unsafe { $store(index.as_mut_ptr().cast(), $b) };
+            let mut v: [$ps; 8] = [std::mem::zeroed(); 8];
+            for p in 0..4 {
+                let c = $corners.offsets[2 * p];
+                // SAFETY: corners c and c + 1 of every lane's cell lie inside the samples.
+                let pair = $set($(unsafe { $ptr.offset(index[$l] as isize + c).cast::<i32>().read_unaligned() }),+);
+                v[2 * p] = $cvt($srai::<16>($slli::<16>(pair)));
+                v[2 * p + 1] = $cvt($srai::<16>(pair));
+            }
+            v
+        }};
+    }
+    macro_rules! fixed_pairs8 {
+        ($ptr:ident, $b:ident, $corners:expr) => {
+            fixed_pairs!(
+                $ptr,
+                $b,
+                $corners,
+                8,
+                __m256,
+                _mm256_storeu_si256,
+                _mm256_setr_epi32,
+                _mm256_slli_epi32,
+                _mm256_srai_epi32,
+                _mm256_cvtepi32_ps,
+                0,
+                1,
+                2,
+                3,
+                4,
+                5,
+                6,
+                7
+            )
+        };
+    }
+    macro_rules! fixed_pairs4 {
+        ($ptr:ident, $b:ident, $corners:expr) => {
+            fixed_pairs!(
+                $ptr,
+                $b,
+                $corners,
+                4,
+                __m128,
+                _mm_storeu_si128,
+                _mm_setr_epi32,
+                _mm_slli_epi32,
+                _mm_srai_epi32,
+                _mm_cvtepi32_ps,
+                0,
+                1,
+                2,
+                3
+            )
+        };
     }
     macro_rules! pack8 {
         ($pair:ident) => {{
@@ -436,9 +631,10 @@ mod x86 {
 
     /// sample8 and sample4 for a layout, with its corner readers.
     macro_rules! sample_fns {
-        ($base:ident, $corners8:ident, $corners4:ident) => {
+        ($s8:ident, $s4:ident, $elem:ty, $base:ident, $corners8:ident, $corners4:ident) => {
             sample_fn!(
-                sample8,
+                $s8,
+                $elem,
                 $base,
                 __m256,
                 __m256i,
@@ -458,7 +654,8 @@ mod x86 {
                 same
             );
             sample_fn!(
-                sample4,
+                $s4,
+                $elem,
                 $base,
                 __m128,
                 __m128i,
@@ -494,7 +691,7 @@ mod x86 {
         }
 
         // Rows: a run along them, or a packet's neighbouring rays, reads windows.
-        sample_fns!(row_major_base, window8, window4);
+        sample_fns!(sample8, sample4, f32, row_major_base, window8, window4);
 
         /// Asks the cache for the corner rows of the cells of lanes 0 and 7 at `at` (a
         /// group's ends; the lanes between mostly share their lines). Any points: the cells
@@ -535,7 +732,7 @@ mod x86 {
             Self {
                 corners: Corners::new(
                     [0, 1, edge, edge + 1, slice, slice + 1, slice + edge, slice + edge + 1],
-                    bricks.data.len(),
+                    bricks.samples.len(),
                 ),
                 top: bricks.top.map(|t| _mm256_set1_epi32(t)),
                 brick_stride: [1, bx, bx * by].map(|s| _mm256_set1_epi32(s * BRICK_VOXELS as i32)),
@@ -545,7 +742,8 @@ mod x86 {
         }
 
         // Bricks serve runs across rows, where windows seldom hold; their corners always pair.
-        sample_fns!(bricked_base, pairs8, pairs4);
+        sample_fns!(sample8, sample4, f32, bricked_base, pairs8, pairs4);
+        sample_fns!(fixed8, fixed4, i16, bricked_base, fixed_pairs8, fixed_pairs4);
     }
 
     /// Trilinear samples at eight points of one vector: the row-major lanes with the samples
@@ -607,14 +805,71 @@ mod x86 {
         step: [f32; 3],
         start: i32,
     ) -> usize {
-        let (lanes, ptr) = (BrickLanes::new(bricks), bricks.data.as_ptr());
-        // SAFETY: every bricked index lies in the bricks (clamped cells, corners within
-        // their brick).
-        let sample8 = |at| unsafe { lanes.sample8(ptr, at) };
-        let sample4 = |at| unsafe { lanes.sample4(ptr, at) };
+        let lanes = BrickLanes::new(bricks);
         // No prefetch: a rotated run's cells spread over more lines than a few prefetches
         // reach, and prefetching all eight lanes' bought nothing (side by side, rot45).
-        run(out, [base, step], start, sample8, sample4, None::<([f32; 3], fn([__m256; 3]))>)
+        let no_prefetch = None::<([f32; 3], fn([__m256; 3]))>;
+        // SAFETY (both arms): every bricked index lies in the bricks (clamped cells,
+        // corners within their brick).
+        match &bricks.samples {
+            BrickSamples::Floats(data) => {
+                let ptr = data.as_ptr();
+                let sample8 = |at| unsafe { lanes.sample8(ptr, at) };
+                let sample4 = |at| unsafe { lanes.sample4(ptr, at) };
+                run(out, [base, step], start, sample8, sample4, no_prefetch)
+            }
+            BrickSamples::Fixed { q, scale } => {
+                let (ptr, scale8, scale4) = (q.as_ptr(), _mm256_set1_ps(*scale), _mm_set1_ps(*scale));
+                let sample8 = |at| _mm256_mul_ps(unsafe { lanes.fixed8(ptr, at) }, scale8);
+                let sample4 = |at| _mm_mul_ps(unsafe { lanes.fixed4(ptr, at) }, scale4);
+                run(out, [base, step], start, sample8, sample4, no_prefetch)
+            }
+        }
+    }
+
+    /// [`RunStream::sample_into`]'s groups: each lane finds its run by counting the runs'
+    /// beginnings it has passed, takes that run's line and index from a permute of the
+    /// next eight runs' entries, and its point as the run's own loop computes it.
+    ///
+    /// # Safety
+    /// The CPU must have AVX2; the stream's entries padded by eight past its last run, and
+    /// its samples a whole number of groups long.
+    #[target_feature(enable = "avx2")]
+    pub(super) unsafe fn stream_bricked_avx2(bricks: &Bricks, stream: &mut RunStream, step: [f32; 3]) {
+        let lanes = BrickLanes::new(bricks);
+        let RunStream { first, base, begin, samples, .. } = stream;
+        let iota = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
+        let step8 = step.map(|s| _mm256_set1_ps(s));
+        let mut r = 0;
+        for (g, group) in (0..).step_by(8).zip(samples.chunks_exact_mut(8)) {
+            while begin[r + 1] <= g {
+                r += 1;
+            }
+            let voxel = _mm256_add_epi32(_mm256_set1_epi32(g), iota);
+            let mut which = _mm256_setzero_si256();
+            let mut next = r + 1;
+            while begin[next] < g + 8 {
+                let passed = _mm256_cmpgt_epi32(voxel, _mm256_set1_epi32(begin[next] - 1));
+                which = _mm256_sub_epi32(which, passed);
+                next += 1;
+            }
+            // SAFETY: every entry list holds eight entries from r (padded).
+            let pick =
+                |v: &[i32]| _mm256_permutevar8x32_epi32(unsafe { _mm256_loadu_si256(v[r..].as_ptr().cast()) }, which);
+            let pick_ps = |v: &[f32]| _mm256_permutevar8x32_ps(unsafe { _mm256_loadu_ps(v[r..].as_ptr()) }, which);
+            let index = _mm256_add_epi32(pick(first), _mm256_sub_epi32(voxel, pick(begin)));
+            let fi = _mm256_cvtepi32_ps(index);
+            let at = per_axis!(a => _mm256_add_ps(pick_ps(&base[a]), _mm256_mul_ps(step8[a], fi)));
+            // SAFETY: every bricked index lies in the bricks (clamped cells, corners within
+            // their brick); group holds eight floats.
+            let value = match &bricks.samples {
+                BrickSamples::Floats(data) => unsafe { lanes.sample8(data.as_ptr(), at) },
+                BrickSamples::Fixed { q, scale } => {
+                    _mm256_mul_ps(unsafe { lanes.fixed8(q.as_ptr(), at) }, _mm256_set1_ps(*scale))
+                }
+            };
+            unsafe { _mm256_storeu_ps(group.as_mut_ptr(), value) };
+        }
     }
 
     /// The eight points `base + step·(first + l)`, lane l, multiplied and added unfused as
@@ -761,7 +1016,7 @@ mod tests {
     fn corners_read_singly_or_in_pairs_give_the_scalar_loops_bits() {
         let mut checked = 0;
         for dims in [[1usize, 13, 11], [13, 1, 11]] {
-            let Some((data, cell, _)) = varied_source(dims) else {
+            let Some((data, cell, _)) = varied_source(dims, 1.0) else {
                 eprintln!("skipped: no AVX2 on this CPU");
                 return;
             };
@@ -791,11 +1046,11 @@ mod tests {
         out.len()
     }
 
-    /// Samples of `dims` with varied values, their lookup and their bricks (none without
-    /// AVX2).
-    fn varied_source(dims: [usize; 3]) -> Option<(Vec<f32>, CellLookup, Bricks)> {
+    /// Samples of `dims` with varied values (integers -50..=50 times `unit`), their lookup
+    /// and their bricks (none without AVX2).
+    fn varied_source(dims: [usize; 3], unit: f32) -> Option<(Vec<f32>, CellLookup, Bricks)> {
         let len = dims.iter().product::<usize>();
-        let data: Vec<f32> = (0..len).map(|v| ((v * 37) % 101) as f32 - 50.0).collect();
+        let data: Vec<f32> = (0..len).map(|v| (((v * 37) % 101) as f32 - 50.0) * unit).collect();
         let bricks = Bricks::new(&data, dims)?;
         Some((data, CellLookup::for_dims(dims), bricks))
     }
@@ -808,7 +1063,7 @@ mod tests {
     fn runs_along_rows_give_the_scalar_loops_bits() {
         let mut checked = 0;
         for dims in [[29usize, 6, 5], [9, 2, 2], [5, 1, 1]] {
-            let Some((data, cell, bricks)) = varied_source(dims) else {
+            let Some((data, cell, bricks)) = varied_source(dims, 1.0) else {
                 eprintln!("skipped: no AVX2 on this CPU");
                 return;
             };
@@ -841,14 +1096,17 @@ mod tests {
     /// Runs in tilted directions through sources of several bricks a side, one of them
     /// one voxel thick along y, from points on brick faces and within round-off of the
     /// source's faces: the bricked lanes give the row-major scalar loop's bits.
+    /// Both brick layouts: integers and eighths in 16-bit fixed point, tenths as floats.
     #[test]
     fn bricked_lanes_give_the_scalar_loops_bits() {
         let mut checked = 0;
-        for dims in [[19usize, 11, 10], [17, 1, 9]] {
-            let Some((data, cell, bricks)) = varied_source(dims) else {
+        for (dims, unit) in [[19usize, 11, 10], [17, 1, 9]].into_iter().flat_map(|d| [1.0, 0.125, 0.1].map(|u| (d, u)))
+        {
+            let Some((data, cell, bricks)) = varied_source(dims, unit) else {
                 eprintln!("skipped: no AVX2 on this CPU");
                 return;
             };
+            assert_eq!(matches!(bricks.samples, BrickSamples::Fixed { .. }), unit != 0.1, "unit {unit}");
             let top = dims.map(|n| (n - 1) as f32);
             for (base, end) in [
                 ([0.0, 0.0, 0.0], top),
@@ -863,6 +1121,52 @@ mod tests {
                 }
             }
         }
-        assert_eq!(checked, 2 * 3 * 276);
+        assert_eq!(checked, 2 * 3 * 3 * 276);
+    }
+
+    /// Runs of 1-19 voxels on lines through the source (tilted, from brick faces and
+    /// within round-off of its faces), sampled as one stream, give each run's own
+    /// bricked samples bit for bit, in both layouts, and write nothing between runs.
+    #[test]
+    fn a_stream_of_runs_gives_each_runs_own_samples() {
+        for unit in [0.125, 0.1] {
+            let Some((_, _, bricks)) = varied_source([19, 11, 10], unit) else {
+                eprintln!("skipped: no AVX2 on this CPU");
+                return;
+            };
+            let step = [0.61, 0.37, -0.29];
+            let (mut stream, mut expected, mut to) = (RunStream::default(), vec![f32::NAN; 4000], 0);
+            for r in 0..200usize {
+                let (len, first) = (1 + r * 7 % 19, (r % 5) as i32);
+                let base = [(r % 3) as f32 * 3.0, (r % 11) as f32 - 1e-6, 9.0 - (r % 7) as f32];
+                stream.push(base, first, len, to);
+                assert_eq!(trilinear_bricked(&bricks, &mut expected[to..to + len], base, step, first), len);
+                to += len + r % 3;
+            }
+            let mut out = vec![f32::NAN; 4000];
+            assert!(stream.sample_into(&bricks, step, &mut out));
+            for (n, (got, want)) in out.iter().zip(&expected).enumerate() {
+                assert_eq!(got.to_bits(), want.to_bits(), "unit {unit}, voxel {n}");
+            }
+            assert!(to > 2000 && expected[..to].iter().filter(|v| v.is_nan()).count() == (0..200).map(|r| r % 3).sum());
+        }
+    }
+
+    /// Samples are held in 16 bits exactly when each is q·2⁻ˢ with |q| ≤ 32767 and
+    /// s ≤ 15: CT numbers and eighths are, tenths, -0.0, NaN and 40000 are not.
+    #[test]
+    fn sixteen_bits_hold_exactly_the_samples_they_can() {
+        assert_eq!([3.0, 0.5, -0.375, 0.0, 2f32.powi(-149)].map(fraction_bits), [0, 1, 3, 0, 149].map(Some));
+        assert_eq!([-0.0, f32::NAN, f32::INFINITY].map(fraction_bits), [None; 3]);
+        let fixed = |v: Vec<f32>| match BrickSamples::of(v) {
+            BrickSamples::Fixed { q, scale } => Some((q, scale)),
+            BrickSamples::Floats(_) => None,
+        };
+        assert_eq!(fixed(vec![-1024.0, 3071.0, 0.0]), Some((vec![-1024, 3071, 0], 1.0)));
+        assert_eq!(fixed(vec![-1000.0, 12.375]), Some((vec![-8000, 99], 0.125)));
+        assert_eq!(fixed(vec![32767.0, -32767.0]), Some((vec![32767, -32767], 1.0)));
+        for floats in [vec![0.1], vec![-0.0, 1.0], vec![40000.0], vec![-32767.0, 0.5], vec![2f32.powi(-16)]] {
+            assert_eq!(fixed(floats.clone()), None, "{floats:?}");
+        }
     }
 }
