@@ -225,6 +225,7 @@ impl RunStream {
     }
 
     /// Adds the run of `len` (≥ 1) voxels at `base + step·(first + n)`, written from `out[to]`.
+    #[inline]
     pub fn push(&mut self, base: [f32; 3], first: i32, len: usize, to: usize) {
         let end = self.begin.last().copied().unwrap_or(0);
         if self.begin.is_empty() {
@@ -261,12 +262,30 @@ impl RunStream {
             self.begin.truncate(runs + 1);
             for (r, &to) in self.to.iter().enumerate() {
                 let (from, end) = (self.begin[r] as usize, self.begin[r + 1] as usize);
-                out[to..to + end - from].copy_from_slice(&self.samples[from..end]);
+                copy_run(&mut out[to..to + end - from], &self.samples[from..end]);
             }
             return true;
         }
         let _ = (bricks, step, out);
         false
+    }
+}
+
+/// `to.copy_from_slice(from)` for the short runs of a stream: below 16 floats as two
+/// fixed-size copies that overlap in the middle, inline instead of a call to `memcpy`.
+#[inline]
+fn copy_run(to: &mut [f32], from: &[f32]) {
+    fn ends<const N: usize>(to: &mut [f32], from: &[f32]) {
+        let n = to.len();
+        to[..N].copy_from_slice(&from[..N]);
+        to[n - N..].copy_from_slice(&from[n - N..]);
+    }
+    match to.len() {
+        16.. => to.copy_from_slice(from),
+        8.. => ends::<8>(to, from),
+        4.. => ends::<4>(to, from),
+        2.. => ends::<2>(to, from),
+        _ => to.copy_from_slice(from),
     }
 }
 
