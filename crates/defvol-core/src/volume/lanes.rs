@@ -856,6 +856,22 @@ mod x86 {
     #[target_feature(enable = "avx2")]
     pub(super) unsafe fn stream_bricked_avx2(bricks: &Bricks, stream: &mut RunStream, step: [f32; 3]) {
         let lanes = BrickLanes::new(bricks);
+        // SAFETY (both arms): every bricked index lies in the bricks (clamped cells,
+        // corners within their brick).
+        match &bricks.samples {
+            BrickSamples::Floats(data) => stream_groups(stream, step, |at| unsafe { lanes.sample8(data.as_ptr(), at) }),
+            BrickSamples::Fixed { q, scale } => {
+                let scale = _mm256_set1_ps(*scale);
+                stream_groups(stream, step, |at| _mm256_mul_ps(unsafe { lanes.fixed8(q.as_ptr(), at) }, scale))
+            }
+        }
+    }
+
+    /// The stream's groups, each lane's point found as [`stream_bricked_avx2`] says and
+    /// sampled by `sample8`.
+    #[inline]
+    #[target_feature(enable = "avx2")]
+    fn stream_groups(stream: &mut RunStream, step: [f32; 3], sample8: impl Fn([__m256; 3]) -> __m256) {
         let RunStream { first, base, begin, samples, .. } = stream;
         let iota = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
         let step8 = step.map(|s| _mm256_set1_ps(s));
@@ -879,15 +895,8 @@ mod x86 {
             let index = _mm256_add_epi32(pick(first), _mm256_sub_epi32(voxel, pick(begin)));
             let fi = _mm256_cvtepi32_ps(index);
             let at = per_axis!(a => _mm256_add_ps(pick_ps(&base[a]), _mm256_mul_ps(step8[a], fi)));
-            // SAFETY: every bricked index lies in the bricks (clamped cells, corners within
-            // their brick); group holds eight floats.
-            let value = match &bricks.samples {
-                BrickSamples::Floats(data) => unsafe { lanes.sample8(data.as_ptr(), at) },
-                BrickSamples::Fixed { q, scale } => {
-                    _mm256_mul_ps(unsafe { lanes.fixed8(q.as_ptr(), at) }, _mm256_set1_ps(*scale))
-                }
-            };
-            unsafe { _mm256_storeu_ps(group.as_mut_ptr(), value) };
+            // SAFETY: group holds eight floats.
+            unsafe { _mm256_storeu_ps(group.as_mut_ptr(), sample8(at)) };
         }
     }
 
