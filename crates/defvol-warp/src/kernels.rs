@@ -567,6 +567,9 @@ fn stream_tet(
 ) -> Option<u64> {
     let (i0, i1) = (m.lo[0].max(lo[0]), m.hi[0].min(hi[0]));
     let (j0, j1) = (m.lo[1].max(lo[1]), m.hi[1].min(hi[1]));
+    if j0 > j1 || i0 > i1 {
+        return Some(0);
+    }
     stream.clear();
     let mut voxels = 0;
     for k in m.lo[2].max(k0)..=m.hi[2].min(last) {
