@@ -386,6 +386,46 @@ mod tests {
     use defvol_core::mesh::generate::{self, CellSplit};
     use defvol_core::volume::phantom;
 
+    /// A press on a turned mesh re-warps only its region, the tets' spans streamed and
+    /// clipped to the region's box, and leaves the baseline path's full warp, bit for bit.
+    #[test]
+    fn a_press_on_a_turned_mesh_re_warps_to_the_baseline_paths_bits() {
+        let source = Arc::new(phantom::phantom([96, 72, 56], 2.0).unwrap());
+        let (lo, hi) = source.bounds();
+        let mesh = Arc::new(generate::lattice_for_box(lo, hi, 300, CellSplit::Five).unwrap());
+        let centre = (lo + hi) / 2.0;
+        let turn = nalgebra::Rotation3::from_euler_angles(0.6, 0.4, 0.3);
+        let turned: Vec<Vector3<f64>> = mesh.nodes().iter().map(|p| centre + turn * (p - centre)).collect();
+        let grid = default_grid(&source, &turned);
+        let options = WarpOptions { background: -7.0, ..Default::default() };
+        let mut warp =
+            IncrementalWarp::new(source.clone(), mesh.clone(), &turned, grid.clone(), options.clone()).unwrap();
+        let mut out = vec![f32::NAN; grid.len()];
+        warp.write_into(&mut out, None).unwrap();
+        let tip = turned[turned.len() / 3];
+        let pressed: Vec<Vector3<f64>> = turned
+            .iter()
+            .map(|p| match (p - tip).norm() {
+                d if d < 30.0 => p - Vector3::z() * (4.0 * (1.0 - d / 30.0)),
+                _ => *p,
+            })
+            .collect();
+        let sequence = warp.advance(&pressed, 1e-9).unwrap();
+        let stats = warp.write_into(&mut out, Some(sequence - 1)).unwrap();
+        assert!(stats.voxels > 0 && stats.voxels < grid.len() as u64 / 4, "a local region: {stats:?}");
+        let baseline = WarpOptions { path: WarpPath::Baseline, ..options };
+        let (expected, _) = warp_samples::<f32>(&source, &mesh, &pressed, &grid, &baseline).unwrap();
+        let differ = out.iter().zip(&expected).filter(|(a, b)| a.to_bits() != b.to_bits()).count();
+        assert_eq!(differ, 0, "{differ} voxels differ");
+        // A buffer said to hold the warp before has only the region written: no span
+        // reaches past its box.
+        let mut blank = vec![f32::NAN; grid.len()];
+        assert_eq!(warp.write_into(&mut blank, Some(sequence - 1)).unwrap(), stats);
+        let written: Vec<usize> = (0..blank.len()).filter(|&v| !blank[v].is_nan()).collect();
+        assert_eq!(written.len() as u64, stats.voxels);
+        assert!(written.iter().all(|&v| blank[v].to_bits() == expected[v].to_bits()));
+    }
+
     /// The fast path (eight-lane samples, slabs of slices) gives the baseline's bits on a
     /// rotated mesh whose tets share faces on many voxels, with and without the source
     /// kept where no tet covers.

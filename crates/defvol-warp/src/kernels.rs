@@ -131,6 +131,7 @@ impl TetMap {
 #[cfg(target_arch = "x86_64")]
 mod rows4 {
     use super::{TetMap, INSIDE_TOLERANCE};
+    use defvol_core::volume::lanes::RunStream;
     use std::arch::x86_64::*;
 
     /// Whether each lane's voxel `i` is inside: every plane's `a + c·i ≥ 0`.
@@ -167,6 +168,14 @@ mod rows4 {
     /// The CPU must have AVX.
     #[target_feature(enable = "avx")]
     pub(super) unsafe fn spans_avx(m: &TetMap, j: usize, k: usize) -> [Option<(usize, usize)>; 4] {
+        let (los, his, live) = bounds(m, j, k);
+        [0, 1, 2, 3].map(|l| (live >> l & 1 == 1).then_some((los[l] as usize, his[l] as usize)))
+    }
+
+    /// Each row's span bounds and which rows have any (bit l: row j + l).
+    #[inline]
+    #[target_feature(enable = "avx")]
+    fn bounds(m: &TetMap, j: usize, k: usize) -> ([f64; 4], [f64; 4], i32) {
         let jf = _mm256_add_pd(_mm256_set1_pd(j as f64), _mm256_setr_pd(0.0, 1.0, 2.0, 3.0));
         let kf = _mm256_set1_pd(k as f64);
         let a = m.bary.map(|b| {
@@ -201,8 +210,49 @@ mod rows4 {
             _mm256_storeu_pd(los.as_mut_ptr(), lo);
             _mm256_storeu_pd(his.as_mut_ptr(), hi);
         }
-        let dead = _mm256_movemask_pd(dead);
-        [0, 1, 2, 3].map(|l| (dead >> l & 1 == 0 && los[l] <= his[l]).then_some((los[l] as usize, his[l] as usize)))
+        let live = _mm256_movemask_pd(_mm256_andnot_pd(dead, _mm256_cmp_pd::<_CMP_LE_OQ>(lo, hi)));
+        (los, his, live)
+    }
+
+    /// Pushes the spans of rows j..j + rows (at most four) of slice k, clipped to
+    /// `[i0, i1]`, onto `stream` (row j's voxel 0 at `to` in the output, rows `nx` apart),
+    /// each with its row's base point as [`super::run_base`] computes it; how many voxels.
+    ///
+    /// # Safety
+    /// The CPU must have AVX.
+    #[target_feature(enable = "avx")]
+    pub(super) unsafe fn push_spans_avx(
+        m: &TetMap,
+        [j, k]: [usize; 2],
+        rows: usize,
+        [i0, i1]: [usize; 2],
+        [to, nx]: [usize; 2],
+        stream: &mut RunStream,
+    ) -> u64 {
+        let (los, his, live) = bounds(m, j, k);
+        let jf = _mm256_add_pd(_mm256_set1_pd(j as f64), _mm256_setr_pd(0.0, 1.0, 2.0, 3.0));
+        let kf = _mm256_set1_pd(k as f64);
+        let base = m.src.map(|s| {
+            let row = _mm256_add_pd(_mm256_set1_pd(s[0]), _mm256_mul_pd(_mm256_set1_pd(s[2]), jf));
+            let mut out = [0f32; 4];
+            // SAFETY: four f32.
+            unsafe {
+                _mm_storeu_ps(
+                    out.as_mut_ptr(),
+                    _mm256_cvtpd_ps(_mm256_add_pd(row, _mm256_mul_pd(_mm256_set1_pd(s[3]), kf))),
+                )
+            };
+            out
+        });
+        let mut voxels = 0;
+        for l in (0..rows).filter(|l| live >> l & 1 == 1) {
+            let (s0, s1) = ((los[l] as usize).max(i0), (his[l] as usize).min(i1));
+            if s0 <= s1 {
+                stream.push(base.map(|b| b[l]), s0 as i32, s1 - s0 + 1, to + l * nx + s0);
+                voxels += (s1 - s0 + 1) as u64;
+            }
+        }
+        voxels
     }
 }
 
@@ -573,6 +623,18 @@ fn stream_tet(
     stream.clear();
     let mut voxels = 0;
     for k in m.lo[2].max(k0)..=m.hi[2].min(last) {
+        #[cfg(target_arch = "x86_64")]
+        if lanes && std::arch::is_x86_feature_detected!("avx") {
+            let Some((s0, s1)) = m.section_rows(k) else { continue };
+            let (first, last) = (s0.max(j0), s1.min(j1));
+            for j4 in (first..=last).step_by(4) {
+                let at = [(k - k0) * nx * ny + j4 * nx, nx];
+                let rows = (last + 1 - j4).min(4);
+                // SAFETY: the CPU has AVX.
+                voxels += unsafe { rows4::push_spans_avx(m, [j4, k], rows, [i0, i1], at, stream) };
+            }
+            continue;
+        }
         for_each_span(m, k, lanes, [i0, j0], [i1, j1], |j, s0, s1| {
             let base = run_base(m, j, k);
             stream.push(base, s0 as i32, s1 - s0 + 1, (k - k0) * nx * ny + j * nx + s0);
