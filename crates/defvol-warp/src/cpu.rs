@@ -427,8 +427,8 @@ mod tests {
     }
 
     /// The fast path (eight-lane samples, slabs of slices) gives the baseline's bits on a
-    /// rotated mesh whose tets share faces on many voxels, with and without the source
-    /// kept where no tet covers.
+    /// rotated mesh whose tets share faces on many voxels, and on the mesh at rest (runs
+    /// along the source's rows), with and without the source kept where no tet covers.
     #[test]
     fn the_fast_path_gives_the_baseline_paths_bits() {
         let source = phantom::phantom([96, 72, 56], 2.0).unwrap();
@@ -437,12 +437,13 @@ mod tests {
         let centre = (lo + hi) / 2.0;
         let turn = nalgebra::Rotation3::from_euler_angles(0.6, 0.4, 0.3);
         let turned: Vec<Vector3<f64>> = mesh.nodes().iter().map(|p| centre + turn * (p - centre)).collect();
-        let grid = default_grid(&source, &turned);
-        assert!(grid.len() * 4 > 3 * SLAB_BYTES, "tets must cross slabs: {:?}", grid.dims);
-        for keep_uncovered in [false, true] {
+        for (positions, keep_uncovered) in [(turned.clone(), false), (turned, true), (mesh.nodes().to_vec(), false)] {
+            let grid = default_grid(&source, &positions);
+            let depth = slab_depth::<f32>(grid.dims[0], grid.dims[1], WarpPath::Fast);
+            assert!(grid.dims[2] > 2 * depth, "tets must cross slabs: {:?}", grid.dims);
             let run = |path| {
                 let options = WarpOptions { keep_uncovered, path, background: -7.0, ..Default::default() };
-                warp_samples::<f32>(&source, &mesh, &turned, &grid, &options).unwrap()
+                warp_samples::<f32>(&source, &mesh, &positions, &grid, &options).unwrap()
             };
             let ((fast, fast_stats), (baseline, baseline_stats)) = (run(WarpPath::Fast), run(WarpPath::Baseline));
             assert_eq!(fast_stats, baseline_stats);

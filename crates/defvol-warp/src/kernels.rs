@@ -396,11 +396,12 @@ impl<'a> Sampler<'a> {
     }
 
     /// The bricks a tet's spans are sampled from as one stream: plain trilinear on the
-    /// fast path, a rest tet inside the source (no box tests), stepping across the
-    /// source's rows (as [`Self::trilinear_run`] picks bricks).
+    /// fast path, a rest tet inside the source (no box tests). Whatever the direction: run
+    /// by run, runs along the source's rows read row-major windows faster than bricks,
+    /// but as a stream the bricks win there too (bend 21.3 -> 15.4 ms, upright 15.7 ->
+    /// 13.7-14.1 ms, four alternating rounds).
     fn streams(&self, m: &TetMap) -> Option<&'a Bricks> {
-        let across = m.src[1][1].abs() as f32 + m.src[2][1].abs() as f32 > 0.5;
-        self.bricks.filter(|_| self.lanes && m.src_inside && across)
+        self.bricks.filter(|_| self.lanes && m.src_inside)
     }
 
     fn is_plain_trilinear(&self) -> bool {
