@@ -94,6 +94,26 @@ impl TetMap {
         None
     }
 
+    /// Pushes the spans of rows j..j + rows (at most four) of slice k, clipped to
+    /// `[i0, i1]`, onto `stream` as [`rows4::push_spans_avx`] does; how many voxels, or
+    /// `None` (nothing pushed) where AVX does not serve.
+    fn push_spans4(
+        &self,
+        [j, k]: [usize; 2],
+        rows: usize,
+        clip: [usize; 2],
+        at: [usize; 2],
+        stream: &mut RunStream,
+    ) -> Option<u64> {
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("avx") {
+            // SAFETY: the CPU has AVX.
+            return Some(unsafe { rows4::push_spans_avx(self, [j, k], rows, clip, at, stream) });
+        }
+        let _ = (j, k, rows, clip, at, stream);
+        None
+    }
+
     /// Rows j of slice k that can meet the tet: the y-range of its cross-section with the
     /// plane z = k, widened by one row (spans settle the exact set).
     pub fn section_rows(&self, k: usize) -> Option<(usize, usize)> {
@@ -559,8 +579,7 @@ pub(crate) fn rasterize_slab<T: Real>(
         let Some(m) = &maps[t as usize] else { continue };
         if scheme == Scheme::Spans {
             if let (Some(bricks), Some(out)) = (sampler.streams(m), T::as_f32_mut(slab)) {
-                if let Some(n) = stream_tet(&mut stream, out, [nx, ny], [k0, last], m, bricks, sampler.lanes, [lo, hi])
-                {
+                if let Some(n) = stream_tet(&mut stream, out, [nx, ny], [k0, last], m, bricks, [lo, hi]) {
                     stats.candidates += n;
                     stats.inside += n;
                     continue;
@@ -605,7 +624,6 @@ fn for_each_span(
 
 /// Rasterizes one tet into the slices k0..=last of a slab as one [`RunStream`] of its
 /// spans; how many voxels it wrote, or None (nothing written) where the CPU lacks the lanes.
-#[allow(clippy::too_many_arguments)]
 fn stream_tet(
     stream: &mut RunStream,
     slab: &mut [f32],
@@ -613,7 +631,6 @@ fn stream_tet(
     [k0, last]: [usize; 2],
     m: &TetMap,
     bricks: &Bricks,
-    lanes: bool,
     [lo, hi]: [[usize; 2]; 2],
 ) -> Option<u64> {
     let (i0, i1) = (m.lo[0].max(lo[0]), m.hi[0].min(hi[0]));
@@ -624,23 +641,12 @@ fn stream_tet(
     stream.clear();
     let mut voxels = 0;
     for k in m.lo[2].max(k0)..=m.hi[2].min(last) {
-        #[cfg(target_arch = "x86_64")]
-        if lanes && std::arch::is_x86_feature_detected!("avx") {
-            let Some((s0, s1)) = m.section_rows(k) else { continue };
-            let (first, last) = (s0.max(j0), s1.min(j1));
-            for j4 in (first..=last).step_by(4) {
-                let at = [(k - k0) * nx * ny + j4 * nx, nx];
-                let rows = (last + 1 - j4).min(4);
-                // SAFETY: the CPU has AVX.
-                voxels += unsafe { rows4::push_spans_avx(m, [j4, k], rows, [i0, i1], at, stream) };
-            }
-            continue;
+        let Some((s0, s1)) = m.section_rows(k) else { continue };
+        let (first, last) = (s0.max(j0), s1.min(j1));
+        for j4 in (first..=last).step_by(4) {
+            let (rows, at) = ((last + 1 - j4).min(4), [(k - k0) * nx * ny + j4 * nx, nx]);
+            voxels += m.push_spans4([j4, k], rows, [i0, i1], at, stream)?;
         }
-        for_each_span(m, k, lanes, [i0, j0], [i1, j1], |j, s0, s1| {
-            let base = run_base(m, j, k);
-            stream.push(base, s0 as i32, s1 - s0 + 1, (k - k0) * nx * ny + j * nx + s0);
-            voxels += (s1 - s0 + 1) as u64;
-        });
     }
     let step = m.src.map(|s| s[1] as f32);
     stream.sample_into(bricks, step, slab).then_some(voxels)
