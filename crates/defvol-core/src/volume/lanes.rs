@@ -60,14 +60,14 @@ pub fn trilinear_lanes(
 pub use x86::Trilinear8;
 
 /// Cells along a brick's edge: 2^BRICK_SHIFT.
-const BRICK_SHIFT: i32 = 3;
+const BRICK_SHIFT: i32 = 5;
 const BRICK_CELLS: usize = 1 << BRICK_SHIFT;
 /// Voxels along a brick's edge: its cells' far faces included.
 const BRICK_EDGE: usize = BRICK_CELLS + 1;
 const BRICK_VOXELS: usize = BRICK_EDGE * BRICK_EDGE * BRICK_EDGE;
 
-/// The samples laid out in bricks of 8³ cells, each holding its cells' far faces too (9³
-/// voxels, 1.42x the samples): a cell's eight corners lie in one brick at fixed offsets,
+/// The samples laid out in bricks of 32³ cells, each holding its cells' far faces too (33³
+/// voxels, 1.1x the samples): a cell's eight corners lie in one brick at fixed offsets,
 /// and points near in space are near in memory whatever the direction between them. A
 /// rotated warp steps across rows and slices from voxel to voxel, where row-major samples
 /// put each step on other cache lines and pages.
@@ -1128,7 +1128,7 @@ mod tests {
     #[test]
     fn bricked_lanes_give_the_scalar_loops_bits() {
         let mut checked = 0;
-        for (dims, unit) in [[19usize, 11, 10], [17, 1, 9]].into_iter().flat_map(|d| [1.0, 0.125, 0.1].map(|u| (d, u)))
+        for (dims, unit) in [[70usize, 35, 34], [66, 1, 40]].into_iter().flat_map(|d| [1.0, 0.125, 0.1].map(|u| (d, u)))
         {
             let Some((data, cell, bricks)) = varied_source(dims, unit) else {
                 eprintln!("skipped: no AVX2 on this CPU");
@@ -1138,8 +1138,8 @@ mod tests {
             let top = dims.map(|n| (n - 1) as f32);
             for (base, end) in [
                 ([0.0, 0.0, 0.0], top),
-                ([top[0], 8.0, 0.0], [0.0, 0.0, top[2]]),
-                ([8.0, top[1] - 1e-6, 8.0], [16.0 + 1e-6, 0.0, 0.5]),
+                ([top[0], BRICK_CELLS as f32, 0.0], [0.0, 0.0, top[2]]),
+                ([BRICK_CELLS as f32, top[1] - 1e-6, BRICK_CELLS as f32], [2.0 * BRICK_CELLS as f32 + 1e-6, 0.0, 0.5]),
             ] {
                 for run in 1..24usize {
                     let step = [0, 1, 2].map(|a| (end[a] - base[a]) / run as f32);
@@ -1158,7 +1158,7 @@ mod tests {
     #[test]
     fn a_stream_of_runs_gives_each_runs_own_samples() {
         for unit in [0.125, 0.1] {
-            let Some((_, _, bricks)) = varied_source([19, 11, 10], unit) else {
+            let Some((_, _, bricks)) = varied_source([70, 40, 45], unit) else {
                 eprintln!("skipped: no AVX2 on this CPU");
                 return;
             };
@@ -1166,7 +1166,7 @@ mod tests {
             let (mut stream, mut expected, mut to) = (RunStream::default(), vec![f32::NAN; 4000], 0);
             for r in 0..200usize {
                 let (len, first) = (1 + r * 7 % 19, (r % 5) as i32);
-                let base = [(r % 3) as f32 * 3.0, (r % 11) as f32 - 1e-6, 9.0 - (r % 7) as f32];
+                let base = [(r % 3) as f32 * 12.0 + 8.0, (r % 11) as f32 * 3.0 - 1e-6, 44.0 - (r % 7) as f32 * 2.0];
                 stream.push(base, first, len, to);
                 assert_eq!(trilinear_bricked(&bricks, &mut expected[to..to + len], base, step, first), len);
                 to += len + r % 3;
