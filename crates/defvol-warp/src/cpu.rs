@@ -31,14 +31,19 @@ pub fn default_grid(source: &Volume, deformed: &[Vector3<f64>]) -> Grid {
 
 /// Output slices a task rasterizes together: as many as fit in this many bytes (a slab
 /// stays in a core's cache from its fill to its last tet, and each tet's source footprint
-/// is read once for all its slices in the slab), at least one. Half a Zen 4 core's L2,
-/// leaving the other half to the source: rot45 ~10 % faster than 1 MiB slabs (five
-/// alternating rounds on a 2-core AMD EPYC; 256 KiB no better).
-const SLAB_BYTES: usize = 1 << 19;
+/// is read once for all its slices in the slab), at least one. A Zen 4 core's L2: with
+/// 32³ bricks rotated 17.3-17.7 -> 16.8-17.1 ms and upright, bend 2-3 % faster than half
+/// of it, 2 MiB no better (three alternating rounds on a 2-core AMD EPYC).
+const SLAB_BYTES: usize = 1 << 20;
 
-fn slab_depth<T>(nx: usize, ny: usize, path: WarpPath) -> usize {
+/// [`SLAB_BYTES`] for a re-warped region: a local press has a few slabs to share between
+/// the threads, which thinner ones balance (upright and bend presses 0.78-0.84 ms with 1
+/// MiB slabs, 0.69-0.77 ms with 512 KiB, three alternating rounds).
+const REGION_SLAB_BYTES: usize = 1 << 19;
+
+fn slab_depth<T>(nx: usize, ny: usize, path: WarpPath, bytes: usize) -> usize {
     match path {
-        WarpPath::Fast => (SLAB_BYTES / (nx * ny * std::mem::size_of::<T>())).max(1),
+        WarpPath::Fast => (bytes / (nx * ny * std::mem::size_of::<T>())).max(1),
         WarpPath::Baseline => 1,
     }
 }
@@ -129,7 +134,7 @@ pub fn warp_into<T: Real>(
     let sampler = Sampler::new(source, options)?;
     let identity = grid.index_map_to(&source.grid());
     let [nx, ny, nz] = grid.dims;
-    let depth = slab_depth::<T>(nx, ny, options.path);
+    let depth = slab_depth::<T>(nx, ny, options.path, SLAB_BYTES);
     let bins = slab_bins(&maps, 0, nz - 1, depth);
     let mut stats = out
         .par_chunks_mut(nx * ny * depth)
@@ -347,7 +352,7 @@ impl IncrementalWarp {
         let sampler = Sampler::new(&self.source, &self.options)?;
         let identity = self.grid.index_map_to(&self.source.grid());
         let [nx, ny, _] = self.grid.dims;
-        let depth = slab_depth::<f32>(nx, ny, self.options.path);
+        let depth = slab_depth::<f32>(nx, ny, self.options.path, REGION_SLAB_BYTES);
         let bins = slab_bins(&self.maps, lo[2], hi[2], depth);
         let (maps, options) = (&self.maps, &self.options);
         let background = options.background;
@@ -431,7 +436,7 @@ mod tests {
     /// along the source's rows), with and without the source kept where no tet covers.
     #[test]
     fn the_fast_path_gives_the_baseline_paths_bits() {
-        let source = phantom::phantom([96, 72, 56], 2.0).unwrap();
+        let source = phantom::phantom([96, 72, 96], 2.0).unwrap();
         let (lo, hi) = source.bounds();
         let mesh = generate::lattice_for_box(lo, hi, 300, CellSplit::Five).unwrap();
         let centre = (lo + hi) / 2.0;
@@ -439,7 +444,7 @@ mod tests {
         let turned: Vec<Vector3<f64>> = mesh.nodes().iter().map(|p| centre + turn * (p - centre)).collect();
         for (positions, keep_uncovered) in [(turned.clone(), false), (turned, true), (mesh.nodes().to_vec(), false)] {
             let grid = default_grid(&source, &positions);
-            let depth = slab_depth::<f32>(grid.dims[0], grid.dims[1], WarpPath::Fast);
+            let depth = slab_depth::<f32>(grid.dims[0], grid.dims[1], WarpPath::Fast, SLAB_BYTES);
             assert!(grid.dims[2] > 2 * depth, "tets must cross slabs: {:?}", grid.dims);
             let run = |path| {
                 let options = WarpOptions { keep_uncovered, path, background: -7.0, ..Default::default() };
