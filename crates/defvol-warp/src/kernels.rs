@@ -188,14 +188,20 @@ mod rows4 {
     /// The CPU must have AVX.
     #[target_feature(enable = "avx")]
     pub(super) unsafe fn spans_avx(m: &TetMap, j: usize, k: usize) -> [Option<(usize, usize)>; 4] {
-        let (los, his, live) = bounds(m, j, k);
+        let (lo, hi, live) = bounds(m, j, k);
+        let (mut los, mut his) = ([0.0f64; 4], [0.0f64; 4]);
+        // SAFETY: four f64 each.
+        unsafe {
+            _mm256_storeu_pd(los.as_mut_ptr(), lo);
+            _mm256_storeu_pd(his.as_mut_ptr(), hi);
+        }
         [0, 1, 2, 3].map(|l| (live >> l & 1 == 1).then_some((los[l] as usize, his[l] as usize)))
     }
 
     /// Each row's span bounds and which rows have any (bit l: row j + l).
     #[inline]
     #[target_feature(enable = "avx")]
-    fn bounds(m: &TetMap, j: usize, k: usize) -> ([f64; 4], [f64; 4], i32) {
+    fn bounds(m: &TetMap, j: usize, k: usize) -> (__m256d, __m256d, i32) {
         let jf = _mm256_add_pd(_mm256_set1_pd(j as f64), _mm256_setr_pd(0.0, 1.0, 2.0, 3.0));
         let kf = _mm256_set1_pd(k as f64);
         let a = m.bary.map(|b| {
@@ -224,14 +230,8 @@ mod rows4 {
         // Each lane's lower bound up to its first inside voxel, then its upper bound down.
         let lo = settle(m, &a, dead, lo, hi, 1.0);
         let hi = settle(m, &a, dead, hi, lo, -1.0);
-        let (mut los, mut his) = ([0.0f64; 4], [0.0f64; 4]);
-        // SAFETY: four f64 each.
-        unsafe {
-            _mm256_storeu_pd(los.as_mut_ptr(), lo);
-            _mm256_storeu_pd(his.as_mut_ptr(), hi);
-        }
         let live = _mm256_movemask_pd(_mm256_andnot_pd(dead, _mm256_cmp_pd::<_CMP_LE_OQ>(lo, hi)));
-        (los, his, live)
+        (lo, hi, live)
     }
 
     /// Pushes the spans of rows j..j + rows (at most four) of slice k, clipped to
@@ -249,7 +249,17 @@ mod rows4 {
         [to, nx]: [usize; 2],
         stream: &mut RunStream,
     ) -> u64 {
-        let (los, his, live) = bounds(m, j, k);
+        let (lo, hi, live) = bounds(m, j, k);
+        // The spans clipped, as i32 (within the grid), and the rows that keep voxels.
+        let (lo, hi) = (_mm256_max_pd(lo, _mm256_set1_pd(i0 as f64)), _mm256_min_pd(hi, _mm256_set1_pd(i1 as f64)));
+        let kept = live & ((1 << rows) - 1) & _mm256_movemask_pd(_mm256_cmp_pd::<_CMP_LE_OQ>(lo, hi));
+        let (mut first, mut len) = ([0i32; 4], [0i32; 4]);
+        let (lo, hi) = (_mm256_cvttpd_epi32(lo), _mm256_cvttpd_epi32(hi));
+        // SAFETY: four i32 each.
+        unsafe {
+            _mm_storeu_si128(first.as_mut_ptr().cast(), lo);
+            _mm_storeu_si128(len.as_mut_ptr().cast(), _mm_add_epi32(_mm_sub_epi32(hi, lo), _mm_set1_epi32(1)));
+        }
         let jf = _mm256_add_pd(_mm256_set1_pd(j as f64), _mm256_setr_pd(0.0, 1.0, 2.0, 3.0));
         let kf = _mm256_set1_pd(k as f64);
         let base = m.src.map(|s| {
@@ -264,15 +274,8 @@ mod rows4 {
             };
             out
         });
-        let mut voxels = 0;
-        for l in (0..rows).filter(|l| live >> l & 1 == 1) {
-            let (s0, s1) = ((los[l] as usize).max(i0), (his[l] as usize).min(i1));
-            if s0 <= s1 {
-                stream.push(base.map(|b| b[l]), s0 as i32, s1 - s0 + 1, to + l * nx + s0);
-                voxels += (s1 - s0 + 1) as u64;
-            }
-        }
-        voxels
+        let to = [0, 1, 2, 3].map(|l| to + l * nx + first[l] as usize);
+        stream.push4(base, first, len, to, kept as u32)
     }
 }
 
