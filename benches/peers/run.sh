@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # The CPU warp against its peers, side by side in one run: `defvol bench warp` (spans,
-# trilinear; its current path and the one before the speed work) and Taichi's CPU kernel
+# trilinear) and Taichi's CPU kernel
 # (taichi_warp.py) on exactly the same work, on the same threads, with each one's error
-# against defvol's f64 reference and the speed ratios (compare.py). A table on stdout, one
+# against defvol's f64 reference and the speed ratio (compare.py). A table on stdout, one
 # JSON object a case on stderr.
 # Outside the test command: Taichi comes from PyPI into its own virtual environment.
 # Usage: benches/peers/run.sh [TETS] [CASES] [RUNS]   (default 700 rot45,upright,bend 9)
@@ -17,6 +17,6 @@ peer_defvol
 threads=$(nproc)
 work=$(mktemp -d)
 trap 'rm -rf "$work"' EXIT
-"$bin" bench warp --tets "$tets" --cases "$cases" --schemes spans --runs "$runs" --baseline --export "$work" \
+"$bin" bench warp --tets "$tets" --cases "$cases" --schemes spans --runs "$runs" --export "$work" \
     --json > "$work/defvol.jsonl"
 python3 benches/peers/compare.py "$work" "$venv/bin/python" "$threads" "$runs"

@@ -59,19 +59,6 @@ pub struct WarpBenchOptions {
     /// Write each case's work (source, mesh in index space, f64 reference) here, for the
     /// peers in `benches/peers/` to run exactly the same warp.
     pub export: Option<std::path::PathBuf>,
-    /// Also time the CPU path before the speed work (`WarpPath::Baseline`), in the same run.
-    pub baseline: bool,
-}
-
-impl WarpBenchOptions {
-    fn paths(&self) -> &'static [crate::warp::WarpPath] {
-        use crate::warp::WarpPath;
-        if self.baseline {
-            &[WarpPath::Fast, WarpPath::Baseline]
-        } else {
-            &[WarpPath::Fast]
-        }
-    }
 }
 
 /// Grid warp of the phantom through lattice meshes, against the f64 reference.
@@ -97,8 +84,8 @@ pub fn warp(opts: &WarpBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result<
                     export_case(&dir.join(name), &work, &reference)
                         .map_err(|e| w::WarpError::BadDisplacement { index: 0, why: format!("export: {e}") })?;
                 }
-                for (&scheme, &path) in opts.schemes.iter().flat_map(|s| opts.paths().iter().map(move |p| (s, p))) {
-                    let options = WarpOptions { scheme, sampling, path, ..Default::default() };
+                for &scheme in &opts.schemes {
+                    let options = WarpOptions { scheme, sampling, ..Default::default() };
                     // Settle into a buffer reused from run to run, as a publishing node does.
                     let (mut out, mut stats) = w::warp_samples::<f32>(&source, &mesh, &deformed, &grid, &options)?;
                     let mut times = Vec::with_capacity(opts.runs);
@@ -115,7 +102,7 @@ pub fn warp(opts: &WarpBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result<
                         case: format!("lattice{}_{}", mesh.tets().len(), case.name()),
                         backend: "cpu".into(),
                         device: device.clone(),
-                        params: json!({"scheme": format!("{scheme:?}").to_lowercase(), "sampling": format!("{sampling:?}").to_lowercase(), "dims": grid.dims, "path": format!("{path:?}").to_lowercase()}),
+                        params: json!({"scheme": format!("{scheme:?}").to_lowercase(), "sampling": format!("{sampling:?}").to_lowercase(), "dims": grid.dims}),
                         runs: times.len(),
                         time_ms: time_stats(times),
                         error: Some(ErrorMeasure { metric: "max_abs_over_range", value: error, reference: "f64" }),

@@ -110,10 +110,6 @@ pub enum BenchStage {
         /// in benches/peers/.
         #[arg(long)]
         export: Option<std::path::PathBuf>,
-        /// Also time the CPU path before the speed work (scalar samples, a slice a task), in
-        /// the same run: rows with `"path": "baseline"`.
-        #[arg(long)]
-        baseline: bool,
         #[command(flatten)]
         gpu: GpuRows,
         #[arg(long)]
@@ -257,7 +253,7 @@ pub fn run(stage: BenchStage) -> Result<()> {
             };
             bench::dpcm::run(&opts, row_printer(json, bench::dpcm::TABLE_HEADER, bench::dpcm::table_row))?;
         }
-        BenchStage::Warp { tets, cases, schemes, samplings, dims, runs, incremental, export, baseline, gpu, json } => {
+        BenchStage::Warp { tets, cases, schemes, samplings, dims, runs, incremental, export, gpu, json } => {
             let cases = cases
                 .iter()
                 .map(|c| {
@@ -278,7 +274,6 @@ pub fn run(stage: BenchStage) -> Result<()> {
                 incremental,
                 gpu: gpu.backend()?,
                 export,
-                baseline,
             };
             bench::warp(&opts, row_printer(json, bench::WARP_TABLE_HEADER, bench::warp_table_row))?;
         }

@@ -44,7 +44,7 @@ const REGION_SLAB_BYTES: usize = 1 << 19;
 fn slab_depth<T>(nx: usize, ny: usize, path: WarpPath, bytes: usize) -> usize {
     match path {
         WarpPath::Fast => (bytes / (nx * ny * std::mem::size_of::<T>())).max(1),
-        WarpPath::Baseline => 1,
+        WarpPath::Scalar => 1,
     }
 }
 
@@ -392,9 +392,9 @@ mod tests {
     use defvol_core::volume::phantom;
 
     /// A press on a turned mesh re-warps only its region, the tets' spans streamed and
-    /// clipped to the region's box, and leaves the baseline path's full warp, bit for bit.
+    /// clipped to the region's box, and leaves the scalar path's full warp, bit for bit.
     #[test]
-    fn a_press_on_a_turned_mesh_re_warps_to_the_baseline_paths_bits() {
+    fn a_press_on_a_turned_mesh_re_warps_to_the_scalar_paths_bits() {
         let source = Arc::new(phantom::phantom([96, 72, 56], 2.0).unwrap());
         let (lo, hi) = source.bounds();
         let mesh = Arc::new(generate::lattice_for_box(lo, hi, 300, CellSplit::Five).unwrap());
@@ -418,8 +418,8 @@ mod tests {
         let sequence = warp.advance(&pressed, 1e-9).unwrap();
         let stats = warp.write_into(&mut out, Some(sequence - 1)).unwrap();
         assert!(stats.voxels > 0 && stats.voxels < grid.len() as u64 / 4, "a local region: {stats:?}");
-        let baseline = WarpOptions { path: WarpPath::Baseline, ..options };
-        let (expected, _) = warp_samples::<f32>(&source, &mesh, &pressed, &grid, &baseline).unwrap();
+        let scalar = WarpOptions { path: WarpPath::Scalar, ..options };
+        let (expected, _) = warp_samples::<f32>(&source, &mesh, &pressed, &grid, &scalar).unwrap();
         let differ = out.iter().zip(&expected).filter(|(a, b)| a.to_bits() != b.to_bits()).count();
         assert_eq!(differ, 0, "{differ} voxels differ");
         // A buffer said to hold the warp before has only the region written: no span
@@ -431,11 +431,11 @@ mod tests {
         assert!(written.iter().all(|&v| blank[v].to_bits() == expected[v].to_bits()));
     }
 
-    /// The fast path (eight-lane samples, slabs of slices) gives the baseline's bits on a
+    /// The fast path (eight-lane samples, slabs of slices) gives the scalar path's bits on a
     /// rotated mesh whose tets share faces on many voxels, and on the mesh at rest (runs
     /// along the source's rows), with and without the source kept where no tet covers.
     #[test]
-    fn the_fast_path_gives_the_baseline_paths_bits() {
+    fn the_fast_path_gives_the_scalar_paths_bits() {
         let source = phantom::phantom([96, 72, 96], 2.0).unwrap();
         let (lo, hi) = source.bounds();
         let mesh = generate::lattice_for_box(lo, hi, 300, CellSplit::Five).unwrap();
@@ -450,10 +450,10 @@ mod tests {
                 let options = WarpOptions { keep_uncovered, path, background: -7.0, ..Default::default() };
                 warp_samples::<f32>(&source, &mesh, &positions, &grid, &options).unwrap()
             };
-            let ((fast, fast_stats), (baseline, baseline_stats)) = (run(WarpPath::Fast), run(WarpPath::Baseline));
-            assert_eq!(fast_stats, baseline_stats);
+            let ((fast, fast_stats), (scalar, scalar_stats)) = (run(WarpPath::Fast), run(WarpPath::Scalar));
+            assert_eq!(fast_stats, scalar_stats);
             assert!(fast_stats.inside > 10_000, "{fast_stats:?}");
-            let differ = fast.iter().zip(&baseline).filter(|(a, b)| a.to_bits() != b.to_bits()).count();
+            let differ = fast.iter().zip(&scalar).filter(|(a, b)| a.to_bits() != b.to_bits()).count();
             assert_eq!(differ, 0, "{differ} voxels differ (keep_uncovered {keep_uncovered})");
         }
     }

@@ -73,20 +73,20 @@ pub struct WarpOptions {
     pub displacements: Vec<DisplacementVolume>,
     /// Refuse output grids larger than this (bytes of f32 samples).
     pub max_bytes: u64,
-    /// Which inner loops run on the CPU (benchmarks measure both side by side; the GPU has
-    /// one kernel).
+    /// Which inner loops run on the CPU (the GPU has one kernel).
     pub path: WarpPath,
 }
 
-/// The CPU warp's inner loops: the fast ones, or the path before the speed work (scalar
-/// samples, one output slice a task), kept so a benchmark measures both in one run.
+/// The CPU warp's inner loops: the fast ones, or the simplest (the scalar twin of
+/// `warp.wgsl`, one voxel and one output slice at a time), which the fast path is tested
+/// against bit for bit and which rules the lanes out where a result is in doubt.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum WarpPath {
-    /// Eight-lane samples where the CPU has AVX2, tets through 512 KiB slabs of slices.
+    /// Eight-lane samples where the CPU has AVX2, tets through 1 MiB slabs of slices.
     #[default]
     Fast,
-    Baseline,
+    Scalar,
 }
 
 impl Default for WarpOptions {
