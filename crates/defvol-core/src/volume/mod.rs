@@ -156,7 +156,8 @@ impl Volume {
         &mut self.data
     }
     /// The samples in bricks ([`lanes::Bricks`]), made on the first call (about 1.15x the
-    /// samples' memory, half that in 16-bit fixed point, kept while the volume lives); none where the CPU has no lanes.
+    /// samples' memory, half that in 16-bit fixed point, kept while the volume lives);
+    /// none where the CPU has no lanes.
     pub fn bricks(&self) -> Option<&lanes::Bricks> {
         self.bricks.get_or_init(|| lanes::Bricks::new(&self.data, self.dims)).as_ref()
     }
