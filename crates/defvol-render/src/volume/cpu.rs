@@ -708,10 +708,12 @@ impl Caster<'_> {
         }
     }
 
-    /// The scalar at the front of segment `k`.
+    /// The scalar at the front of segment `k`: the back of segment k - 1, at the point
+    /// `samples_along` gives it (so the packets' lanes, which read it as such, agree).
     #[inline(always)]
     fn front(&self, ray: &Ray, k: usize) -> f32 {
-        self.sample(&(ray.o + ray.d * (ray.t_near + k as f32 * ray.step)))
+        let back = ray.o + ray.d * (ray.t_near + ray.step);
+        self.sample(&(back + ray.d * ray.step * (k as i32 - 1) as f32))
     }
 
     #[allow(clippy::too_many_arguments)]
@@ -756,9 +758,9 @@ impl Caster<'_> {
 }
 
 /// Packets of eight rays for the composite, unshaded picture (the vector half in
-/// `cpu/packet.rs`): each lane's macro-cell runs (`run_end`) and the front of a run are
-/// scalar, as in `composite`, the steps through the runs eight wide; the pixels are
-/// `cast`'s bits.
+/// `cpu/packet.rs`): ray set-up and the last, shorter segment are scalar, as in `cast`;
+/// the macro-cell walk and the steps through the runs eight wide; the pixels are `cast`'s
+/// bits.
 #[cfg(target_arch = "x86_64")]
 impl<'a> Caster<'a> {
     /// The eight-point sampler where packets give this caster's pictures: composite,
@@ -823,76 +825,30 @@ impl<'a> Caster<'a> {
         clipped: &[Option<Clipped>; packet::LANES],
     ) -> [bool; packet::LANES] {
         const LANES: usize = packet::LANES;
-        let preintegrated = self.params.preintegrated;
         let step = self.params.step as f32;
-        let full = clipped.each_ref().map(|c| c.as_ref().map_or(0, |c| segments(c.t_near, c.t_far, step).0));
-        let mut terminated = [false; LANES];
-        let mut lanes = self.packet_lanes(trilinear, rays);
-        // Each lane's first run here; the lanes take their next ones inside `runs`.
-        let (mut k, mut end, mut fronts, mut live) =
-            ([0usize; LANES], [0usize; LANES], [0.0f32; LANES], [false; LANES]);
-        for l in 0..LANES {
-            let Some(ray) = rays[l].as_mut().filter(|_| full[l] > 0) else { continue };
-            end[l] = self.run_end(ray, &mut k[l], full[l]);
-            live[l] = k[l] < end[l];
-            if live[l] && preintegrated {
-                fronts[l] = self.front(ray, k[l]);
+        let mut lanes =
+            packet::PacketRays { o: [[0.0; LANES]; 3], d: [[0.0; LANES]; 3], t_near: [0.0; LANES], full: [0; LANES] };
+        for (l, c) in clipped.iter().enumerate() {
+            let Some(c) = c else { continue };
+            for a in 0..3 {
+                (lanes.o[a][l], lanes.d[a][l]) = (c.o[a], c.d[a]);
             }
+            (lanes.t_near[l], lanes.full[l]) = (c.t_near, segments(c.t_near, c.t_far, step).0);
         }
-        if !live.contains(&true) {
-            return terminated;
-        }
-        let next = |l: usize, mut k: usize| {
-            let ray = rays[l].as_mut()?;
-            if k >= full[l] {
-                return None;
-            }
-            let from = k;
-            let end = self.run_end(ray, &mut k, full[l]);
-            // A jump leaves the front to be read anew; one past the full segments, it is the
-            // last, shorter segment's (`last_segment`'s).
-            let front = (preintegrated && k > from).then(|| self.front(ray, k.min(full[l])));
-            Some((k, end, front))
-        };
-        let (stopped, backs) = lanes.runs((k, end, live), fronts, next);
-        for l in 0..LANES {
-            let Some(ray) = rays[l].as_mut().filter(|_| live[l]) else { continue };
-            terminated[l] = stopped[l];
-            if !stopped[l] && preintegrated {
-                ray.front = Some(backs[l]);
-            }
-        }
-        let (acc, depth) = lanes.colour();
+        let cells = self.cells.map(|cells| packet::CellWalk { visible: &cells.visible, dims: cells.dims });
+        let lanes = packet::Lanes::new(
+            (trilinear, self.tables, self.params.preintegrated),
+            cells,
+            &lanes,
+            (step, self.params.early_termination as f32),
+        );
+        let end = lanes.runs();
         for (l, ray) in rays.iter_mut().enumerate() {
             if let Some(ray) = ray {
-                (ray.acc, ray.depth) = ([acc[0][l], acc[1][l], acc[2][l], acc[3][l]], depth[l]);
+                (ray.acc, ray.depth, ray.front) = (end.acc[l], end.depth[l], end.front[l]);
             }
         }
-        terminated
-    }
-
-    /// The rays' first samples and steps in the lanes, as `Ray::run` hands them to the
-    /// sampler (at the segments' back ends pre-integrated, at their middles point-sampled).
-    #[target_feature(enable = "avx2")]
-    fn packet_lanes(&self, trilinear: Trilinear8<'a>, rays: &[Option<Ray>; packet::LANES]) -> packet::Lanes<'_> {
-        let preintegrated = self.params.preintegrated;
-        let offset = if preintegrated { 1.0 } else { 0.5 };
-        let (mut base, mut delta) = ([[0.0f32; packet::LANES]; 3], [[0.0f32; packet::LANES]; 3]);
-        let mut t_near = [0.0f32; packet::LANES];
-        for (l, ray) in rays.iter().enumerate() {
-            let Some(ray) = ray else { continue };
-            let (b, s) = (ray.o + ray.d * (ray.t_near + offset * ray.step), ray.d * ray.step);
-            for a in 0..3 {
-                (base[a][l], delta[a][l]) = (b[a], s[a]);
-            }
-            t_near[l] = ray.t_near;
-        }
-        packet::Lanes::new(
-            (trilinear, self.tables, preintegrated),
-            (base, delta),
-            (t_near, self.params.step as f32),
-            self.params.early_termination as f32,
-        )
+        end.terminated
     }
 }
 

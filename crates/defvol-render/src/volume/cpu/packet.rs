@@ -2,10 +2,13 @@
 //! eight rays in the AVX2 lanes, so the samples, the table lookups and the compositing all
 //! run eight wide. Each lane does `Caster::composite`'s arithmetic in its order (unfused
 //! multiplies and adds, the same clamps and truncations), so a packet's pixels are the
-//! one-ray loop's bits; the macro-cell runs stay scalar, per lane, in `cpu.rs`.
+//! one-ray loop's bits. The macro-cell walk (`Caster::run_end`) runs in the lanes too:
+//! done per lane in scalar code, it stopped the vector loop at three steps in four (512²,
+//! 1.25 mm) and the time per frame was a third longer.
 
 use std::arch::x86_64::*;
 
+use super::CELL;
 use crate::transfer::{SegmentTable, Tables, LUT_SIZE, PREINTEGRATED_SIZE, SEGMENT_LENGTHS, SEGMENT_LEVELS};
 use defvol_core::volume::lanes::Trilinear8;
 
@@ -18,78 +21,149 @@ const AHEAD: f32 = 4.0;
 /// Rays in a packet.
 pub(super) const LANES: usize = 8;
 
-/// The packet's rays in the vector lanes: where their samples are, and what they gathered.
+/// The macro cells a packet walks (`MacroCells` in `cpu.rs`): which may hold a visible
+/// sample, and how many lie along each axis.
+pub(super) struct CellWalk<'a> {
+    pub(super) visible: &'a [bool],
+    pub(super) dims: [usize; 3],
+}
+
+/// The packet's rays in index space, lane for lane, as `Caster::composite` takes them: a
+/// lane without a ray has no full segments.
+pub(super) struct PacketRays {
+    pub(super) o: [[f32; LANES]; 3],
+    pub(super) d: [[f32; LANES]; 3],
+    pub(super) t_near: [f32; LANES],
+    pub(super) full: [usize; LANES],
+}
+
+/// What a packet's rays came to, lane for lane.
+pub(super) struct PacketEnd {
+    /// Opaque enough to stop.
+    pub(super) terminated: [bool; LANES],
+    /// The scalar at the last full segment's back where it is the front of the last,
+    /// shorter segment (not where the ray jumped past its full segments).
+    pub(super) front: [Option<f32>; LANES],
+    /// Premultiplied colour and α.
+    pub(super) acc: [[f32; 4]; LANES],
+    pub(super) depth: [f32; LANES],
+}
+
+/// The packet's rays in the vector lanes: where their samples are, how they walk the macro
+/// cells, and what they gathered.
 pub(super) struct Lanes<'a> {
     trilinear: Trilinear8<'a>,
     tables: &'a Tables,
     preintegrated: bool,
+    cells: Option<CellWalk<'a>>,
+    /// The rays (`o + d·t`), where they enter, and their full segments.
+    o: [__m256; 3],
+    d: [__m256; 3],
+    t_near: __m256,
+    full: __m256i,
     /// Each ray's first sample and the step between samples.
     base: [__m256; 3],
     delta: [__m256; 3],
-    t_near: __m256,
     step: __m256,
     termination: __m256,
-    acc: [__m256; 4],
-    depth: __m256,
 }
 
 impl<'a> Lanes<'a> {
-    /// The lanes of rays whose first samples (a segment's back end or middle) are at
-    /// `base`, `delta` apart, as `Ray::run` hands them to the sampler; pre-integrated or
-    /// point-sampled segments of `step`, rays stopping once `termination` opaque.
+    /// The lanes of `rays`, sampled as `Ray::run` hands them to the sampler (at a segment's
+    /// back end pre-integrated, at its middle point-sampled); segments of `step`, rays
+    /// stopping once `termination` opaque, skipping the macro cells `cells` leaves dark.
     #[target_feature(enable = "avx2")]
     pub(super) fn new(
         (trilinear, tables, preintegrated): (Trilinear8<'a>, &'a Tables, bool),
-        (base, delta): ([[f32; LANES]; 3], [[f32; LANES]; 3]),
-        (t_near, step): ([f32; LANES], f32),
-        termination: f32,
+        cells: Option<CellWalk<'a>>,
+        rays: &PacketRays,
+        (step, termination): (f32, f32),
     ) -> Self {
         // The lookups read within tables of these sizes (checked once here, not
         // per step).
         assert_eq!(tables.stepped.len(), LUT_SIZE);
         assert!(!preintegrated || tables.preintegrated.len() == PREINTEGRATED_SIZE * PREINTEGRATED_SIZE);
+        if let Some(cells) = &cells {
+            assert_eq!(cells.visible.len(), cells.dims.iter().product::<usize>());
+        }
+        let (o, d, t_near) = (rays.o.map(|v| load(v)), rays.d.map(|v| load(v)), load(rays.t_near));
+        let step8 = _mm256_set1_ps(step);
+        // `Caster::samples_along`'s first point and step, the same arithmetic.
+        let first = _mm256_add_ps(t_near, _mm256_set1_ps((if preintegrated { 1.0 } else { 0.5 }) * step));
         Self {
             trilinear,
             tables,
             preintegrated,
-            base: base.map(|v| load(v)),
-            delta: delta.map(|v| load(v)),
-            t_near: load(t_near),
-            step: _mm256_set1_ps(step),
+            cells,
+            o,
+            d,
+            t_near,
+            // More segments than an i32 holds cannot fit a ray through the volume.
+            full: load_i32(rays.full.map(|f| f.min(i32::MAX as usize) as i32)),
+            base: [0, 1, 2].map(|a| _mm256_add_ps(o[a], _mm256_mul_ps(d[a], first))),
+            delta: d.map(|d| _mm256_mul_ps(d, step8)),
+            step: step8,
             termination: _mm256_set1_ps(termination),
-            acc: [_mm256_setzero_ps(); 4],
-            depth: _mm256_set1_ps(f32::INFINITY),
         }
     }
 
-    /// Segments k, k + 1, ... of the live lanes, all a step at a time, until every lane is
-    /// done or has terminated. A lane at the end of its run (up to its `end`) asks
-    /// `next(lane, k)` for its next one, `(k, end, front)`, in the loop (`front`: the
-    /// scalar at the new run's front where it jumped, else the last back goes on; an empty
-    /// run ends the lane), or `None` when it is done. Returns whether each lane terminated,
-    /// and the scalar at its last segment's back.
+    /// Every lane's full segments front to back, eight lanes a step, each lane walking its
+    /// macro cells in the vector as `Caster::run_end` walks them: a lane at the end of its
+    /// run takes the next one in the same step while the others go on. A lane that jumped
+    /// over dark cells reads its new front first (pre-integrated), in a step that adds
+    /// nothing.
     #[target_feature(enable = "avx2")]
-    pub(super) fn runs(
-        &mut self,
-        (k, end, live): ([usize; LANES], [usize; LANES], [bool; LANES]),
-        fronts: [f32; LANES],
-        mut next: impl FnMut(usize, usize) -> Option<(usize, usize, Option<f32>)>,
-    ) -> ([bool; LANES], [f32; LANES]) {
-        let mut kv = load_i32(k.map(|k| k as i32));
-        let mut end = load_i32(end.map(|e| e as i32));
-        let mut running = _mm256_castsi256_ps(load_i32(live.map(|l| -i32::from(l))));
+    pub(super) fn runs(&self) -> PacketEnd {
+        let zero = _mm256_setzero_si256();
+        let mut k = zero;
+        // With no macro cells, one run takes every full segment.
+        let mut end = if self.cells.is_some() { zero } else { self.full };
+        let mut running = _mm256_castsi256_ps(_mm256_cmpgt_epi32(self.full, zero));
+        // A lane with no full segment reads no front: its one segment reads its own.
+        let mut lost_front = _mm256_xor_ps(running, _mm256_castsi256_ps(_mm256_set1_epi32(-1)));
+        // Lanes reading their front (pre-integrated): at the start and after a jump.
+        let mut pending = if self.preintegrated { running } else { _mm256_setzero_ps() };
         let mut stopped = _mm256_setzero_ps();
-        let mut front = load(fronts);
+        let mut front = _mm256_setzero_ps();
+        let mut acc = [_mm256_setzero_ps(); 4];
+        let mut depth = _mm256_set1_ps(f32::INFINITY);
         let (tiny, one, half, infinity) =
             (_mm256_set1_ps(1e-5), _mm256_set1_ps(1.0), _mm256_set1_ps(0.5), _mm256_set1_ps(f32::INFINITY));
-        loop {
-            let kf = _mm256_cvtepi32_ps(kv);
+        while _mm256_movemask_ps(running) != 0 {
+            let at_end = _mm256_andnot_ps(_mm256_castsi256_ps(_mm256_cmpgt_epi32(end, k)), running);
+            if _mm256_movemask_ps(at_end) != 0 {
+                // Past the full segments: done; else the next run (with no macro cells a
+                // run's end is the last full segment).
+                let walking = _mm256_and_ps(at_end, _mm256_castsi256_ps(_mm256_cmpgt_epi32(self.full, k)));
+                running = _mm256_andnot_ps(_mm256_andnot_ps(walking, at_end), running);
+                if let Some(cells) = &self.cells {
+                    let (next_k, next_end, jumped) = self.next_run(cells, k);
+                    let walking = _mm256_castps_si256(walking);
+                    k = _mm256_blendv_epi8(k, next_k, walking);
+                    end = _mm256_blendv_epi8(end, next_end, walking);
+                    let jumped = _mm256_and_ps(jumped, _mm256_castsi256_ps(walking));
+                    // A jump past the last full segment ends the lane; the last, shorter
+                    // segment reads its own front.
+                    let past = _mm256_andnot_ps(_mm256_castsi256_ps(_mm256_cmpgt_epi32(self.full, k)), jumped);
+                    running = _mm256_andnot_ps(past, running);
+                    lost_front = _mm256_or_ps(lost_front, past);
+                    if self.preintegrated {
+                        pending = _mm256_or_ps(pending, _mm256_andnot_ps(past, jumped));
+                    }
+                }
+                if _mm256_movemask_ps(running) == 0 {
+                    break;
+                }
+            }
+            // A pending lane samples its segment's front: the previous segment's back.
+            let kf = _mm256_cvtepi32_ps(_mm256_add_epi32(k, _mm256_castps_si256(pending)));
             let at = [0, 1, 2].map(|a| _mm256_add_ps(self.base[a], _mm256_mul_ps(self.delta[a], kf)));
             let ahead = _mm256_add_ps(kf, _mm256_set1_ps(AHEAD));
             // Points past a lane's run or the volume only cost a wasted prefetch.
             self.trilinear
                 .prefetch([0, 1, 2].map(|a| _mm256_add_ps(self.base[a], _mm256_mul_ps(self.delta[a], ahead))));
             let value = self.trilinear.sample(at);
+            let adding = _mm256_andnot_ps(pending, running);
             let color = if self.preintegrated {
                 // SAFETY: the table's size was checked in `new`.
                 let color = unsafe { segment8(self.tables, front, value) };
@@ -100,63 +174,79 @@ impl<'a> Lanes<'a> {
                 // SAFETY: the table's size was checked in `new`.
                 unsafe { interpolate8(self.tables, &self.tables.stepped, value) }
             };
-            // `Ray::add` in the running lanes whose segment adds something.
-            let adds = _mm256_and_ps(running, _mm256_cmp_ps::<_CMP_GT_OQ>(color[3], tiny));
-            let weight = _mm256_sub_ps(one, self.acc[3]);
-            for (acc, color) in self.acc.iter_mut().zip(color) {
+            // `Ray::add` in the lanes whose segment adds something.
+            let adds = _mm256_and_ps(adding, _mm256_cmp_ps::<_CMP_GT_OQ>(color[3], tiny));
+            let weight = _mm256_sub_ps(one, acc[3]);
+            for (acc, color) in acc.iter_mut().zip(color) {
                 *acc = _mm256_blendv_ps(*acc, _mm256_add_ps(*acc, _mm256_mul_ps(weight, color)), adds);
             }
             let middle =
                 _mm256_add_ps(_mm256_add_ps(self.t_near, _mm256_mul_ps(kf, self.step)), _mm256_mul_ps(half, self.step));
-            let first_past_half = _mm256_and_ps(
-                _mm256_cmp_ps::<_CMP_EQ_OQ>(self.depth, infinity),
-                _mm256_cmp_ps::<_CMP_GE_OQ>(self.acc[3], half),
-            );
-            self.depth = _mm256_blendv_ps(self.depth, middle, _mm256_and_ps(adds, first_past_half));
-            let stops = _mm256_and_ps(adds, _mm256_cmp_ps::<_CMP_GE_OQ>(self.acc[3], self.termination));
+            let first_past_half =
+                _mm256_and_ps(_mm256_cmp_ps::<_CMP_EQ_OQ>(depth, infinity), _mm256_cmp_ps::<_CMP_GE_OQ>(acc[3], half));
+            depth = _mm256_blendv_ps(depth, middle, _mm256_and_ps(adds, first_past_half));
+            let stops = _mm256_and_ps(adds, _mm256_cmp_ps::<_CMP_GE_OQ>(acc[3], self.termination));
             stopped = _mm256_or_ps(stopped, stops);
-            // k + 1 where running (a running lane's mask is -1).
-            kv = _mm256_sub_epi32(kv, _mm256_castps_si256(running));
+            // k + 1 where a segment was added (such a lane's mask is -1).
+            k = _mm256_sub_epi32(k, _mm256_castps_si256(adding));
             running = _mm256_andnot_ps(stops, running);
-            let within = _mm256_and_ps(running, _mm256_castsi256_ps(_mm256_cmpgt_epi32(end, kv)));
-            let running_bits = _mm256_movemask_ps(running);
-            let ended = running_bits & !_mm256_movemask_ps(within);
-            if ended != 0 {
-                // The lanes whose run is over take their next one here: leaving the loop
-                // for them stopped every lane every 1.4 steps (512², 1.25 mm, counted).
-                let (mut ks, mut ends, mut live) =
-                    (lanes_i32(kv), lanes_i32(end), lanes_i32(_mm256_castps_si256(running)));
-                let mut fronts = store(front);
-                for l in (0..LANES).filter(|l| ended >> l & 1 == 1) {
-                    match next(l, ks[l] as usize) {
-                        Some((k, e, f)) => {
-                            (ks[l], ends[l]) = (k as i32, e as i32);
-                            if let Some(f) = f {
-                                fronts[l] = f;
-                            }
-                            // A jump past the last full segment: done.
-                            if k >= e {
-                                live[l] = 0;
-                            }
-                        }
-                        None => live[l] = 0,
-                    }
-                }
-                (kv, end, front) = (load_i32(ks), load_i32(ends), load(fronts));
-                running = _mm256_castsi256_ps(load_i32(live));
-            }
-            if _mm256_movemask_ps(running) == 0 {
-                break;
-            }
+            pending = _mm256_setzero_ps();
         }
-        let stopped = _mm256_movemask_ps(stopped);
-        (std::array::from_fn(|l| stopped >> l & 1 == 1), store(front))
+        let (stopped, lost_front) = (_mm256_movemask_ps(stopped), _mm256_movemask_ps(lost_front));
+        let (fronts, acc, depth) = (store(front), acc.map(|v| store(v)), store(depth));
+        PacketEnd {
+            terminated: std::array::from_fn(|l| stopped >> l & 1 == 1),
+            front: std::array::from_fn(|l| (self.preintegrated && lost_front >> l & 1 == 0).then_some(fronts[l])),
+            acc: std::array::from_fn(|l| [acc[0][l], acc[1][l], acc[2][l], acc[3][l]]),
+            depth,
+        }
     }
 
-    /// Each lane's premultiplied colour and α, and its depth.
+    /// `Caster::run_end` from segment `k` in every lane, the same arithmetic: the run's
+    /// first segment and its end, and whether the lane jumped over a dark cell.
+    #[inline]
     #[target_feature(enable = "avx2")]
-    pub(super) fn colour(&self) -> ([[f32; LANES]; 4], [f32; LANES]) {
-        (self.acc.map(|v| store(v)), store(self.depth))
+    fn next_run(&self, cells: &CellWalk, k: __m256i) -> (__m256i, __m256i, __m256) {
+        let zero = _mm256_setzero_ps();
+        let kf = _mm256_cvtepi32_ps(k);
+        let t0 = _mm256_add_ps(self.t_near, _mm256_mul_ps(kf, self.step));
+        let p = [0, 1, 2].map(|a| _mm256_add_ps(self.o[a], _mm256_mul_ps(self.d[a], t0)));
+        let cell = p.map(|p| _mm256_srli_epi32::<3>(_mm256_cvttps_epi32(_mm256_max_ps(p, zero))));
+        // `MacroCells::exit`: the nearest of the cell's far faces ahead on each moving axis.
+        let mut exit = _mm256_set1_ps(f32::INFINITY);
+        for a in 0..3 {
+            let ahead = _mm256_and_ps(_mm256_cmp_ps::<_CMP_GT_OQ>(self.d[a], zero), _mm256_set1_ps(1.0));
+            let bound = _mm256_mul_ps(_mm256_add_ps(_mm256_cvtepi32_ps(cell[a]), ahead), _mm256_set1_ps(CELL as f32));
+            let to = _mm256_add_ps(t0, _mm256_div_ps(_mm256_sub_ps(bound, p[a]), self.d[a]));
+            let moving = _mm256_cmp_ps::<_CMP_NEQ_OQ>(self.d[a], zero);
+            exit = _mm256_blendv_ps(exit, _mm256_min_ps(exit, to), moving);
+        }
+        // `MacroCells::visible_at`, the cell clamped into the grid.
+        let c = [0, 1, 2].map(|a| _mm256_min_epi32(cell[a], _mm256_set1_epi32(cells.dims[a] as i32 - 1)));
+        let (nx, ny) = (_mm256_set1_epi32(cells.dims[0] as i32), _mm256_set1_epi32(cells.dims[1] as i32));
+        let index =
+            _mm256_add_epi32(c[0], _mm256_mullo_epi32(nx, _mm256_add_epi32(c[1], _mm256_mullo_epi32(ny, c[2]))));
+        let index = lanes_i32(index);
+        // SAFETY: each index is of a cell clamped into the grid, which `visible` covers
+        // (checked in `new`).
+        let visible = std::array::from_fn(|l| -i32::from(unsafe { *cells.visible.get_unchecked(index[l] as usize) }));
+        let visible = _mm256_castsi256_ps(load_i32(visible));
+        // The segments before the cell's exit, capped where `as usize` would saturate
+        // (far past any ray's full segments).
+        let before = _mm256_div_ps(_mm256_sub_ps(exit, self.t_near), self.step);
+        let cap = _mm256_set1_ps((1 << 30) as f32);
+        let whole = |v| _mm256_cvttps_epi32(_mm256_min_ps(v, cap));
+        let ceil = whole(_mm256_round_ps::<{ _MM_FROUND_TO_POS_INF | _MM_FROUND_NO_EXC }>(before));
+        let floor = whole(_mm256_round_ps::<{ _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC }>(before));
+        let (one, next) = (_mm256_set1_epi32(1), _mm256_add_epi32(k, _mm256_set1_epi32(1)));
+        // Visible: every segment that starts inside the cell.
+        let visible_end = _mm256_min_epi32(_mm256_max_epi32(ceil, next), self.full);
+        // Dark: past the segments wholly inside it, then the one that crosses out.
+        let jumped = _mm256_andnot_ps(visible, _mm256_castsi256_ps(_mm256_cmpgt_epi32(floor, k)));
+        let dark_k = _mm256_blendv_epi8(k, floor, _mm256_castps_si256(jumped));
+        let dark_end = _mm256_min_epi32(_mm256_add_epi32(dark_k, one), self.full);
+        let visible_i = _mm256_castps_si256(visible);
+        (_mm256_blendv_epi8(dark_k, k, visible_i), _mm256_blendv_epi8(dark_end, visible_end, visible_i), jumped)
     }
 }
 
