@@ -835,7 +835,7 @@ impl<'a> Caster<'a> {
             }
             (lanes.t_near[l], lanes.full[l]) = (c.t_near, segments(c.t_near, c.t_far, step).0);
         }
-        let cells = self.cells.map(|cells| packet::CellWalk { visible: &cells.visible, dims: cells.dims });
+        let cells = self.cells.map(|cells| packet::CellWalk { visible: &cells.visible, dims: cells.dims, edge: CELL });
         let lanes = packet::Lanes::new(
             (trilinear, self.tables, self.params.preintegrated),
             cells,
