@@ -204,16 +204,23 @@ pub fn trilinear_bricked(bricks: &Bricks, out: &mut [f32], base: [f32; 3], step:
 /// it reaches, so short runs (a tet's rows) fill every lane, and the loop runs long
 /// instead of one or two groups and a set-up per run. Each voxel's point and sample are
 /// those [`trilinear_bricked`] takes for its run: the same bits.
-#[derive(Debug, Default)]
+#[derive(Debug)]
 pub struct RunStream {
     /// Per run: the index along its line of its first voxel, the line's base point, and
     /// where its samples go in the output.
     first: Vec<i32>,
     base: [Vec<f32>; 3],
     to: Vec<usize>,
-    /// Where each run's samples begin in the stream, and one entry more: its length.
+    /// Where each run's samples begin in the stream, and one entry more: its length. Never
+    /// empty (the first run begins at 0), so a push reads the last entry without a test.
     begin: Vec<i32>,
     samples: Vec<f32>,
+}
+
+impl Default for RunStream {
+    fn default() -> Self {
+        Self { first: Vec::new(), base: Default::default(), to: Vec::new(), begin: vec![0], samples: Vec::new() }
+    }
 }
 
 impl RunStream {
@@ -222,7 +229,7 @@ impl RunStream {
         self.first.clear();
         self.base.iter_mut().for_each(Vec::clear);
         self.to.clear();
-        self.begin.clear();
+        self.begin.truncate(1);
     }
 
     /// Adds runs l = 0..4 whose bit l of `kept` is set: run l's `len[l]` (≥ 1) voxels at
@@ -231,9 +238,6 @@ impl RunStream {
     /// are written and only the kept stay. How many voxels.
     #[inline]
     pub fn push4(&mut self, base: [[f32; 4]; 3], first: [i32; 4], len: [i32; 4], to: [usize; 4], kept: u32) -> u64 {
-        if self.begin.is_empty() {
-            self.begin.push(0);
-        }
         let start = self.begin[self.begin.len() - 1];
         let (mut end, mut n) = (start, 0);
         let (mut firsts, mut bases, mut tos, mut ends) = ([0; 4], [[0.0; 4]; 3], [0; 4], [0; 4]);
