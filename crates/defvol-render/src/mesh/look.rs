@@ -67,14 +67,18 @@ pub(crate) struct Queue<'a> {
     sampler: Trilinear8<'a>,
     #[cfg(not(target_arch = "x86_64"))]
     sampler: std::marker::PhantomData<&'a ()>,
-    /// Source index of each sample, per axis.
-    q: [[f32; BATCH]; 3],
+    /// Source index of each sample, per axis (a run's last eight lanes may write past
+    /// `BATCH`, into the spare room).
+    q: [[f32; QUEUE_ROOM]; 3],
     /// Its place on the ray's grid of samples.
-    k: [u32; BATCH],
+    k: [u32; QUEUE_ROOM],
     /// Whether its segment (or point sample) adds; else it is only the next one's front.
     adds: [bool; BATCH],
     len: usize,
 }
+
+/// The queue's slots: `BATCH` and the eight a run's last group of lanes may overrun.
+const QUEUE_ROOM: usize = BATCH + 8;
 
 /// Samples read at once (eight-lane groups where AVX2 serves) before compositing them: a
 /// ray that turns opaque wastes at most this many minus one.
@@ -225,8 +229,8 @@ impl SourceLook {
             let cell = CellLookup::for_dims(self.volume.dims());
             return Trilinear8::new(self.volume.data(), &cell).map(|sampler| Queue {
                 sampler,
-                q: [[0.0; BATCH]; 3],
-                k: [0; BATCH],
+                q: [[0.0; QUEUE_ROOM]; 3],
+                k: [0; QUEUE_ROOM],
                 adds: [false; BATCH],
                 len: 0,
             });
@@ -252,6 +256,27 @@ impl SourceLook {
         }
         (queue.k[at], queue.adds[at], queue.len) = (k, adds, at + 1);
         queue.len == BATCH && self.flush(march, acc, depth)
+    }
+
+    /// Queues samples `k..end` of `ray`, all adding, as [`Self::enqueue`] one by one
+    /// would; whether the ray is now opaque enough to stop.
+    fn enqueue_run(
+        &self,
+        march: &mut March,
+        ray: &SampleLine,
+        mut k: u32,
+        end: u32,
+        acc: &mut [f32; 4],
+        depth: &mut f32,
+    ) -> bool {
+        while k < end {
+            let Some(queue) = &mut march.queue else { return false };
+            k += queue.push_run(ray, k, end);
+            if queue.len == BATCH && self.flush(march, acc, depth) {
+                return true;
+            }
+        }
+        false
     }
 
     /// Reads and composites the queued samples as [`Self::composite`] would have one by
@@ -360,11 +385,7 @@ impl SourceLook {
             return;
         }
         if visible {
-            for k in first..end {
-                if self.enqueue(march, ray, k, true, acc, depth) {
-                    return;
-                }
-            }
+            self.enqueue_run(march, ray, first, end, acc, depth);
         } else if self.params.preintegrated && !self.enqueue(march, ray, first, true, acc, depth) && end - 1 > first {
             self.enqueue(march, ray, end - 1, false, acc, depth);
         }
@@ -472,6 +493,53 @@ fn blend(acc: &mut [f32; 4], depth: &mut f32, e: [f32; 4], shade: f32, t_mid: f3
 }
 
 impl Queue<'_> {
+    /// Queues samples `k..end` of `ray` (adding) up to the queue's end: how many it took.
+    /// Their positions are [`SampleLine::q`]'s bits (the same product and sum per lane).
+    fn push_run(&mut self, ray: &SampleLine, k: u32, end: u32) -> u32 {
+        let at = self.len;
+        let take = (end - k).min((BATCH - at) as u32);
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: a `Trilinear8` (the queue's sampler) exists only where the CPU has AVX2.
+        unsafe {
+            self.push_run_avx2(ray, k, take)
+        };
+        #[cfg(not(target_arch = "x86_64"))]
+        for i in 0..take {
+            let q = ray.q(k + i);
+            for a in 0..3 {
+                self.q[a][at + i as usize] = q[a];
+            }
+            self.k[at + i as usize] = k + i;
+        }
+        self.adds[at..at + take as usize].fill(true);
+        self.len = at + take as usize;
+        take
+    }
+
+    /// [`Self::push_run`]'s positions and places, eight lanes a loop, each stored whole
+    /// (the last group's spare lanes land in slots no one reads before they are written).
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    fn push_run_avx2(&mut self, ray: &SampleLine, k: u32, take: u32) {
+        use std::arch::x86_64::*;
+        const LANES: usize = 8;
+        let lane = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
+        for g in 0..(take as usize).div_ceil(LANES) {
+            let at = self.len + g * LANES;
+            let places = _mm256_add_epi32(_mm256_set1_epi32((k as usize + g * LANES) as i32), lane);
+            let along = _mm256_cvtepi32_ps(places);
+            // SAFETY: at < BATCH, so at + 8 ≤ QUEUE_ROOM slots lie in each row.
+            unsafe {
+                for a in 0..3 {
+                    let q =
+                        _mm256_add_ps(_mm256_set1_ps(ray.base[a]), _mm256_mul_ps(_mm256_set1_ps(ray.step[a]), along));
+                    _mm256_storeu_ps(self.q[a].as_mut_ptr().add(at), q);
+                }
+                _mm256_storeu_si256(self.k.as_mut_ptr().add(at).cast(), places);
+            }
+        }
+    }
+
     /// `Tables::segment(fronts[i], backs[i])` into `out[i]`; both hold `BATCH` values.
     fn segments(&self, tables: &Tables, fronts: &[f32; BATCH], backs: &[f32; BATCH], out: &mut [[f32; 4]]) {
         #[cfg(target_arch = "x86_64")]
@@ -550,6 +618,49 @@ impl Queue<'_> {
                 let at = [0, 1, 2].map(|a| _mm256_loadu_ps(self.q[a].as_ptr().add(g * LANES)));
                 _mm256_storeu_ps(out.as_mut_ptr().add(g * LANES), self.sampler.sample(at));
             }
+        }
+    }
+}
+
+#[cfg(all(test, target_arch = "x86_64"))]
+mod tests {
+    use super::*;
+
+    /// A run pushed eight lanes at a time fills the queue's slots with the positions and
+    /// places one-by-one `SampleLine::q` gives, to the bit, from any queue length, and
+    /// takes no more than the queue holds.
+    #[test]
+    fn a_pushed_run_holds_the_one_by_one_samples_bits() {
+        let data = vec![0.0f32; 4 * 4 * 4];
+        let cell = CellLookup::for_dims([4, 4, 4]);
+        let Some(sampler) = Trilinear8::new(&data, &cell) else {
+            assert!(!defvol_core::volume::lanes::lanes_available(), "AVX2 is here but no sampler was made");
+            return;
+        };
+        let mut queue = Queue { sampler, q: [[0.0; QUEUE_ROOM]; 3], k: [0; QUEUE_ROOM], adds: [false; BATCH], len: 0 };
+        let ray = SampleLine {
+            base: V3::new(3.7, -1.23, 10.31),
+            step: V3::new(0.371, 0.917, -0.113),
+            map: [[0.0; 4]; 3],
+            t0: 0.0,
+            dt: 1.0,
+            offset: 0.0,
+        };
+        for (len, k, end) in [(0, 0, 3), (0, 1000, 1016), (5, 77, 90), (13, 4, 40), (15, 9, 10), (2, 123_457, 123_470)]
+        {
+            queue.len = len;
+            queue.adds = [false; BATCH];
+            let take = queue.push_run(&ray, k, end);
+            assert_eq!(take, (end - k).min((BATCH - len) as u32), "from {len} queued, samples {k}..{end}");
+            assert_eq!(queue.len, len + take as usize);
+            for i in 0..take as usize {
+                let want = ray.q(k + i as u32);
+                for a in 0..3 {
+                    assert_eq!(queue.q[a][len + i].to_bits(), want[a].to_bits(), "sample {}, axis {a}", k + i as u32);
+                }
+                assert_eq!(queue.k[len + i], k + i as u32);
+            }
+            assert!(queue.adds[..len].iter().all(|&a| !a) && queue.adds[len..queue.len].iter().all(|&a| a));
         }
     }
 }
