@@ -802,11 +802,13 @@ impl<'a> Caster<'a> {
                 front: None,
             })
         });
+        // Each ray's full segments and the last, shorter one's length, worked out once.
+        let split = clipped.each_ref().map(|c| c.as_ref().map_or((0, 0.0), |c| segments(c.t_near, c.t_far, step)));
         // SAFETY: a Trilinear8 exists only where the CPU has AVX2.
-        let terminated = unsafe { self.composite_packet(trilinear, &mut rays, &clipped) };
+        let terminated = unsafe { self.composite_packet(trilinear, &mut rays, &clipped, split.map(|s| s.0)) };
         for l in 0..count {
             let (Some(ray), Some(c)) = (&mut rays[l], &clipped[l]) else { continue };
-            let (full, remainder) = segments(c.t_near, c.t_far, step);
+            let (full, remainder) = split[l];
             if !terminated[l] && remainder > 1e-6 * step {
                 ray.last_segment(self, full, remainder, &|_: &Vector3<f32>| 1.0);
             }
@@ -815,7 +817,7 @@ impl<'a> Caster<'a> {
         pixels
     }
 
-    /// The full segments of the packet's rays, front to back, into each ray's `acc`,
+    /// The `full` segments of the packet's rays, front to back, into each ray's `acc`,
     /// `depth` and `front`; which rays terminated.
     #[target_feature(enable = "avx2")]
     fn composite_packet(
@@ -823,6 +825,7 @@ impl<'a> Caster<'a> {
         trilinear: Trilinear8<'a>,
         rays: &mut [Option<Ray>; packet::LANES],
         clipped: &[Option<Clipped>; packet::LANES],
+        full: [usize; packet::LANES],
     ) -> [bool; packet::LANES] {
         const LANES: usize = packet::LANES;
         let step = self.params.step as f32;
@@ -833,7 +836,7 @@ impl<'a> Caster<'a> {
             for a in 0..3 {
                 (lanes.o[a][l], lanes.d[a][l]) = (c.o[a], c.d[a]);
             }
-            (lanes.t_near[l], lanes.full[l]) = (c.t_near, segments(c.t_near, c.t_far, step).0);
+            (lanes.t_near[l], lanes.full[l]) = (c.t_near, full[l]);
         }
         let cells = self.cells.map(|cells| packet::CellWalk { visible: &cells.visible, dims: cells.dims, edge: CELL });
         let lanes = packet::Lanes::new(
