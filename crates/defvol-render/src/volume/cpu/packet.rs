@@ -139,9 +139,8 @@ impl<'a> Lanes<'a> {
         // step's lookups and compositing so that their loads overlap them: 5-8 % faster
         // point-sampled (512², 1-1.25 mm, three alternating rounds). Read again where a lane
         // jumped or reads its front; two steps ahead were slower (more registers spilled).
-        let mut ahead_value = self.sample_at(k);
+        let (mut ahead_value, mut stale) = (_mm256_setzero_ps(), true);
         while _mm256_movemask_ps(running) != 0 {
-            let mut stale = false;
             let at_end = _mm256_andnot_ps(_mm256_castsi256_ps(_mm256_cmpgt_epi32(end, k)), running);
             if _mm256_movemask_ps(at_end) != 0 {
                 // Past the full segments: done; else the next run (with no macro cells a
@@ -154,7 +153,7 @@ impl<'a> Lanes<'a> {
                     k = _mm256_blendv_epi8(k, next_k, walking);
                     end = _mm256_blendv_epi8(end, next_end, walking);
                     let jumped = _mm256_and_ps(jumped, _mm256_castsi256_ps(walking));
-                    stale = _mm256_movemask_ps(jumped) != 0;
+                    stale |= _mm256_movemask_ps(jumped) != 0;
                     // A jump past the last full segment ends the lane; the last, shorter
                     // segment reads its own front.
                     let past = _mm256_andnot_ps(_mm256_castsi256_ps(_mm256_cmpgt_epi32(self.full, k)), jumped);
@@ -171,7 +170,8 @@ impl<'a> Lanes<'a> {
             // A pending lane samples its segment's front: the previous segment's back.
             let kp = _mm256_add_epi32(k, _mm256_castps_si256(pending));
             let kf = _mm256_cvtepi32_ps(kp);
-            let value = if stale || _mm256_movemask_ps(pending) != 0 { self.sample_at(kp) } else { ahead_value };
+            let value = if stale || _mm256_movemask_ps(pending) != 0 { self.resample(kp) } else { ahead_value };
+            stale = false;
             let adding = _mm256_andnot_ps(pending, running);
             ahead_value = self.sample_at(_mm256_sub_epi32(k, _mm256_castps_si256(adding)));
             let color = if self.preintegrated {
@@ -210,6 +210,15 @@ impl<'a> Lanes<'a> {
             acc: std::array::from_fn(|l| [acc[0][l], acc[1][l], acc[2][l], acc[3][l]]),
             depth,
         }
+    }
+
+    /// [`Self::sample_at`] out of the loop's way, for the few steps whose samples were not read
+    /// ahead: a packet's first, and those after a jump or reading a front.
+    #[cold]
+    #[inline(never)]
+    #[target_feature(enable = "avx2")]
+    fn resample(&self, k: __m256i) -> __m256 {
+        self.sample_at(k)
     }
 
     /// The samples of segments `k`, with a prefetch of the cells `AHEAD` segments on.
