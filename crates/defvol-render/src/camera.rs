@@ -134,7 +134,33 @@ pub struct Rays<'a> {
     eye: Point3<f64>,
 }
 
+/// What [`Rays::ray`] makes a perspective camera's rays of, for a caller that makes many at
+/// once with its arithmetic (the volume raycaster's packets, four lanes of f64 at a time).
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Perspective {
+    pub(crate) eye: Point3<f64>,
+    pub(crate) rotation: Matrix3<f64>,
+    /// tan(fov_y / 2), and the image's width over its height.
+    pub(crate) tangent: f64,
+    pub(crate) aspect: f64,
+    pub(crate) width: usize,
+    pub(crate) height: usize,
+}
+
 impl Rays<'_> {
+    /// The parts of a perspective camera's rays; none for an orthographic one.
+    pub(crate) fn perspective(&self) -> Option<Perspective> {
+        let camera = self.camera;
+        matches!(camera.projection, Projection::Perspective { .. }).then_some(Perspective {
+            eye: self.eye,
+            rotation: self.rotation,
+            tangent: self.tangent,
+            aspect: self.aspect,
+            width: camera.width,
+            height: camera.height,
+        })
+    }
+
     /// The ray through the centre of pixel (px, py): origin and unit direction, world frame.
     #[inline]
     pub fn ray(&self, px: usize, py: usize) -> (Point3<f64>, Vector3<f64>) {

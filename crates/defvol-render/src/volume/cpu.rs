@@ -783,10 +783,11 @@ impl<'a> Caster<'a> {
     ) -> [([f32; 4], f32); packet::LANES] {
         let mut pixels = [([0.0; 4], f32::INFINITY); packet::LANES];
         let mut clipped: [Option<Clipped>; packet::LANES] = Default::default();
-        for (l, lane) in clipped.iter_mut().enumerate().take(count) {
-            let (origin, direction) = rays.ray(px0 + l, py);
-            match self.clip_ray(&origin, &direction) {
-                Setup::Missed(bg, behind) => pixels[l] = (bg, behind),
+        // SAFETY: a Trilinear8 exists only where the CPU has AVX2.
+        let setups = unsafe { self.clip_packet(rays, (px0, py), count) };
+        for ((pixel, lane), setup) in pixels.iter_mut().zip(&mut clipped).zip(setups).take(count) {
+            match setup {
+                Setup::Missed(bg, behind) => *pixel = (bg, behind),
                 Setup::Inside(c) => *lane = Some(c),
             }
         }
@@ -815,6 +816,45 @@ impl<'a> Caster<'a> {
             pixels[l] = ray.over(c.bg, c.behind);
         }
         pixels
+    }
+
+    /// `Rays::ray` then [`Self::clip_ray`] for the packet's rays from pixel (px0, py), the
+    /// same bits: eight at once in the lanes for a perspective camera with no tool in the
+    /// scene, else ray by ray (the first `count` lanes; the rest miss).
+    #[target_feature(enable = "avx2")]
+    fn clip_packet(&self, rays: &Rays, (px0, py): (usize, usize), count: usize) -> [Setup; packet::LANES] {
+        let background = self.params.background.map(|c| c as f32);
+        let missed = || Setup::Missed(background, f32::INFINITY);
+        let Some(view) = rays.perspective().filter(|_| self.params.tools.is_empty()) else {
+            return std::array::from_fn(|l| {
+                if l >= count {
+                    return missed();
+                }
+                let (origin, direction) = rays.ray(px0 + l, py);
+                self.clip_ray(&origin, &direction)
+            });
+        };
+        let o = self.space.index_from_world * (view.eye.coords - self.space.origin);
+        let top = self.volume.dims().map(|n| (n - 1) as f64);
+        let lanes = packet::setup8(&view, &self.space.index_from_world, (o.into(), top), (px0, py));
+        let light = self.params.light.map(|l| Vector3::from(l).normalize());
+        std::array::from_fn(|l| {
+            let (t_near, t_far) = (lanes.near[l] as f32, lanes.far[l] as f32);
+            if l >= count || !lanes.inside[l] || t_far < t_near {
+                return missed();
+            }
+            let direction = Vector3::from(std::array::from_fn(|a| lanes.direction[a][l]));
+            Setup::Inside(Clipped {
+                o: o.cast::<f32>(),
+                d: Vector3::from(std::array::from_fn(|a| lanes.d[a][l] as f32)),
+                t_near,
+                t_far,
+                bg: background,
+                behind: f32::INFINITY,
+                light: light.unwrap_or(-direction),
+                tool: false,
+            })
+        })
     }
 
     /// The `full` segments of the packet's rays, front to back, into each ray's `acc`,
@@ -1001,7 +1041,7 @@ pub fn reference(
 mod tests {
     use nalgebra::{Matrix3, Point3, Vector3};
 
-    use super::{nearest_tool, RaycastParams, Shading, ToolPicture, VolumeRaycaster};
+    use super::{clip, nearest_tool, IndexSpace, RaycastParams, Shading, ToolPicture, VolumeRaycaster};
     use crate::camera::{Camera, Projection};
     use crate::transfer::TransferFunction;
     use defvol_core::volume::{phantom, Volume};
@@ -1045,6 +1085,78 @@ mod tests {
                 })
                 .collect();
         Volume::new(n, [1.0, 0.9, 1.1], [3.0, -2.0, 1.0], Matrix3::identity(), data, "blocks").unwrap()
+    }
+
+    /// The packets' ray set-up, eight lanes of f64, is `Rays::ray`, `IndexSpace::ray` and
+    /// `clip` ray by ray to the bit: a grid turned off the world's axes (so every term of
+    /// both matrix products counts), cameras inside and outside the box, rays that miss.
+    #[test]
+    fn packets_set_up_their_rays_as_the_one_ray_caster() {
+        if !std::arch::is_x86_feature_detected!("avx2") {
+            eprintln!("skipped: no AVX2 on this CPU");
+            return;
+        }
+        let direction = nalgebra::Rotation3::from_euler_angles(0.3, -0.5, 0.9).into_inner();
+        let volume =
+            Volume::new([40, 33, 29], [1.5, 1.0, 1.2], [3.0, -2.0, 1.0], direction, vec![0.0; 40 * 33 * 29], "turned")
+                .unwrap();
+        let space = IndexSpace::of(&volume.grid());
+        let top = volume.dims().map(|n| (n - 1) as f64);
+        let (lo, hi) = volume.bounds();
+        let centre = Point3::from((lo + hi) / 2.0);
+        let (mut inside, mut missed) = (0, 0);
+        for (eye, fov) in [
+            (Vector3::new(-0.6, -1.7, 0.9), 40.0),
+            (Vector3::new(0.1, 0.05, -0.02), 100.0),
+            (Vector3::new(2.0, 0.3, 0.1), 25.0),
+        ] {
+            let eye = centre + (hi - lo).component_mul(&eye);
+            let camera = Camera::look_at(
+                eye,
+                centre + Vector3::new(0.0, 0.0, 5.0),
+                Vector3::z(),
+                Projection::Perspective { fov_y_deg: fov },
+                45,
+                37,
+            )
+            .unwrap();
+            let rays = camera.rays();
+            let view = rays.perspective().unwrap();
+            let o = space.index_from_world * (view.eye.coords - space.origin);
+            for py in 0..camera.height {
+                for px0 in (0..camera.width - 7).step_by(7) {
+                    // SAFETY: the CPU has AVX2 (checked above).
+                    let lanes =
+                        unsafe { super::packet::setup8(&view, &space.index_from_world, (o.into(), top), (px0, py)) };
+                    for l in 0..super::packet::LANES {
+                        let (origin, world) = rays.ray(px0 + l, py);
+                        let (want_o, d) = space.ray(&origin, &world);
+                        assert_eq!(want_o.map(f64::to_bits), o.map(f64::to_bits));
+                        for a in 0..3 {
+                            assert_eq!(
+                                lanes.direction[a][l].to_bits(),
+                                world[a].to_bits(),
+                                "pixel ({}, {py})",
+                                px0 + l
+                            );
+                            assert_eq!(lanes.d[a][l].to_bits(), d[a].to_bits(), "pixel ({}, {py})", px0 + l);
+                        }
+                        let want = clip(volume.dims(), &want_o, &d);
+                        assert_eq!(lanes.inside[l], want.is_some(), "pixel ({}, {py})", px0 + l);
+                        if let Some((near, far)) = want {
+                            assert_eq!(
+                                (lanes.near[l].to_bits(), lanes.far[l].to_bits()),
+                                (near.to_bits(), far.to_bits())
+                            );
+                            inside += 1;
+                        } else {
+                            missed += 1;
+                        }
+                    }
+                }
+            }
+        }
+        assert!(inside > 1000 && missed > 1000, "{inside} {missed}");
     }
 
     /// Every pixel of eight-ray packets is the one-ray caster's, colour and depth to the
