@@ -125,40 +125,22 @@ impl Camera {
 /// A camera's rays ([`Camera::rays`]): [`Rays::ray`] gives [`Camera::ray`]'s bits.
 #[derive(Debug, Clone, Copy)]
 pub struct Rays<'a> {
-    camera: &'a Camera,
-    aspect: f64,
-    /// tan(fov_y / 2) for a perspective camera.
-    tangent: f64,
-    /// The pose as a matrix and the camera's centre, world frame.
-    rotation: Matrix3<f64>,
-    eye: Point3<f64>,
-}
-
-/// What [`Rays::ray`] makes a perspective camera's rays of, for a caller that makes many at
-/// once with its arithmetic (the volume raycaster's packets, four lanes of f64 at a time).
-#[derive(Debug, Clone, Copy)]
-pub(crate) struct Perspective {
-    pub(crate) eye: Point3<f64>,
-    pub(crate) rotation: Matrix3<f64>,
-    /// tan(fov_y / 2), and the image's width over its height.
-    pub(crate) tangent: f64,
+    pub(crate) camera: &'a Camera,
+    /// The image's width over its height.
     pub(crate) aspect: f64,
-    pub(crate) width: usize,
-    pub(crate) height: usize,
+    /// tan(fov_y / 2) for a perspective camera.
+    pub(crate) tangent: f64,
+    /// The pose as a matrix and the camera's centre, world frame.
+    pub(crate) rotation: Matrix3<f64>,
+    pub(crate) eye: Point3<f64>,
 }
 
 impl Rays<'_> {
-    /// The parts of a perspective camera's rays; none for an orthographic one.
-    pub(crate) fn perspective(&self) -> Option<Perspective> {
-        let camera = self.camera;
-        matches!(camera.projection, Projection::Perspective { .. }).then_some(Perspective {
-            eye: self.eye,
-            rotation: self.rotation,
-            tangent: self.tangent,
-            aspect: self.aspect,
-            width: camera.width,
-            height: camera.height,
-        })
+    /// Whether the rays leave one eye (a perspective camera), as [`Self::ray`] makes them
+    /// from the fields that callers making many at once read (the volume raycaster's
+    /// packets, four lanes of f64 at a time).
+    pub(crate) fn is_perspective(&self) -> bool {
+        matches!(self.camera.projection, Projection::Perspective { .. })
     }
 
     /// The ray through the centre of pixel (px, py): origin and unit direction, world frame.

@@ -825,7 +825,7 @@ impl<'a> Caster<'a> {
     fn clip_packet(&self, rays: &Rays, (px0, py): (usize, usize), count: usize) -> [Setup; packet::LANES] {
         let background = self.params.background.map(|c| c as f32);
         let missed = || Setup::Missed(background, f32::INFINITY);
-        let Some(view) = rays.perspective().filter(|_| self.params.tools.is_empty()) else {
+        if !rays.is_perspective() || !self.params.tools.is_empty() {
             return std::array::from_fn(|l| {
                 if l >= count {
                     return missed();
@@ -833,10 +833,10 @@ impl<'a> Caster<'a> {
                 let (origin, direction) = rays.ray(px0 + l, py);
                 self.clip_ray(&origin, &direction)
             });
-        };
-        let o = self.space.index_from_world * (view.eye.coords - self.space.origin);
+        }
+        let o = self.space.index_from_world * (rays.eye.coords - self.space.origin);
         let top = self.volume.dims().map(|n| (n - 1) as f64);
-        let lanes = packet::setup8(&view, &self.space.index_from_world, (o.into(), top), (px0, py));
+        let lanes = packet::setup8(rays, &self.space.index_from_world, (o.into(), top), (px0, py));
         let light = self.params.light.map(|l| Vector3::from(l).normalize());
         std::array::from_fn(|l| {
             let (t_near, t_far) = (lanes.near[l] as f32, lanes.far[l] as f32);
@@ -1121,13 +1121,13 @@ mod tests {
             )
             .unwrap();
             let rays = camera.rays();
-            let view = rays.perspective().unwrap();
-            let o = space.index_from_world * (view.eye.coords - space.origin);
+            assert!(rays.is_perspective());
+            let o = space.index_from_world * (rays.eye.coords - space.origin);
             for py in 0..camera.height {
                 for px0 in (0..camera.width - 7).step_by(7) {
                     // SAFETY: the CPU has AVX2 (checked above).
                     let lanes =
-                        unsafe { super::packet::setup8(&view, &space.index_from_world, (o.into(), top), (px0, py)) };
+                        unsafe { super::packet::setup8(&rays, &space.index_from_world, (o.into(), top), (px0, py)) };
                     for l in 0..super::packet::LANES {
                         let (origin, world) = rays.ray(px0 + l, py);
                         let (want_o, d) = space.ray(&origin, &world);

@@ -10,7 +10,7 @@ use std::arch::x86_64::*;
 
 use nalgebra::Matrix3;
 
-use crate::camera::Perspective;
+use crate::camera::Rays;
 use crate::transfer::{SegmentTable, Tables, LUT_SIZE, PREINTEGRATED_SIZE, SEGMENT_LENGTHS, SEGMENT_LEVELS};
 use defvol_core::volume::lanes::Trilinear8;
 
@@ -297,15 +297,15 @@ pub(super) struct Setup8 {
     pub(super) inside: [bool; LANES],
 }
 
-/// `Rays::ray`, `IndexSpace::ray` and `clip` in `cpu.rs` for the rays through pixels px0 to
-/// px0 + 7 of row py, four lanes of f64 at a time with their operations in their order
-/// (nalgebra's `normalize` divides by the norm, its matrix products add a row's terms first
-/// to last), so the same bits. `o` is the eye in index space (the same for every ray), `top`
+/// `Rays::ray` (of a perspective camera's `view`), `IndexSpace::ray` and `clip` in `cpu.rs`
+/// for the rays through pixels px0 to px0 + 7 of row py, four lanes of f64 at a time with
+/// their operations in their order (nalgebra's `normalize` divides by the norm, its matrix
+/// products add a row's terms first to last), so the same bits. `o` is the eye in index space (the same for every ray), `top`
 /// the box's far corner (n - 1 on each axis). One ray at a time the set-up took about a
 /// tenth of a frame (512², 1 mm, point-sampled; profiled).
 #[target_feature(enable = "avx2")]
 pub(super) fn setup8(
-    view: &Perspective,
+    view: &Rays,
     index_from_world: &Matrix3<f64>,
     (o, top): ([f64; 3], [f64; 3]),
     (px0, py): (usize, usize),
@@ -318,14 +318,15 @@ pub(super) fn setup8(
         far: [0.0; LANES],
         inside: [false; LANES],
     };
-    let v = ((py as f64 + 0.5) / view.height as f64) * 2.0 - 1.0;
+    let (width, height) = (view.camera.width, view.camera.height);
+    let v = ((py as f64 + 0.5) / height as f64) * 2.0 - 1.0;
     let (y, z) = (set(v * view.tangent), set(1.0));
     for half in 0..2 {
         let px = std::array::from_fn::<f64, 4, _>(|l| (px0 + 4 * half + l) as f64);
         // SAFETY: px holds four f64.
         let px = unsafe { _mm256_loadu_pd(px.as_ptr()) };
         let u = _mm256_sub_pd(
-            _mm256_mul_pd(_mm256_div_pd(_mm256_add_pd(px, set(0.5)), set(view.width as f64)), set(2.0)),
+            _mm256_mul_pd(_mm256_div_pd(_mm256_add_pd(px, set(0.5)), set(width as f64)), set(2.0)),
             set(1.0),
         );
         let x = _mm256_mul_pd(_mm256_mul_pd(u, set(view.tangent)), set(view.aspect));
