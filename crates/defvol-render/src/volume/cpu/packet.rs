@@ -300,9 +300,9 @@ pub(super) struct Setup8 {
 /// `Rays::ray` (of a perspective camera's `view`), `IndexSpace::ray` and `clip` in `cpu.rs`
 /// for the rays through pixels px0 to px0 + 7 of row py, four lanes of f64 at a time with
 /// their operations in their order (nalgebra's `normalize` divides by the norm, its matrix
-/// products add a row's terms first to last), so the same bits. `o` is the eye in index space (the same for every ray), `top`
-/// the box's far corner (n - 1 on each axis). One ray at a time the set-up took about a
-/// tenth of a frame (512², 1 mm, point-sampled; profiled).
+/// products add a row's terms first to last), so the same bits. `o` is the eye in index
+/// space (the same for every ray), `top` the box's far corner (n - 1 on each axis). One ray
+/// at a time the set-up took about a tenth of a frame (512², 1 mm, point-sampled; profiled).
 #[target_feature(enable = "avx2")]
 pub(super) fn setup8(
     view: &Rays,
