@@ -592,23 +592,26 @@ impl Caster<'_> {
             None => (self.params.background.map(|c| c as f32), f32::INFINITY),
         };
         let (o, d) = self.space.ray(origin, direction);
-        let Some((t_near, t_far)) = clip(self.volume.dims(), &o, &d) else {
-            return Setup::Missed(bg, behind);
-        };
+        let inside = clip(self.volume.dims(), &o, &d);
+        Self::set_up(&o, &d, inside, (bg, behind), light, tool.is_some())
+    }
+
+    /// A ray in index space (`o + d·t`) inside the box over `inside`, as far as what lies
+    /// `behind` it (where `bg` is seen): clipped, or missed where nothing is left.
+    fn set_up(
+        o: &Vector3<f64>,
+        d: &Vector3<f64>,
+        inside: Option<(f64, f64)>,
+        (bg, behind): ([f32; 4], f32),
+        light: Vector3<f64>,
+        tool: bool,
+    ) -> Setup {
+        let Some((t_near, t_far)) = inside else { return Setup::Missed(bg, behind) };
         let (t_near, t_far) = (t_near as f32, (t_far as f32).min(behind));
         if t_far < t_near {
             return Setup::Missed(bg, behind);
         }
-        Setup::Inside(Clipped {
-            o: o.cast::<f32>(),
-            d: d.cast::<f32>(),
-            t_near,
-            t_far,
-            bg,
-            behind,
-            light,
-            tool: tool.is_some(),
-        })
+        Setup::Inside(Clipped { o: o.cast::<f32>(), d: d.cast::<f32>(), t_near, t_far, bg, behind, light, tool })
     }
 
     /// Premultiplied RGBA over the background (or the tool), and the depth where opacity
@@ -839,21 +842,13 @@ impl<'a> Caster<'a> {
         let lanes = packet::setup8(rays, &self.space.index_from_world, (o.into(), top), (px0, py));
         let light = self.params.light.map(|l| Vector3::from(l).normalize());
         std::array::from_fn(|l| {
-            let (t_near, t_far) = (lanes.near[l] as f32, lanes.far[l] as f32);
-            if l >= count || !lanes.inside[l] || t_far < t_near {
+            if l >= count {
                 return missed();
             }
-            let direction = Vector3::from(std::array::from_fn(|a| lanes.direction[a][l]));
-            Setup::Inside(Clipped {
-                o: o.cast::<f32>(),
-                d: Vector3::from(std::array::from_fn(|a| lanes.d[a][l] as f32)),
-                t_near,
-                t_far,
-                bg: background,
-                behind: f32::INFINITY,
-                light: light.unwrap_or(-direction),
-                tool: false,
-            })
+            let lane = |v: &[[f64; packet::LANES]; 3]| Vector3::from(std::array::from_fn(|a| v[a][l]));
+            let inside = lanes.inside[l].then_some((lanes.near[l], lanes.far[l]));
+            let light = light.unwrap_or(-lane(&lanes.direction));
+            Self::set_up(&o, &lane(&lanes.d), inside, (background, f32::INFINITY), light, false)
         })
     }
 
