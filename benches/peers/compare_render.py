@@ -1,37 +1,50 @@
 """The table benches/peers/render.sh prints: for each case and step `defvol bench render`
 timed (point-sampled and pre-integrated, unshaded), VTK's fixed-point caster on the same
 exported work, both PSNRs against the same f64 reference, and VTK's time over defvol's.
+The two took turns for ROUNDS rounds: a round's ratio is its two medians' (both measured
+while the host was in one state), and the table gives the median and the range of them.
 
-usage: compare_render.py WORK_DIR PEER_PYTHON THREADS RUNS
+usage: compare_render.py WORK_DIR ROUNDS THREADS
+   WORK_DIR holds defvol-R.jsonl (`defvol bench render --json`) and vtk-R.jsonl
+   (vtk_render.py's lines) for R = 1..ROUNDS
 """
 
 import json
 import os
-import subprocess
+import statistics
 import sys
 
 
+def read(path):
+    return [json.loads(line) for line in open(path) if line.startswith("{")]
+
+
 def main():
-    work, python, threads, runs = sys.argv[1:5]
-    rows = [json.loads(line) for line in open(os.path.join(work, "defvol.jsonl"))]
-    rows = [r for r in rows if r["backend"] == "cpu" and r["params"]["shading"] == "none"]
-    script = os.path.join(os.path.dirname(os.path.abspath(__file__)), "vtk_render.py")
+    work, rounds, threads = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
+    # (case, step, pre-integrated) -> one (defvol row, VTK row) a round.
+    pairs = {}
+    for r in range(1, rounds + 1):
+        peers = read(os.path.join(work, f"vtk-{r}.jsonl"))
+        for row in read(os.path.join(work, f"defvol-{r}.jsonl")):
+            if row["backend"] != "cpu" or row["params"]["shading"] != "none":
+                continue
+            case, step = row["case"], row["params"]["step_mm"]
+            peer = next(p for p in peers if p["case"] == case and abs(p["step_mm"] - step) < 1e-9)
+            pairs.setdefault((case, step, row["params"]["preintegrated"]), []).append((row, peer))
     print(f'{"case":<14} {"step mm":>7} {"sampling":<15} {"defvol ms":>10} {"dB":>6} {"vtk ms":>8} {"dB":>6} '
-          f'{"vtk/defvol":>10}')
-    for case in sorted({r["case"] for r in rows}):
-        # VTK logs to stderr on a machine without a display; its result is the JSON lines.
-        out = subprocess.run([python, script, os.path.join(work, case), threads, runs], check=True,
-                             capture_output=True, text=True)
-        peers = [json.loads(line) for line in out.stdout.splitlines() if line.startswith("{")]
-        for row in (r for r in rows if r["case"] == case):
-            step = row["params"]["step_mm"]
-            peer = next(p for p in peers if abs(p["step_mm"] - step) < 1e-9)
-            a, t = row["time_ms"]["median"], peer["time_ms"]["median"]
-            sampling = "pre-integrated" if row["params"]["preintegrated"] else "point"
-            print(f'{case:<14} {step:7.2f} {sampling:<15} {a:10.1f} {row["error"]["value"]:6.1f} {t:8.1f} '
-                  f'{peer["error"]["value"]:6.1f} {t / a:9.2f}x')
-            print(json.dumps({"stage": "render", "case": case, "step_mm": step, "threads": int(threads),
-                              "defvol": row, "vtk": peer, "ratio_vtk": t / a}), file=sys.stderr)
+          f'{"vtk/defvol":>10} {"per round":>13}')
+    for (case, step, preintegrated), runs in sorted(pairs.items()):
+        ours = [row["time_ms"]["median"] for row, _ in runs]
+        theirs = [peer["time_ms"]["median"] for _, peer in runs]
+        ratios = [t / a for a, t in zip(ours, theirs)]
+        sampling = "pre-integrated" if preintegrated else "point"
+        row, peer = runs[-1]
+        print(f'{case:<14} {step:7.2f} {sampling:<15} {statistics.median(ours):10.1f} {row["error"]["value"]:6.1f} '
+              f'{statistics.median(theirs):8.1f} {peer["error"]["value"]:6.1f} {statistics.median(ratios):9.2f}x '
+              f'{min(ratios):6.2f}-{max(ratios):.2f}x')
+        print(json.dumps({"stage": "render", "case": case, "step_mm": step, "threads": threads,
+                          "defvol": [r for r, _ in runs], "vtk": [p for _, p in runs],
+                          "ratio_vtk": statistics.median(ratios), "ratios_vtk": ratios}), file=sys.stderr)
 
 
 if __name__ == "__main__":
