@@ -13,6 +13,10 @@
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 sizes="${1:-512}" steps="${2:-1,1.25}" runs="${3:-7}" rounds="${4:-3}"
+if ! [[ "$rounds" =~ ^[1-9][0-9]*$ ]]; then
+    echo "render.sh: ROUNDS must be a whole number of at least 1, not '$rounds'" >&2
+    exit 2
+fi
 requirements="vtk==9.7.2 numpy==1.26.4"
 . benches/peers/common.sh
 peer_venv peers-vtk-venv "$requirements"
