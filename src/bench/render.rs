@@ -79,7 +79,6 @@ pub fn run(opts: &RenderBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result
     let tf = TransferFunction::preset("ct_soft_tissue")?;
     #[cfg(feature = "gpu")]
     let gpu = opts.gpu.as_ref().and_then(crate::backend::Backend::context).cloned();
-    let mut volume_medians = VolumeMedians::default();
     for (name, volume) in &volumes {
         for &size in &opts.sizes {
             let camera = phantom_camera(volume, size)?;
@@ -116,9 +115,6 @@ pub fn run(opts: &RenderBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result
                     });
                     let runs = samples.len();
                     let time_ms = time_stats(samples);
-                    if (*name, preintegrated, shading) == ("phantom", true, Shading::None) {
-                        volume_medians.0.push(((size, step), time_ms.median));
-                    }
                     emit(&BenchRow {
                         stage: "render",
                         case: format!("{name}_{size}"),
@@ -209,21 +205,9 @@ pub fn run(opts: &RenderBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result
         }
     }
     for &target in &opts.source_meshes {
-        source_rows(&source, target, &tf, opts, &volume_medians, &mut emit)?;
+        source_rows(&source, target, &tf, opts, &mut emit)?;
     }
     Ok(())
-}
-
-/// The volume raycaster's CPU medians on the phantom, pre-integrated and unshaded, by
-/// (size, step): what the source through the mesh is held to at the same settings (its
-/// row's `vs_volume_raycast`).
-#[derive(Default)]
-struct VolumeMedians(Vec<((usize, f64), f64)>);
-
-impl VolumeMedians {
-    fn at(&self, size: usize, step: f64) -> Option<f64> {
-        self.0.iter().find(|(key, _)| *key == (size, step)).map(|(_, ms)| *ms)
-    }
 }
 
 /// One volume frame's inputs, as a peer needs them.
@@ -276,13 +260,15 @@ fn export_case(dir: &std::path::Path, work: &VolumeWork, reference: &[[f64; 4]])
 /// mesh moving every frame, between the bend and 95 % of it) the source through the mesh
 /// (update + frame) and the warp + volume raycast it replaces (the whole volume warped,
 /// then a frame), on the CPU and on the GPU when asked; PSNR of the last frame (the full
-/// bend) against the f64 reference that maps each sample exactly.
+/// bend) against the f64 reference that maps each sample exactly. The CPU source row's
+/// `vs_volume_raycast` is the median of its frames' times over a volume raycaster frame
+/// after each (the source, pre-integrated, the same step and camera): the figure the source
+/// path is held to.
 fn source_rows(
     source: &Volume,
     target: usize,
     tf: &TransferFunction,
     opts: &RenderBenchOptions,
-    volume_medians: &VolumeMedians,
     emit: &mut impl FnMut(&BenchRow),
 ) -> Result<(), RenderBenchError> {
     use crate::backend::Backend;
@@ -337,13 +323,23 @@ fn source_rows(
                     mesh.update(frames[k % 2]).map_err(|e| setup(&e))?;
                     mesh.render(&[], &camera).map_err(|e| setup(&e))
                 };
-                let (image, samples, cost) = timed(opts.runs, (backend, on), &mut frame)?;
-                let mut row =
-                    source_row(&case(size), on, device, "source_through_mesh", step, samples, &image, &reference);
-                if let (RunsOn::Cpu, Some(volume_ms)) = (on, volume_medians.at(size, step)) {
-                    row.params["vs_volume_raycast"] = json!(row.time_ms.median / volume_ms);
+                if on == RunsOn::Cpu {
+                    // Held to the volume raycaster on the source at the same settings, a frame
+                    // of it after each of this row's.
+                    let volume = VolumeRaycaster::new(source, tf, &params)?;
+                    let mut against = || volume.render(&camera).map(|_| ()).map_err(RenderBenchError::from);
+                    let (image, samples, ratios) = timed_against(opts.runs, &mut frame, &mut against)?;
+                    let mut row =
+                        source_row(&case(size), on, device, "source_through_mesh", step, samples, &image, &reference);
+                    row.params["vs_volume_raycast"] = json!(time_stats(ratios.clone()).median);
+                    row.params["vs_volume_raycast_pairs"] = json!(ratios);
+                    emit(&row);
+                } else {
+                    let (image, samples, cost) = timed(opts.runs, (backend, on), &mut frame)?;
+                    let row =
+                        source_row(&case(size), on, device, "source_through_mesh", step, samples, &image, &reference);
+                    emit(&BenchRow { gpu: cost, ..row });
                 }
-                emit(&BenchRow { gpu: cost, ..row });
                 // Warp + volume raycast: onto the source's spacing (what the node does),
                 // and onto half of it (what it takes to come near the source's accuracy).
                 for (mode, warp_grid) in [("warp_then_raycast", &grid), ("warp_half_then_raycast", &half_grid)] {
@@ -427,6 +423,33 @@ fn timed(
     }
     let cost = meter.and_then(|m| m.finish(samples.len()));
     Ok((image, samples, cost))
+}
+
+/// [`timed`] on the CPU with a frame of `against` right after each frame (timed apart):
+/// the image, the frames' times and each frame's time over the next `against`'s. On a
+/// shared host whose speed drifts by up to 1.7x between runs, such pairs agree within a few
+/// per cent where medians taken minutes apart do not.
+fn timed_against(
+    runs: usize,
+    frame: &mut impl FnMut(usize) -> Result<crate::render::Rendered, RenderBenchError>,
+    against: &mut impl FnMut() -> Result<(), RenderBenchError>,
+) -> Result<(crate::render::Rendered, Vec<f64>, Vec<f64>), RenderBenchError> {
+    let mut image = frame(1)?;
+    against()?;
+    let (mut samples, mut ratios) = (Vec::with_capacity(2 * runs), Vec::with_capacity(2 * runs));
+    for k in 2..2 * runs.max(1) + 2 {
+        let start = Instant::now();
+        let frame_k = frame(k)?;
+        let ms = start.elapsed().as_secs_f64() * 1e3;
+        let start = Instant::now();
+        against()?;
+        samples.push(ms);
+        ratios.push(ms / (start.elapsed().as_secs_f64() * 1e3));
+        if k % 2 == 1 {
+            image = frame_k;
+        }
+    }
+    Ok((image, samples, ratios))
 }
 
 #[allow(clippy::too_many_arguments)]
