@@ -238,7 +238,10 @@ fn plane_t(plane: &[f32; 4], o: &V3, d: &V3) -> (f32, f32) {
 /// The face a ray `o + d·t` leaves a tet by (planes as in [`TetGeometry`]): of the faces
 /// other than `face_in` it moves out through (denominator above 1e-7), the one with the
 /// smallest ray parameter, and that parameter; none where no face lies ahead. The four
-/// faces at once in SSE lanes, without a branch per face.
+/// faces at once in SSE lanes, without a branch per face (on a 2-core Intel Xeon the
+/// 155k-tet frame 5-10 % faster, frame by frame; the shader compares without dividing, as
+/// the one-face loop does: the same face but where a ray passes within rounding of an
+/// edge).
 #[cfg(target_arch = "x86_64")]
 #[inline]
 #[target_feature(enable = "sse2")]
