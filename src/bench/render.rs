@@ -413,17 +413,9 @@ fn timed(
     (backend, on): (&crate::backend::Backend, RunsOn),
     frame: &mut impl FnMut(usize) -> Result<crate::render::Rendered, RenderBenchError>,
 ) -> Result<(crate::render::Rendered, Vec<f64>, Option<super::GpuCost>), RenderBenchError> {
-    let mut image = frame(1)?;
+    let settled = frame(1)?;
     let meter = super::GpuMeter::start(backend, on);
-    let mut samples = Vec::with_capacity(2 * runs);
-    for k in 2..2 * runs.max(1) + 2 {
-        let start = Instant::now();
-        let frame_k = frame(k)?;
-        samples.push(start.elapsed().as_secs_f64() * 1e3);
-        if k % 2 == 1 {
-            image = frame_k;
-        }
-    }
+    let (image, samples) = timed_frames(runs, settled, frame, |_| Ok(()))?;
     let cost = meter.and_then(|m| m.finish(samples.len()));
     Ok((image, samples, cost))
 }
@@ -437,22 +429,38 @@ fn timed_against(
     frame: &mut impl FnMut(usize) -> Result<crate::render::Rendered, RenderBenchError>,
     against: &mut impl FnMut() -> Result<(), RenderBenchError>,
 ) -> Result<(crate::render::Rendered, Vec<f64>, Vec<f64>), RenderBenchError> {
-    let mut image = frame(1)?;
+    let settled = frame(1)?;
     against()?;
-    let (mut samples, mut ratios) = (Vec::with_capacity(2 * runs), Vec::with_capacity(2 * runs));
+    let mut ratios = Vec::with_capacity(2 * runs);
+    let (image, samples) = timed_frames(runs, settled, frame, |ms| {
+        let start = Instant::now();
+        against()?;
+        ratios.push(ms / (start.elapsed().as_secs_f64() * 1e3));
+        Ok(())
+    })?;
+    Ok((image, samples, ratios))
+}
+
+/// Frames 2 to 2·runs + 1 after the settling frame's `image`, each timed and `after` handed
+/// its time outside the timing: the times, and the last full bend's image (odd k).
+fn timed_frames(
+    runs: usize,
+    mut image: crate::render::Rendered,
+    frame: &mut impl FnMut(usize) -> Result<crate::render::Rendered, RenderBenchError>,
+    mut after: impl FnMut(f64) -> Result<(), RenderBenchError>,
+) -> Result<(crate::render::Rendered, Vec<f64>), RenderBenchError> {
+    let mut samples = Vec::with_capacity(2 * runs);
     for k in 2..2 * runs.max(1) + 2 {
         let start = Instant::now();
         let frame_k = frame(k)?;
         let ms = start.elapsed().as_secs_f64() * 1e3;
-        let start = Instant::now();
-        against()?;
         samples.push(ms);
-        ratios.push(ms / (start.elapsed().as_secs_f64() * 1e3));
+        after(ms)?;
         if k % 2 == 1 {
             image = frame_k;
         }
     }
-    Ok((image, samples, ratios))
+    Ok((image, samples))
 }
 
 #[allow(clippy::too_many_arguments)]
