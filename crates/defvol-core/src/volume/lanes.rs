@@ -323,11 +323,16 @@ mod x86 {
     };
     use std::arch::x86_64::*;
 
-    /// Whether `data` holds the largest index the clamps let a cell's corners reach.
+    /// Whether `data` holds the largest index the clamps let a cell's corners reach, and
+    /// the lanes' 32-bit offsets reach it without wrapping (worked out in 64 bits, so a
+    /// lookup of any fields is judged right).
     pub(super) fn fits(data: &[f32], cell: &CellLookup) -> bool {
-        let max_offset =
-            cell.top[0] + cell.nx * cell.top[1] + cell.nxy * cell.top[2] + cell.strides.iter().sum::<i32>();
-        max_offset >= 0 && (max_offset as usize) < data.len()
+        let wide = |v: i32| i64::from(v);
+        let max_offset = wide(cell.top[0])
+            + wide(cell.nx) * wide(cell.top[1])
+            + wide(cell.nxy) * wide(cell.top[2])
+            + cell.strides.iter().map(|&s| wide(s)).sum::<i64>();
+        (0..=wide(i32::MAX)).contains(&max_offset) && (max_offset as u64) < data.len() as u64
     }
 
     /// Where a cell's eight corners lie from its first, and the last first corner from
@@ -1257,5 +1262,17 @@ mod tests {
         for floats in [vec![0.1], vec![-0.0, 1.0], vec![40000.0], vec![-32767.0, 0.5], vec![2f32.powi(-16)]] {
             assert_eq!(fixed(floats.clone()), None, "{floats:?}");
         }
+    }
+
+    /// A lookup fits data that holds its farthest corner and no less; one whose 32-bit
+    /// offsets would wrap (here to 4, within eight samples) fits nothing.
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn a_lookup_fits_only_data_holding_its_farthest_corner_unwrapped() {
+        let cell = CellLookup::for_dims([7, 5, 4]);
+        assert!(x86::fits(&[0.0; 140], &cell) && !x86::fits(&[0.0; 139], &cell));
+        let wrapping = CellLookup { top: [0, 0, 4], strides: [0; 3], nx: 1, nxy: (1 << 30) + 1 };
+        assert_eq!(wrapping.nxy.wrapping_mul(wrapping.top[2]), 4);
+        assert!(!x86::fits(&[0.0; 8], &wrapping));
     }
 }

@@ -26,7 +26,13 @@ pub enum VolumeError {
     SampleCount { file: String, got: usize, expected: usize, dims: [usize; 3] },
     #[error("{file}: sample {index} (voxel {voxel:?}) is not finite")]
     NonFiniteSample { file: String, index: usize, voxel: [usize; 3] },
+    #[error("{file}: dims {dims:?} hold more than {max} voxels, the most the samplers address (32-bit offsets)")]
+    TooManyVoxels { file: String, dims: [usize; 3], max: usize },
 }
+
+/// The most voxels a volume holds: the samplers (the scalar loops, the vector lanes and
+/// the GPU's indices) address a voxel by a 32-bit offset from the first.
+pub const MAX_VOXELS: usize = i32::MAX as usize;
 
 /// A voxel lattice: dims, spacing, origin and direction, ITK's convention.
 #[derive(Debug, Clone, PartialEq)]
@@ -123,7 +129,10 @@ impl Volume {
         if deviation > 1e-4 {
             return Err(VolumeError::ShearedDirection { file: src(), deviation });
         }
-        let expected = dims[0] * dims[1] * dims[2];
+        let expected = match dims.iter().try_fold(1usize, |n, &d| n.checked_mul(d)) {
+            Some(n) if n <= MAX_VOXELS => n,
+            _ => return Err(VolumeError::TooManyVoxels { file: src(), dims, max: MAX_VOXELS }),
+        };
         if data.len() != expected {
             return Err(VolumeError::SampleCount { file: src(), got: data.len(), expected, dims });
         }
@@ -361,5 +370,22 @@ mod tests {
         let e = Volume::new([2, 2, 1], [1.0; 3], [0.0; 3], Matrix3::identity(), vec![0.0, 0.0, f32::NAN, 0.0], "a")
             .unwrap_err();
         assert!(matches!(e, VolumeError::NonFiniteSample { index: 2, voxel: [0, 1, 0], .. }));
+    }
+
+    /// Dims past 2³¹ - 1 voxels (or past usize) are refused by name before the samples are
+    /// counted; dims just within are held to their samples as any others.
+    #[test]
+    fn volumes_past_the_samplers_offsets_are_refused_by_name() {
+        let new = |dims| Volume::new(dims, [1.0; 3], [0.0; 3], Matrix3::identity(), Vec::new(), "huge.nii");
+        for dims in [[46_341, 46_341, 1], [2, 1 << 30, 1], [usize::MAX, 2, 3], [1 << 40, 1 << 40, 1]] {
+            let e = new(dims).unwrap_err();
+            assert!(matches!(e, VolumeError::TooManyVoxels { max: MAX_VOXELS, .. }), "{dims:?}: {e}");
+            assert!(e.to_string().contains("huge.nii") && e.to_string().contains("2147483647"), "{e}");
+        }
+        assert_eq!(46_340 * 46_340, 2_147_395_600);
+        let e = new([46_340, 46_340, 1]).unwrap_err();
+        assert!(matches!(e, VolumeError::SampleCount { got: 0, expected: 2_147_395_600, .. }), "{e}");
+        assert!(matches!(new([1 << 30, 2, 1]).unwrap_err(), VolumeError::TooManyVoxels { .. }));
+        assert!(matches!(new([(1 << 31) - 1, 1, 1]).unwrap_err(), VolumeError::SampleCount { .. }));
     }
 }
