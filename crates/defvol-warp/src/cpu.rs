@@ -25,7 +25,9 @@ pub fn default_grid(source: &Volume, deformed: &[Vector3<f64>]) -> Grid {
     }
     let lo = lo.map(|v| (v - 1e-9).ceil());
     let hi = hi.map(|v| (v + 1e-9).floor());
-    let dims = [0, 1, 2].map(|a| ((hi[a] - lo[a]).max(0.0) as usize) + 1);
+    // Saturating: nodes thrown far off (a runaway deformation) give a box the size check
+    // refuses, not a count that wraps.
+    let dims = [0, 1, 2].map(|a| ((hi[a] - lo[a]).max(0.0) as usize).saturating_add(1));
     Grid { dims, spacing: g.spacing, origin: g.world_from_index(lo).into(), direction: g.direction }
 }
 
@@ -90,15 +92,17 @@ fn fill<T: Real>(out: &mut [T], value: f32) {
 }
 
 fn check_size(grid: &Grid, bytes_per_voxel: u64, options: &WarpOptions) -> Result<(), WarpError> {
-    let needed = grid.len() as u64 * bytes_per_voxel;
-    if needed > options.max_bytes {
-        return Err(WarpError::TooLarge {
+    // Worked out without wrapping: a runaway deformation's box can hold more bytes than
+    // 64 bits count (said as 2^64 bytes in MiB, as the GPU path says it).
+    let needed = grid.dims.iter().try_fold(bytes_per_voxel, |n, &d| n.checked_mul(d as u64));
+    match needed {
+        Some(needed) if needed <= options.max_bytes => Ok(()),
+        _ => Err(WarpError::TooLarge {
             dims: grid.dims,
-            needed_mib: needed.div_ceil(1 << 20),
+            needed_mib: needed.unwrap_or(u64::MAX).div_ceil(1 << 20),
             limit_mib: options.max_bytes >> 20,
-        });
+        }),
     }
-    Ok(())
 }
 
 /// Warps `source` through `rest` → `deformed` onto `grid`, in precision T (f32: the fast
@@ -390,6 +394,29 @@ mod tests {
     use super::*;
     use defvol_core::mesh::generate::{self, CellSplit};
     use defvol_core::volume::phantom;
+
+    /// Nodes thrown far off (a runaway deformation) give a default grid too large to warp,
+    /// refused by name with what it would need, where its voxel count would wrap 64 bits.
+    #[test]
+    fn a_runaway_deformations_grid_is_refused_by_name() {
+        let source = phantom::phantom([24, 20, 16], 2.0).unwrap();
+        let (lo, hi) = source.bounds();
+        let mesh = generate::lattice_for_box(lo, hi, 40, CellSplit::Five).unwrap();
+        let limit_mib = WarpOptions::default().max_bytes >> 20;
+        for far in [1e4, 1e30] {
+            let mut thrown = mesh.nodes().to_vec();
+            thrown[0] = Vector3::repeat(far);
+            let grid = default_grid(&source, &thrown);
+            assert!(grid.dims.iter().all(|&d| d as f64 >= far.min(usize::MAX as f64) / 2.0 - 2.0), "{:?}", grid.dims);
+            let err = warp(&source, &mesh, &thrown, &grid, &WarpOptions::default()).unwrap_err();
+            let WarpError::TooLarge { dims, needed_mib, limit_mib: limit } = err else { panic!("{err}") };
+            assert_eq!((dims, limit), (grid.dims, limit_mib));
+            let bytes = grid.dims.iter().map(|&d| d as f64).product::<f64>() * 4.0;
+            let want = (bytes.min(u64::MAX as f64) / (1u64 << 20) as f64).ceil() as u64;
+            assert!(needed_mib.abs_diff(want) <= want / 1_000_000, "{needed_mib} MiB against {want}");
+            assert!(err.to_string().contains(&format!("{needed_mib} MiB")), "{err}");
+        }
+    }
 
     /// A press on a turned mesh re-warps only its region, the tets' spans streamed and
     /// clipped to the region's box, and leaves the scalar path's full warp, bit for bit.

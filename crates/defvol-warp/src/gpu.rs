@@ -108,7 +108,7 @@ impl GpuWarp {
         }
         ctx.require_storage_buffers("the warp", STORAGE_BUFFERS)?;
         ctx.require_binding_size("the source volume", source.len() as u64 * 4)?;
-        ctx.require_binding_size("the output grid", grid.len() as u64 * 4)?;
+        ctx.require_binding_size("the output grid", (grid.len() as u64).saturating_mul(4))?;
         ctx.require_binding_size("the tet maps", rest.tets().len() as u64 * 144)?;
         let stats_bytes = STATS_HEADER + grid.len().div_ceil(32) as u64 * 4;
         ctx.require_binding_size("the coverage marks", stats_bytes)?;
@@ -496,12 +496,20 @@ mod tests {
         let slices = (limit / 4).div_ceil(1 << 20) as usize + 1;
         let grid =
             Grid { dims: [1024, 1024, slices], spacing: [1.0; 3], origin: [0.0; 3], direction: Matrix3::identity() };
-        let err = GpuWarp::new(ctx, &source, &mesh, grid, &WarpOptions::default(), 1.0).err().unwrap();
+        let err = GpuWarp::new(ctx.clone(), &source, &mesh, grid, &WarpOptions::default(), 1.0).err().unwrap();
         let GpuWarpError::Gpu(GpuError::BufferTooLarge { what, needed_mib, limit_mib, .. }) = &err else {
             panic!("{err}")
         };
         assert_eq!((*what, *needed_mib, *limit_mib), ("the output grid", 4 * slices as u64, limit >> 20), "{err}");
         assert!(err.to_string().contains(&format!("allows {} MiB", limit >> 20)), "{err}");
+        // A runaway deformation's default grid, whose bytes no 64 bits count: refused alike.
+        let mut thrown = mesh.nodes().to_vec();
+        thrown[0] = Vector3::repeat(1e30);
+        let runaway = crate::cpu::default_grid(&source, &thrown);
+        assert_eq!(runaway.len(), usize::MAX);
+        let err = GpuWarp::new(ctx, &source, &mesh, runaway, &WarpOptions::default(), 1.0).err().unwrap();
+        let GpuWarpError::Gpu(GpuError::BufferTooLarge { what, needed_mib, .. }) = &err else { panic!("{err}") };
+        assert_eq!((*what, *needed_mib), ("the output grid", u64::MAX.div_ceil(1 << 20)), "{err}");
     }
 
     /// A read-back of a warp is one round trip, its work counted in it (asking for the

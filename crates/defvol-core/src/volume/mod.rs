@@ -44,8 +44,10 @@ pub struct Grid {
 }
 
 impl Grid {
+    /// Its voxels, saturating at `usize::MAX` (a runaway deformation's box can count more;
+    /// size checks then refuse it).
     pub fn len(&self) -> usize {
-        self.dims[0] * self.dims[1] * self.dims[2]
+        self.dims.iter().fold(1usize, |n, &d| n.saturating_mul(d))
     }
     pub fn is_empty(&self) -> bool {
         self.len() == 0
