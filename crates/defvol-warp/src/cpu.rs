@@ -92,9 +92,9 @@ fn fill<T: Real>(out: &mut [T], value: f32) {
 }
 
 fn check_size(grid: &Grid, bytes_per_voxel: u64, options: &WarpOptions) -> Result<(), WarpError> {
-    // Worked out without wrapping: a runaway deformation's box can hold more bytes than
-    // 64 bits count (said as 2^64 bytes in MiB, as the GPU path says it).
-    let needed = grid.dims.iter().try_fold(bytes_per_voxel, |n, &d| n.checked_mul(d as u64));
+    // Without wrapping: a runaway deformation's box can hold more bytes than 64 bits count
+    // (`Grid::len` saturates; said as 2^64 bytes in MiB, as the GPU path says it).
+    let needed = (grid.len() as u64).checked_mul(bytes_per_voxel);
     match needed {
         Some(needed) if needed <= options.max_bytes => Ok(()),
         _ => Err(WarpError::TooLarge {
