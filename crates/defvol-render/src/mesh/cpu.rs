@@ -15,7 +15,9 @@
 //!   (from a tolerance behind where it left: through an edge, the next tet starts there);
 //! - a ray that starts inside the mesh (the camera in the organ) meets an exit face first:
 //!   it walks back from there to the tet holding its origin and starts there;
-//! - a tool hit ends the ray: the tool is what lies behind the tissue in front of it.
+//! - a tool hit ends the ray: the tool is what lies behind the tissue in front of it;
+//! - the tets are kept in a spatial order (`order.rs`), whatever order the mesh lists them
+//!   in, so a ray's next tet is usually near in memory.
 //!
 //! Face planes and gradients are refreshed with [`TetRaycaster::update`] after every
 //! deformation step. Geometry is kept in f32 relative to the rest mesh's centre (`anchor`),
@@ -28,6 +30,7 @@ use super::entry::{Search, TileFaces};
 use super::field::V3;
 use super::geometry::{tet_geometry, tet_geometry_8, tet_geometry_f32, TetGeometry};
 use super::look::SourceLook;
+use super::order::{renumbered_neighbours, spatial_order};
 use crate::camera::{Camera, Projection};
 use crate::transfer::{SegmentTable, Tables, TransferFunction};
 use crate::volume::{nearest_tool, ToolPicture, MAX_TOOLS};
@@ -93,6 +96,15 @@ fn face_links(neighbours: &[[i32; 4]]) -> Vec<[i32; 4]> {
             })
         })
         .collect()
+}
+
+/// The mesh's tets in the order the walk keeps them ([`spatial_order`]: new index → the
+/// mesh's index), the tets in that order and their face links.
+fn ordered(mesh: &TetMesh) -> (Vec<usize>, Vec<[u32; 4]>, Vec<[i32; 4]>) {
+    let order = spatial_order(mesh);
+    let tets = order.iter().map(|&t| mesh.tets()[t]).collect();
+    let links = face_links(&renumbered_neighbours(mesh.neighbours(), &order));
+    (order, tets, links)
 }
 
 /// The faces of walked tets with no neighbour, as tet · 4 + face (`links` or the mesh's
@@ -330,7 +342,7 @@ impl TetRaycaster {
         scalars: &[f32],
         tf: &TransferFunction,
         params: &TetRaycastParams,
-        source: Option<Box<SourceLook>>,
+        mut source: Option<Box<SourceLook>>,
     ) -> Result<Self, RenderError> {
         if scalars.len() != mesh.nodes().len() || scalars.iter().any(|s| !s.is_finite()) {
             return Err(RenderError::Parameter(format!(
@@ -363,9 +375,10 @@ impl TetRaycaster {
         let far = |v: f64| v.clamp(-1e30, 1e30) as f32;
         let visible = tf.visible_span();
         let visible = (far(visible.0), far(visible.1));
-        let neighbours = mesh.neighbours();
-        let mut links = face_links(neighbours);
-        let tets = mesh.tets();
+        let (order, tets, mut links) = ordered(mesh);
+        if let Some(source) = &mut source {
+            source.visible = order.iter().map(|&t| source.visible[t]).collect();
+        }
         let walked = match &source {
             None => cut_outer_air(&mut links, |t| {
                 let (lo, hi) = tets[t].iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), &i| {
@@ -391,7 +404,7 @@ impl TetRaycaster {
             SegmentTable { lo: 0.0, hi: 1.0, max_len: 1.0, level_scale: 1.0, length_scale: 1.0, entries: Vec::new() }
         };
         let mut raycaster = Self {
-            tets: mesh.tets().to_vec(),
+            tets,
             scalars: scalars.to_vec(),
             positions: Vec::new(),
             anchor,
@@ -1047,8 +1060,13 @@ fn ray_triangle(o: &Vector3<f64>, d: &Vector3<f64>, pts: &[Vector3<f64>; 3]) -> 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::mesh::source::SourceSampling;
     use crate::transfer::TfPoint;
+    use crate::volume::{RaycastParams, Shading};
     use defvol_core::mesh::generate::{lattice, CellSplit};
+    use defvol_core::volume::Volume;
+    use nalgebra::Matrix3;
+    use std::sync::Arc;
 
     const AIR: f32 = -1000.0;
 
@@ -1188,11 +1206,12 @@ mod tests {
     fn the_air_around_the_tissue_is_cut_and_pockets_inside_are_kept() {
         let (mesh, scalars) = ball_in_air();
         let raycaster = TetRaycaster::new(&mesh, &scalars, &tissue(), &TetRaycastParams::default()).unwrap();
-        let full = face_links(mesh.neighbours());
+        // In the raycaster's order of the tets.
+        let full = ordered(&mesh).2;
         let cut: Vec<bool> = raycaster.walked.iter().map(|w| !w).collect();
         let centre = Vector3::repeat(14.0);
         let mut pocket = 0;
-        for (t, tet) in mesh.tets().iter().enumerate() {
+        for (t, tet) in raycaster.tets.iter().enumerate() {
             let mid = tet.iter().map(|&i| mesh.nodes()[i as usize]).sum::<Vector3<f64>>() / 4.0;
             if cut[t] {
                 assert!(invisible(tet, &scalars), "tet {t} is cut but has visible scalars");
@@ -1261,7 +1280,7 @@ mod tests {
             let params = TetRaycastParams { preintegrated, step: 1.0, early_termination: 1.0, ..Default::default() };
             let cut = TetRaycaster::new(&mesh, &scalars, &tissue(), &params).unwrap();
             let mut whole = TetRaycaster::new(&mesh, &scalars, &tissue(), &params).unwrap();
-            whole.links = face_links(mesh.neighbours());
+            whole.links = ordered(&mesh).2;
             whole.walked = vec![true; whole.links.len()];
             whole.boundary = boundary_faces(&whole.links, &whole.walked);
             whole.update(mesh.nodes()).unwrap();
@@ -1280,20 +1299,29 @@ mod tests {
         }
     }
 
-    /// The source through the mesh: the air around the tissue is cut as for node scalars
-    /// (from the tets' source visibility), and the picture is as close to the f64 reference
-    /// as when rays walk the air (they now start at the tissue, their samples' grid with
-    /// them).
+    /// A mesh listing its tets in no spatial order renders the ordered mesh's picture to
+    /// the bit (the raycaster keeps both in one order), itself close to the f64 reference.
     #[test]
-    fn the_air_around_a_source_is_cut_at_the_accuracy_of_walking_it() {
-        use crate::mesh::source::SourceSampling;
-        use crate::volume::{RaycastParams, Shading};
-        use defvol_core::volume::Volume;
-        use nalgebra::Matrix3;
-        use std::sync::Arc;
-        let (mesh, _) = ball_in_air();
-        // A shell of tissue (3 to 7 mm from the centre) sampled every ½ mm over the
-        // lattice's 28 mm box: its macro cells (4 mm) leave the corners' air invisible.
+    fn a_mesh_in_no_spatial_order_renders_as_the_ordered_one() {
+        let (mesh, scalars) = ball_in_air();
+        let mut tets = mesh.tets().to_vec();
+        fastrand::Rng::with_seed(38).shuffle(&mut tets);
+        let shuffled = TetMesh::new(mesh.nodes().to_vec(), tets, None, "shuffled ball").unwrap();
+        let camera =
+            onto_ball(Vector3::new(-40.0, -55.0, 30.0), Projection::Perspective { fov_y_deg: 30.0 }, [200, 200]);
+        let params = TetRaycastParams { step: 1.0, ..Default::default() };
+        let render = |mesh: &TetMesh| TetRaycaster::new(mesh, &scalars, &tissue(), &params).unwrap().render(&camera);
+        let (a, b) = (render(&mesh).unwrap(), render(&shuffled).unwrap());
+        assert!(a.rgba == b.rgba && a.depth == b.depth, "the shuffled mesh's picture differs");
+        let reference = reference(&mesh, mesh.nodes(), &scalars, &camera, &tissue(), &params).unwrap();
+        let psnr = a.psnr(&reference);
+        assert!(psnr > 40.0, "{psnr} dB against the f64 walk");
+    }
+
+    /// A shell of tissue (3 to 7 mm from the centre of [`ball_in_air`]'s lattice) sampled
+    /// every ½ mm over the lattice's 28 mm box, its macro cells (4 mm) leaving the corners'
+    /// air invisible; the parameters and transfer function to see it through the mesh.
+    fn shell() -> (Arc<Volume>, RaycastParams, TransferFunction) {
         let n = 57;
         let data = (0..n * n * n)
             .map(|i| {
@@ -1309,13 +1337,46 @@ mod tests {
             .collect();
         let volume = Arc::new(Volume::new([n; 3], [0.5; 3], [0.0; 3], Matrix3::identity(), data, "shell").unwrap());
         let params = RaycastParams { step: 0.5, early_termination: 1.0, shading: Shading::None, ..Default::default() };
-        let sampling = SourceSampling::default();
         // Transparent up to 50: the macro cells' visibility is one table entry wide.
         let mut tf = tissue();
         tf.points.insert(1, TfPoint { value: 50.0, color: [0.2, 0.3, 0.9], opacity: 0.0 });
+        (volume, params, tf)
+    }
+
+    /// The source seen through a mesh listing its tets in no spatial order: the ordered
+    /// mesh's picture to the bit (the tets' source visibility follows them into the
+    /// raycaster's order).
+    #[test]
+    fn a_source_through_a_mesh_in_no_spatial_order_renders_as_through_the_ordered_one() {
+        let (mesh, _) = ball_in_air();
+        let mut tets = mesh.tets().to_vec();
+        fastrand::Rng::with_seed(38).shuffle(&mut tets);
+        let shuffled = TetMesh::new(mesh.nodes().to_vec(), tets, None, "shuffled ball").unwrap();
+        let (volume, params, tf) = shell();
+        let camera =
+            onto_ball(Vector3::new(-16.0, -22.0, 12.0), Projection::Perspective { fov_y_deg: 30.0 }, [120, 120]);
+        let render = |mesh: &TetMesh| {
+            let sampling = SourceSampling::default();
+            TetRaycaster::with_source(mesh, volume.clone(), &tf, &params, &sampling).unwrap().render(&camera).unwrap()
+        };
+        let (a, b) = (render(&mesh), render(&shuffled));
+        let lit = a.rgba.chunks_exact(4).filter(|p| p[0] > 40).count();
+        assert!(lit > 120 * 120 / 10, "the view is nearly empty ({lit} pixels)");
+        assert!(a.rgba == b.rgba && a.depth == b.depth, "the shuffled mesh's picture differs");
+    }
+
+    /// The source through the mesh: the air around the tissue is cut as for node scalars
+    /// (from the tets' source visibility), and the picture is as close to the f64 reference
+    /// as when rays walk the air (they now start at the tissue, their samples' grid with
+    /// them).
+    #[test]
+    fn the_air_around_a_source_is_cut_at_the_accuracy_of_walking_it() {
+        let (mesh, _) = ball_in_air();
+        let (volume, params, tf) = shell();
+        let sampling = SourceSampling::default();
         let cut = TetRaycaster::with_source(&mesh, volume.clone(), &tf, &params, &sampling).unwrap();
         let mut whole = TetRaycaster::with_source(&mesh, volume.clone(), &tf, &params, &sampling).unwrap();
-        whole.links = face_links(mesh.neighbours());
+        whole.links = ordered(&mesh).2;
         whole.walked = vec![true; whole.links.len()];
         whole.boundary = boundary_faces(&whole.links, &whole.walked);
         whole.update(mesh.nodes()).unwrap();
