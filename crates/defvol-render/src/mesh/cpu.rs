@@ -1299,14 +1299,19 @@ mod tests {
         }
     }
 
+    /// `mesh` with its tets listed in a random order.
+    fn shuffled(mesh: &TetMesh) -> TetMesh {
+        let mut tets = mesh.tets().to_vec();
+        fastrand::Rng::with_seed(38).shuffle(&mut tets);
+        TetMesh::new(mesh.nodes().to_vec(), tets, None, "shuffled").unwrap()
+    }
+
     /// A mesh listing its tets in no spatial order renders the ordered mesh's picture to
     /// the bit (the raycaster keeps both in one order), itself close to the f64 reference.
     #[test]
     fn a_mesh_in_no_spatial_order_renders_as_the_ordered_one() {
         let (mesh, scalars) = ball_in_air();
-        let mut tets = mesh.tets().to_vec();
-        fastrand::Rng::with_seed(38).shuffle(&mut tets);
-        let shuffled = TetMesh::new(mesh.nodes().to_vec(), tets, None, "shuffled ball").unwrap();
+        let shuffled = shuffled(&mesh);
         let camera =
             onto_ball(Vector3::new(-40.0, -55.0, 30.0), Projection::Perspective { fov_y_deg: 30.0 }, [200, 200]);
         let params = TetRaycastParams { step: 1.0, ..Default::default() };
@@ -1349,9 +1354,7 @@ mod tests {
     #[test]
     fn a_source_through_a_mesh_in_no_spatial_order_renders_as_through_the_ordered_one() {
         let (mesh, _) = ball_in_air();
-        let mut tets = mesh.tets().to_vec();
-        fastrand::Rng::with_seed(38).shuffle(&mut tets);
-        let shuffled = TetMesh::new(mesh.nodes().to_vec(), tets, None, "shuffled ball").unwrap();
+        let shuffled = shuffled(&mesh);
         let (volume, params, tf) = shell();
         let camera =
             onto_ball(Vector3::new(-16.0, -22.0, 12.0), Projection::Perspective { fov_y_deg: 30.0 }, [120, 120]);
