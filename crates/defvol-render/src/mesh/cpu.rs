@@ -423,6 +423,7 @@ impl TetRaycaster {
         Ok(raycaster)
     }
 
+    /// The tets in the raycaster's order (spatial, `order.rs`), not the mesh's.
     pub fn tets(&self) -> &[[u32; 4]] {
         &self.tets
     }
