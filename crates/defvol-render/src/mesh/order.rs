@@ -4,6 +4,7 @@
 //! 155k-tet frame took ~1.2x as long with its tets shuffled as in the lattice's order).
 
 use defvol_core::mesh::TetMesh;
+use nalgebra::Vector3;
 use rayon::prelude::*;
 
 /// Bits of a centroid's cell per axis: three axes fill 63 bits of the code, and cells a
@@ -14,22 +15,14 @@ const BITS: u32 = 21;
 /// sharing a code keep the mesh's order).
 pub(crate) fn spatial_order(mesh: &TetMesh) -> Vec<usize> {
     let nodes = mesh.nodes();
-    let centroids: Vec<[f64; 3]> = mesh
-        .tets()
-        .iter()
-        .map(|tet| {
-            let sum = tet.iter().fold([0.0; 3], |s, &i| {
-                let p = nodes[i as usize];
-                [s[0] + p.x, s[1] + p.y, s[2] + p.z]
-            });
-            sum.map(|c| c / 4.0)
-        })
-        .collect();
-    let (lo, hi) = centroids.iter().fold(([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]), |(lo, hi), c| {
-        (std::array::from_fn(|a| lo[a].min(c[a])), std::array::from_fn(|a| hi[a].max(c[a])))
-    });
+    let centroids: Vec<Vector3<f64>> =
+        mesh.tets().iter().map(|tet| tet.iter().map(|&i| nodes[i as usize]).sum::<Vector3<f64>>() / 4.0).collect();
+    let (lo, hi) =
+        centroids.iter().fold((Vector3::repeat(f64::INFINITY), Vector3::repeat(f64::NEG_INFINITY)), |(lo, hi), c| {
+            (lo.inf(c), hi.sup(c))
+        });
     let top = f64::from((1u32 << BITS) - 1);
-    let scale: [f64; 3] = std::array::from_fn(|a| if hi[a] > lo[a] { top / (hi[a] - lo[a]) } else { 0.0 });
+    let scale = (hi - lo).map(|e| if e > 0.0 { top / e } else { 0.0 });
     let mut keyed: Vec<(u64, usize)> = centroids
         .iter()
         .enumerate()
