@@ -283,6 +283,27 @@ fn exit_face(planes: &[[f32; 4]; 4], o: &V3, d: &V3, face_in: u32) -> Option<(u3
     (hits != 0).then(|| (hits.trailing_zeros(), _mm_cvtss_f32(m)))
 }
 
+/// `t_exit` no earlier than `t_in` and no later than `t_stop`, by plain comparisons: the
+/// walk's values are never NaN, so `f32::max`/`min`'s NaN handling (a compare and a blend
+/// each) only lengthened every step (512², 155k tets, frame by frame: 4 % faster).
+#[inline(always)]
+fn ahead(t_exit: f32, t_in: f32, t_stop: f32) -> f32 {
+    let t = if t_exit > t_in { t_exit } else { t_in };
+    if t < t_stop {
+        t
+    } else {
+        t_stop
+    }
+}
+
+/// Whether a segment whose scalar runs from `s.0` to `s.1` reaches into the open interval
+/// `visible`: `max(s) > lo && min(s) < hi` in comparisons without `f32::max`/`min`'s NaN
+/// handling (the same answer, a NaN comparing false in both).
+#[inline(always)]
+fn seen(s: (f32, f32), (lo, hi): (f32, f32)) -> bool {
+    (s.0 > lo || s.1 > lo) & (s.0 < hi || s.1 < hi)
+}
+
 /// [`exit_face`] one face at a time, comparing num/denom without dividing (elsewhere than
 /// x86-64, and its twin in the tests).
 #[cfg(any(test, not(target_arch = "x86_64")))]
@@ -677,7 +698,7 @@ impl TetRaycaster {
                 self.flush(&mut march, acc, depth);
                 return t_in;
             };
-            let t_out = t_exit.max(t_in).min(t_stop);
+            let t_out = ahead(t_exit, t_in, t_stop);
             stalled = if t_out - t_in <= 1e-6 * (1.0 + t_in.abs()) { stalled + 1 } else { 0 };
             if stalled > MAX_STALL {
                 self.flush(&mut march, acc, depth);
@@ -690,7 +711,7 @@ impl TetRaycaster {
                 }
                 _ => {
                     let s_out = scalar(&g.gradient, t_out);
-                    if s_in.max(s_out) > self.visible.0 && s_in.min(s_out) < self.visible.1 {
+                    if seen((s_in, s_out), self.visible) {
                         let len = t_out - t_in;
                         if self.params.preintegrated && len > 0.0 && len <= self.table.max_len {
                             // Most segments: one lookup, queued (the loop's one piece, the same bits).
@@ -1152,6 +1173,32 @@ mod tests {
             pending.len = 0;
         }
         assert!(checked > 500, "only {checked} segments with opacity");
+    }
+
+    /// The walk's clamp and visibility test by plain comparisons give what `f32::max` and
+    /// `min` give, over random values, equal ones, signed zeros, infinities and (for the
+    /// visibility test, whose scalars may be anything the volume holds) NaN.
+    #[test]
+    fn the_plain_comparisons_give_max_and_mins_answers() {
+        let mut rng = fastrand::Rng::with_seed(7);
+        let special = [0.0, -0.0, 1.0, -1.0, f32::INFINITY, f32::NEG_INFINITY, f32::MAX, f32::MIN_POSITIVE];
+        let mut value = |nan: bool| match rng.u32(0..10) {
+            0 => special[rng.usize(..special.len())],
+            1 if nan => f32::NAN,
+            _ => (rng.f32() * 2.0 - 1.0) * 100.0,
+        };
+        let (mut clamped, mut shown, mut hidden) = (0, 0, 0);
+        for _ in 0..200_000 {
+            let (t_exit, t_in, t_stop) = (value(false), value(false), value(false));
+            let want = t_exit.max(t_in).min(t_stop);
+            assert!(ahead(t_exit, t_in, t_stop) == want, "{t_exit} {t_in} {t_stop}");
+            clamped += usize::from(want != t_exit);
+            let (s, lo, hi) = ((value(true), value(true)), value(false), value(false));
+            let want = s.0.max(s.1) > lo && s.0.min(s.1) < hi;
+            assert_eq!(seen(s, (lo, hi)), want, "{s:?} against ({lo}, {hi})");
+            (shown, hidden) = if want { (shown + 1, hidden) } else { (shown, hidden + 1) };
+        }
+        assert!(clamped > 50_000 && shown > 20_000 && hidden > 20_000, "{clamped} {shown} {hidden}");
     }
 
     /// The four faces in SSE lanes pick the exit face and parameter the one-face loop
