@@ -3,7 +3,7 @@
 //! memory whatever order the mesh's file listed them in (on a 2-core Intel Xeon the
 //! 155k-tet frame took ~1.2x as long with its tets shuffled as in the lattice's order).
 
-use defvol_core::mesh::TetMesh;
+use defvol_core::mesh::{bounds, TetMesh};
 use nalgebra::Vector3;
 use rayon::prelude::*;
 
@@ -17,10 +17,7 @@ pub(crate) fn spatial_order(mesh: &TetMesh) -> Vec<usize> {
     let nodes = mesh.nodes();
     let centroids: Vec<Vector3<f64>> =
         mesh.tets().iter().map(|tet| tet.iter().map(|&i| nodes[i as usize]).sum::<Vector3<f64>>() / 4.0).collect();
-    let (lo, hi) =
-        centroids.iter().fold((Vector3::repeat(f64::INFINITY), Vector3::repeat(f64::NEG_INFINITY)), |(lo, hi), c| {
-            (lo.inf(c), hi.sup(c))
-        });
+    let (lo, hi) = bounds(&centroids);
     let top = f64::from((1u32 << BITS) - 1);
     let scale = (hi - lo).map(|e| if e > 0.0 { top / e } else { 0.0 });
     let mut keyed: Vec<(u64, usize)> = centroids
