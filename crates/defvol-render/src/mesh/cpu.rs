@@ -17,7 +17,10 @@
 //!   it walks back from there to the tet holding its origin and starts there;
 //! - a tool hit ends the ray: the tool is what lies behind the tissue in front of it;
 //! - the tets are kept in a spatial order (`order.rs`), whatever order the mesh lists them
-//!   in, so a ray's next tet is usually near in memory.
+//!   in, so a ray's next tet is usually near in memory;
+//! - pre-integrated node scalars on a CPU with AVX2 walk eight rays side by side
+//!   (`lanes.rs`), the same bits: a strip of tiles' rays share the lanes, each ray's
+//!   entries and re-entries (`next_start`, `walked_to`) the one-ray code's.
 //!
 //! Face planes and gradients are refreshed with [`TetRaycaster::update`] after every
 //! deformation step. Geometry is kept in f32 relative to the rest mesh's centre (`anchor`),
@@ -510,41 +513,86 @@ impl TetRaycaster {
     /// One frame seen by `camera`.
     pub fn render(&self, camera: &Camera) -> Result<Rendered, RenderError> {
         camera.validate()?;
+        let (w, h) = (camera.width, camera.height);
+        let mut rgba = vec![0u8; w * h * 4];
+        let mut depth = vec![f32::INFINITY; w * h];
+        for StripRay { pixel, ray, .. } in self.cast_all(camera, self.lanes_walk()) {
+            let (color, d) = ray.finish();
+            rgba[pixel * 4..pixel * 4 + 4].copy_from_slice(&color.map(crate::volume::to_level));
+            depth[pixel] = d;
+        }
+        Ok(Rendered { width: w, height: h, rgba, depth })
+    }
+
+    /// Whether rays walk eight at a time ([`super::lanes`]): pre-integrated node scalars on
+    /// a CPU with AVX2.
+    fn lanes_walk(&self) -> bool {
+        cfg!(target_arch = "x86_64")
+            && self.params.preintegrated
+            && self.source.is_none()
+            && defvol_core::volume::lanes::lanes_available()
+    }
+
+    /// Every ray of a (valid) camera cast, walked eight at a time where `lanes` asks it and
+    /// [`Self::lanes_walk`] allows it, else one by one. A strip of tiles at a time, tile by tile as the GPU's workgroups: neighbouring
+    /// rays cross the same tets while their geometry is still in cache.
+    fn cast_all(&self, camera: &Camera, lanes: bool) -> Vec<StripRay> {
+        let lanes = lanes && self.lanes_walk();
         let bins = bin_boundary(&self.tets, &self.first_faces(camera), &self.positions, camera);
         let rays = camera.rays();
         let (w, h) = (camera.width, camera.height);
-        // Tile by tile, as the GPU's workgroups: neighbouring rays cross the same tets while
-        // their geometry is still in cache.
-        let tiles: Vec<Vec<([f32; 4], f32)>> = (0..bins.tiles[0] * bins.tiles[1])
+        let strips: Vec<Vec<StripRay>> = (0..bins.tiles[1])
             .into_par_iter()
-            .map(|tile| {
-                let (tx, ty) = (tile % bins.tiles[0] * TILE, tile / bins.tiles[0] * TILE);
-                let faces = TileFaces::new(bins.tile(tx, ty), &self.geometry);
-                let mut pixels = Vec::with_capacity(TILE * TILE);
-                for py in ty..(ty + TILE).min(h) {
-                    for px in tx..(tx + TILE).min(w) {
-                        let (origin, direction) = rays.ray(px, py);
-                        let tool =
-                            nearest_tool(&self.params.tools, self.params.ambient, &origin, &direction, &-direction);
-                        let o = (origin.coords - self.anchor).cast::<f32>();
-                        pixels.push(self.cast(&faces, &o, &direction.cast::<f32>(), tool));
+            .map(|row| {
+                let ty = row * TILE;
+                let tiles: Vec<TileFaces> =
+                    (0..bins.tiles[0]).map(|c| TileFaces::new(bins.tile(c * TILE, ty), &self.geometry)).collect();
+                let mut strip = Vec::with_capacity(TILE * w);
+                for (tile, tx) in (0..w).step_by(TILE).enumerate() {
+                    for py in ty..(ty + TILE).min(h) {
+                        for px in tx..(tx + TILE).min(w) {
+                            let (origin, direction) = rays.ray(px, py);
+                            strip.push(StripRay { tile, pixel: py * w + px, ray: self.ray(&origin, &direction) });
+                        }
                     }
                 }
-                pixels
+                #[cfg(target_arch = "x86_64")]
+                if lanes {
+                    // SAFETY: `lanes_walk` checked AVX2, pre-integration and no source.
+                    unsafe { self.cast_strip(&tiles, &mut strip) };
+                    return strip;
+                }
+                #[cfg(not(target_arch = "x86_64"))]
+                let _ = lanes;
+                for StripRay { tile, ray, .. } in &mut strip {
+                    self.cast(&tiles[*tile], ray);
+                }
+                strip
             })
             .collect();
-        let mut rgba = vec![0u8; w * h * 4];
-        let mut depth = vec![f32::INFINITY; w * h];
-        for (tile, pixels) in tiles.iter().enumerate() {
-            let (tx, ty) = (tile % bins.tiles[0] * TILE, tile / bins.tiles[0] * TILE);
-            let tile_w = (tx + TILE).min(w) - tx;
-            for (k, (color, d)) in pixels.iter().enumerate() {
-                let i = (ty + k / tile_w) * w + tx + k % tile_w;
-                rgba[i * 4..i * 4 + 4].copy_from_slice(&color.map(crate::volume::to_level));
-                depth[i] = *d;
-            }
+        strips.into_iter().flatten().collect()
+    }
+
+    /// The ray from `origin` along unit `direction`, ended by the nearest tool it meets.
+    fn ray(&self, origin: &Point3<f64>, direction: &Vector3<f64>) -> Ray {
+        let tool = nearest_tool(&self.params.tools, self.params.ambient, origin, direction, &-direction);
+        let (behind, t_stop) = match tool {
+            Some((t, color)) => (color, t),
+            None => (self.params.background.map(|c| c as f32), f32::INFINITY),
+        };
+        Ray {
+            o: (origin.coords - self.anchor).cast::<f32>(),
+            d: direction.cast::<f32>(),
+            t_stop,
+            behind,
+            acc: [0.0; 4],
+            depth: f32::INFINITY,
+            t_from: 0.0,
+            walked: false,
+            last_start: f32::NEG_INFINITY,
+            fronts_until: f32::NEG_INFINITY,
+            entries: 0,
         }
-        Ok(Rendered { width: w, height: h, rgba, depth })
     }
 
     /// The boundary faces a ray of `camera` can meet: all of them when a ray may start
@@ -582,52 +630,49 @@ impl TetRaycaster {
             .collect()
     }
 
-    /// One ray: premultiplied RGBA over the background (or the tool), and the depth where
-    /// opacity passed 0.5 (or the tool's surface).
-    fn cast(&self, faces: &TileFaces, o: &V3, d: &V3, tool: Option<(f32, [f32; 4])>) -> ([f32; 4], f32) {
-        let (bg, t_stop) = match tool {
-            Some((t, color)) => (color, t),
-            None => (self.params.background.map(|c| c as f32), f32::INFINITY),
-        };
-        let termination = self.params.early_termination as f32;
-        let mut acc = [0.0f32; 4];
-        let mut depth = f32::INFINITY;
-        let mut t_from = 0.0f32;
-        let mut walked = false;
-        let mut last_start = f32::NEG_INFINITY;
-        for _ in 0..MAX_ENTRIES {
-            // Once walked, only entries count, from a tolerance behind where the walk left
-            // (a ray leaving through an edge or a vertex enters the next tet there) but past
-            // where the last walk started, so every walk starts further on.
-            let after = if walked { (t_from - self.tolerance).max(last_start) } else { t_from };
-            let search = Search { o, d, after, fronts_only: walked, tolerance: self.tolerance };
-            let (hit, fronts_until) = faces.nearest_hit(search);
-            let Some(hit) = hit else { break };
-            if hit.t >= t_stop {
-                break;
-            }
-            let start = if hit.front {
-                (hit.tet, hit.face, hit.t)
-            } else {
-                // The first boundary ahead is an exit: the ray starts inside the mesh.
-                self.locate_back(hit.tet, o, d, t_from)
-            };
-            walked = true;
-            last_start = start.2;
-            t_from = self.walk(start, o, d, t_stop, &mut acc, &mut depth);
-            // No front face's plane lies ahead: the ray cannot enter the mesh again.
-            if acc[3] >= termination || t_from >= t_stop || t_from - self.tolerance >= fronts_until {
+    /// One ray to its end, walk after walk: what it gathers in `ray.acc` and `ray.depth`.
+    fn cast(&self, faces: &TileFaces, ray: &mut Ray) {
+        while let Some(start) = self.next_start(faces, ray) {
+            let t = self.walk(start, &ray.o, &ray.d, ray.t_stop, &mut ray.acc, &mut ray.depth);
+            if !self.walked_to(ray, t) {
                 break;
             }
         }
-        let rest = 1.0 - acc[3];
-        let color = [
-            acc[0] + rest * bg[0] * bg[3],
-            acc[1] + rest * bg[1] * bg[3],
-            acc[2] + rest * bg[2] * bg[3],
-            acc[3] + rest * bg[3],
-        ];
-        (color, if depth.is_finite() { depth } else { t_stop })
+    }
+
+    /// Where the ray's next walk starts (tet, entry face, t), or none: it does not enter
+    /// the mesh (again) before its end.
+    pub(crate) fn next_start(&self, faces: &TileFaces, ray: &mut Ray) -> Option<(u32, u32, f32)> {
+        if ray.entries == MAX_ENTRIES {
+            return None;
+        }
+        ray.entries += 1;
+        // Once walked, only entries count, from a tolerance behind where the walk left
+        // (a ray leaving through an edge or a vertex enters the next tet there) but past
+        // where the last walk started, so every walk starts further on.
+        let after = if ray.walked { (ray.t_from - self.tolerance).max(ray.last_start) } else { ray.t_from };
+        let search = Search { o: &ray.o, d: &ray.d, after, fronts_only: ray.walked, tolerance: self.tolerance };
+        let (hit, fronts_until) = faces.nearest_hit(search);
+        let hit = hit.filter(|hit| hit.t < ray.t_stop)?;
+        let start = if hit.front {
+            (hit.tet, hit.face, hit.t)
+        } else {
+            // The first boundary ahead is an exit: the ray starts inside the mesh.
+            self.locate_back(hit.tet, &ray.o, &ray.d, ray.t_from)
+        };
+        ray.walked = true;
+        ray.last_start = start.2;
+        ray.fronts_until = fronts_until;
+        Some(start)
+    }
+
+    /// A walk stopped at `t`: whether the ray may enter the mesh again.
+    pub(crate) fn walked_to(&self, ray: &mut Ray, t: f32) -> bool {
+        ray.t_from = t;
+        // Beyond the last front face's plane ahead, the ray cannot enter the mesh again.
+        !(ray.acc[3] >= self.params.early_termination as f32
+            || t >= ray.t_stop
+            || t - self.tolerance >= ray.fronts_until)
     }
 
     /// From the tet behind an exit face, back along the ray to the tet holding the point at
@@ -828,7 +873,7 @@ impl TetRaycaster {
 
     /// The segment [t0, t1], its scalar linear from s0 to s1, in pieces: table lookups no
     /// longer than the table reaches, or point samples a step apart at the pieces' middles.
-    fn integrate(&self, acc: &mut [f32; 4], depth: &mut f32, t0: f32, t1: f32, s0: f32, s1: f32) {
+    pub(crate) fn integrate(&self, acc: &mut [f32; 4], depth: &mut f32, t0: f32, t1: f32, s0: f32, s1: f32) {
         let len = t1 - t0;
         if len <= 0.0 || len.is_nan() {
             return;
@@ -880,6 +925,47 @@ impl Pending {
             (front, back, length, t_mid, t_out);
         self.len += 1;
         self.len == PENDING
+    }
+}
+
+/// A ray of a strip of tiles: its tile (an index into the strip's tiles' faces), its
+/// pixel in the image and its state.
+pub(crate) struct StripRay {
+    pub(crate) tile: usize,
+    pub(crate) pixel: usize,
+    pub(crate) ray: Ray,
+}
+
+/// One ray's way through the mesh, kept between its walks: anchored origin and unit
+/// direction, where it ends (a tool, else never) and what lies behind, what it has gathered,
+/// and where its entry search stands.
+pub(crate) struct Ray {
+    pub(crate) o: V3,
+    pub(crate) d: V3,
+    pub(crate) t_stop: f32,
+    behind: [f32; 4],
+    pub(crate) acc: [f32; 4],
+    pub(crate) depth: f32,
+    t_from: f32,
+    walked: bool,
+    last_start: f32,
+    fronts_until: f32,
+    entries: usize,
+}
+
+impl Ray {
+    /// Premultiplied RGBA over what lies behind, and the depth where opacity passed 0.5
+    /// (else where the ray ends).
+    pub(crate) fn finish(&self) -> ([f32; 4], f32) {
+        let (acc, bg) = (self.acc, self.behind);
+        let rest = 1.0 - acc[3];
+        let color = [
+            acc[0] + rest * bg[0] * bg[3],
+            acc[1] + rest * bg[1] * bg[3],
+            acc[2] + rest * bg[2] * bg[3],
+            acc[3] + rest * bg[3],
+        ];
+        (color, if self.depth.is_finite() { self.depth } else { self.t_stop })
     }
 }
 
@@ -1345,6 +1431,60 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// The walk eight rays at a time gives the one-ray walk's colours and depths to the bit:
+    /// from outside (perspective and orthographic), from the air pocket inside the ball (rays
+    /// start inside the mesh and leave and re-enter it), with a tool ending rays in the
+    /// tissue, segments longer than the table reaches (a 0.1 mm step) and rays turning
+    /// opaque (dense tissue).
+    #[test]
+    fn eight_lanes_give_the_one_ray_walks_bits() {
+        let (mesh, scalars) = ball_in_air();
+        let pocket = Vector3::new(0.5, -1.0, 0.7);
+        let cameras = [
+            onto_ball(Vector3::new(-40.0, -55.0, 30.0), Projection::Perspective { fov_y_deg: 30.0 }, [203, 150]),
+            onto_ball(Vector3::new(50.0, -20.0, -35.0), Projection::Orthographic { height: 30.0 }, [120, 97]),
+            onto_ball(pocket, Projection::Perspective { fov_y_deg: 70.0 }, [96, 64]),
+        ];
+        let tool = ToolPicture { tip: [14.0, 8.0, 14.0], tail: [14.0, -20.0, 14.0], radius: 2.0, color: [0.5; 3] };
+        let dense = TransferFunction {
+            points: tissue().points.iter().map(|p| TfPoint { opacity: p.opacity * 6.0, ..*p }).collect(),
+            ..tissue()
+        };
+        let scenes = [
+            (tissue(), TetRaycastParams::default()),
+            (tissue(), TetRaycastParams { tools: vec![tool], ..Default::default() }),
+            (tissue(), TetRaycastParams { step: 0.1, ..Default::default() }),
+            (dense, TetRaycastParams::default()),
+        ];
+        let (mut opaque, mut at_tool) = (0, 0);
+        for (tf, params) in &scenes {
+            let raycaster = TetRaycaster::new(&mesh, &scalars, tf, params).unwrap();
+            if !raycaster.lanes_walk() {
+                eprintln!("skipped: no AVX2 on this CPU");
+                return;
+            }
+            for camera in &cameras {
+                let (lanes, one) = (raycaster.cast_all(camera, true), raycaster.cast_all(camera, false));
+                let seen = one.iter().filter(|r| r.ray.acc[3] > 0.05).count();
+                assert!(seen > one.len() / 10, "the view is nearly empty ({seen} rays)");
+                opaque += one.iter().filter(|r| r.ray.acc[3] >= 0.999).count();
+                at_tool += one.iter().filter(|r| r.ray.t_stop.is_finite() && r.ray.acc[3] > 0.05).count();
+                for (a, b) in lanes.iter().zip(&one) {
+                    assert_eq!(a.pixel, b.pixel);
+                    let ((ca, da), (cb, db)) = (a.ray.finish(), b.ray.finish());
+                    let bits = |c: [f32; 4], d: f32| (c.map(f32::to_bits), d.to_bits());
+                    assert_eq!(
+                        bits(ca, da),
+                        bits(cb, db),
+                        "pixel {}: {ca:?} {da} lanes, {cb:?} {db} one by one",
+                        a.pixel
+                    );
+                }
+            }
+        }
+        assert!(opaque > 100 && at_tool > 100, "{opaque} rays turned opaque, {at_tool} met the tool in tissue");
     }
 
     /// `mesh` with its tets listed in a random order.

@@ -513,10 +513,9 @@ pub(crate) unsafe fn segments_into(tables: &Tables, fronts: &[f32], backs: &[f32
 }
 
 /// `SegmentTable::lookup(fronts[i], backs[i], lengths[i])` into `out[i]` for every i, in
-/// groups of eight: the same clamps, truncations and lerps in the same order, so the same
-/// bits (the last group's spare lanes read the inputs past `out`'s length, which must hold
-/// a whole group). A tet walk's queued segments: independent lookups, whose index
-/// arithmetic the lanes share and whose loads they issue together.
+/// groups of eight (the last group's spare lanes read the inputs past `out`'s length,
+/// which must hold a whole group). A tet walk's queued segments: independent lookups,
+/// whose index arithmetic the lanes share and whose loads they issue together.
 ///
 /// # Safety
 /// AVX2 must be present.
@@ -528,41 +527,59 @@ pub(crate) unsafe fn tet_segments_into(
     lengths: &[f32],
     out: &mut [[f32; 4]],
 ) {
-    let (n, depth) = (SEGMENT_LEVELS, SEGMENT_LENGTHS);
-    assert!(table.entries.len() == n * n * depth);
     let groups = out.len().div_ceil(LANES);
     assert!([fronts, backs, lengths].iter().all(|v| v.len() >= groups * LANES));
-    let (lo, scale) = (_mm256_set1_ps(table.lo), _mm256_set1_ps(table.level_scale));
-    let level = |s| clamp8(_mm256_mul_ps(_mm256_sub_ps(s, lo), scale), (n - 1) as f32);
-    let (highest, longest) = (_mm256_set1_epi32(n as i32 - 2), _mm256_set1_epi32(depth as i32 - 2));
-    let ptr = table.entries.as_ptr();
     for g in 0..groups {
         let at = g * LANES;
         // SAFETY: at + LANES ≤ groups · LANES floats, which the three slices hold.
         let [front, back, length] = [fronts, backs, lengths].map(|v| unsafe { _mm256_loadu_ps(v.as_ptr().add(at)) });
-        let (x, y) = (level(front), level(back));
-        let z = clamp8(_mm256_mul_ps(length, _mm256_set1_ps(table.length_scale)), (depth - 1) as f32);
-        let i = _mm256_min_epi32(_mm256_cvttps_epi32(x), highest);
-        let j = _mm256_min_epi32(_mm256_cvttps_epi32(y), highest);
-        let l = _mm256_min_epi32(_mm256_cvttps_epi32(z), longest);
-        let fraction = |v, i| store(_mm256_sub_ps(v, _mm256_cvtepi32_ps(i)));
-        let (fx, fy, fz) = (fraction(x, i), fraction(y, j), fraction(z, l));
-        let (n_, depth_) = (_mm256_set1_epi32(n as i32), _mm256_set1_epi32(depth as i32));
-        let first = _mm256_add_epi32(_mm256_mullo_epi32(_mm256_add_epi32(_mm256_mullo_epi32(i, n_), j), depth_), l);
-        let first = lanes_i32(first);
-        for (lane, slot) in out[at..].iter_mut().take(LANES).enumerate() {
-            let at = first[lane] as usize;
-            // SAFETY: 0 ≤ i, j ≤ n - 2 and 0 ≤ l ≤ depth - 2, so entries (i, j, l) to
-            // (i + 1, j + 1, l + 1) lie in the table; slot holds four floats.
-            unsafe {
-                let near = |at: usize| lerp4(entry(ptr, at), entry(ptr, at + 1), fz[lane]);
-                let (a, b) = (near(at), near(at + depth));
-                let (c, d) = (near(at + n * depth), near(at + (n + 1) * depth));
-                let e = lerp4(lerp4(a, b, fy[lane]), lerp4(c, d, fy[lane]), fx[lane]);
-                _mm_storeu_ps(slot.as_mut_ptr(), e);
-            }
+        for (slot, entry) in out[at..].iter_mut().zip(tet_segment8_entries(table, front, back, length)) {
+            // SAFETY: slot holds four floats.
+            unsafe { _mm_storeu_ps(slot.as_mut_ptr(), entry) };
         }
     }
+}
+
+/// `SegmentTable::lookup(front[l], back[l], length[l])` in every lane l, as four channels
+/// of eight lanes (the eight-lane tet walk's segments).
+#[inline]
+#[target_feature(enable = "avx2")]
+pub(crate) fn tet_segment8(table: &SegmentTable, front: __m256, back: __m256, length: __m256) -> [__m256; 4] {
+    channels(tet_segment8_entries(table, front, back, length))
+}
+
+/// `SegmentTable::lookup` in every lane, lane l's entry in `[l]`: the same clamps,
+/// truncations and lerps in the same order, so the same bits.
+#[inline]
+#[target_feature(enable = "avx2")]
+fn tet_segment8_entries(table: &SegmentTable, front: __m256, back: __m256, length: __m256) -> [__m128; LANES] {
+    let (n, depth) = (SEGMENT_LEVELS, SEGMENT_LENGTHS);
+    assert!(table.entries.len() == n * n * depth);
+    let (lo, scale) = (_mm256_set1_ps(table.lo), _mm256_set1_ps(table.level_scale));
+    let level = |s| clamp8(_mm256_mul_ps(_mm256_sub_ps(s, lo), scale), (n - 1) as f32);
+    let (highest, longest) = (_mm256_set1_epi32(n as i32 - 2), _mm256_set1_epi32(depth as i32 - 2));
+    let ptr = table.entries.as_ptr();
+    let (x, y) = (level(front), level(back));
+    let z = clamp8(_mm256_mul_ps(length, _mm256_set1_ps(table.length_scale)), (depth - 1) as f32);
+    let i = _mm256_min_epi32(_mm256_cvttps_epi32(x), highest);
+    let j = _mm256_min_epi32(_mm256_cvttps_epi32(y), highest);
+    let l = _mm256_min_epi32(_mm256_cvttps_epi32(z), longest);
+    let fraction = |v, i| store(_mm256_sub_ps(v, _mm256_cvtepi32_ps(i)));
+    let (fx, fy, fz) = (fraction(x, i), fraction(y, j), fraction(z, l));
+    let (n_, depth_) = (_mm256_set1_epi32(n as i32), _mm256_set1_epi32(depth as i32));
+    let first =
+        lanes_i32(_mm256_add_epi32(_mm256_mullo_epi32(_mm256_add_epi32(_mm256_mullo_epi32(i, n_), j), depth_), l));
+    std::array::from_fn(|lane| {
+        let at = first[lane] as usize;
+        // SAFETY: 0 ≤ i, j ≤ n - 2 and 0 ≤ l ≤ depth - 2, so entries (i, j, l) to
+        // (i + 1, j + 1, l + 1) lie in the table.
+        unsafe {
+            let near = |at: usize| lerp4(entry(ptr, at), entry(ptr, at + 1), fz[lane]);
+            let (a, b) = (near(at), near(at + depth));
+            let (c, d) = (near(at + n * depth), near(at + (n + 1) * depth));
+            lerp4(lerp4(a, b, fy[lane]), lerp4(c, d, fy[lane]), fx[lane])
+        }
+    })
 }
 
 /// [`segment8`]'s entries, lane l's premultiplied colour and α in `[l]`.
