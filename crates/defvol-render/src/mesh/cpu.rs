@@ -34,7 +34,7 @@ use super::field::V3;
 use super::geometry::{tet_geometry, tet_geometry_8, tet_geometry_f32, TetGeometry};
 use super::look::SourceLook;
 use super::order::{renumbered_neighbours, spatial_order};
-use crate::camera::{Camera, Projection};
+use crate::camera::{Camera, Projection, Rays};
 use crate::transfer::{SegmentTable, Tables, TransferFunction};
 use crate::volume::{nearest_tool, ToolPicture, MAX_TOOLS};
 use crate::{RenderError, Rendered};
@@ -513,14 +513,22 @@ impl TetRaycaster {
     /// One frame seen by `camera`.
     pub fn render(&self, camera: &Camera) -> Result<Rendered, RenderError> {
         camera.validate()?;
+        let bins = bin_boundary(&self.tets, &self.first_faces(camera), &self.positions, camera);
+        let (rays, lanes) = (camera.rays(), self.lanes_walk());
         let (w, h) = (camera.width, camera.height);
         let mut rgba = vec![0u8; w * h * 4];
         let mut depth = vec![f32::INFINITY; w * h];
-        for StripRay { pixel, ray, .. } in self.cast_all(camera, self.lanes_walk()) {
-            let (color, d) = ray.finish();
-            rgba[pixel * 4..pixel * 4 + 4].copy_from_slice(&color.map(crate::volume::to_level));
-            depth[pixel] = d;
-        }
+        // A strip of tiles is TILE whole rows of the image.
+        let strips = rgba.par_chunks_mut(TILE * w * 4).zip(depth.par_chunks_mut(TILE * w));
+        strips.enumerate().for_each(|(row, (rgba, depth))| {
+            let first = row * TILE * w;
+            for StripRay { pixel, ray, .. } in self.cast_strip_rays(&bins, &rays, row, lanes) {
+                let (color, d) = ray.finish();
+                let i = pixel - first;
+                rgba[i * 4..i * 4 + 4].copy_from_slice(&color.map(crate::volume::to_level));
+                depth[i] = d;
+            }
+        });
         Ok(Rendered { width: w, height: h, rgba, depth })
     }
 
@@ -533,44 +541,36 @@ impl TetRaycaster {
             && defvol_core::volume::lanes::lanes_available()
     }
 
-    /// Every ray of a (valid) camera cast, walked eight at a time where `lanes` asks it and
-    /// [`Self::lanes_walk`] allows it, else one by one. A strip of tiles at a time, tile by tile as the GPU's workgroups: neighbouring
-    /// rays cross the same tets while their geometry is still in cache.
-    fn cast_all(&self, camera: &Camera, lanes: bool) -> Vec<StripRay> {
+    /// The rays of the strip of tiles `row` cast, walked eight at a time where `lanes` asks
+    /// it and [`Self::lanes_walk`] allows it, else one by one; tile by tile, as the GPU's
+    /// workgroups: neighbouring rays cross the same tets while their geometry is in cache.
+    fn cast_strip_rays(&self, bins: &Bins, rays: &Rays, row: usize, lanes: bool) -> Vec<StripRay> {
         let lanes = lanes && self.lanes_walk();
-        let bins = bin_boundary(&self.tets, &self.first_faces(camera), &self.positions, camera);
-        let rays = camera.rays();
-        let (w, h) = (camera.width, camera.height);
-        let strips: Vec<Vec<StripRay>> = (0..bins.tiles[1])
-            .into_par_iter()
-            .map(|row| {
-                let ty = row * TILE;
-                let tiles: Vec<TileFaces> =
-                    (0..bins.tiles[0]).map(|c| TileFaces::new(bins.tile(c * TILE, ty), &self.geometry)).collect();
-                let mut strip = Vec::with_capacity(TILE * w);
-                for (tile, tx) in (0..w).step_by(TILE).enumerate() {
-                    for py in ty..(ty + TILE).min(h) {
-                        for px in tx..(tx + TILE).min(w) {
-                            let (origin, direction) = rays.ray(px, py);
-                            strip.push(StripRay { tile, pixel: py * w + px, ray: self.ray(&origin, &direction) });
-                        }
-                    }
+        let (w, h) = (rays.camera.width, rays.camera.height);
+        let ty = row * TILE;
+        let tiles: Vec<TileFaces> =
+            (0..bins.tiles[0]).map(|c| TileFaces::new(bins.tile(c * TILE, ty), &self.geometry)).collect();
+        let mut strip = Vec::with_capacity(TILE * w);
+        for (tile, tx) in (0..w).step_by(TILE).enumerate() {
+            for py in ty..(ty + TILE).min(h) {
+                for px in tx..(tx + TILE).min(w) {
+                    let (origin, direction) = rays.ray(px, py);
+                    strip.push(StripRay { tile, pixel: py * w + px, ray: self.ray(&origin, &direction) });
                 }
-                #[cfg(target_arch = "x86_64")]
-                if lanes {
-                    // SAFETY: `lanes_walk` checked AVX2, pre-integration and no source.
-                    unsafe { self.cast_strip(&tiles, &mut strip) };
-                    return strip;
-                }
-                #[cfg(not(target_arch = "x86_64"))]
-                let _ = lanes;
-                for StripRay { tile, ray, .. } in &mut strip {
-                    self.cast(&tiles[*tile], ray);
-                }
-                strip
-            })
-            .collect();
-        strips.into_iter().flatten().collect()
+            }
+        }
+        #[cfg(target_arch = "x86_64")]
+        if lanes {
+            // SAFETY: `lanes_walk` checked AVX2, pre-integration and no source.
+            unsafe { self.cast_strip(&tiles, &mut strip) };
+            return strip;
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        let _ = lanes;
+        for StripRay { tile, ray, .. } in &mut strip {
+            self.cast(&tiles[*tile], ray);
+        }
+        strip
     }
 
     /// The ray from `origin` along unit `direction`, ended by the nearest tool it meets.
@@ -1466,7 +1466,14 @@ mod tests {
                 return;
             }
             for camera in &cameras {
-                let (lanes, one) = (raycaster.cast_all(camera, true), raycaster.cast_all(camera, false));
+                let cast_all = |lanes: bool| {
+                    let bins =
+                        bin_boundary(&raycaster.tets, &raycaster.first_faces(camera), &raycaster.positions, camera);
+                    let rays = camera.rays();
+                    let strips = (0..bins.tiles[1]).map(|row| raycaster.cast_strip_rays(&bins, &rays, row, lanes));
+                    strips.flatten().collect::<Vec<_>>()
+                };
+                let (lanes, one) = (cast_all(true), cast_all(false));
                 let seen = one.iter().filter(|r| r.ray.acc[3] > 0.05).count();
                 assert!(seen > one.len() / 10, "the view is nearly empty ({seen} rays)");
                 opaque += one.iter().filter(|r| r.ray.acc[3] >= 0.999).count();

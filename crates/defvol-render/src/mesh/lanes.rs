@@ -227,7 +227,9 @@ fn exit8(at: &impl Fn(i32) -> __m256, w: &Walk8) -> (__m256, __m256i) {
     let mut best_t = _mm256_set1_ps(f32::INFINITY);
     let mut best_k = _mm256_set1_epi32(NO_FACE as i32);
     for k in 0..4 {
-        let p = [0, 1, 2, 3].map(|c| at(4 * k + c));
+        // Written out, not `map`ped: `array::map` calls a closure compiled for AVX2 instead
+        // of inlining it.
+        let p = [at(4 * k), at(4 * k + 1), at(4 * k + 2), at(4 * k + 3)];
         let dot = |v: &[__m256; 3]| {
             _mm256_add_ps(
                 _mm256_add_ps(_mm256_mul_ps(p[0], v[0]), _mm256_mul_ps(p[1], v[1])),
@@ -250,7 +252,7 @@ fn exit8(at: &impl Fn(i32) -> __m256, w: &Walk8) -> (__m256, __m256i) {
 #[inline]
 #[target_feature(enable = "avx2")]
 fn scalar8(at: &impl Fn(i32) -> __m256, w: &Walk8, t: __m256) -> __m256 {
-    let g = [16, 17, 18, 19].map(at);
+    let g = [at(16), at(17), at(18), at(19)];
     let term = |c: usize| _mm256_mul_ps(g[c], _mm256_add_ps(w.o[c], _mm256_mul_ps(w.d[c], t)));
     _mm256_add_ps(_mm256_add_ps(_mm256_add_ps(term(0), term(1)), term(2)), g[3])
 }
@@ -274,17 +276,21 @@ impl Lanes {
     #[inline]
     #[target_feature(enable = "avx2")]
     fn load(&self) -> Walk8 {
-        let busy = _mm256_castsi256_ps(load8i(self.busy.map(|b| -i32::from(b))));
+        let mut busy = [0i32; LANES];
+        for (mask, &b) in busy.iter_mut().zip(&self.busy) {
+            *mask = -i32::from(b);
+        }
+        let busy = _mm256_castsi256_ps(load8i(busy));
         Walk8 {
             busy,
-            o: self.o.map(|v| load8(v)),
-            d: self.d.map(|v| load8(v)),
+            o: [load8(self.o[0]), load8(self.o[1]), load8(self.o[2])],
+            d: [load8(self.d[0]), load8(self.d[1]), load8(self.d[2])],
             t_stop: load8(self.t_stop),
             tet: load8i(self.tet),
             face: load8i(self.face),
             t_in: load8(self.t_in),
             s_in: load8(self.s_in),
-            acc: self.acc.map(|v| load8(v)),
+            acc: [load8(self.acc[0]), load8(self.acc[1]), load8(self.acc[2]), load8(self.acc[3])],
             depth: load8(self.depth),
             stalled: load8i(self.stalled),
             steps: load8i(self.steps),
@@ -299,7 +305,9 @@ impl Walk8 {
     fn store(&self, lanes: &mut Lanes) {
         (lanes.tet, lanes.face) = (store8i(self.tet), store8i(self.face));
         (lanes.t_in, lanes.s_in) = (store8(self.t_in), store8(self.s_in));
-        (lanes.acc, lanes.depth) = (self.acc.map(|v| store8(v)), store8(self.depth));
+        let acc = &self.acc;
+        lanes.acc = [store8(acc[0]), store8(acc[1]), store8(acc[2]), store8(acc[3])];
+        lanes.depth = store8(self.depth);
         (lanes.stalled, lanes.steps) = (store8i(self.stalled), store8i(self.steps));
     }
 }

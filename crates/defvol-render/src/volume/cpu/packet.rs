@@ -569,17 +569,26 @@ fn tet_segment8_entries(table: &SegmentTable, front: __m256, back: __m256, lengt
     let (n_, depth_) = (_mm256_set1_epi32(n as i32), _mm256_set1_epi32(depth as i32));
     let first =
         lanes_i32(_mm256_add_epi32(_mm256_mullo_epi32(_mm256_add_epi32(_mm256_mullo_epi32(i, n_), j), depth_), l));
-    std::array::from_fn(|lane| {
+    // A loop, not `array::from_fn`: its closure, compiled for AVX2, was called once per
+    // lane rather than inlined (the tet walk's lookups 5 % faster).
+    let mut out = [_mm_setzero_ps(); LANES];
+    for (lane, out) in out.iter_mut().enumerate() {
         let at = first[lane] as usize;
         // SAFETY: 0 ≤ i, j ≤ n - 2 and 0 ≤ l ≤ depth - 2, so entries (i, j, l) to
         // (i + 1, j + 1, l + 1) lie in the table.
         unsafe {
-            let near = |at: usize| lerp4(entry(ptr, at), entry(ptr, at + 1), fz[lane]);
-            let (a, b) = (near(at), near(at + depth));
-            let (c, d) = (near(at + n * depth), near(at + (n + 1) * depth));
-            lerp4(lerp4(a, b, fy[lane]), lerp4(c, d, fy[lane]), fx[lane])
+            let (a, b) = (
+                lerp4(entry(ptr, at), entry(ptr, at + 1), fz[lane]),
+                lerp4(entry(ptr, at + depth), entry(ptr, at + depth + 1), fz[lane]),
+            );
+            let (c, d) = (
+                lerp4(entry(ptr, at + n * depth), entry(ptr, at + n * depth + 1), fz[lane]),
+                lerp4(entry(ptr, at + (n + 1) * depth), entry(ptr, at + (n + 1) * depth + 1), fz[lane]),
+            );
+            *out = lerp4(lerp4(a, b, fy[lane]), lerp4(c, d, fy[lane]), fx[lane]);
         }
-    })
+    }
+    out
 }
 
 /// [`segment8`]'s entries, lane l's premultiplied colour and α in `[l]`.
