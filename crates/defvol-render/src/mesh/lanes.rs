@@ -12,7 +12,7 @@ use std::arch::x86_64::*;
 use super::cpu::{StripRay, TetRaycaster, MAX_STALL, MAX_WALK, NO_FACE};
 use super::entry::TileFaces;
 use super::geometry::TetGeometry;
-use crate::volume::packet::tet_segment8;
+use crate::volume::packet::{lanes_i32, load, load_i32, store, tet_segment8};
 
 /// Rays side by side.
 const LANES: usize = 8;
@@ -78,7 +78,7 @@ impl TetRaycaster {
                 }
             };
             walk.store(&mut lanes);
-            let t_end = store8(t_end);
+            let t_end = store(t_end);
             for lane in (0..LANES).filter(|l| ended & (1 << l) != 0) {
                 let ray = &mut rays[lanes.ray[lane]];
                 (ray.ray.acc, ray.ray.depth) = (lanes.acc.map(|c| c[lane]), lanes.depth[lane]);
@@ -203,9 +203,9 @@ impl TetRaycaster {
     #[cold]
     #[target_feature(enable = "avx2")]
     fn integrate_lanes(&self, w: &mut Walk8, long: i32, t_out: __m256, s_out: __m256) {
-        let mut acc = w.acc.map(|v| store8(v));
-        let mut depth = store8(w.depth);
-        let [t0, t1, s0, s1] = [w.t_in, t_out, w.s_in, s_out].map(|v| store8(v));
+        let mut acc = w.acc.map(|v| store(v));
+        let mut depth = store(w.depth);
+        let [t0, t1, s0, s1] = [w.t_in, t_out, w.s_in, s_out].map(|v| store(v));
         for l in (0..LANES).filter(|l| long & (1 << l) != 0) {
             let mut lane = acc.map(|c| c[l]);
             self.integrate(&mut lane, &mut depth[l], t0[l], t1[l], s0[l], s1[l]);
@@ -213,8 +213,8 @@ impl TetRaycaster {
                 acc[c][l] = lane[c];
             }
         }
-        w.acc = acc.map(|v| load8(v));
-        w.depth = load8(depth);
+        w.acc = acc.map(|v| load(v));
+        w.depth = load(depth);
     }
 }
 
@@ -280,20 +280,20 @@ impl Lanes {
         for (mask, &b) in busy.iter_mut().zip(&self.busy) {
             *mask = -i32::from(b);
         }
-        let busy = _mm256_castsi256_ps(load8i(busy));
+        let busy = _mm256_castsi256_ps(load_i32(busy));
         Walk8 {
             busy,
-            o: [load8(self.o[0]), load8(self.o[1]), load8(self.o[2])],
-            d: [load8(self.d[0]), load8(self.d[1]), load8(self.d[2])],
-            t_stop: load8(self.t_stop),
-            tet: load8i(self.tet),
-            face: load8i(self.face),
-            t_in: load8(self.t_in),
-            s_in: load8(self.s_in),
-            acc: [load8(self.acc[0]), load8(self.acc[1]), load8(self.acc[2]), load8(self.acc[3])],
-            depth: load8(self.depth),
-            stalled: load8i(self.stalled),
-            steps: load8i(self.steps),
+            o: [load(self.o[0]), load(self.o[1]), load(self.o[2])],
+            d: [load(self.d[0]), load(self.d[1]), load(self.d[2])],
+            t_stop: load(self.t_stop),
+            tet: load_i32(self.tet),
+            face: load_i32(self.face),
+            t_in: load(self.t_in),
+            s_in: load(self.s_in),
+            acc: [load(self.acc[0]), load(self.acc[1]), load(self.acc[2]), load(self.acc[3])],
+            depth: load(self.depth),
+            stalled: load_i32(self.stalled),
+            steps: load_i32(self.steps),
         }
     }
 }
@@ -303,43 +303,11 @@ impl Walk8 {
     #[inline]
     #[target_feature(enable = "avx2")]
     fn store(&self, lanes: &mut Lanes) {
-        (lanes.tet, lanes.face) = (store8i(self.tet), store8i(self.face));
-        (lanes.t_in, lanes.s_in) = (store8(self.t_in), store8(self.s_in));
+        (lanes.tet, lanes.face) = (lanes_i32(self.tet), lanes_i32(self.face));
+        (lanes.t_in, lanes.s_in) = (store(self.t_in), store(self.s_in));
         let acc = &self.acc;
-        lanes.acc = [store8(acc[0]), store8(acc[1]), store8(acc[2]), store8(acc[3])];
-        lanes.depth = store8(self.depth);
-        (lanes.stalled, lanes.steps) = (store8i(self.stalled), store8i(self.steps));
+        lanes.acc = [store(acc[0]), store(acc[1]), store(acc[2]), store(acc[3])];
+        lanes.depth = store(self.depth);
+        (lanes.stalled, lanes.steps) = (lanes_i32(self.stalled), lanes_i32(self.steps));
     }
-}
-
-#[inline]
-#[target_feature(enable = "avx2")]
-fn load8(v: [f32; LANES]) -> __m256 {
-    // SAFETY: v holds eight floats.
-    unsafe { _mm256_loadu_ps(v.as_ptr()) }
-}
-
-#[inline]
-#[target_feature(enable = "avx2")]
-fn load8i(v: [i32; LANES]) -> __m256i {
-    // SAFETY: v holds eight i32.
-    unsafe { _mm256_loadu_si256(v.as_ptr().cast()) }
-}
-
-#[inline]
-#[target_feature(enable = "avx2")]
-fn store8(v: __m256) -> [f32; LANES] {
-    let mut out = [0.0f32; LANES];
-    // SAFETY: out holds eight floats.
-    unsafe { _mm256_storeu_ps(out.as_mut_ptr(), v) };
-    out
-}
-
-#[inline]
-#[target_feature(enable = "avx2")]
-fn store8i(v: __m256i) -> [i32; LANES] {
-    let mut out = [0i32; LANES];
-    // SAFETY: out holds eight i32.
-    unsafe { _mm256_storeu_si256(out.as_mut_ptr().cast(), v) };
-    out
 }

@@ -380,21 +380,21 @@ fn times(m: &Matrix3<f64>, v: [__m256d; 3]) -> [__m256d; 3] {
 
 #[inline]
 #[target_feature(enable = "avx2")]
-fn load(v: [f32; LANES]) -> __m256 {
+pub(crate) fn load(v: [f32; LANES]) -> __m256 {
     // SAFETY: v holds eight floats.
     unsafe { _mm256_loadu_ps(v.as_ptr()) }
 }
 
 #[inline]
 #[target_feature(enable = "avx2")]
-fn load_i32(v: [i32; LANES]) -> __m256i {
+pub(crate) fn load_i32(v: [i32; LANES]) -> __m256i {
     // SAFETY: v holds eight i32.
     unsafe { _mm256_loadu_si256(v.as_ptr().cast()) }
 }
 
 #[inline]
 #[target_feature(enable = "avx2")]
-fn store(v: __m256) -> [f32; LANES] {
+pub(crate) fn store(v: __m256) -> [f32; LANES] {
     let mut out = [0.0f32; LANES];
     // SAFETY: out holds eight floats.
     unsafe { _mm256_storeu_ps(out.as_mut_ptr(), v) };
@@ -411,7 +411,7 @@ fn clamp8(x: __m256, top: f32) -> __m256 {
 /// The lanes of `v` as eight i32 or f32.
 #[inline]
 #[target_feature(enable = "avx2")]
-fn lanes_i32(v: __m256i) -> [i32; LANES] {
+pub(crate) fn lanes_i32(v: __m256i) -> [i32; LANES] {
     let mut out = [0i32; LANES];
     // SAFETY: out holds eight i32.
     unsafe { _mm256_storeu_si256(out.as_mut_ptr().cast(), v) };
