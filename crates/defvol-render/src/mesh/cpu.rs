@@ -533,12 +533,15 @@ impl TetRaycaster {
     }
 
     /// Whether rays walk eight at a time ([`super::lanes`]): pre-integrated node scalars on
-    /// a CPU with AVX2.
+    /// a CPU with AVX2, in a mesh the lanes' indices reach.
     fn lanes_walk(&self) -> bool {
-        cfg!(target_arch = "x86_64")
-            && self.params.preintegrated
+        #[cfg(target_arch = "x86_64")]
+        return self.params.preintegrated
             && self.source.is_none()
-            && defvol_core::volume::lanes::lanes_available()
+            && self.tets.len() <= super::lanes::MAX_TETS
+            && defvol_core::volume::lanes::lanes_available();
+        #[cfg(not(target_arch = "x86_64"))]
+        false
     }
 
     /// The rays of the strip of tiles `row` cast, walked eight at a time where `lanes` asks
@@ -561,7 +564,7 @@ impl TetRaycaster {
         }
         #[cfg(target_arch = "x86_64")]
         if lanes {
-            // SAFETY: `lanes_walk` checked AVX2, pre-integration and no source.
+            // SAFETY: `lanes_walk` checked AVX2, pre-integration, no source and the mesh's size.
             unsafe { self.cast_strip(&tiles, &mut strip) };
             return strip;
         }
