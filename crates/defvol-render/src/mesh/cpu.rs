@@ -80,6 +80,10 @@ pub(crate) const MAX_WALK: usize = 1 << 16;
 pub(crate) const MAX_STALL: u32 = 64;
 /// The most pieces a long segment is split into.
 pub(crate) const MAX_PIECES: usize = 4096;
+/// The most tets the eight-lane walk takes: its gathers index the geometry's floats in i32
+/// (larger meshes, over 100M tets, walk one ray at a time).
+#[cfg(target_arch = "x86_64")]
+pub(crate) const LANES_MAX_TETS: usize = i32::MAX as usize / (std::mem::size_of::<TetGeometry>() / 4);
 
 /// Steps the pre-integrated table's lengths reach: a segment through a tet is one lookup
 /// where it can be (through 155k tets over the phantom, segments average 1.75 mm against
@@ -538,7 +542,7 @@ impl TetRaycaster {
         #[cfg(target_arch = "x86_64")]
         return self.params.preintegrated
             && self.source.is_none()
-            && self.tets.len() <= super::lanes::MAX_TETS
+            && self.tets.len() <= LANES_MAX_TETS
             && defvol_core::volume::lanes::lanes_available();
         #[cfg(not(target_arch = "x86_64"))]
         false

@@ -9,7 +9,7 @@
 
 use std::arch::x86_64::*;
 
-use super::cpu::{StripRay, TetRaycaster, MAX_STALL, MAX_WALK, NO_FACE};
+use super::cpu::{StripRay, TetRaycaster, LANES_MAX_TETS, MAX_STALL, MAX_WALK, NO_FACE};
 use super::entry::TileFaces;
 use super::geometry::TetGeometry;
 use crate::volume::packet::{lanes_i32, load, load_i32, store, tet_segment8};
@@ -18,9 +18,6 @@ use crate::volume::packet::{lanes_i32, load, load_i32, store, tet_segment8};
 const LANES: usize = 8;
 /// Floats in a [`TetGeometry`]: four planes, then the gradient.
 const GEOMETRY_FLOATS: i32 = (std::mem::size_of::<TetGeometry>() / 4) as i32;
-/// The most tets the lanes walk: their gathers index the geometry's floats in i32 (larger
-/// meshes, over 100M tets, walk one ray at a time).
-pub(crate) const MAX_TETS: usize = (i32::MAX / GEOMETRY_FLOATS) as usize;
 
 /// The lanes' walks, a value per lane: ray, tet, entry face, where the segment starts
 /// and its scalar there, what the ray has gathered, and the runs the one-ray walk counts.
@@ -66,7 +63,7 @@ impl TetRaycaster {
     /// AVX2 must be present; the raycaster pre-integrates and shows no source.
     #[target_feature(enable = "avx2")]
     pub(crate) unsafe fn cast_strip(&self, tiles: &[TileFaces], rays: &mut [StripRay]) {
-        debug_assert!(self.params.preintegrated && self.source.is_none());
+        debug_assert!(self.params.preintegrated && self.source.is_none() && self.tets().len() <= LANES_MAX_TETS);
         let mut lanes = Lanes::default();
         let mut next = 0;
         for lane in 0..LANES {
@@ -140,7 +137,7 @@ impl TetRaycaster {
         let floats = self.geometry.as_ptr().cast::<f32>();
         // SAFETY: every lane's tet is one of the mesh's (a busy lane's the tet it walks, an
         // idle lane's the last it walked, or 0 before it walked: tets exist while any lane
-        // is busy), at most MAX_TETS, so its floats' i32 indices lie in the geometry.
+        // is busy), at most LANES_MAX_TETS, so its floats' i32 indices lie in the geometry.
         let at = |k: i32| unsafe { _mm256_i32gather_ps::<4>(floats, _mm256_add_epi32(base, _mm256_set1_epi32(k))) };
         let (t_exit, exit_k) = exit8(&at, w);
         let none = _mm256_castsi256_ps(_mm256_cmpeq_epi32(exit_k, _mm256_set1_epi32(NO_FACE as i32)));
