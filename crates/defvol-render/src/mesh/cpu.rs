@@ -518,7 +518,7 @@ impl TetRaycaster {
     pub fn render(&self, camera: &Camera) -> Result<Rendered, RenderError> {
         camera.validate()?;
         let bins = bin_boundary(&self.tets, &self.first_faces(camera), &self.positions, camera);
-        let (rays, lanes) = (camera.rays(), self.lanes_walk());
+        let rays = camera.rays();
         let (w, h) = (camera.width, camera.height);
         let mut rgba = vec![0u8; w * h * 4];
         let mut depth = vec![f32::INFINITY; w * h];
@@ -526,7 +526,7 @@ impl TetRaycaster {
         let strips = rgba.par_chunks_mut(TILE * w * 4).zip(depth.par_chunks_mut(TILE * w));
         strips.enumerate().for_each(|(row, (rgba, depth))| {
             let first = row * TILE * w;
-            for StripRay { pixel, ray, .. } in self.cast_strip_rays(&bins, &rays, row, lanes) {
+            for StripRay { pixel, ray, .. } in self.cast_strip_rays(&bins, &rays, row, true) {
                 let (color, d) = ray.finish();
                 let i = pixel - first;
                 rgba[i * 4..i * 4 + 4].copy_from_slice(&color.map(crate::volume::to_level));
