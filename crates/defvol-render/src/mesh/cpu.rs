@@ -548,10 +548,22 @@ impl TetRaycaster {
         false
     }
 
+    /// Whether rays walk eight at a time through the source (`super::source_lanes`): where
+    /// its one-ray walk queues its samples (`SourceLook::lanes_serve`), in a mesh the
+    /// lanes' indices reach.
+    fn source_lanes_walk(&self) -> bool {
+        #[cfg(target_arch = "x86_64")]
+        return self.source.as_ref().is_some_and(|s| s.lanes_serve()) && self.tets.len() <= LANES_MAX_TETS;
+        #[cfg(not(target_arch = "x86_64"))]
+        false
+    }
+
     /// The rays of the strip of tiles `row` cast, walked eight at a time where `lanes` asks
-    /// it and [`Self::lanes_walk`] allows it, else one by one; tile by tile, as the GPU's
-    /// workgroups: neighbouring rays cross the same tets while their geometry is in cache.
+    /// it and [`Self::lanes_walk`] or [`Self::source_lanes_walk`] allows it, else one by
+    /// one; tile by tile, as the GPU's workgroups: neighbouring rays cross the same tets
+    /// while their geometry is in cache.
     fn cast_strip_rays(&self, bins: &Bins, rays: &Rays, row: usize, lanes: bool) -> Vec<StripRay> {
+        let source_lanes = lanes && self.source_lanes_walk();
         let lanes = lanes && self.lanes_walk();
         let (w, h) = (rays.camera.width, rays.camera.height);
         let ty = row * TILE;
@@ -572,8 +584,13 @@ impl TetRaycaster {
             unsafe { self.cast_strip(&tiles, &mut strip) };
             return strip;
         }
+        // SAFETY: `source_lanes_walk` checked AVX2 (the source's queue) and the mesh's size.
+        #[cfg(target_arch = "x86_64")]
+        if source_lanes && unsafe { self.cast_source_strip(&tiles, &mut strip) } {
+            return strip;
+        }
         #[cfg(not(target_arch = "x86_64"))]
-        let _ = lanes;
+        let _ = (lanes, source_lanes);
         for StripRay { tile, ray, .. } in &mut strip {
             self.cast(&tiles[*tile], ray);
         }
@@ -1484,6 +1501,93 @@ mod tests {
                 let seen = one.iter().filter(|r| r.ray.acc[3] > 0.05).count();
                 assert!(seen > one.len() / 10, "the view is nearly empty ({seen} rays)");
                 opaque += one.iter().filter(|r| r.ray.acc[3] >= 0.999).count();
+                at_tool += one.iter().filter(|r| r.ray.t_stop.is_finite() && r.ray.acc[3] > 0.05).count();
+                for (a, b) in lanes.iter().zip(&one) {
+                    assert_eq!(a.pixel, b.pixel);
+                    let ((ca, da), (cb, db)) = (a.ray.finish(), b.ray.finish());
+                    let bits = |c: [f32; 4], d: f32| (c.map(f32::to_bits), d.to_bits());
+                    assert_eq!(
+                        bits(ca, da),
+                        bits(cb, db),
+                        "pixel {}: {ca:?} {da} lanes, {cb:?} {db} one by one",
+                        a.pixel
+                    );
+                }
+            }
+        }
+        assert!(opaque > 100 && at_tool > 100, "{opaque} rays turned opaque, {at_tool} met the tool in tissue");
+    }
+
+    /// The source through the mesh walked eight rays side by side gives the one-ray walk's
+    /// picture to the bit: every pixel's colour and depth, the mesh bent (so each tet maps
+    /// its samples its own way), seen from outside (perspective and orthographic) and from
+    /// the air pocket inside the ball, with a tool ending rays in the tissue, a step longer
+    /// than most tets (runs of no samples), tets the source leaves invisible (only their
+    /// first and last samples read), rays turning opaque and a source that ends inside the
+    /// mesh (samples outside it neither add nor make fronts).
+    #[test]
+    fn eight_source_lanes_give_the_one_ray_walks_bits() {
+        let (mesh, _) = ball_in_air();
+        let (volume, params, tf) = shell();
+        let centre = Vector3::repeat(14.0);
+        let bent: Vec<Vector3<f64>> = mesh
+            .nodes()
+            .iter()
+            .map(|p| {
+                p + Vector3::new(0.08 * (p.z - 14.0).powi(2) / 14.0, 0.6 * (0.3 * p.x).sin(), 0.0) * (p - centre).norm()
+                    / 10.0
+            })
+            .collect();
+        let pocket = Vector3::new(0.5, -1.0, 0.7);
+        let cameras = [
+            onto_ball(Vector3::new(-16.0, -22.0, 12.0), Projection::Perspective { fov_y_deg: 30.0 }, [203, 150]),
+            onto_ball(Vector3::new(25.0, -10.0, -18.0), Projection::Orthographic { height: 17.0 }, [120, 97]),
+            onto_ball(pocket, Projection::Perspective { fov_y_deg: 70.0 }, [96, 64]),
+        ];
+        let tool = ToolPicture { tip: [14.0, 8.0, 14.0], tail: [14.0, -20.0, 14.0], radius: 2.0, color: [0.5; 3] };
+        let dense = TransferFunction {
+            points: tf.points.iter().map(|p| TfPoint { opacity: p.opacity * 6.0, ..*p }).collect(),
+            ..tf.clone()
+        };
+        // The shell's lower 40 of 57 slices: its top (z > 19.5 mm) lies in the mesh.
+        let slices = 57 * 57 * 40;
+        let lower = Volume::new(
+            [57, 57, 40],
+            [0.5; 3],
+            [0.0; 3],
+            Matrix3::identity(),
+            volume.data()[..slices].to_vec(),
+            "lower",
+        );
+        let lower = Arc::new(lower.unwrap());
+        let scenes = [
+            (&volume, tf.clone(), params.clone()),
+            (&volume, tf.clone(), RaycastParams { tools: vec![tool], ..params.clone() }),
+            (&volume, tf.clone(), RaycastParams { step: 2.5, ..params.clone() }),
+            (&volume, dense, RaycastParams { early_termination: 0.95, ..params.clone() }),
+            (&lower, tf.clone(), params.clone()),
+        ];
+        let (mut opaque, mut at_tool) = (0, 0);
+        for (volume, tf, params) in scenes {
+            let sampling = SourceSampling::default();
+            let mut raycaster = TetRaycaster::with_source(&mesh, volume.clone(), &tf, &params, &sampling).unwrap();
+            raycaster.update(&bent).unwrap();
+            if !raycaster.source_lanes_walk() {
+                eprintln!("skipped: no AVX2 on this CPU");
+                return;
+            }
+            for camera in &cameras {
+                let cast_all = |lanes: bool| {
+                    let bins =
+                        bin_boundary(&raycaster.tets, &raycaster.first_faces(camera), &raycaster.positions, camera);
+                    let rays = camera.rays();
+                    let strips = (0..bins.tiles[1]).map(|row| raycaster.cast_strip_rays(&bins, &rays, row, lanes));
+                    strips.flatten().collect::<Vec<_>>()
+                };
+                let (lanes, one) = (cast_all(true), cast_all(false));
+                let seen = one.iter().filter(|r| r.ray.acc[3] > 0.05).count();
+                assert!(seen > one.len() / 10, "the view is nearly empty ({seen} rays)");
+                opaque += one.iter().filter(|r| r.ray.acc[3] >= 0.95).count();
                 at_tool += one.iter().filter(|r| r.ray.t_stop.is_finite() && r.ray.acc[3] > 0.05).count();
                 for (a, b) in lanes.iter().zip(&one) {
                     assert_eq!(a.pixel, b.pixel);

@@ -139,7 +139,7 @@ impl TetRaycaster {
         // idle lane's the last it walked, or 0 before it walked: tets exist while any lane
         // is busy), at most LANES_MAX_TETS, so its floats' i32 indices lie in the geometry.
         let at = |k: i32| unsafe { _mm256_i32gather_ps::<4>(floats, _mm256_add_epi32(base, _mm256_set1_epi32(k))) };
-        let (t_exit, exit_k) = exit8(&at, w);
+        let (t_exit, exit_k) = exit8(&at, &w.o, &w.d, w.face);
         let none = _mm256_castsi256_ps(_mm256_cmpeq_epi32(exit_k, _mm256_set1_epi32(NO_FACE as i32)));
         // ahead(): no earlier than t_in, no later than t_stop.
         let t = _mm256_blendv_ps(w.t_in, t_exit, _mm256_cmp_ps::<_CMP_GT_OQ>(t_exit, w.t_in));
@@ -192,7 +192,7 @@ impl TetRaycaster {
             let back = _mm256_add_ps(w.s_in, _mm256_sub_ps(s_out, w.s_in));
             let e = tet_segment8(&self.table, w.s_in, back, len);
             let t_mid = _mm256_add_ps(w.t_in, _mm256_mul_ps(_mm256_set1_ps(0.5), len));
-            composite8(w, short, e, t_mid);
+            composite8(&mut w.acc, &mut w.depth, short, e, t_mid);
         }
         let long = _mm256_movemask_ps(_mm256_and_ps(seen, _mm256_cmp_ps::<_CMP_GT_OQ>(len, max_len)));
         if long != 0 {
@@ -221,10 +221,11 @@ impl TetRaycaster {
 
 /// `exit_face` in every lane: the face other than the entry face the ray moves out
 /// through (denominator above 1e-7) with the smallest ray parameter, the first of equals;
-/// [`NO_FACE`] where none lies ahead. `at(k)`: float k of each lane's geometry.
+/// [`NO_FACE`] where none lies ahead. `at(k)`: float k of each lane's geometry; `o`, `d`
+/// the lanes' rays, `face` their entry faces.
 #[inline]
 #[target_feature(enable = "avx2")]
-fn exit8(at: &impl Fn(i32) -> __m256, w: &Walk8) -> (__m256, __m256i) {
+pub(crate) fn exit8(at: &impl Fn(i32) -> __m256, o: &[__m256; 3], d: &[__m256; 3], face: __m256i) -> (__m256, __m256i) {
     let mut best_t = _mm256_set1_ps(f32::INFINITY);
     let mut best_k = _mm256_set1_epi32(NO_FACE as i32);
     for k in 0..4 {
@@ -237,10 +238,10 @@ fn exit8(at: &impl Fn(i32) -> __m256, w: &Walk8) -> (__m256, __m256i) {
                 _mm256_mul_ps(p[2], v[2]),
             )
         };
-        let denom = dot(&w.d);
-        let t = _mm256_div_ps(_mm256_sub_ps(p[3], dot(&w.o)), denom);
+        let denom = dot(d);
+        let t = _mm256_div_ps(_mm256_sub_ps(p[3], dot(o)), denom);
         let k = _mm256_set1_epi32(k);
-        let entry = _mm256_castsi256_ps(_mm256_cmpeq_epi32(w.face, k));
+        let entry = _mm256_castsi256_ps(_mm256_cmpeq_epi32(face, k));
         let ahead = _mm256_andnot_ps(entry, _mm256_cmp_ps::<_CMP_GT_OQ>(denom, _mm256_set1_ps(1e-7)));
         let better = _mm256_and_ps(ahead, _mm256_cmp_ps::<_CMP_LT_OQ>(t, best_t));
         best_t = _mm256_blendv_ps(best_t, t, better);
@@ -259,18 +260,18 @@ fn scalar8(at: &impl Fn(i32) -> __m256, w: &Walk8, t: __m256) -> __m256 {
 }
 
 /// `composite` in the lanes of `mask`: the entry `e` (four channels) behind what each has
-/// gathered, the depth where opacity first passes 0.5.
+/// gathered (`acc`), the `depth` where opacity first passes 0.5.
 #[inline]
 #[target_feature(enable = "avx2")]
-fn composite8(w: &mut Walk8, mask: __m256, e: [__m256; 4], t_mid: __m256) {
-    let weight = _mm256_sub_ps(_mm256_set1_ps(1.0), w.acc[3]);
-    for (acc, e) in w.acc.iter_mut().zip(e) {
+pub(crate) fn composite8(acc: &mut [__m256; 4], depth: &mut __m256, mask: __m256, e: [__m256; 4], t_mid: __m256) {
+    let weight = _mm256_sub_ps(_mm256_set1_ps(1.0), acc[3]);
+    for (acc, e) in acc.iter_mut().zip(e) {
         *acc = _mm256_blendv_ps(*acc, _mm256_add_ps(*acc, _mm256_mul_ps(weight, e)), mask);
     }
     let unset =
-        _mm256_cmp_ps::<_CMP_EQ_OQ>(_mm256_andnot_ps(_mm256_set1_ps(-0.0), w.depth), _mm256_set1_ps(f32::INFINITY));
-    let half = _mm256_cmp_ps::<_CMP_GE_OQ>(w.acc[3], _mm256_set1_ps(0.5));
-    w.depth = _mm256_blendv_ps(w.depth, t_mid, _mm256_and_ps(mask, _mm256_and_ps(unset, half)));
+        _mm256_cmp_ps::<_CMP_EQ_OQ>(_mm256_andnot_ps(_mm256_set1_ps(-0.0), *depth), _mm256_set1_ps(f32::INFINITY));
+    let half = _mm256_cmp_ps::<_CMP_GE_OQ>(acc[3], _mm256_set1_ps(0.5));
+    *depth = _mm256_blendv_ps(*depth, t_mid, _mm256_and_ps(mask, _mm256_and_ps(unset, half)));
 }
 
 impl Lanes {

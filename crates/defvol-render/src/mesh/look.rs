@@ -217,8 +217,24 @@ impl SourceLook {
 
     /// A ray from anchored `o` along `d` entering the mesh at `t0`.
     pub(crate) fn march(&self, o: &V3, d: &V3, t0: f32) -> March<'_> {
+        March { queue: self.queue(), ..self.march_without_queue(o, d, t0) }
+    }
+
+    /// A march already `k` samples past `t0` (`front`: the last one's value, where it lay
+    /// in the source), without a queue: what the eight-lane walk hands to [`Self::finish`].
+    pub(crate) fn resumed(&self, o: &V3, d: &V3, t0: f32, k: u32, front: Option<f32>) -> March<'_> {
+        March { k, front, queue: None, ..self.march_without_queue(o, d, t0) }
+    }
+
+    fn march_without_queue(&self, o: &V3, d: &V3, t0: f32) -> March<'_> {
         let light = self.params.light.map_or(-d, |l| Vector3::from(l).normalize().cast::<f32>());
-        March { o: *o, d: *d, light, t0, k: 0, front: None, queue: self.queue() }
+        March { o: *o, d: *d, light, t0, k: 0, front: None, queue: None }
+    }
+
+    /// Whether rays may walk eight at a time through this source (`super::source_lanes`):
+    /// where the queue serves (trilinear, undisplaced, unshaded, AVX2) and pre-integrated.
+    pub(crate) fn lanes_serve(&self) -> bool {
+        self.params.preintegrated && self.queue().is_some()
     }
 
     /// An empty queue where its samples serve: trilinear, undisplaced, unshaded, AVX2.

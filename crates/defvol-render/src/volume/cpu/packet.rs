@@ -481,7 +481,7 @@ unsafe fn interpolate8(tables: &Tables, table: &[[f32; 4]], s: __m256) -> [__m25
 /// The pre-integrated table must hold `PREINTEGRATED_SIZE`² entries.
 #[inline]
 #[target_feature(enable = "avx2")]
-unsafe fn segment8(tables: &Tables, front: __m256, back: __m256) -> [__m256; 4] {
+pub(crate) unsafe fn segment8(tables: &Tables, front: __m256, back: __m256) -> [__m256; 4] {
     // SAFETY: the caller's.
     channels(unsafe { segment8_entries(tables, front, back) })
 }
