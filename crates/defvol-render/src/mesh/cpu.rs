@@ -1490,29 +1490,9 @@ mod tests {
                 return;
             }
             for camera in &cameras {
-                let cast_all = |lanes: bool| {
-                    let bins =
-                        bin_boundary(&raycaster.tets, &raycaster.first_faces(camera), &raycaster.positions, camera);
-                    let rays = camera.rays();
-                    let strips = (0..bins.tiles[1]).map(|row| raycaster.cast_strip_rays(&bins, &rays, row, lanes));
-                    strips.flatten().collect::<Vec<_>>()
-                };
-                let (lanes, one) = (cast_all(true), cast_all(false));
-                let seen = one.iter().filter(|r| r.ray.acc[3] > 0.05).count();
-                assert!(seen > one.len() / 10, "the view is nearly empty ({seen} rays)");
+                let one = lanes_against_one_ray(&raycaster, camera);
                 opaque += one.iter().filter(|r| r.ray.acc[3] >= 0.999).count();
                 at_tool += one.iter().filter(|r| r.ray.t_stop.is_finite() && r.ray.acc[3] > 0.05).count();
-                for (a, b) in lanes.iter().zip(&one) {
-                    assert_eq!(a.pixel, b.pixel);
-                    let ((ca, da), (cb, db)) = (a.ray.finish(), b.ray.finish());
-                    let bits = |c: [f32; 4], d: f32| (c.map(f32::to_bits), d.to_bits());
-                    assert_eq!(
-                        bits(ca, da),
-                        bits(cb, db),
-                        "pixel {}: {ca:?} {da} lanes, {cb:?} {db} one by one",
-                        a.pixel
-                    );
-                }
             }
         }
         assert!(opaque > 100 && at_tool > 100, "{opaque} rays turned opaque, {at_tool} met the tool in tissue");
@@ -1577,32 +1557,34 @@ mod tests {
                 return;
             }
             for camera in &cameras {
-                let cast_all = |lanes: bool| {
-                    let bins =
-                        bin_boundary(&raycaster.tets, &raycaster.first_faces(camera), &raycaster.positions, camera);
-                    let rays = camera.rays();
-                    let strips = (0..bins.tiles[1]).map(|row| raycaster.cast_strip_rays(&bins, &rays, row, lanes));
-                    strips.flatten().collect::<Vec<_>>()
-                };
-                let (lanes, one) = (cast_all(true), cast_all(false));
-                let seen = one.iter().filter(|r| r.ray.acc[3] > 0.05).count();
-                assert!(seen > one.len() / 10, "the view is nearly empty ({seen} rays)");
+                let one = lanes_against_one_ray(&raycaster, camera);
                 opaque += one.iter().filter(|r| r.ray.acc[3] >= 0.95).count();
                 at_tool += one.iter().filter(|r| r.ray.t_stop.is_finite() && r.ray.acc[3] > 0.05).count();
-                for (a, b) in lanes.iter().zip(&one) {
-                    assert_eq!(a.pixel, b.pixel);
-                    let ((ca, da), (cb, db)) = (a.ray.finish(), b.ray.finish());
-                    let bits = |c: [f32; 4], d: f32| (c.map(f32::to_bits), d.to_bits());
-                    assert_eq!(
-                        bits(ca, da),
-                        bits(cb, db),
-                        "pixel {}: {ca:?} {da} lanes, {cb:?} {db} one by one",
-                        a.pixel
-                    );
-                }
             }
         }
         assert!(opaque > 100 && at_tool > 100, "{opaque} rays turned opaque, {at_tool} met the tool in tissue");
+    }
+
+    /// Every ray of `camera` cast by `raycaster` eight lanes at a time and one by one: each
+    /// pixel's colour and depth the same to the bit, in a view that is not nearly empty.
+    /// The rays cast one by one, to count what the scene exercised.
+    fn lanes_against_one_ray(raycaster: &TetRaycaster, camera: &Camera) -> Vec<StripRay> {
+        let cast_all = |lanes: bool| {
+            let bins = bin_boundary(&raycaster.tets, &raycaster.first_faces(camera), &raycaster.positions, camera);
+            let rays = camera.rays();
+            let strips = (0..bins.tiles[1]).map(|row| raycaster.cast_strip_rays(&bins, &rays, row, lanes));
+            strips.flatten().collect::<Vec<_>>()
+        };
+        let (lanes, one) = (cast_all(true), cast_all(false));
+        let seen = one.iter().filter(|r| r.ray.acc[3] > 0.05).count();
+        assert!(seen > one.len() / 10, "the view is nearly empty ({seen} rays)");
+        for (a, b) in lanes.iter().zip(&one) {
+            assert_eq!(a.pixel, b.pixel);
+            let ((ca, da), (cb, db)) = (a.ray.finish(), b.ray.finish());
+            let bits = |c: [f32; 4], d: f32| (c.map(f32::to_bits), d.to_bits());
+            assert_eq!(bits(ca, da), bits(cb, db), "pixel {}: {ca:?} {da} lanes, {cb:?} {db} one by one", a.pixel);
+        }
+        one
     }
 
     /// `mesh` with its tets listed in a random order.
