@@ -139,17 +139,9 @@ impl TetRaycaster {
         // idle lane's the last it walked, or 0 before it walked: tets exist while any lane
         // is busy), at most LANES_MAX_TETS, so its floats' i32 indices lie in the geometry.
         let at = |k: i32| unsafe { _mm256_i32gather_ps::<4>(floats, _mm256_add_epi32(base, _mm256_set1_epi32(k))) };
-        let (t_exit, exit_k) = exit8(&at, &w.o, &w.d, w.face);
-        let none = _mm256_castsi256_ps(_mm256_cmpeq_epi32(exit_k, _mm256_set1_epi32(NO_FACE as i32)));
-        // ahead(): no earlier than t_in, no later than t_stop.
-        let t = _mm256_blendv_ps(w.t_in, t_exit, _mm256_cmp_ps::<_CMP_GT_OQ>(t_exit, w.t_in));
-        let t_out = _mm256_blendv_ps(w.t_stop, t, _mm256_cmp_ps::<_CMP_LT_OQ>(t, w.t_stop));
-        let len = _mm256_sub_ps(t_out, w.t_in);
-        let abs_in = _mm256_andnot_ps(_mm256_set1_ps(-0.0), w.t_in);
-        let slack = _mm256_mul_ps(_mm256_set1_ps(1e-6), _mm256_add_ps(_mm256_set1_ps(1.0), abs_in));
-        let still = _mm256_castps_si256(_mm256_cmp_ps::<_CMP_LE_OQ>(len, slack));
-        w.stalled = _mm256_and_si256(still, _mm256_sub_epi32(w.stalled, still));
-        let stall = _mm256_castsi256_ps(_mm256_cmpgt_epi32(w.stalled, _mm256_set1_epi32(MAX_STALL as i32)));
+        let Leave8 { t_out, len, exit: exit_k, none, stalled, stall } =
+            leave8(&at, (&w.o, &w.d), w.face, (w.t_in, w.t_stop), w.stalled);
+        w.stalled = stalled;
         let s_out = scalar8(&at, w, t_out);
         let go = _mm256_andnot_ps(_mm256_or_ps(none, stall), w.busy);
         self.cross8(w, go, (len, t_out), s_out);
@@ -219,13 +211,52 @@ impl TetRaycaster {
     }
 }
 
-/// `exit_face` in every lane: the face other than the entry face the ray moves out
-/// through (denominator above 1e-7) with the smallest ray parameter, the first of equals;
-/// [`NO_FACE`] where none lies ahead. `at(k)`: float k of each lane's geometry; `o`, `d`
+/// Where each lane's ray leaves its tet, as `walk_steps` works it out lane by lane.
+pub(crate) struct Leave8 {
+    /// `ahead(t_exit, t_in, t_stop)`, and `t_out - t_in`.
+    pub(crate) t_out: __m256,
+    pub(crate) len: __m256,
+    /// The exit face, [`NO_FACE`] where none lies ahead (`none`).
+    pub(crate) exit: __m256i,
+    pub(crate) none: __m256,
+    /// The stall count after this step (steps in a row that moved no further), and where it
+    /// passed [`MAX_STALL`].
+    pub(crate) stalled: __m256i,
+    pub(crate) stall: __m256,
+}
+
+/// The exit ([`exit8`]), its clamp between `t_in` and `t_stop` and the stall count from
+/// `stalled` in every lane: [`Leave8`]. `at(k)`: float k of each lane's geometry; `o`, `d`
 /// the lanes' rays, `face` their entry faces.
 #[inline]
 #[target_feature(enable = "avx2")]
-pub(crate) fn exit8(at: &impl Fn(i32) -> __m256, o: &[__m256; 3], d: &[__m256; 3], face: __m256i) -> (__m256, __m256i) {
+pub(crate) fn leave8(
+    at: &impl Fn(i32) -> __m256,
+    (o, d): (&[__m256; 3], &[__m256; 3]),
+    face: __m256i,
+    (t_in, t_stop): (__m256, __m256),
+    stalled: __m256i,
+) -> Leave8 {
+    let (t_exit, exit) = exit8(at, o, d, face);
+    let none = _mm256_castsi256_ps(_mm256_cmpeq_epi32(exit, _mm256_set1_epi32(NO_FACE as i32)));
+    // ahead(): no earlier than t_in, no later than t_stop.
+    let t = _mm256_blendv_ps(t_in, t_exit, _mm256_cmp_ps::<_CMP_GT_OQ>(t_exit, t_in));
+    let t_out = _mm256_blendv_ps(t_stop, t, _mm256_cmp_ps::<_CMP_LT_OQ>(t, t_stop));
+    let len = _mm256_sub_ps(t_out, t_in);
+    let abs_in = _mm256_andnot_ps(_mm256_set1_ps(-0.0), t_in);
+    let slack = _mm256_mul_ps(_mm256_set1_ps(1e-6), _mm256_add_ps(_mm256_set1_ps(1.0), abs_in));
+    let still = _mm256_castps_si256(_mm256_cmp_ps::<_CMP_LE_OQ>(len, slack));
+    let stalled = _mm256_and_si256(still, _mm256_sub_epi32(stalled, still));
+    let stall = _mm256_castsi256_ps(_mm256_cmpgt_epi32(stalled, _mm256_set1_epi32(MAX_STALL as i32)));
+    Leave8 { t_out, len, exit, none, stalled, stall }
+}
+
+/// `exit_face` in every lane: the face other than the entry face the ray moves out
+/// through (denominator above 1e-7) with the smallest ray parameter, the first of equals;
+/// [`NO_FACE`] where none lies ahead.
+#[inline]
+#[target_feature(enable = "avx2")]
+fn exit8(at: &impl Fn(i32) -> __m256, o: &[__m256; 3], d: &[__m256; 3], face: __m256i) -> (__m256, __m256i) {
     let mut best_t = _mm256_set1_ps(f32::INFINITY);
     let mut best_k = _mm256_set1_epi32(NO_FACE as i32);
     for k in 0..4 {

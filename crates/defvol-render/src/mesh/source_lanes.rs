@@ -12,11 +12,11 @@ use std::arch::x86_64::*;
 
 use defvol_core::volume::lanes::{CellLookup, Trilinear8};
 
-use super::cpu::{StripRay, TetRaycaster, MAX_STALL, MAX_WALK, NO_FACE};
+use super::cpu::{StripRay, TetRaycaster, MAX_WALK};
 use super::entry::TileFaces;
 use super::field::V3;
 use super::geometry::TetGeometry;
-use super::lanes::{composite8, exit8};
+use super::lanes::{composite8, leave8};
 use super::look::{SourceLook, TetMap, EDGE_TOLERANCE};
 use crate::volume::packet::{lanes_i32, load, load_i32, segment8, store};
 
@@ -278,23 +278,13 @@ impl TetRaycaster {
         // idle lane's the last it walked, or 0 before it walked: tets exist while any lane
         // is busy), at most LANES_MAX_TETS, so its floats' i32 indices lie in the geometry.
         let at = |k: i32| unsafe { _mm256_i32gather_ps::<4>(floats, _mm256_add_epi32(base, _mm256_set1_epi32(k))) };
-        let (t_exit, exit_k) = exit8(&at, &w.o, &w.d, w.face);
-        let none =
-            _mm256_and_ps(entering, _mm256_castsi256_ps(_mm256_cmpeq_epi32(exit_k, _mm256_set1_epi32(NO_FACE as i32))));
-        // ahead(): no earlier than t_in, no later than t_stop.
-        let t = _mm256_blendv_ps(w.t_in, t_exit, _mm256_cmp_ps::<_CMP_GT_OQ>(t_exit, w.t_in));
-        let t_out = _mm256_blendv_ps(w.t_stop, t, _mm256_cmp_ps::<_CMP_LT_OQ>(t, w.t_stop));
-        let len = _mm256_sub_ps(t_out, w.t_in);
-        let abs_in = _mm256_andnot_ps(_mm256_set1_ps(-0.0), w.t_in);
-        let slack = _mm256_mul_ps(_mm256_set1_ps(1e-6), _mm256_add_ps(_mm256_set1_ps(1.0), abs_in));
-        let still = _mm256_castps_si256(_mm256_cmp_ps::<_CMP_LE_OQ>(len, slack));
-        let stalled = _mm256_and_si256(still, _mm256_sub_epi32(w.stalled, still));
+        let leave = leave8(&at, (&w.o, &w.d), w.face, (w.t_in, w.t_stop), w.stalled);
+        let (t_out, exit_k) = (leave.t_out, leave.exit);
+        let none = _mm256_and_ps(entering, leave.none);
+        // Only the lanes entering a tet count its step.
         let entering_i = _mm256_castps_si256(_mm256_andnot_ps(none, entering));
-        w.stalled = _mm256_blendv_epi8(w.stalled, stalled, entering_i);
-        let stall = _mm256_and_ps(
-            _mm256_castsi256_ps(entering_i),
-            _mm256_castsi256_ps(_mm256_cmpgt_epi32(w.stalled, _mm256_set1_epi32(MAX_STALL as i32))),
-        );
+        w.stalled = _mm256_blendv_epi8(w.stalled, leave.stalled, entering_i);
+        let stall = _mm256_and_ps(_mm256_castsi256_ps(entering_i), leave.stall);
         let into = _mm256_andnot_ps(stall, _mm256_castsi256_ps(entering_i));
         w.t_out = _mm256_blendv_ps(w.t_out, t_out, _mm256_or_ps(into, stall));
         w.exit = _mm256_blendv_epi8(w.exit, _mm256_and_si256(exit_k, _mm256_set1_epi32(3)), _mm256_castps_si256(into));
