@@ -690,6 +690,25 @@ impl TetRaycaster {
         Some(start)
     }
 
+    /// The strip's next ray from `*next` on that enters the mesh (`rays[k]`) and where its
+    /// walk starts; those passed over are finished as they are.
+    pub(crate) fn next_entering(
+        &self,
+        tiles: &[TileFaces],
+        rays: &mut [StripRay],
+        next: &mut usize,
+    ) -> Option<(usize, (u32, u32, f32))> {
+        while *next < rays.len() {
+            let k = *next;
+            *next += 1;
+            let StripRay { tile, ray, .. } = &mut rays[k];
+            if let Some(start) = self.next_start(&tiles[*tile], ray) {
+                return Some((k, start));
+            }
+        }
+        None
+    }
+
     /// A walk stopped at `t`: whether the ray may enter the mesh again.
     pub(crate) fn walked_to(&self, ray: &mut Ray, t: f32) -> bool {
         ray.t_from = t;

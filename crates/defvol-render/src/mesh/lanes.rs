@@ -99,24 +99,18 @@ impl TetRaycaster {
     /// finished as they are); the lane idles when none is left.
     fn take_ray(&self, tiles: &[TileFaces], rays: &mut [StripRay], lanes: &mut Lanes, lane: usize, next: &mut usize) {
         lanes.busy[lane] = false;
-        while *next < rays.len() {
-            let k = *next;
-            *next += 1;
-            let StripRay { tile, ray, .. } = &mut rays[k];
-            if let Some(start) = self.next_start(&tiles[*tile], ray) {
-                lanes.ray[lane] = k;
-                for c in 0..3 {
-                    (lanes.o[c][lane], lanes.d[c][lane]) = (ray.o[c], ray.d[c]);
-                }
-                lanes.t_stop[lane] = ray.t_stop;
-                for c in 0..4 {
-                    lanes.acc[c][lane] = ray.acc[c];
-                }
-                lanes.depth[lane] = ray.depth;
-                self.start_walk(lanes, lane, start);
-                return;
-            }
+        let Some((k, start)) = self.next_entering(tiles, rays, next) else { return };
+        let ray = &rays[k].ray;
+        lanes.ray[lane] = k;
+        for c in 0..3 {
+            (lanes.o[c][lane], lanes.d[c][lane]) = (ray.o[c], ray.d[c]);
         }
+        lanes.t_stop[lane] = ray.t_stop;
+        for c in 0..4 {
+            lanes.acc[c][lane] = ray.acc[c];
+        }
+        lanes.depth[lane] = ray.depth;
+        self.start_walk(lanes, lane, start);
     }
 
     /// Starts a walk in `lane` at (tet, entry face, t).

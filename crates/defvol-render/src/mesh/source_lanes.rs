@@ -178,25 +178,19 @@ impl TetRaycaster {
         next: &mut usize,
     ) {
         set_mask(&mut w.busy, lane, false);
-        while *next < rays.len() {
-            let k = *next;
-            *next += 1;
-            let StripRay { tile, ray, .. } = &mut rays[k];
-            if let Some(start) = self.next_start(&tiles[*tile], ray) {
-                ray_of[lane] = k;
-                for c in 0..3 {
-                    set(&mut w.o[c], lane, ray.o[c]);
-                    set(&mut w.d[c], lane, ray.d[c]);
-                }
-                set(&mut w.t_stop, lane, ray.t_stop);
-                for c in 0..4 {
-                    set(&mut w.acc[c], lane, ray.acc[c]);
-                }
-                set(&mut w.depth, lane, ray.depth);
-                start_walk(w, lane, start);
-                return;
-            }
+        let Some((k, start)) = self.next_entering(tiles, rays, next) else { return };
+        let ray = &rays[k].ray;
+        ray_of[lane] = k;
+        for c in 0..3 {
+            set(&mut w.o[c], lane, ray.o[c]);
+            set(&mut w.d[c], lane, ray.d[c]);
         }
+        set(&mut w.t_stop, lane, ray.t_stop);
+        for c in 0..4 {
+            set(&mut w.acc[c], lane, ray.acc[c]);
+        }
+        set(&mut w.depth, lane, ray.depth);
+        start_walk(w, lane, start);
     }
 
     /// [`super::look::SourceLook::finish`] for a lane that left the mesh or met a tool at
