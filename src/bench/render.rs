@@ -258,12 +258,12 @@ fn export_case(dir: &std::path::Path, work: &VolumeWork, reference: &[[f64; 4]])
 
 /// The phantom bent through a `target`-tet lattice at each size and step: per frame (the
 /// mesh moving every frame, between the bend and 95 % of it) the source through the mesh
-/// (update + frame) and the warp + volume raycast it replaces (the whole volume warped,
-/// then a frame), on the CPU and on the GPU when asked; PSNR of the last frame (the full
-/// bend) against the f64 reference that maps each sample exactly. The CPU source row's
-/// `vs_volume_raycast` is the median of its frames' times over a volume raycaster frame
-/// after each (the source, pre-integrated, the same step and camera): the figure the source
-/// path is held to.
+/// (update + frame; pre-integrated and point sampled) and the warp + volume raycast it
+/// replaces (the whole volume warped, then a frame), on the CPU and on the GPU when asked;
+/// PSNR of the last frame (the full bend) against the f64 reference that maps each sample
+/// exactly. The CPU source rows' `vs_volume_raycast` is the median of their frames' times
+/// over a volume raycaster frame after each (the source, the same sampling, step and
+/// camera): the figure the source path is held to.
 fn source_rows(
     source: &Volume,
     target: usize,
@@ -315,33 +315,39 @@ fn source_rows(
             // The volume raycaster's tables over the source's values (0.1-0.4 s each), made
             // once for the source row's paired frames and the warped volumes alike.
             let tables = Arc::new(VolumeRaycaster::tables_for(source.range(), tf, &params)?);
+            let point = RaycastParams { preintegrated: false, ..params.clone() };
+            let point_tables = Arc::new(VolumeRaycaster::tables_for(source.range(), tf, &point)?);
             for (backend, device) in &backends {
                 let frames = [&less, &bent];
-                // The source through the mesh.
-                let prepared =
-                    TetRaycaster::with_source(&rest, shared.clone(), tf, &params, &SourceSampling::default())?;
-                let mut mesh = MeshRenderer::new(backend, prepared, 1.0).map_err(|e| setup(&e))?;
-                let on = mesh.runs_on();
-                let mut frame = |k: usize| -> Result<crate::render::Rendered, RenderBenchError> {
-                    mesh.update(frames[k % 2]).map_err(|e| setup(&e))?;
-                    mesh.render(&[], &camera).map_err(|e| setup(&e))
-                };
-                if on == RunsOn::Cpu {
-                    // Held to the volume raycaster on the source at the same settings, a frame
-                    // of it after each of this row's.
-                    let volume = VolumeRaycaster::with_tables(source, tables.clone(), &params)?;
-                    let mut against = || volume.render(&camera).map(|_| ()).map_err(RenderBenchError::from);
-                    let (image, samples, ratios) = timed_against(opts.runs, &mut frame, &mut against)?;
-                    let mut row =
-                        source_row(&case(size), on, device, "source_through_mesh", step, samples, &image, &reference);
-                    row.params["vs_volume_raycast"] = json!(time_stats(ratios.clone()).median);
-                    row.params["vs_volume_raycast_pairs"] = json!(ratios);
-                    emit(&row);
-                } else {
-                    let (image, samples, cost) = timed(opts.runs, (backend, on), &mut frame)?;
-                    let row =
-                        source_row(&case(size), on, device, "source_through_mesh", step, samples, &image, &reference);
-                    emit(&BenchRow { gpu: cost, ..row });
+                // The source through the mesh, pre-integrated and point sampled.
+                for preintegrated in [true, false] {
+                    let params = RaycastParams { preintegrated, ..params.clone() };
+                    let prepared =
+                        TetRaycaster::with_source(&rest, shared.clone(), tf, &params, &SourceSampling::default())?;
+                    let mut mesh = MeshRenderer::new(backend, prepared, 1.0).map_err(|e| setup(&e))?;
+                    let on = mesh.runs_on();
+                    let mut frame = |k: usize| -> Result<crate::render::Rendered, RenderBenchError> {
+                        mesh.update(frames[k % 2]).map_err(|e| setup(&e))?;
+                        mesh.render(&[], &camera).map_err(|e| setup(&e))
+                    };
+                    let row = |samples, image: &_| {
+                        source_row(&case(size), on, device, "source_through_mesh", &params, samples, image, &reference)
+                    };
+                    if on == RunsOn::Cpu {
+                        // Held to the volume raycaster on the source at the same settings, a
+                        // frame of it after each of this row's.
+                        let tables = if preintegrated { &tables } else { &point_tables };
+                        let volume = VolumeRaycaster::with_tables(source, tables.clone(), &params)?;
+                        let mut against = || volume.render(&camera).map(|_| ()).map_err(RenderBenchError::from);
+                        let (image, samples, ratios) = timed_against(opts.runs, &mut frame, &mut against)?;
+                        let mut row = row(samples, &image);
+                        row.params["vs_volume_raycast"] = json!(time_stats(ratios.clone()).median);
+                        row.params["vs_volume_raycast_pairs"] = json!(ratios);
+                        emit(&row);
+                    } else {
+                        let (image, samples, cost) = timed(opts.runs, (backend, on), &mut frame)?;
+                        emit(&BenchRow { gpu: cost, ..row(samples, &image) });
+                    }
                 }
                 // Warp + volume raycast: onto the source's spacing (what the node does),
                 // and onto half of it (what it takes to come near the source's accuracy).
@@ -396,7 +402,7 @@ fn source_rows(
                         }
                     };
                     let (image, samples, cost) = timed(opts.runs, (backend, on), &mut frame)?;
-                    let row = source_row(&case(size), on, device, mode, step, samples, &image, &reference);
+                    let row = source_row(&case(size), on, device, mode, &params, samples, &image, &reference);
                     emit(&BenchRow { gpu: cost, ..row });
                 }
             }
@@ -469,7 +475,7 @@ fn source_row(
     backend: RunsOn,
     device: &str,
     mode: &str,
-    step: f64,
+    params: &RaycastParams,
     samples: Vec<f64>,
     image: &crate::render::Rendered,
     reference: &[[f64; 4]],
@@ -486,7 +492,7 @@ fn source_row(
         ),
         backend: backend.name().into(),
         device: device.into(),
-        params: json!({"mode": mode, "step_mm": step, "preintegrated": true, "shading": "none", "tf": "ct_soft_tissue", "includes_readback": true, "every_frame_moves_the_mesh": true}),
+        params: json!({"mode": mode, "step_mm": params.step, "preintegrated": params.preintegrated, "shading": "none", "tf": "ct_soft_tissue", "includes_readback": true, "every_frame_moves_the_mesh": true}),
         runs: samples.len(),
         time_ms: time_stats(samples),
         error: Some(ErrorMeasure {

@@ -968,8 +968,9 @@ fn an_exported_render_case_rebuilds_the_same_camera_and_arrays() {
 }
 
 /// `bench render` holds the source through the mesh to the volume raycaster frame by frame:
-/// the CPU source row's `vs_volume_raycast` is the median of its frames' ratios to a volume
-/// raycaster frame after each (one a frame, all positive), and no other row carries one.
+/// each CPU source row's (pre-integrated, point sampled) `vs_volume_raycast` is the median of
+/// its frames' ratios to a volume raycaster frame after each (one a frame, all positive),
+/// and no other row carries one.
 #[test]
 fn the_source_rows_ratio_is_the_median_of_its_frames_against_the_volume_raycaster() {
     use defvol::bench::render::{self as bench_render, RenderBenchOptions};
@@ -987,13 +988,15 @@ fn the_source_rows_ratio_is_the_median_of_its_frames_against_the_volume_raycaste
     let mut rows = Vec::new();
     bench_render::run(&opts, |row| rows.push((row.case.clone(), row.params.clone(), row.runs))).unwrap();
     let with_ratio: Vec<_> = rows.iter().filter(|(_, p, _)| p.get("vs_volume_raycast").is_some()).collect();
-    assert_eq!(with_ratio.len(), 1, "{rows:?}");
-    let (case, params, runs) = with_ratio[0];
-    assert!(case.ends_with(" source") && params["mode"] == "source_through_mesh", "{case}");
-    let mut pairs: Vec<f64> =
-        params["vs_volume_raycast_pairs"].as_array().unwrap().iter().map(|r| r.as_f64().unwrap()).collect();
-    assert_eq!(pairs.len(), *runs, "{params}");
-    assert!(pairs.iter().all(|r| r.is_finite() && *r > 0.0), "{pairs:?}");
-    pairs.sort_by(f64::total_cmp);
-    assert_eq!(params["vs_volume_raycast"].as_f64(), Some(pairs[pairs.len() / 2]));
+    let sampling: Vec<_> = with_ratio.iter().map(|(_, p, _)| p["preintegrated"].clone()).collect();
+    assert_eq!(sampling, [serde_json::json!(true), serde_json::json!(false)], "{rows:?}");
+    for (case, params, runs) in with_ratio {
+        assert!(case.ends_with(" source") && params["mode"] == "source_through_mesh", "{case}");
+        let mut pairs: Vec<f64> =
+            params["vs_volume_raycast_pairs"].as_array().unwrap().iter().map(|r| r.as_f64().unwrap()).collect();
+        assert_eq!(pairs.len(), *runs, "{params}");
+        assert!(pairs.iter().all(|r| r.is_finite() && *r > 0.0), "{pairs:?}");
+        pairs.sort_by(f64::total_cmp);
+        assert_eq!(params["vs_volume_raycast"].as_f64(), Some(pairs[pairs.len() / 2]));
+    }
 }

@@ -1518,11 +1518,12 @@ mod tests {
     }
 
     /// The source through the mesh walked eight rays side by side gives the one-ray walk's
-    /// picture to the bit: every pixel's colour and depth, the mesh bent (so each tet maps
-    /// its samples its own way), seen from outside (perspective and orthographic) and from
-    /// the air pocket inside the ball, with a tool ending rays in the tissue, a step longer
-    /// than most tets (runs of no samples), tets the source leaves invisible (only their
-    /// first and last samples read), rays turning opaque and a source that ends inside the
+    /// picture to the bit, pre-integrated and point sampled: every pixel's colour and depth,
+    /// the mesh bent (so each tet maps its samples its own way), seen from outside
+    /// (perspective and orthographic) and from the air pocket inside the ball, with a tool
+    /// ending rays in the tissue, a step longer than most tets (runs of no samples), tets
+    /// the source leaves invisible (pre-integrated, only their first and last samples
+    /// read; point sampled, none), rays turning opaque and a source that ends inside the
     /// mesh (samples outside it neither add nor make fronts).
     #[test]
     fn eight_source_lanes_give_the_one_ray_walks_bits() {
@@ -1559,12 +1560,16 @@ mod tests {
             "lower",
         );
         let lower = Arc::new(lower.unwrap());
+        let point = RaycastParams { preintegrated: false, ..params.clone() };
         let scenes = [
             (&volume, tf.clone(), params.clone()),
             (&volume, tf.clone(), RaycastParams { tools: vec![tool], ..params.clone() }),
             (&volume, tf.clone(), RaycastParams { step: 2.5, ..params.clone() }),
-            (&volume, dense, RaycastParams { early_termination: 0.95, ..params.clone() }),
+            (&volume, dense.clone(), RaycastParams { early_termination: 0.95, ..params.clone() }),
             (&lower, tf.clone(), params.clone()),
+            (&volume, tf.clone(), RaycastParams { tools: vec![tool], ..point.clone() }),
+            (&volume, dense, RaycastParams { step: 2.5, early_termination: 0.95, ..point.clone() }),
+            (&lower, tf.clone(), point),
         ];
         let (mut opaque, mut at_tool) = (0, 0);
         for (volume, tf, params) in scenes {

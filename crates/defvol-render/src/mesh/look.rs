@@ -232,9 +232,9 @@ impl SourceLook {
     }
 
     /// Whether rays may walk eight at a time through this source (`super::source_lanes`):
-    /// where the queue serves (trilinear, undisplaced, unshaded, AVX2) and pre-integrated.
+    /// where the queue serves (trilinear, undisplaced, unshaded, AVX2).
     pub(crate) fn lanes_serve(&self) -> bool {
-        self.params.preintegrated && self.queue().is_some()
+        self.queue().is_some()
     }
 
     /// An empty queue where its samples serve: trilinear, undisplaced, unshaded, AVX2.

@@ -1,5 +1,5 @@
-//! The source seen through the mesh eight rays at a time (AVX2, pre-integrated, where the
-//! one-ray walk's queue serves): each lane its own ray in its own tet, a lane's step one
+//! The source seen through the mesh eight rays at a time (AVX2, pre-integrated or point
+//! sampled, where the one-ray walk's queue serves): each lane its own ray in its own tet, a lane's step one
 //! sample of its ray. The samples' positions, trilinear reads, box test, table lookups and
 //! compositing run once for eight, as the volume raycaster's packets run them; a lane
 //! whose samples in its tet are done walks on to the next tet (exit face, link, the tet's
@@ -18,7 +18,7 @@ use super::field::V3;
 use super::geometry::TetGeometry;
 use super::lanes::{composite8, leave8};
 use super::look::{SourceLook, TetMap, EDGE_TOLERANCE};
-use crate::volume::packet::{lanes_i32, segment8, store};
+use crate::volume::packet::{interpolate8, lanes_i32, segment8, store};
 
 /// Rays side by side.
 const LANES: usize = 8;
@@ -34,7 +34,8 @@ const GEOMETRY_FLOATS: i32 = (std::mem::size_of::<TetGeometry>() / 4) as i32;
 const MAP_FLOATS: i32 = (std::mem::size_of::<TetMap>() / 4) as i32;
 
 /// The lanes' walks, a vector each (lane l in element l). A lane in a tet (`in_tet`) has
-/// its exit `t_out` and its samples there: `first..end` on the ray's grid (`t0 + k·step`),
+/// its exit `t_out` and its samples there: `first..end` on the ray's grid
+/// (`t0 + (k + offset)·step`),
 /// at `base + along·k` in the source; `visible` as the tet's source visibility.
 #[derive(Clone, Copy)]
 struct Walk8 {
@@ -78,6 +79,12 @@ struct Reads<'a> {
     sampler: Trilinear8<'a>,
     /// The source's voxel-centre box's far corner (plus the edge tolerance).
     top: [__m256; 3],
+    /// Pre-integrated segments (the samples from the ray's entry on), else point samples
+    /// (at the middles of their steps).
+    preintegrated: bool,
+    /// Where a sample lies in its step: 0 pre-integrated, ½ point sampled.
+    offset: __m256,
+    step: __m256,
 }
 
 impl TetRaycaster {
@@ -96,7 +103,10 @@ impl TetRaycaster {
         };
         let dims = volume.dims();
         let top = [0, 1, 2].map(|a| _mm256_set1_ps((dims[a] - 1) as f32 + EDGE_TOLERANCE));
-        let reads = Reads { look, sampler, top };
+        let preintegrated = look.params.preintegrated;
+        let offset = _mm256_set1_ps(if preintegrated { 0.0 } else { 0.5 });
+        let step = _mm256_set1_ps(look.params.step as f32);
+        let reads = Reads { look, sampler, top, preintegrated, offset, step };
         let mut w = self.idle_lanes();
         let mut ray_of = [0usize; LANES];
         let mut next = 0;
@@ -224,7 +234,7 @@ impl TetRaycaster {
         let mut ended = Ended { lanes: 0, t: _mm256_setzero_ps(), leaving: 0 };
         let waiting = _mm256_movemask_ps(done).count_ones();
         if waiting >= TET_STEP_LANES || (waiting > 0 && waiting == _mm256_movemask_ps(w.busy).count_ones()) {
-            ended = self.next_tet8(reads.look, w, done);
+            ended = self.next_tet8(reads, w, done);
         }
         let sampling = _mm256_and_ps(w.busy, _mm256_castsi256_ps(_mm256_cmpgt_epi32(w.end, w.k)));
         if _mm256_movemask_ps(sampling) != 0 {
@@ -244,7 +254,7 @@ impl TetRaycaster {
     /// walk ends are no longer busy.
     #[inline]
     #[target_feature(enable = "avx2")]
-    fn next_tet8(&self, look: &SourceLook, w: &mut Walk8, done: __m256) -> Ended {
+    fn next_tet8(&self, reads: &Reads, w: &mut Walk8, done: __m256) -> Ended {
         // Leaving the tet the lane was in: out of the mesh or at a tool, else on.
         let leaving_tet = _mm256_and_ps(done, w.in_tet);
         let links = self.links.as_ptr().cast::<i32>();
@@ -282,7 +292,7 @@ impl TetRaycaster {
         let into = _mm256_andnot_ps(stall, _mm256_castsi256_ps(entering_i));
         w.t_out = _mm256_blendv_ps(w.t_out, t_out, _mm256_or_ps(into, stall));
         w.exit = _mm256_blendv_epi8(w.exit, _mm256_and_si256(exit_k, _mm256_set1_epi32(3)), _mm256_castps_si256(into));
-        self.samples_in8(look, w, into);
+        self.samples_in8(reads, w, into);
         w.in_tet = _mm256_or_ps(w.in_tet, into);
         // Ended: left the mesh or at a tool (t_out, the last segment to add), MAX_WALK
         // tets crossed or no exit (t_in), stalled (t_out).
@@ -294,17 +304,18 @@ impl TetRaycaster {
 
     /// `SourceLook::samples_in` and `SampleLine::end` for the lanes of `into`, just into a
     /// tet: where their samples lie in the source and which fall in the tet, the tet's
-    /// visibility.
+    /// visibility. Point sampled, a tet that is not visible has no samples to read
+    /// (`SourceLook::queue_crossing`).
     #[inline]
     #[target_feature(enable = "avx2")]
-    fn samples_in8(&self, look: &SourceLook, w: &mut Walk8, into: __m256) {
+    fn samples_in8(&self, reads: &Reads, w: &mut Walk8, into: __m256) {
+        let look = reads.look;
         let maps = look.maps.as_ptr().cast::<f32>();
         let base = _mm256_mullo_epi32(w.tet, _mm256_set1_epi32(MAP_FLOATS));
         // SAFETY: as the geometry's in `next_tet8`: a map a tet, 12 floats.
         let at = |k: i32| unsafe { _mm256_i32gather_ps::<4>(maps, _mm256_add_epi32(base, _mm256_set1_epi32(k))) };
-        let step = _mm256_set1_ps(look.params.step as f32);
-        // Pre-integrated: the samples lie on the grid from t0 (offset 0).
-        let first = _mm256_add_ps(w.t0, _mm256_mul_ps(_mm256_setzero_ps(), step));
+        let step = reads.step;
+        let first = _mm256_add_ps(w.t0, _mm256_mul_ps(reads.offset, step));
         let second = _mm256_add_ps(first, step);
         let point = |t: __m256| [0, 1, 2].map(|a| _mm256_add_ps(w.o[a], _mm256_mul_ps(w.d[a], t)));
         let (x0, x1) = (point(first), point(second));
@@ -325,16 +336,21 @@ impl TetRaycaster {
         w.visible = _mm256_blendv_ps(w.visible, seen, into);
         let into_i = _mm256_castps_si256(into);
         w.first = _mm256_blendv_epi8(w.first, w.k, into_i);
-        w.end = _mm256_blendv_epi8(w.end, sample_end8(w, step, into), into_i);
+        w.end = _mm256_blendv_epi8(w.end, sample_end8(w, reads, into), into_i);
+        if !reads.preintegrated {
+            let unseen = _mm256_castps_si256(_mm256_andnot_ps(w.visible, into));
+            w.k = _mm256_blendv_epi8(w.k, w.end, unseen);
+        }
     }
 }
 
-/// `SampleLine::end(k, t_out)` in every lane of `into` (offset 0): one past the last sample
-/// at or before the tet's exit, from the lane's next sample on.
+/// `SampleLine::end(k, t_out)` in every lane of `into`: one past the last sample at or
+/// before the tet's exit, from the lane's next sample on.
 #[inline]
 #[target_feature(enable = "avx2")]
-fn sample_end8(w: &Walk8, step: __m256, into: __m256) -> __m256i {
-    let guess = _mm256_sub_ps(_mm256_div_ps(_mm256_sub_ps(w.t_out, w.t0), step), _mm256_setzero_ps());
+fn sample_end8(w: &Walk8, reads: &Reads, into: __m256) -> __m256i {
+    let (step, offset) = (reads.step, reads.offset);
+    let guess = _mm256_sub_ps(_mm256_div_ps(_mm256_sub_ps(w.t_out, w.t0), step), offset);
     let finite =
         _mm256_cmp_ps::<_CMP_LT_OQ>(_mm256_andnot_ps(_mm256_set1_ps(-0.0), guess), _mm256_set1_ps(f32::INFINITY));
     // Truncation from 0 up; capped where the i32 would wrap (far past any ray's samples).
@@ -343,9 +359,7 @@ fn sample_end8(w: &Walk8, step: __m256, into: __m256) -> __m256i {
     let one = _mm256_set1_epi32(1);
     let guessed = _mm256_max_epi32(_mm256_add_epi32(whole, one), w.k);
     let mut end = _mm256_blendv_epi8(w.k, guessed, _mm256_castps_si256(finite));
-    let t = |e: __m256i| {
-        _mm256_add_ps(w.t0, _mm256_mul_ps(_mm256_add_ps(_mm256_cvtepi32_ps(e), _mm256_setzero_ps()), step))
-    };
+    let t = |e: __m256i| _mm256_add_ps(w.t0, _mm256_mul_ps(_mm256_add_ps(_mm256_cvtepi32_ps(e), offset), step));
     loop {
         let back = _mm256_and_ps(
             _mm256_and_ps(into, _mm256_castsi256_ps(_mm256_cmpgt_epi32(end, w.k))),
@@ -383,16 +397,21 @@ fn sample8(reads: &Reads, w: &mut Walk8, sampling: __m256) -> __m256 {
         let low = _mm256_cmp_ps::<_CMP_GE_OQ>(*q, _mm256_set1_ps(-EDGE_TOLERANCE));
         inside = _mm256_and_ps(inside, _mm256_and_ps(low, _mm256_cmp_ps::<_CMP_LE_OQ>(*q, *top)));
     }
-    // SAFETY: the tables were made pre-integrated (`lanes_serve`), PREINTEGRATED_SIZE² entries.
-    let e = unsafe { segment8(&look.tables, w.front, value) };
     let first = _mm256_castsi256_ps(_mm256_cmpeq_epi32(w.k, w.first));
-    let counts = _mm256_or_ps(w.visible, first);
-    let after_first = _mm256_castsi256_ps(_mm256_cmpgt_epi32(w.k, _mm256_setzero_si256()));
-    let adds = _mm256_and_ps(_mm256_and_ps(counts, inside), _mm256_and_ps(w.front_in, after_first));
+    let counts = _mm256_and_ps(_mm256_or_ps(w.visible, first), inside);
+    let step = reads.step;
+    let t = _mm256_add_ps(w.t0, _mm256_mul_ps(_mm256_add_ps(kf, reads.offset), step));
+    let (e, adds, t_mid) = if reads.preintegrated {
+        // SAFETY: pre-integrated tables hold PREINTEGRATED_SIZE² segments (`Tables::new`).
+        let e = unsafe { segment8(&look.tables, w.front, value) };
+        let after_first = _mm256_castsi256_ps(_mm256_cmpgt_epi32(w.k, _mm256_setzero_si256()));
+        let t_mid = _mm256_sub_ps(t, _mm256_mul_ps(_mm256_set1_ps(0.5), step));
+        (e, _mm256_and_ps(counts, _mm256_and_ps(w.front_in, after_first)), t_mid)
+    } else {
+        // SAFETY: the stepped table holds LUT_SIZE entries (`Tables::new`).
+        (unsafe { interpolate8(&look.tables, &look.tables.stepped, value) }, counts, t)
+    };
     let adds = _mm256_and_ps(adds, _mm256_cmp_ps::<_CMP_GT_OQ>(e[3], _mm256_set1_ps(1e-5)));
-    let step = _mm256_set1_ps(look.params.step as f32);
-    let t = _mm256_add_ps(w.t0, _mm256_mul_ps(_mm256_add_ps(kf, _mm256_setzero_ps()), step));
-    let t_mid = _mm256_sub_ps(t, _mm256_mul_ps(_mm256_set1_ps(0.5), step));
     composite8(&mut w.acc, &mut w.depth, adds, e, t_mid);
     w.front = _mm256_blendv_ps(w.front, value, sampling);
     w.front_in = _mm256_blendv_ps(w.front_in, inside, sampling);

@@ -461,7 +461,7 @@ unsafe fn entry(ptr: *const [f32; 4], at: usize) -> __m128 {
 /// `table` must hold `LUT_SIZE` entries.
 #[inline]
 #[target_feature(enable = "avx2")]
-unsafe fn interpolate8(tables: &Tables, table: &[[f32; 4]], s: __m256) -> [__m256; 4] {
+pub(crate) unsafe fn interpolate8(tables: &Tables, table: &[[f32; 4]], s: __m256) -> [__m256; 4] {
     let x = _mm256_mul_ps(_mm256_sub_ps(s, _mm256_set1_ps(tables.lo)), _mm256_set1_ps(tables.lut_scale));
     let x = clamp8(x, (LUT_SIZE - 1) as f32);
     let i = _mm256_min_epi32(_mm256_cvttps_epi32(x), _mm256_set1_epi32(LUT_SIZE as i32 - 2));
