@@ -1,12 +1,13 @@
 //! The source seen through the mesh eight rays at a time (AVX2, pre-integrated or point
-//! sampled, where the one-ray walk's queue serves): each lane its own ray in its own tet, a lane's step one
-//! sample of its ray. The samples' positions, trilinear reads, box test, table lookups and
-//! compositing run once for eight, as the volume raycaster's packets run them; a lane
-//! whose samples in its tet are done walks on to the next tet (exit face, link, the tet's
-//! map onto the source) while the others wait in the same step. A lane whose walk ends goes
-//! back to the one-ray code (the last, shorter segment; entries, re-entries) and takes
-//! its strip's next ray when its own is done. Each lane does the one-ray walk's arithmetic
-//! (`SourceLook::cross`, `flush`) in the same order, so the pictures are the same bits.
+//! sampled, where the one-ray walk's queue serves): each lane its own ray in its own tet,
+//! a lane's step one sample of its ray. The samples' positions, trilinear reads, box test,
+//! table lookups and compositing run once for eight, as the volume raycaster's packets run
+//! them; a lane whose samples in its tet are done walks on to the next tet (exit face,
+//! link, the tet's map onto the source) while the others wait in the same step. A lane
+//! whose walk ends goes back to the one-ray code (the last, shorter segment; entries,
+//! re-entries) and takes its strip's next ray when its own is done. Each lane does the
+//! one-ray walk's arithmetic (`SourceLook::cross`, `flush`) in the same order, so the
+//! pictures are the same bits.
 
 use std::arch::x86_64::*;
 
@@ -35,8 +36,8 @@ const MAP_FLOATS: i32 = (std::mem::size_of::<TetMap>() / 4) as i32;
 
 /// The lanes' walks, a vector each (lane l in element l). A lane in a tet (`in_tet`) has
 /// its exit `t_out` and its samples there: `first..end` on the ray's grid
-/// (`t0 + (k + offset)·step`),
-/// at `base + along·k` in the source; `visible` as the tet's source visibility.
+/// (`t0 + (k + offset)·step`), at `base + along·k` in the source; `visible` as the tet's
+/// source visibility.
 #[derive(Clone, Copy)]
 struct Walk8 {
     busy: __m256,
