@@ -760,16 +760,15 @@ impl Caster<'_> {
     }
 }
 
-/// Packets of eight rays for the composite, unshaded picture (the vector half in
-/// `cpu/packet.rs`): ray set-up and the last, shorter segment are scalar, as in `cast`;
-/// the macro-cell walk and the steps through the runs eight wide; the pixels are `cast`'s
-/// bits.
+/// Packets of eight rays for the composite picture (the vector half in `cpu/packet.rs`):
+/// ray set-up and the last, shorter segment are scalar, as in `cast`; the macro-cell walk,
+/// the steps through the runs and their shading eight wide; the pixels are `cast`'s bits.
 #[cfg(target_arch = "x86_64")]
 impl<'a> Caster<'a> {
-    /// The eight-point sampler where packets give this caster's pictures: composite,
-    /// unshaded, AVX2 present and the volume inside the sampler's reach.
+    /// The eight-point sampler where packets give this caster's pictures: composite, AVX2
+    /// present and the volume inside the sampler's reach.
     fn packet_sampler(&self) -> Option<Trilinear8<'a>> {
-        if self.params.mode != Mode::Composite || self.params.shading != Shading::None {
+        if self.params.mode != Mode::Composite {
             return None;
         }
         Trilinear8::new(self.volume.data(), &self.sampler.cell)
@@ -814,7 +813,8 @@ impl<'a> Caster<'a> {
             let (Some(ray), Some(c)) = (&mut rays[l], &clipped[l]) else { continue };
             let (full, remainder) = split[l];
             if !terminated[l] && remainder > 1e-6 * step {
-                ray.last_segment(self, full, remainder, &|_: &Vector3<f32>| 1.0);
+                let light_index = (self.space.index_from_world * c.light).cast::<f32>();
+                ray.last_segment(self, full, remainder, &|p: &Vector3<f32>| self.shade(p, &c.light, &light_index));
             }
             pixels[l] = ray.over(c.bg, c.behind);
         }
@@ -876,7 +876,7 @@ impl<'a> Caster<'a> {
         let cells = self.cells.map(|cells| packet::CellWalk { visible: &cells.visible, dims: cells.dims, edge: CELL });
         let lanes = packet::Lanes::new(
             (trilinear, self.tables, self.params.preintegrated),
-            cells,
+            (cells, self.packet_shading(clipped)),
             &lanes,
             (step, self.params.early_termination as f32),
         );
@@ -887,6 +887,30 @@ impl<'a> Caster<'a> {
             }
         }
         end.terminated
+    }
+
+    /// What the lanes need to shade as `shade` does: none for an unshaded picture.
+    fn packet_shading(&self, clipped: &[Option<Clipped>; packet::LANES]) -> Option<packet::PacketShading> {
+        if self.params.shading == Shading::None {
+            return None;
+        }
+        let mut shading = packet::PacketShading {
+            shading: self.params.shading,
+            ambient: self.params.ambient as f32,
+            gradient_scale: self.gradient_scale,
+            to_world: self.space.index_from_world.transpose(),
+            light: [[0.0; packet::LANES]; 3],
+            light_index: [[0.0; packet::LANES]; 3],
+            top: self.volume.dims().map(|n| n.saturating_sub(1) as f32),
+        };
+        for (l, c) in clipped.iter().enumerate() {
+            let Some(c) = c else { continue };
+            let light_index = (self.space.index_from_world * c.light).cast::<f32>();
+            for a in 0..3 {
+                (shading.light[a][l], shading.light_index[a][l]) = (c.light[a], light_index[a]);
+            }
+        }
+        Some(shading)
     }
 }
 
@@ -1155,8 +1179,10 @@ mod tests {
     }
 
     /// Every pixel of eight-ray packets is the one-ray caster's, colour and depth to the
-    /// bit: point-sampled and pre-integrated, with and without empty-space skipping, early
-    /// termination often and rarely reached, a tool in view, a row not a multiple of eight,
+    /// bit: point-sampled and pre-integrated, unshaded, gradient-shaded and shaded by the
+    /// forward difference (the camera's light and one of its own), with and without
+    /// empty-space skipping, early termination often and rarely reached, a tool in view, a
+    /// row not a multiple of eight,
     /// over the phantom (tissue everywhere), a ball in air (rays jumping invisible cells) and
     /// blocks in fat (rays landing in tissue after each jump).
     #[test]
@@ -1168,17 +1194,25 @@ mod tests {
             let (lo, hi) = volume.bounds();
             let tip = ((lo + hi) / 2.0 - (hi - lo).component_mul(&Vector3::new(0.1, 0.45, -0.1))).into();
             let tool = ToolPicture { tip, tail: [tip[0], tip[1], hi.z + 10.0], radius: 3.0, color: [0.9, 0.8, 0.1] };
-            for (preintegrated, empty_space_skipping, early_termination, tools) in [
-                (false, true, 0.999, vec![]),
-                (true, true, 0.999, vec![]),
-                (false, false, 0.9, vec![tool]),
-                (true, true, 0.9, vec![tool]),
-                (true, false, 0.999, vec![]),
+            // A light of its own (the camera's where none), turned off every axis.
+            let (none, gradient, forward) = (Shading::None, Shading::Gradient, Shading::ForwardDifference);
+            let lit = Some([0.3, -0.8, 0.5]);
+            for (preintegrated, empty_space_skipping, early_termination, tools, (shading, light)) in [
+                (false, true, 0.999, vec![], (none, None)),
+                (true, true, 0.999, vec![], (none, None)),
+                (false, false, 0.9, vec![tool], (none, None)),
+                (true, true, 0.9, vec![tool], (none, None)),
+                (true, false, 0.999, vec![], (none, None)),
+                (true, true, 0.999, vec![], (gradient, None)),
+                (false, true, 0.9, vec![tool], (gradient, lit)),
+                (true, false, 0.999, vec![], (forward, None)),
+                (false, true, 0.999, vec![tool], (forward, lit)),
             ] {
                 let params = RaycastParams {
                     step: 0.7,
                     preintegrated,
-                    shading: Shading::None,
+                    shading,
+                    light,
                     empty_space_skipping,
                     early_termination,
                     background: [0.2, 0.3, 0.4, 1.0],
@@ -1218,7 +1252,7 @@ mod tests {
                 }
             }
         }
-        assert_eq!(compared, 3 * 5 * 45 * 37);
+        assert_eq!(compared, 3 * 9 * 45 * 37);
         // Both scenes show tissue and the tool; the ball's box is mostly invisible cells.
         assert!(jumped && tissue > 2000 && tool_hits > 100, "{jumped} {tissue} {tool_hits}");
     }

@@ -1,8 +1,8 @@
 //! The vector half of the volume raycaster's packets (`Caster::cast_packet` in `cpu.rs`):
-//! eight rays in the AVX2 lanes, so the samples, the table lookups and the compositing all
-//! run eight wide. Each lane does `Caster::composite`'s arithmetic in its order (unfused
-//! multiplies and adds, the same clamps and truncations), so a packet's pixels are the
-//! one-ray loop's bits. The macro-cell walk (`Caster::run_end`) runs in the lanes too:
+//! eight rays in the AVX2 lanes, so the samples, the table lookups, the shading and the
+//! compositing all run eight wide. Each lane does `Caster::composite`'s arithmetic in its
+//! order (unfused multiplies and adds, the same clamps and truncations), so a packet's
+//! pixels are the one-ray loop's bits. The macro-cell walk (`Caster::run_end`) runs in the lanes too:
 //! done per lane in scalar code, it stopped the vector loop at three steps in four (512²,
 //! 1.25 mm) and the time per frame was a third longer.
 
@@ -10,6 +10,7 @@ use std::arch::x86_64::*;
 
 use nalgebra::Matrix3;
 
+use super::Shading;
 use crate::camera::Rays;
 use crate::transfer::{SegmentTable, Tables, LUT_SIZE, PREINTEGRATED_SIZE, SEGMENT_LENGTHS, SEGMENT_LEVELS};
 use defvol_core::volume::lanes::Trilinear8;
@@ -57,6 +58,21 @@ pub(super) struct PacketEnd {
     pub(super) depth: [f32; LANES],
 }
 
+/// `Caster::shade` for the packet's lanes: the picture's shading (gradient or forward
+/// difference) and each lane's light.
+pub(super) struct PacketShading {
+    pub(super) shading: Shading,
+    pub(super) ambient: f32,
+    pub(super) gradient_scale: f32,
+    /// An index-space gradient to a world one (`IndexSpace::world_gradient`'s matrix).
+    pub(super) to_world: Matrix3<f64>,
+    /// Toward each lane's light: world frame, and in index space as `Caster::cast` takes it.
+    pub(super) light: [[f64; LANES]; 3],
+    pub(super) light_index: [[f32; LANES]; 3],
+    /// The voxel-centre box's top per axis, where `Sampler::at` clamps its points.
+    pub(super) top: [f32; 3],
+}
+
 /// The packet's rays in the vector lanes: where their samples are, how they walk the macro
 /// cells, and what they gathered.
 pub(super) struct Lanes<'a> {
@@ -64,6 +80,7 @@ pub(super) struct Lanes<'a> {
     tables: &'a Tables,
     preintegrated: bool,
     cells: Option<CellWalk<'a>>,
+    shading: Option<PacketShading>,
     /// The rays (`o + d·t`), where they enter, and their full segments.
     o: [__m256; 3],
     d: [__m256; 3],
@@ -79,11 +96,12 @@ pub(super) struct Lanes<'a> {
 impl<'a> Lanes<'a> {
     /// The lanes of `rays`, sampled as `Ray::run` hands them to the sampler (at a segment's
     /// back end pre-integrated, at its middle point-sampled); segments of `step`, rays
-    /// stopping once `termination` opaque, skipping the macro cells `cells` leaves dark.
+    /// stopping once `termination` opaque, skipping the macro cells `cells` leaves dark,
+    /// the samples that add shaded by `shading`.
     #[target_feature(enable = "avx2")]
     pub(super) fn new(
         (trilinear, tables, preintegrated): (Trilinear8<'a>, &'a Tables, bool),
-        cells: Option<CellWalk<'a>>,
+        (cells, shading): (Option<CellWalk<'a>>, Option<PacketShading>),
         rays: &PacketRays,
         (step, termination): (f32, f32),
     ) -> Self {
@@ -104,6 +122,7 @@ impl<'a> Lanes<'a> {
             tables,
             preintegrated,
             cells,
+            shading,
             o,
             d,
             t_near,
@@ -187,14 +206,22 @@ impl<'a> Lanes<'a> {
                 // SAFETY: the table's size was checked in `new`.
                 unsafe { interpolate8(self.tables, &self.tables.stepped, value) }
             };
-            // `Ray::add` in the lanes whose segment adds something.
+            // `Ray::add` in the lanes whose segment adds something, shaded at its middle.
             let adds = _mm256_and_ps(adding, _mm256_cmp_ps::<_CMP_GT_OQ>(color[3], tiny));
-            let weight = _mm256_sub_ps(one, acc[3]);
-            for (acc, color) in acc.iter_mut().zip(color) {
-                *acc = _mm256_blendv_ps(*acc, _mm256_add_ps(*acc, _mm256_mul_ps(weight, color)), adds);
-            }
             let middle =
                 _mm256_add_ps(_mm256_add_ps(self.t_near, _mm256_mul_ps(kf, self.step)), _mm256_mul_ps(half, self.step));
+            let light = match &self.shading {
+                Some(shading) if _mm256_movemask_ps(adds) != 0 => Some(self.shade8(shading, middle)),
+                _ => None,
+            };
+            let weight = _mm256_sub_ps(one, acc[3]);
+            for (c, (acc, color)) in acc.iter_mut().zip(color).enumerate() {
+                let mut term = _mm256_mul_ps(weight, color);
+                if let (Some(light), true) = (light, c < 3) {
+                    term = _mm256_mul_ps(term, light);
+                }
+                *acc = _mm256_blendv_ps(*acc, _mm256_add_ps(*acc, term), adds);
+            }
             let first_past_half =
                 _mm256_and_ps(_mm256_cmp_ps::<_CMP_EQ_OQ>(depth, infinity), _mm256_cmp_ps::<_CMP_GE_OQ>(acc[3], half));
             depth = _mm256_blendv_ps(depth, middle, _mm256_and_ps(adds, first_past_half));
@@ -212,6 +239,54 @@ impl<'a> Lanes<'a> {
             front: std::array::from_fn(|l| (self.preintegrated && lost_front >> l & 1 == 0).then_some(fronts[l])),
             acc: std::array::from_fn(|l| [acc[0][l], acc[1][l], acc[2][l], acc[3][l]]),
             depth,
+        }
+    }
+
+    /// `Caster::shade` at each lane's `o + d·t`, the same arithmetic: the gradient's
+    /// normal (f64, as nalgebra's product, norm and dot take it) or the forward difference
+    /// toward the light, from samples at points clamped into the box.
+    #[inline(never)]
+    #[target_feature(enable = "avx2")]
+    fn shade8(&self, shading: &PacketShading, t: __m256) -> __m256 {
+        let p = [0, 1, 2].map(|a| _mm256_add_ps(self.o[a], _mm256_mul_ps(self.d[a], t)));
+        let at = |q: [__m256; 3]| self.trilinear.sample([0, 1, 2].map(|a| clamp8(q[a], shading.top[a])));
+        let (one, ambient) = (_mm256_set1_ps(1.0), _mm256_set1_ps(shading.ambient));
+        let rest = _mm256_set1_ps(1.0 - shading.ambient);
+        match shading.shading {
+            Shading::None => one,
+            Shading::Gradient => {
+                let g = [0, 1, 2].map(|a| {
+                    let moved = |by: f32| {
+                        let mut q = p;
+                        q[a] = _mm256_add_ps(p[a], _mm256_set1_ps(by));
+                        q
+                    };
+                    _mm256_mul_ps(_mm256_sub_ps(at(moved(1.0)), at(moved(-1.0))), _mm256_set1_ps(0.5))
+                });
+                let halves = [0, 1].map(|h| {
+                    let g = g.map(|g| {
+                        _mm256_cvtps_pd(if h == 0 { _mm256_castps256_ps128(g) } else { _mm256_extractf128_ps::<1>(g) })
+                    });
+                    let light = shading.light.map(|l| {
+                        // SAFETY: l holds eight f64; h·4 + 4 of them are read.
+                        unsafe { _mm256_loadu_pd(l.as_ptr().add(4 * h)) }
+                    });
+                    lambert(times(&shading.to_world, g), light)
+                });
+                let (factor, lit) = (halves.map(|h| h.0), halves.map(|h| h.1));
+                let factor = _mm256_set_m128(factor[1], factor[0]);
+                let lit = _mm256_castsi256_ps(_mm256_set_m128i(_mm_castps_si128(lit[1]), _mm_castps_si128(lit[0])));
+                _mm256_blendv_ps(one, _mm256_add_ps(ambient, _mm256_mul_ps(rest, factor)), lit)
+            }
+            Shading::ForwardDifference => {
+                let toward = shading.light_index.map(|l| load(l));
+                let ahead = [0, 1, 2].map(|a| _mm256_add_ps(p[a], toward[a]));
+                let drop = _mm256_sub_ps(at(p), at(ahead));
+                let scaled = _mm256_div_ps(drop, _mm256_set1_ps(shading.gradient_scale));
+                // `clamp(0, 1)`, a NaN kept: max and min return their second operand on NaN.
+                let clamped = _mm256_min_ps(one, _mm256_max_ps(_mm256_setzero_ps(), scaled));
+                _mm256_add_ps(ambient, _mm256_mul_ps(rest, clamped))
+            }
         }
     }
 
@@ -376,6 +451,28 @@ pub(super) fn setup8(
 fn times(m: &Matrix3<f64>, v: [__m256d; 3]) -> [__m256d; 3] {
     let term = |i: usize, j: usize| _mm256_mul_pd(_mm256_set1_pd(m[(i, j)]), v[j]);
     std::array::from_fn(|i| _mm256_add_pd(_mm256_add_pd(term(i, 0), term(i, 1)), term(i, 2)))
+}
+
+/// Four lanes of `g.try_normalize(1e-12)` dotted with `light`, its absolute value as f32
+/// (nalgebra's order: the norm's squares and the dot's terms added first to last), and
+/// which lanes had a normal (a shorter gradient leaves the sample unshaded).
+#[inline]
+#[target_feature(enable = "avx2")]
+fn lambert(g: [__m256d; 3], light: [__m256d; 3]) -> (__m128, __m128) {
+    let dot = |u: [__m256d; 3], v: [__m256d; 3]| {
+        _mm256_add_pd(_mm256_add_pd(_mm256_mul_pd(u[0], v[0]), _mm256_mul_pd(u[1], v[1])), _mm256_mul_pd(u[2], v[2]))
+    };
+    let norm = _mm256_sqrt_pd(dot(g, g));
+    let normal = g.map(|g| _mm256_div_pd(g, norm));
+    let abs = _mm256_andnot_pd(_mm256_set1_pd(-0.0), dot(normal, light));
+    let lit = _mm256_cmp_pd::<_CMP_NLE_UQ>(norm, _mm256_set1_pd(1e-12));
+    (
+        _mm256_cvtpd_ps(abs),
+        _mm256_castps256_ps128(_mm256_permutevar8x32_ps(
+            _mm256_castpd_ps(lit),
+            _mm256_setr_epi32(0, 2, 4, 6, 1, 3, 5, 7),
+        )),
+    )
 }
 
 #[inline]
