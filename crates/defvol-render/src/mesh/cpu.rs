@@ -549,8 +549,8 @@ impl TetRaycaster {
     }
 
     /// Whether rays walk eight at a time through the source (`super::source_lanes`): where
-    /// its one-ray walk queues its samples (`SourceLook::lanes_serve`), in a mesh the
-    /// lanes' indices reach.
+    /// its samples allow it (`SourceLook::lanes_serve`), in a mesh the lanes' indices
+    /// reach.
     fn source_lanes_walk(&self) -> bool {
         #[cfg(target_arch = "x86_64")]
         return self.source.as_ref().is_some_and(|s| s.lanes_serve()) && self.tets.len() <= LANES_MAX_TETS;
@@ -584,7 +584,7 @@ impl TetRaycaster {
             unsafe { self.cast_strip(&tiles, &mut strip) };
             return strip;
         }
-        // SAFETY: `source_lanes_walk` checked AVX2 (the source's queue) and the mesh's size.
+        // SAFETY: `source_lanes_walk` checked AVX2 (the source's sampler) and the mesh's size.
         #[cfg(target_arch = "x86_64")]
         if source_lanes && unsafe { self.cast_source_strip(&tiles, &mut strip) } {
             return strip;
@@ -1523,8 +1523,9 @@ mod tests {
     /// (perspective and orthographic) and from the air pocket inside the ball, with a tool
     /// ending rays in the tissue, a step longer than most tets (runs of no samples), tets
     /// the source leaves invisible (pre-integrated, only their first and last samples
-    /// read; point sampled, none), rays turning opaque and a source that ends inside the
-    /// mesh (samples outside it neither add nor make fronts).
+    /// read; point sampled, none), rays turning opaque, a source that ends inside the
+    /// mesh (samples outside it neither add nor make fronts), and pictures shaded by the
+    /// gradient and the forward difference (the eye's light and one of their own).
     #[test]
     fn eight_source_lanes_give_the_one_ray_walks_bits() {
         let (mesh, _) = ball_in_air();
@@ -1561,6 +1562,8 @@ mod tests {
         );
         let lower = Arc::new(lower.unwrap());
         let point = RaycastParams { preintegrated: false, ..params.clone() };
+        // A light of its own (each ray's, toward the eye, where none), off every axis.
+        let lit = Some([0.3, -0.8, 0.5]);
         let scenes = [
             (&volume, tf.clone(), params.clone()),
             (&volume, tf.clone(), RaycastParams { tools: vec![tool], ..params.clone() }),
@@ -1569,7 +1572,11 @@ mod tests {
             (&lower, tf.clone(), params.clone()),
             (&volume, tf.clone(), RaycastParams { tools: vec![tool], ..point.clone() }),
             (&volume, dense, RaycastParams { step: 2.5, early_termination: 0.95, ..point.clone() }),
-            (&lower, tf.clone(), point),
+            (&lower, tf.clone(), point.clone()),
+            (&volume, tf.clone(), RaycastParams { shading: Shading::Gradient, ..params.clone() }),
+            (&lower, tf.clone(), RaycastParams { shading: Shading::Gradient, light: lit, ..point.clone() }),
+            (&volume, tf.clone(), RaycastParams { shading: Shading::ForwardDifference, tools: vec![tool], ..params }),
+            (&lower, tf.clone(), RaycastParams { shading: Shading::ForwardDifference, light: lit, ..point }),
         ];
         let (mut opaque, mut at_tool) = (0, 0);
         for (volume, tf, params) in scenes {

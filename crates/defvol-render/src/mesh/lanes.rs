@@ -178,7 +178,7 @@ impl TetRaycaster {
             let back = _mm256_add_ps(w.s_in, _mm256_sub_ps(s_out, w.s_in));
             let e = tet_segment8(&self.table, w.s_in, back, len);
             let t_mid = _mm256_add_ps(w.t_in, _mm256_mul_ps(_mm256_set1_ps(0.5), len));
-            composite8(&mut w.acc, &mut w.depth, short, e, t_mid);
+            composite8(&mut w.acc, &mut w.depth, (short, None), e, t_mid);
         }
         let long = _mm256_movemask_ps(_mm256_and_ps(seen, _mm256_cmp_ps::<_CMP_GT_OQ>(len, max_len)));
         if long != 0 {
@@ -285,13 +285,24 @@ fn scalar8(at: &impl Fn(i32) -> __m256, w: &Walk8, t: __m256) -> __m256 {
 }
 
 /// `composite` in the lanes of `mask`: the entry `e` (four channels) behind what each has
-/// gathered (`acc`), the `depth` where opacity first passes 0.5.
+/// gathered (`acc`), its colour times `shade` where shaded, the `depth` where opacity
+/// first passes 0.5.
 #[inline]
 #[target_feature(enable = "avx2")]
-pub(crate) fn composite8(acc: &mut [__m256; 4], depth: &mut __m256, mask: __m256, e: [__m256; 4], t_mid: __m256) {
+pub(crate) fn composite8(
+    acc: &mut [__m256; 4],
+    depth: &mut __m256,
+    (mask, shade): (__m256, Option<__m256>),
+    e: [__m256; 4],
+    t_mid: __m256,
+) {
     let weight = _mm256_sub_ps(_mm256_set1_ps(1.0), acc[3]);
-    for (acc, e) in acc.iter_mut().zip(e) {
-        *acc = _mm256_blendv_ps(*acc, _mm256_add_ps(*acc, _mm256_mul_ps(weight, e)), mask);
+    for (c, (acc, e)) in acc.iter_mut().zip(e).enumerate() {
+        let mut term = _mm256_mul_ps(weight, e);
+        if let (Some(shade), true) = (shade, c < 3) {
+            term = _mm256_mul_ps(term, shade);
+        }
+        *acc = _mm256_blendv_ps(*acc, _mm256_add_ps(*acc, term), mask);
     }
     let unset =
         _mm256_cmp_ps::<_CMP_EQ_OQ>(_mm256_andnot_ps(_mm256_set1_ps(-0.0), *depth), _mm256_set1_ps(f32::INFINITY));

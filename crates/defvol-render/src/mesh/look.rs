@@ -232,9 +232,15 @@ impl SourceLook {
     }
 
     /// Whether rays may walk eight at a time through this source (`super::source_lanes`):
-    /// where the queue serves (trilinear, undisplaced, unshaded, AVX2).
+    /// trilinear, undisplaced, AVX2 present and the source in the eight-lane sampler's
+    /// reach; shaded or not.
     pub(crate) fn lanes_serve(&self) -> bool {
-        self.queue().is_some()
+        #[cfg(target_arch = "x86_64")]
+        return self.displacements.is_empty()
+            && self.sampling == Sampling::Trilinear
+            && Trilinear8::new(self.volume.data(), &CellLookup::for_dims(self.volume.dims())).is_some();
+        #[cfg(not(target_arch = "x86_64"))]
+        false
     }
 
     /// An empty queue where its samples serve: trilinear, undisplaced, unshaded, AVX2.

@@ -1,8 +1,8 @@
 //! The source seen through the mesh eight rays at a time (AVX2, pre-integrated or point
-//! sampled, where the one-ray walk's queue serves): each lane its own ray in its own tet,
-//! a lane's step one sample of its ray. The samples' positions, trilinear reads, box test,
-//! table lookups and compositing run once for eight, as the volume raycaster's packets run
-//! them; a lane whose samples in its tet are done walks on to the next tet (exit face,
+//! sampled, shaded or not, trilinear and undisplaced): each lane its own ray in its own
+//! tet, a lane's step one sample of its ray. The samples' positions, trilinear reads, box
+//! test, table lookups, shading and compositing run once for eight, as the volume
+//! raycaster's packets run them; a lane whose samples in its tet are done walks on to the next tet (exit face,
 //! link, the tet's map onto the source) while the others wait in the same step. A lane
 //! whose walk ends goes back to the one-ray code (the last, shorter segment; entries,
 //! re-entries) and takes its strip's next ray when its own is done. Each lane does the
@@ -19,7 +19,8 @@ use super::field::V3;
 use super::geometry::TetGeometry;
 use super::lanes::{composite8, leave8};
 use super::look::{SourceLook, TetMap, EDGE_TOLERANCE};
-use crate::volume::packet::{interpolate8, lanes_i32, segment8, store};
+use crate::volume::packet::{clamp8, interpolate8, lanes_i32, segment8, store};
+use crate::volume::Shading;
 
 /// Rays side by side.
 const LANES: usize = 8;
@@ -86,6 +87,18 @@ struct Reads<'a> {
     /// Where a sample lies in its step: 0 pre-integrated, ½ point sampled.
     offset: __m256,
     step: __m256,
+    shade: Option<Shade8>,
+}
+
+/// `SourceLook::shade` for the lanes: the picture's shading and its light (each ray's
+/// own, toward the eye, where none is set).
+struct Shade8 {
+    shading: Shading,
+    light: Option<[__m256; 3]>,
+    ambient: f32,
+    gradient_scale: f32,
+    /// The source's voxel-centre box's far corner, where `sample_clamped` clamps.
+    top: [f32; 3],
 }
 
 impl TetRaycaster {
@@ -107,7 +120,17 @@ impl TetRaycaster {
         let preintegrated = look.params.preintegrated;
         let offset = _mm256_set1_ps(if preintegrated { 0.0 } else { 0.5 });
         let step = _mm256_set1_ps(look.params.step as f32);
-        let reads = Reads { look, sampler, top, preintegrated, offset, step };
+        let shade = (look.params.shading != Shading::None).then(|| Shade8 {
+            shading: look.params.shading,
+            light: look.params.light.map(|l| {
+                let l = nalgebra::Vector3::from(l).normalize().cast::<f32>();
+                [0, 1, 2].map(|a| _mm256_set1_ps(l[a]))
+            }),
+            ambient: look.params.ambient as f32,
+            gradient_scale: look.gradient_scale,
+            top: dims.map(|n| n.saturating_sub(1) as f32),
+        });
+        let reads = Reads { look, sampler, top, preintegrated, offset, step, shade };
         let mut w = self.idle_lanes();
         let mut ray_of = [0usize; LANES];
         let mut next = 0;
@@ -413,7 +436,20 @@ fn sample8(reads: &Reads, w: &mut Walk8, sampling: __m256) -> __m256 {
         (unsafe { interpolate8(&look.tables, &look.tables.stepped, value) }, counts, t)
     };
     let adds = _mm256_and_ps(adds, _mm256_cmp_ps::<_CMP_GT_OQ>(e[3], _mm256_set1_ps(1e-5)));
-    composite8(&mut w.acc, &mut w.depth, adds, e, t_mid);
+    let shade = match &reads.shade {
+        Some(shade) if _mm256_movemask_ps(adds) != 0 => {
+            // Shaded where the one-ray walk shades: a segment's middle, or the point sample.
+            let at = if reads.preintegrated {
+                let back = _mm256_sub_ps(kf, _mm256_set1_ps(0.5));
+                [0, 1, 2].map(|a| _mm256_add_ps(w.base[a], _mm256_mul_ps(w.along[a], back)))
+            } else {
+                q
+            };
+            Some(shade8(reads, shade, w, at))
+        }
+        _ => None,
+    };
+    composite8(&mut w.acc, &mut w.depth, (adds, shade), e, t_mid);
     w.front = _mm256_blendv_ps(w.front, value, sampling);
     w.front_in = _mm256_blendv_ps(w.front_in, inside, sampling);
     // The next sample: on, or in a tet that is not visible from the first to the last.
@@ -424,6 +460,55 @@ fn sample8(reads: &Reads, w: &mut Walk8, sampling: __m256) -> __m256 {
     w.k = _mm256_blendv_epi8(w.k, next, _mm256_castps_si256(sampling));
     let termination = _mm256_set1_ps(look.params.early_termination as f32);
     _mm256_and_ps(sampling, _mm256_cmp_ps::<_CMP_GE_OQ>(w.acc[3], termination))
+}
+
+/// `SourceLook::shade` at source index `q` in each lane's tet, the same arithmetic: the
+/// source's gradient carried through the tet's map, or the forward difference one world
+/// unit toward the light, from samples at points clamped into the source's box.
+#[inline(never)]
+#[target_feature(enable = "avx2")]
+fn shade8(reads: &Reads, shade: &Shade8, w: &Walk8, q: [__m256; 3]) -> __m256 {
+    let maps = reads.look.maps.as_ptr().cast::<f32>();
+    let base = _mm256_mullo_epi32(w.tet, _mm256_set1_epi32(MAP_FLOATS));
+    // SAFETY: as in `samples_in8`: a map a tet, 12 floats, the lanes' tets the mesh's.
+    let map = |a: i32, j: i32| unsafe {
+        _mm256_i32gather_ps::<4>(maps, _mm256_add_epi32(base, _mm256_set1_epi32(4 * a + j)))
+    };
+    let light = shade.light.unwrap_or(w.d.map(|d| _mm256_xor_ps(d, _mm256_set1_ps(-0.0))));
+    let at = |p: [__m256; 3]| reads.sampler.sample([0, 1, 2].map(|a| clamp8(p[a], shade.top[a])));
+    let sum3 = |t: [__m256; 3]| _mm256_add_ps(_mm256_add_ps(t[0], t[1]), t[2]);
+    let (one, ambient) = (_mm256_set1_ps(1.0), _mm256_set1_ps(shade.ambient));
+    let rest = _mm256_set1_ps(1.0 - shade.ambient);
+    match shade.shading {
+        Shading::None => one,
+        Shading::Gradient => {
+            let gi = [0, 1, 2].map(|a| {
+                let moved = |by: f32| {
+                    let mut p = q;
+                    p[a] = _mm256_add_ps(q[a], _mm256_set1_ps(by));
+                    p
+                };
+                _mm256_mul_ps(_mm256_sub_ps(at(moved(1.0)), at(moved(-1.0))), _mm256_set1_ps(0.5))
+            });
+            // ∇ₓf = Gᵀ ∇_q f.
+            let g = [0, 1, 2].map(|j| sum3([0, 1, 2].map(|a| _mm256_mul_ps(map(a, j), gi[a as usize]))));
+            let len = _mm256_sqrt_ps(sum3([0, 1, 2].map(|a| _mm256_mul_ps(g[a], g[a]))));
+            let dot = sum3([0, 1, 2].map(|a| _mm256_mul_ps(g[a], light[a])));
+            let cosine = _mm256_andnot_ps(_mm256_set1_ps(-0.0), _mm256_div_ps(dot, len));
+            let lit = _mm256_cmp_ps::<_CMP_GT_OQ>(len, _mm256_set1_ps(1e-12));
+            _mm256_blendv_ps(one, _mm256_add_ps(ambient, _mm256_mul_ps(rest, cosine)), lit)
+        }
+        Shading::ForwardDifference => {
+            // One world unit toward the light, in the source's index: G·l.
+            let l = [0, 1, 2].map(|a| sum3([0, 1, 2].map(|j| _mm256_mul_ps(map(a, j), light[j as usize]))));
+            let ahead = [0, 1, 2].map(|a| _mm256_add_ps(q[a], l[a]));
+            let drop = _mm256_sub_ps(at(q), at(ahead));
+            let scaled = _mm256_div_ps(drop, _mm256_set1_ps(shade.gradient_scale));
+            // `clamp(0, 1)`, a NaN kept: max and min return their second operand on NaN.
+            let clamped = _mm256_min_ps(one, _mm256_max_ps(_mm256_setzero_ps(), scaled));
+            _mm256_add_ps(ambient, _mm256_mul_ps(rest, clamped))
+        }
+    }
 }
 
 /// Starts a walk in `lane` at (tet, entry face, t): its samples' grid from t.

@@ -498,10 +498,10 @@ pub(crate) fn store(v: __m256) -> [f32; LANES] {
     out
 }
 
-/// `x.clamp(0, top)` for finite x.
+/// `x.clamp(0, top)` for finite x (a NaN to 0, as `Sampler::at` clamps).
 #[inline]
 #[target_feature(enable = "avx2")]
-fn clamp8(x: __m256, top: f32) -> __m256 {
+pub(crate) fn clamp8(x: __m256, top: f32) -> __m256 {
     _mm256_min_ps(_mm256_max_ps(x, _mm256_setzero_ps()), _mm256_set1_ps(top))
 }
 
