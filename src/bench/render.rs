@@ -319,9 +319,12 @@ fn source_rows(
             let point_tables = Arc::new(VolumeRaycaster::tables_for(source.range(), tf, &point)?);
             for (backend, device) in &backends {
                 let frames = [&less, &bent];
-                // The source through the mesh, pre-integrated and point sampled.
-                for preintegrated in [true, false] {
-                    let params = RaycastParams { preintegrated, ..params.clone() };
+                // The source through the mesh, pre-integrated and point sampled, and
+                // pre-integrated with gradient shading (the node's default; timed only).
+                for (preintegrated, shading) in
+                    [(true, Shading::None), (false, Shading::None), (true, Shading::Gradient)]
+                {
+                    let params = RaycastParams { preintegrated, shading, ..params.clone() };
                     let prepared =
                         TetRaycaster::with_source(&rest, shared.clone(), tf, &params, &SourceSampling::default())?;
                     let mut mesh = MeshRenderer::new(backend, prepared, 1.0).map_err(|e| setup(&e))?;
@@ -492,10 +495,11 @@ fn source_row(
         ),
         backend: backend.name().into(),
         device: device.into(),
-        params: json!({"mode": mode, "step_mm": params.step, "preintegrated": params.preintegrated, "shading": "none", "tf": "ct_soft_tissue", "includes_readback": true, "every_frame_moves_the_mesh": true}),
+        params: json!({"mode": mode, "step_mm": params.step, "preintegrated": params.preintegrated, "shading": params.shading, "tf": "ct_soft_tissue", "includes_readback": true, "every_frame_moves_the_mesh": true}),
         runs: samples.len(),
         time_ms: time_stats(samples),
-        error: Some(ErrorMeasure {
+        // The reference is unshaded: shaded rows are timed only.
+        error: (params.shading == Shading::None).then(|| ErrorMeasure {
             metric: "psnr_db",
             value: image.psnr(reference),
             reference: "f64 map of each sample",

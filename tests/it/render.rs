@@ -968,9 +968,9 @@ fn an_exported_render_case_rebuilds_the_same_camera_and_arrays() {
 }
 
 /// `bench render` holds the source through the mesh to the volume raycaster frame by frame:
-/// each CPU source row's (pre-integrated, point sampled) `vs_volume_raycast` is the median of
-/// its frames' ratios to a volume raycaster frame after each (one a frame, all positive),
-/// and no other row carries one.
+/// each CPU source row's (pre-integrated, point sampled, shaded) `vs_volume_raycast` is
+/// the median of its frames' ratios to a volume raycaster frame after each (one a frame,
+/// all positive), and no other row carries one.
 #[test]
 fn the_source_rows_ratio_is_the_median_of_its_frames_against_the_volume_raycaster() {
     use defvol::bench::render::{self as bench_render, RenderBenchOptions};
@@ -988,8 +988,10 @@ fn the_source_rows_ratio_is_the_median_of_its_frames_against_the_volume_raycaste
     let mut rows = Vec::new();
     bench_render::run(&opts, |row| rows.push((row.case.clone(), row.params.clone(), row.runs))).unwrap();
     let with_ratio: Vec<_> = rows.iter().filter(|(_, p, _)| p.get("vs_volume_raycast").is_some()).collect();
-    let sampling: Vec<_> = with_ratio.iter().map(|(_, p, _)| p["preintegrated"].clone()).collect();
-    assert_eq!(sampling, [serde_json::json!(true), serde_json::json!(false)], "{rows:?}");
+    let sampling: Vec<_> =
+        with_ratio.iter().map(|(_, p, _)| (p["preintegrated"].clone(), p["shading"].clone())).collect();
+    let row = |preintegrated: bool, shading: &str| (serde_json::json!(preintegrated), serde_json::json!(shading));
+    assert_eq!(sampling, [row(true, "none"), row(false, "none"), row(true, "gradient")], "{rows:?}");
     for (case, params, runs) in with_ratio {
         assert!(case.ends_with(" source") && params["mode"] == "source_through_mesh", "{case}");
         let mut pairs: Vec<f64> =
