@@ -163,7 +163,7 @@ impl SourceLook {
         }
     }
 
-    /// The source clamped to its box (the gradient's neighbours at the border).
+    /// The source clamped to its box (the forward difference's samples at the border).
     #[inline]
     fn clamped(&self, q: &V3) -> f32 {
         crate::volume::sample_clamped(self.volume.data(), self.volume.dims(), q)
@@ -175,11 +175,7 @@ impl SourceLook {
         match self.params.shading {
             Shading::None => 1.0,
             Shading::Gradient => {
-                let gi = V3::new(
-                    self.clamped(&(q + V3::x())) - self.clamped(&(q - V3::x())),
-                    self.clamped(&(q + V3::y())) - self.clamped(&(q - V3::y())),
-                    self.clamped(&(q + V3::z())) - self.clamped(&(q - V3::z())),
-                ) * 0.5;
+                let gi = crate::volume::gradient_clamped(self.volume.data(), self.volume.dims(), q);
                 // ∇ₓf = Gᵀ ∇_q f: the source's gradient carried through the tet's map.
                 let g = V3::new(
                     map[0][0] * gi.x + map[1][0] * gi.y + map[2][0] * gi.z,

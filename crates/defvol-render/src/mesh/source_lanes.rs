@@ -19,7 +19,7 @@ use super::field::V3;
 use super::geometry::TetGeometry;
 use super::lanes::{composite8, leave8};
 use super::look::{SourceLook, TetMap, EDGE_TOLERANCE};
-use crate::volume::packet::{clamp8, interpolate8, lanes_i32, segment8, store};
+use crate::volume::packet::{clamp8, interpolate8, lanes_i32, segment8, store, Gradient8};
 use crate::volume::Shading;
 
 /// Rays side by side.
@@ -87,12 +87,13 @@ struct Reads<'a> {
     /// Where a sample lies in its step: 0 pre-integrated, ½ point sampled.
     offset: __m256,
     step: __m256,
-    shade: Option<Shade8>,
+    shade: Option<Shade8<'a>>,
 }
 
 /// `SourceLook::shade` for the lanes: the picture's shading and its light (each ray's
 /// own, toward the eye, where none is set).
-struct Shade8 {
+struct Shade8<'a> {
+    gradients: Gradient8<'a>,
     shading: Shading,
     light: Option<[__m256; 3]>,
     ambient: f32,
@@ -120,16 +121,23 @@ impl TetRaycaster {
         let preintegrated = look.params.preintegrated;
         let offset = _mm256_set1_ps(if preintegrated { 0.0 } else { 0.5 });
         let step = _mm256_set1_ps(look.params.step as f32);
-        let shade = (look.params.shading != Shading::None).then(|| Shade8 {
-            shading: look.params.shading,
-            light: look.params.light.map(|l| {
-                let l = nalgebra::Vector3::from(l).normalize().cast::<f32>();
-                [0, 1, 2].map(|a| _mm256_set1_ps(l[a]))
-            }),
-            ambient: look.params.ambient as f32,
-            gradient_scale: look.gradient_scale,
-            top: dims.map(|n| n.saturating_sub(1) as f32),
-        });
+        // A shaded picture's gradients (where AVX2 serves, as the sampler's).
+        let shade = if look.params.shading == Shading::None {
+            None
+        } else {
+            let Some(gradients) = Gradient8::new(volume.data(), dims) else { return false };
+            Some(Shade8 {
+                gradients,
+                shading: look.params.shading,
+                light: look.params.light.map(|l| {
+                    let l = nalgebra::Vector3::from(l).normalize().cast::<f32>();
+                    [0, 1, 2].map(|a| _mm256_set1_ps(l[a]))
+                }),
+                ambient: look.params.ambient as f32,
+                gradient_scale: look.gradient_scale,
+                top: dims.map(|n| n.saturating_sub(1) as f32),
+            })
+        };
         let reads = Reads { look, sampler, top, preintegrated, offset, step, shade };
         let mut w = self.idle_lanes();
         let mut ray_of = [0usize; LANES];
@@ -482,14 +490,7 @@ fn shade8(reads: &Reads, shade: &Shade8, w: &Walk8, q: [__m256; 3]) -> __m256 {
     match shade.shading {
         Shading::None => one,
         Shading::Gradient => {
-            let gi = [0, 1, 2].map(|a| {
-                let moved = |by: f32| {
-                    let mut p = q;
-                    p[a] = _mm256_add_ps(q[a], _mm256_set1_ps(by));
-                    p
-                };
-                _mm256_mul_ps(_mm256_sub_ps(at(moved(1.0)), at(moved(-1.0))), _mm256_set1_ps(0.5))
-            });
+            let gi = shade.gradients.at(q);
             // ∇ₓf = Gᵀ ∇_q f.
             let g = [0, 1, 2].map(|j| sum3([0, 1, 2].map(|a| _mm256_mul_ps(map(a, j), gi[a as usize]))));
             let len = _mm256_sqrt_ps(sum3([0, 1, 2].map(|a| _mm256_mul_ps(g[a], g[a]))));

@@ -347,6 +347,8 @@ impl<'a> VolumeRaycaster<'a> {
         let mut caster = Caster {
             #[cfg(target_arch = "x86_64")]
             packets: None,
+            #[cfg(target_arch = "x86_64")]
+            gradients: packet::Gradient8::new(self.volume.data(), self.volume.dims()),
             volume: self.volume,
             sampler: Sampler::new(self.volume.data(), self.volume.dims()),
             tables: &self.tables,
@@ -422,6 +424,12 @@ pub(crate) fn sample_clamped(data: &[f32], dims: [usize; 3], p: &Vector3<f32>) -
     Sampler::new(data, dims).at(p)
 }
 
+/// The central-difference gradient at a continuous index (value per voxel), the neighbours
+/// clamped to the voxel-centre box ([`Sampler::gradient`]).
+pub(crate) fn gradient_clamped(data: &[f32], dims: [usize; 3], p: &Vector3<f32>) -> Vector3<f32> {
+    Sampler::new(data, dims).gradient(p)
+}
+
 /// [`sample_clamped`] with its per-volume constants worked out once: the per-sample work is
 /// 32-bit index arithmetic and one bounds check for the cell's eight corners. Its cell
 /// lookup is the one the eight-lane sampler takes.
@@ -438,28 +446,57 @@ impl<'a> Sampler<'a> {
         Self { data, cell: CellLookup::for_dims(dims), top: dims.map(|n| n.saturating_sub(1) as f32) }
     }
 
+    /// Coordinate `v` on axis `a` clamped to the box: its cell and the fraction in it.
+    #[inline(always)]
+    fn cell_of(&self, v: f32, a: usize) -> (i32, f32) {
+        // Plain comparisons rather than `clamp` (points are finite here): the hot loop.
+        let v = if v > 0.0 {
+            if v < self.top[a] {
+                v
+            } else {
+                self.top[a]
+            }
+        } else {
+            0.0
+        };
+        let i = (v as i32).min(self.cell.top[a]);
+        (i, v - i as f32)
+    }
+
     #[inline(always)]
     pub(crate) fn at(&self, p: &Vector3<f32>) -> f32 {
-        let axis = |v: f32, a: usize| {
-            // Plain comparisons rather than `clamp` (points are finite here): the hot loop.
-            let v = if v > 0.0 {
-                if v < self.top[a] {
-                    v
-                } else {
-                    self.top[a]
-                }
-            } else {
-                0.0
-            };
-            let i = (v as i32).min(self.cell.top[a]);
-            (i, v - i as f32)
-        };
-        let ((i, fx), (j, fy), (k, fz)) = (axis(p.x, 0), axis(p.y, 1), axis(p.z, 2));
+        let ((i, fx), (j, fy), (k, fz)) = (self.cell_of(p.x, 0), self.cell_of(p.y, 1), self.cell_of(p.z, 2));
         let [sx, sy, sz] = self.cell.strides.map(|s| s as usize);
         let base = (i + self.cell.nx * j + self.cell.nxy * k) as usize;
         // One check for the whole cell (the clamps keep it inside the data).
         let cell = &self.data[base..=base + sx + sy + sz];
         defvol_core::volume::lerp_cube(|o| cell[o], [sx, sy, sz], [fx, fy, fz])
+    }
+
+    /// The central-difference gradient at `p` (value per voxel) of samples clamped to the
+    /// box a voxel either side, `(f(p + eₐ) - f(p - eₐ)) / 2`: read as the grid's central
+    /// differences (the neighbours clamped at the faces) interpolated in p's own cell, the
+    /// same function from 32 voxels instead of 48 ([`packet::Gradient8`] in the lanes).
+    pub(crate) fn gradient(&self, p: &Vector3<f32>) -> Vector3<f32> {
+        let strides = [1, self.cell.nx, self.cell.nxy];
+        let cells = [0, 1, 2].map(|a| self.cell_of(p[a], a));
+        // Per axis the voxels before, at, after and two after the cell's first, clamped.
+        let rows = [0, 1, 2].map(|a| {
+            let (i, last) = (cells[a].0, self.top[a] as i32);
+            [(i - 1).max(0), i, (i + 1).min(last), (i + 2).min(last)].map(|v| (v * strides[a]) as usize)
+        });
+        let fractions = cells.map(|c| c.1);
+        Vector3::from(std::array::from_fn(|a| {
+            let difference = |c: usize| {
+                let corner = [c & 1, c >> 1 & 1, c >> 2 & 1];
+                let at = |shift: usize| {
+                    let row = |b: usize| rows[b][if a == b { shift + corner[b] } else { 1 + corner[b] }];
+                    self.data[row(0) + row(1) + row(2)]
+                };
+                at(2) - at(0)
+            };
+            defvol_core::volume::lerp_cube(difference, [1, 2, 4], fractions) * 0.5
+        }))
     }
 
     /// Samples at `base + step·(first + n)` into `out`: eight at a time where AVX2 serves,
@@ -506,6 +543,9 @@ struct Caster<'a> {
     /// Eight rays at once, where they serve (see `cast_packet`).
     #[cfg(target_arch = "x86_64")]
     packets: Option<Trilinear8<'a>>,
+    /// The lanes' gradients, which shaded packets need.
+    #[cfg(target_arch = "x86_64")]
+    gradients: Option<packet::Gradient8<'a>>,
     volume: &'a Volume,
     sampler: Sampler<'a>,
     tables: &'a Tables,
@@ -561,12 +601,7 @@ impl Caster<'_> {
         match self.params.shading {
             Shading::None => 1.0,
             Shading::Gradient => {
-                let g = Vector3::new(
-                    self.sample(&(p + Vector3::x())) - self.sample(&(p - Vector3::x())),
-                    self.sample(&(p + Vector3::y())) - self.sample(&(p - Vector3::y())),
-                    self.sample(&(p + Vector3::z())) - self.sample(&(p - Vector3::z())),
-                ) * 0.5;
-                let g = self.space.world_gradient(g.cast::<f64>());
+                let g = self.space.world_gradient(self.sampler.gradient(p).cast::<f64>());
                 match g.try_normalize(1e-12) {
                     Some(n) => ambient + (1.0 - ambient) * n.dot(light).abs() as f32,
                     None => 1.0,
@@ -766,9 +801,9 @@ impl Caster<'_> {
 #[cfg(target_arch = "x86_64")]
 impl<'a> Caster<'a> {
     /// The eight-point sampler where packets give this caster's pictures: composite, AVX2
-    /// present and the volume inside the sampler's reach.
+    /// present, the volume inside the sampler's reach (and the gradients' where shaded).
     fn packet_sampler(&self) -> Option<Trilinear8<'a>> {
-        if self.params.mode != Mode::Composite {
+        if self.params.mode != Mode::Composite || (self.params.shading != Shading::None && self.gradients.is_none()) {
             return None;
         }
         Trilinear8::new(self.volume.data(), &self.sampler.cell)
@@ -889,12 +924,14 @@ impl<'a> Caster<'a> {
         end.terminated
     }
 
-    /// What the lanes need to shade as `shade` does: none for an unshaded picture.
-    fn packet_shading(&self, clipped: &[Option<Clipped>; packet::LANES]) -> Option<packet::PacketShading> {
+    /// What the lanes need to shade as `shade` does: none for an unshaded picture (a
+    /// shaded one has packets only with gradients, `packet_sampler`).
+    fn packet_shading(&self, clipped: &[Option<Clipped>; packet::LANES]) -> Option<packet::PacketShading<'a>> {
         if self.params.shading == Shading::None {
             return None;
         }
         let mut shading = packet::PacketShading {
+            gradients: self.gradients?,
             shading: self.params.shading,
             ambient: self.params.ambient as f32,
             gradient_scale: self.gradient_scale,
@@ -1104,6 +1141,84 @@ mod tests {
                 })
                 .collect();
         Volume::new(n, [1.0, 0.9, 1.1], [3.0, -2.0, 1.0], Matrix3::identity(), data, "blocks").unwrap()
+    }
+
+    /// Trilinear in f64 at `p` clamped to the voxel-centre box of `dims`.
+    fn trilinear_f64(data: &[f32], dims: [usize; 3], p: [f64; 3]) -> f64 {
+        let cell = |a: usize| {
+            let v = p[a].clamp(0.0, (dims[a] - 1) as f64);
+            let i = (v.floor() as usize).min(dims[a].saturating_sub(2));
+            (i, v - i as f64)
+        };
+        let [(i, fx), (j, fy), (k, fz)] = [0, 1, 2].map(cell);
+        let at = |x: usize, y: usize, z: usize| {
+            let [x, y, z] = [(i + x, 0), (j + y, 1), (k + z, 2)].map(|(v, a)| v.min(dims[a] - 1));
+            f64::from(data[x + dims[0] * (y + dims[1] * z)])
+        };
+        let lerp = |a: f64, b: f64, t: f64| a + (b - a) * t;
+        let y0 = |z| lerp(lerp(at(0, 0, z), at(1, 0, z), fx), lerp(at(0, 1, z), at(1, 1, z), fx), fy);
+        lerp(y0(0), y0(1), fz)
+    }
+
+    /// The gradient read from the grid's central differences is the difference of clamped
+    /// trilinear samples a voxel either side (f64) at points inside and on every face, and
+    /// the eight-lane gradients are the scalar ones to the bit there and past the faces;
+    /// grids with an axis one and two voxels thick.
+    #[test]
+    fn gradients_are_central_differences_of_clamped_samples() {
+        let mut rng = fastrand::Rng::with_seed(7);
+        for dims in [[9usize, 7, 6], [5, 1, 4], [2, 6, 3]] {
+            let data: Vec<f32> = (0..dims.iter().product()).map(|_| rng.f32() * 200.0 - 100.0).collect();
+            let sampler = super::Sampler::new(&data, dims);
+            let points: Vec<[f32; 3]> = (0..4000)
+                .map(|n| {
+                    std::array::from_fn(|a| {
+                        let top = (dims[a] - 1) as f32;
+                        // Every tenth coordinate on a face or a voxel centre.
+                        match n % 10 {
+                            0 => 0.0,
+                            1 => top,
+                            2 => rng.usize(0..dims[a]) as f32,
+                            _ => rng.f32() * (top + 3.0) - 1.5,
+                        }
+                    })
+                })
+                .collect();
+            // The point itself is clamped first: past a face the two definitions part.
+            let inside = |p: &&[f32; 3]| (0..3).all(|a| (0.0..=(dims[a] - 1) as f32).contains(&p[a]));
+            let mut compared = 0;
+            for p in points.iter().filter(inside) {
+                compared += 1;
+                let got = sampler.gradient(&Vector3::from(*p));
+                for a in 0..3 {
+                    let moved = |by: f64| std::array::from_fn(|b| f64::from(p[b]) + if a == b { by } else { 0.0 });
+                    let want = (trilinear_f64(&data, dims, moved(1.0)) - trilinear_f64(&data, dims, moved(-1.0))) / 2.0;
+                    assert!(
+                        (f64::from(got[a]) - want).abs() < 1e-3,
+                        "{dims:?} at {p:?}, axis {a}: {got} against {want}"
+                    );
+                }
+            }
+            assert!(compared > 1000, "{compared}");
+            #[cfg(target_arch = "x86_64")]
+            if let Some(lanes) = super::packet::Gradient8::new(&data, dims) {
+                for eight in points.chunks_exact(8) {
+                    // SAFETY (here and below): a Gradient8 exists only where the CPU has AVX2.
+                    let axis = |a: usize| unsafe { super::packet::load(std::array::from_fn(|l| eight[l][a])) };
+                    // SAFETY: a Gradient8 exists only where the CPU has AVX2.
+                    let got =
+                        unsafe { lanes.at([axis(0), axis(1), axis(2)]) }.map(|v| unsafe { super::packet::store(v) });
+                    for (l, p) in eight.iter().enumerate() {
+                        let want = sampler.gradient(&Vector3::from(*p));
+                        assert_eq!(
+                            [0, 1, 2].map(|a| got[a][l].to_bits()),
+                            [0, 1, 2].map(|a| want[a].to_bits()),
+                            "{p:?}"
+                        );
+                    }
+                }
+            }
+        }
     }
 
     /// The packets' ray set-up, eight lanes of f64, is `Rays::ray`, `IndexSpace::ray` and

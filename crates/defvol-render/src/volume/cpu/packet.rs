@@ -58,9 +58,102 @@ pub(super) struct PacketEnd {
     pub(super) depth: [f32; LANES],
 }
 
+/// [`super::Sampler::gradient`] at eight points, the same arithmetic: each lane's 32 voxels
+/// gathered (its cell's corners and their neighbours a voxel out along each axis, clamped
+/// into the grid), their central differences interpolated in its cell: a gradient-shaded
+/// 512² frame of the phantom took 0.8x the time of six clamped trilinear samples a step
+/// (2-core Intel Xeon, 2026-11-28).
+#[derive(Clone, Copy)]
+pub(crate) struct Gradient8<'a> {
+    data: &'a [f32],
+    /// The voxel-centre box's top per axis (as a float where points are clamped).
+    top: [f32; 3],
+    last: [i32; 3],
+    /// The highest cell per axis (dims - 2, at least 0).
+    cell_top: [i32; 3],
+    /// Steps between voxels along each axis.
+    strides: [i32; 3],
+}
+
+impl<'a> Gradient8<'a> {
+    /// The gradients of x-fastest `data` over `dims`, where AVX2 serves and `data` holds
+    /// the grid (whose indices an i32 reaches).
+    pub(crate) fn new(data: &'a [f32], dims: [usize; 3]) -> Option<Self> {
+        let fits = data.len() == dims.iter().product::<usize>() && !data.is_empty() && data.len() <= i32::MAX as usize;
+        if !(fits && defvol_core::volume::lanes::lanes_available()) {
+            return None;
+        }
+        Some(Self {
+            data,
+            top: dims.map(|n| (n - 1) as f32),
+            last: dims.map(|n| n as i32 - 1),
+            cell_top: dims.map(|n| n.saturating_sub(2) as i32),
+            strides: [1, dims[0], dims[0] * dims[1]].map(|s| s as i32),
+        })
+    }
+
+    /// The gradients at the eight points `p` (x, y, z lanes), value per voxel.
+    ///
+    /// # Safety
+    /// As [`Trilinear8::sample`]: a `Gradient8` exists only where the CPU has AVX2.
+    #[inline]
+    #[target_feature(enable = "avx2")]
+    pub(crate) fn at(&self, p: [__m256; 3]) -> [__m256; 3] {
+        let (zero, one) = (_mm256_setzero_si256(), _mm256_set1_epi32(1));
+        let v = [0, 1, 2].map(|a| clamp8(p[a], self.top[a]));
+        let cell = [0, 1, 2].map(|a| _mm256_min_epi32(_mm256_cvttps_epi32(v[a]), _mm256_set1_epi32(self.cell_top[a])));
+        let f = [0, 1, 2].map(|a| _mm256_sub_ps(v[a], _mm256_cvtepi32_ps(cell[a])));
+        // Per axis the voxels before, at, after and two after the cell's first, clamped.
+        let rows = [0, 1, 2].map(|a| {
+            let (i, last, stride) = (cell[a], _mm256_set1_epi32(self.last[a]), _mm256_set1_epi32(self.strides[a]));
+            let row = |v: __m256i| _mm256_mullo_epi32(v, stride);
+            [
+                row(_mm256_max_epi32(_mm256_sub_epi32(i, one), zero)),
+                row(i),
+                row(_mm256_min_epi32(_mm256_add_epi32(i, one), last)),
+                row(_mm256_min_epi32(_mm256_add_epi32(i, _mm256_set1_epi32(2)), last)),
+            ]
+        });
+        let mut gradient = [_mm256_setzero_ps(); 3];
+        for (a, gradient) in gradient.iter_mut().enumerate() {
+            // Corner c's central difference along a: its voxels one step on and one back.
+            let mut d = [_mm256_setzero_ps(); 8];
+            for (c, d) in d.iter_mut().enumerate() {
+                let (mut on, mut back) = (zero, zero);
+                for (b, rows) in rows.iter().enumerate() {
+                    let corner = c >> b & 1;
+                    let (to, from) = if a == b { (2 + corner, corner) } else { (1 + corner, 1 + corner) };
+                    (on, back) = (_mm256_add_epi32(on, rows[to]), _mm256_add_epi32(back, rows[from]));
+                }
+                // SAFETY: each index is of a voxel clamped into the grid, which `data` holds
+                // (checked in `new`).
+                let (on, back) = unsafe {
+                    (
+                        _mm256_i32gather_ps::<4>(self.data.as_ptr(), on),
+                        _mm256_i32gather_ps::<4>(self.data.as_ptr(), back),
+                    )
+                };
+                *d = _mm256_sub_ps(on, back);
+            }
+            let (c00, c10) = (lerp8(d[0], d[1], f[0]), lerp8(d[2], d[3], f[0]));
+            let (c01, c11) = (lerp8(d[4], d[5], f[0]), lerp8(d[6], d[7], f[0]));
+            *gradient = _mm256_mul_ps(lerp8(lerp8(c00, c10, f[1]), lerp8(c01, c11, f[1]), f[2]), _mm256_set1_ps(0.5));
+        }
+        gradient
+    }
+}
+
+/// `a + (b - a)·t`, `lerp_cube`'s step.
+#[inline]
+#[target_feature(enable = "avx2")]
+fn lerp8(a: __m256, b: __m256, t: __m256) -> __m256 {
+    _mm256_add_ps(a, _mm256_mul_ps(_mm256_sub_ps(b, a), t))
+}
+
 /// `Caster::shade` for the packet's lanes: the picture's shading (gradient or forward
 /// difference) and each lane's light.
-pub(super) struct PacketShading {
+pub(super) struct PacketShading<'a> {
+    pub(super) gradients: Gradient8<'a>,
     pub(super) shading: Shading,
     pub(super) ambient: f32,
     pub(super) gradient_scale: f32,
@@ -80,7 +173,7 @@ pub(super) struct Lanes<'a> {
     tables: &'a Tables,
     preintegrated: bool,
     cells: Option<CellWalk<'a>>,
-    shading: Option<PacketShading>,
+    shading: Option<PacketShading<'a>>,
     /// The rays (`o + d·t`), where they enter, and their full segments.
     o: [__m256; 3],
     d: [__m256; 3],
@@ -101,7 +194,7 @@ impl<'a> Lanes<'a> {
     #[target_feature(enable = "avx2")]
     pub(super) fn new(
         (trilinear, tables, preintegrated): (Trilinear8<'a>, &'a Tables, bool),
-        (cells, shading): (Option<CellWalk<'a>>, Option<PacketShading>),
+        (cells, shading): (Option<CellWalk<'a>>, Option<PacketShading<'a>>),
         rays: &PacketRays,
         (step, termination): (f32, f32),
     ) -> Self {
@@ -244,7 +337,7 @@ impl<'a> Lanes<'a> {
 
     /// `Caster::shade` at each lane's `o + d·t`, the same arithmetic: the gradient's
     /// normal (f64, as nalgebra's product, norm and dot take it) or the forward difference
-    /// toward the light, from samples at points clamped into the box.
+    /// toward the light from samples at points clamped into the box.
     #[inline(never)]
     #[target_feature(enable = "avx2")]
     fn shade8(&self, shading: &PacketShading, t: __m256) -> __m256 {
@@ -255,14 +348,7 @@ impl<'a> Lanes<'a> {
         match shading.shading {
             Shading::None => one,
             Shading::Gradient => {
-                let g = [0, 1, 2].map(|a| {
-                    let moved = |by: f32| {
-                        let mut q = p;
-                        q[a] = _mm256_add_ps(p[a], _mm256_set1_ps(by));
-                        q
-                    };
-                    _mm256_mul_ps(_mm256_sub_ps(at(moved(1.0)), at(moved(-1.0))), _mm256_set1_ps(0.5))
-                });
+                let g = shading.gradients.at(p);
                 let halves = [0, 1].map(|h| {
                     let g = g.map(|g| {
                         _mm256_cvtps_pd(if h == 0 { _mm256_castps256_ps128(g) } else { _mm256_extractf128_ps::<1>(g) })
