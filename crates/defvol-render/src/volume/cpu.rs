@@ -234,10 +234,24 @@ impl IndexSpace {
         (self.index_from_world * (origin.coords - self.origin), self.index_from_world * direction)
     }
 
-    /// A gradient in index space (value per voxel) as a world gradient.
-    fn world_gradient(&self, g: Vector3<f64>) -> Vector3<f64> {
-        // ∇_world f = (∂index/∂world)ᵀ ∇_index f.
-        self.index_from_world.transpose() * g
+    /// The matrix taking a gradient in index space (value per voxel) to a world gradient:
+    /// ∇_world f = (∂index/∂world)ᵀ ∇_index f.
+    fn gradient_to_world(&self) -> [[f32; 3]; 3] {
+        std::array::from_fn(|i| std::array::from_fn(|j| self.index_from_world[(j, i)] as f32))
+    }
+}
+
+/// Two-sided Lambert for index-space gradient `g` carried to the world by `to_world`, lit
+/// from `light`: `ambient` plus the rest times |cos| between the normal and the light, or 1
+/// where the gradient is too short for a normal. In f32, as the GPU and the lanes take it
+/// (`packet::Lanes::shade8`, term by term in this order).
+fn lambert(g: &Vector3<f32>, to_world: &[[f32; 3]; 3], light: &Vector3<f32>, ambient: f32) -> f32 {
+    let w: [f32; 3] = std::array::from_fn(|i| to_world[i][0] * g.x + to_world[i][1] * g.y + to_world[i][2] * g.z);
+    let len = (w[0] * w[0] + w[1] * w[1] + w[2] * w[2]).sqrt();
+    if len > 1e-12 {
+        ambient + (1.0 - ambient) * ((w[0] * light.x + w[1] * light.y + w[2] * light.z) / len).abs()
+    } else {
+        1.0
     }
 }
 
@@ -601,11 +615,7 @@ impl Caster<'_> {
         match self.params.shading {
             Shading::None => 1.0,
             Shading::Gradient => {
-                let g = self.space.world_gradient(self.sampler.gradient(p).cast::<f64>());
-                match g.try_normalize(1e-12) {
-                    Some(n) => ambient + (1.0 - ambient) * n.dot(light).abs() as f32,
-                    None => 1.0,
-                }
+                lambert(&self.sampler.gradient(p), &self.space.gradient_to_world(), &light.cast::<f32>(), ambient)
             }
             Shading::ForwardDifference => {
                 // ∇f·l ≈ (f(p + δl) - f(p)) / δ, δ = one world unit; the surface faces the
@@ -935,7 +945,7 @@ impl<'a> Caster<'a> {
             shading: self.params.shading,
             ambient: self.params.ambient as f32,
             gradient_scale: self.gradient_scale,
-            to_world: self.space.index_from_world.transpose(),
+            to_world: self.space.gradient_to_world(),
             light: [[0.0; packet::LANES]; 3],
             light_index: [[0.0; packet::LANES]; 3],
             top: self.volume.dims().map(|n| n.saturating_sub(1) as f32),
@@ -944,7 +954,7 @@ impl<'a> Caster<'a> {
             let Some(c) = c else { continue };
             let light_index = (self.space.index_from_world * c.light).cast::<f32>();
             for a in 0..3 {
-                (shading.light[a][l], shading.light_index[a][l]) = (c.light[a], light_index[a]);
+                (shading.light[a][l], shading.light_index[a][l]) = (c.light[a] as f32, light_index[a]);
             }
         }
         Some(shading)

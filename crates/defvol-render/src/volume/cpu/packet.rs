@@ -157,10 +157,10 @@ pub(super) struct PacketShading<'a> {
     pub(super) shading: Shading,
     pub(super) ambient: f32,
     pub(super) gradient_scale: f32,
-    /// An index-space gradient to a world one (`IndexSpace::world_gradient`'s matrix).
-    pub(super) to_world: Matrix3<f64>,
+    /// An index-space gradient to a world one (`IndexSpace::gradient_to_world`).
+    pub(super) to_world: [[f32; 3]; 3],
     /// Toward each lane's light: world frame, and in index space as `Caster::cast` takes it.
-    pub(super) light: [[f64; LANES]; 3],
+    pub(super) light: [[f32; LANES]; 3],
     pub(super) light_index: [[f32; LANES]; 3],
     /// The voxel-centre box's top per axis, where `Sampler::at` clamps its points.
     pub(super) top: [f32; 3],
@@ -335,9 +335,9 @@ impl<'a> Lanes<'a> {
         }
     }
 
-    /// `Caster::shade` at each lane's `o + d·t`, the same arithmetic: the gradient's
-    /// normal (f64, as nalgebra's product, norm and dot take it) or the forward difference
-    /// toward the light from samples at points clamped into the box.
+    /// `Caster::shade` at each lane's `o + d·t`, the same arithmetic: Lambert on the
+    /// gradient's normal, or the forward difference toward the light from samples at
+    /// points clamped into the box.
     #[inline(never)]
     #[target_feature(enable = "avx2")]
     fn shade8(&self, shading: &PacketShading, t: __m256) -> __m256 {
@@ -348,21 +348,17 @@ impl<'a> Lanes<'a> {
         match shading.shading {
             Shading::None => one,
             Shading::Gradient => {
+                // `lambert` in `cpu.rs`, term by term.
                 let g = shading.gradients.at(p);
-                let halves = [0, 1].map(|h| {
-                    let g = g.map(|g| {
-                        _mm256_cvtps_pd(if h == 0 { _mm256_castps256_ps128(g) } else { _mm256_extractf128_ps::<1>(g) })
-                    });
-                    let light = shading.light.map(|l| {
-                        // SAFETY: l holds eight f64; h·4 + 4 of them are read.
-                        unsafe { _mm256_loadu_pd(l.as_ptr().add(4 * h)) }
-                    });
-                    lambert(times(&shading.to_world, g), light)
-                });
-                let (factor, lit) = (halves.map(|h| h.0), halves.map(|h| h.1));
-                let factor = _mm256_set_m128(factor[1], factor[0]);
-                let lit = _mm256_castsi256_ps(_mm256_set_m128i(_mm_castps_si128(lit[1]), _mm_castps_si128(lit[0])));
-                _mm256_blendv_ps(one, _mm256_add_ps(ambient, _mm256_mul_ps(rest, factor)), lit)
+                let sum3 = |t: [__m256; 3]| _mm256_add_ps(_mm256_add_ps(t[0], t[1]), t[2]);
+                let m = &shading.to_world;
+                let w = m.map(|row| sum3([0, 1, 2].map(|j| _mm256_mul_ps(_mm256_set1_ps(row[j]), g[j]))));
+                let light = shading.light.map(|l| load(l));
+                let len = _mm256_sqrt_ps(sum3(w.map(|w| _mm256_mul_ps(w, w))));
+                let dot = sum3([0, 1, 2].map(|a| _mm256_mul_ps(w[a], light[a])));
+                let cosine = _mm256_andnot_ps(_mm256_set1_ps(-0.0), _mm256_div_ps(dot, len));
+                let lit = _mm256_cmp_ps::<_CMP_GT_OQ>(len, _mm256_set1_ps(1e-12));
+                _mm256_blendv_ps(one, _mm256_add_ps(ambient, _mm256_mul_ps(rest, cosine)), lit)
             }
             Shading::ForwardDifference => {
                 let toward = shading.light_index.map(|l| load(l));
@@ -537,28 +533,6 @@ pub(super) fn setup8(
 fn times(m: &Matrix3<f64>, v: [__m256d; 3]) -> [__m256d; 3] {
     let term = |i: usize, j: usize| _mm256_mul_pd(_mm256_set1_pd(m[(i, j)]), v[j]);
     std::array::from_fn(|i| _mm256_add_pd(_mm256_add_pd(term(i, 0), term(i, 1)), term(i, 2)))
-}
-
-/// Four lanes of `g.try_normalize(1e-12)` dotted with `light`, its absolute value as f32
-/// (nalgebra's order: the norm's squares and the dot's terms added first to last), and
-/// which lanes had a normal (a shorter gradient leaves the sample unshaded).
-#[inline]
-#[target_feature(enable = "avx2")]
-fn lambert(g: [__m256d; 3], light: [__m256d; 3]) -> (__m128, __m128) {
-    let dot = |u: [__m256d; 3], v: [__m256d; 3]| {
-        _mm256_add_pd(_mm256_add_pd(_mm256_mul_pd(u[0], v[0]), _mm256_mul_pd(u[1], v[1])), _mm256_mul_pd(u[2], v[2]))
-    };
-    let norm = _mm256_sqrt_pd(dot(g, g));
-    let normal = g.map(|g| _mm256_div_pd(g, norm));
-    let abs = _mm256_andnot_pd(_mm256_set1_pd(-0.0), dot(normal, light));
-    let lit = _mm256_cmp_pd::<_CMP_NLE_UQ>(norm, _mm256_set1_pd(1e-12));
-    (
-        _mm256_cvtpd_ps(abs),
-        _mm256_castps256_ps128(_mm256_permutevar8x32_ps(
-            _mm256_castpd_ps(lit),
-            _mm256_setr_epi32(0, 2, 4, 6, 1, 3, 5, 7),
-        )),
-    )
 }
 
 #[inline]
