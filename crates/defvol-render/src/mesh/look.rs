@@ -182,12 +182,7 @@ impl SourceLook {
                     map[0][1] * gi.x + map[1][1] * gi.y + map[2][1] * gi.z,
                     map[0][2] * gi.x + map[1][2] * gi.y + map[2][2] * gi.z,
                 );
-                let len = g.norm();
-                if len > 1e-12 {
-                    ambient + (1.0 - ambient) * (g.dot(light) / len).abs()
-                } else {
-                    1.0
-                }
+                crate::volume::lambert(&g, light, ambient)
             }
             Shading::ForwardDifference => {
                 // One world unit toward the light, in the source's index: G·l.
@@ -196,8 +191,7 @@ impl SourceLook {
                     map[1][0] * light.x + map[1][1] * light.y + map[1][2] * light.z,
                     map[2][0] * light.x + map[2][1] * light.y + map[2][2] * light.z,
                 );
-                let drop = self.clamped(q) - self.clamped(&(q + l));
-                ambient + (1.0 - ambient) * (drop / self.gradient_scale).clamp(0.0, 1.0)
+                crate::volume::lit_by_drop(self.clamped(q) - self.clamped(&(q + l)), self.gradient_scale, ambient)
             }
         }
     }

@@ -19,8 +19,9 @@ use super::field::V3;
 use super::geometry::TetGeometry;
 use super::lanes::{composite8, leave8};
 use super::look::{SourceLook, TetMap, EDGE_TOLERANCE};
-use crate::volume::packet::{clamp8, interpolate8, lanes_i32, segment8, store, Gradient8};
-use crate::volume::Shading;
+use crate::volume::packet::{
+    clamp8, forward_difference8, interpolate8, lambert8, lanes_i32, segment8, store, sum3, Gradient8, ShadeBy,
+};
 
 /// Rays side by side.
 const LANES: usize = 8;
@@ -94,7 +95,7 @@ struct Reads<'a> {
 /// own, toward the eye, where none is set).
 struct Shade8<'a> {
     gradients: Gradient8<'a>,
-    shading: Shading,
+    by: ShadeBy,
     light: Option<[__m256; 3]>,
     ambient: f32,
     gradient_scale: f32,
@@ -122,21 +123,22 @@ impl TetRaycaster {
         let offset = _mm256_set1_ps(if preintegrated { 0.0 } else { 0.5 });
         let step = _mm256_set1_ps(look.params.step as f32);
         // A shaded picture's gradients (where AVX2 serves, as the sampler's).
-        let shade = if look.params.shading == Shading::None {
-            None
-        } else {
-            let Some(gradients) = Gradient8::new(volume.data(), dims) else { return false };
-            Some(Shade8 {
-                gradients,
-                shading: look.params.shading,
-                light: look.params.light.map(|l| {
-                    let l = nalgebra::Vector3::from(l).normalize().cast::<f32>();
-                    [0, 1, 2].map(|a| _mm256_set1_ps(l[a]))
-                }),
-                ambient: look.params.ambient as f32,
-                gradient_scale: look.gradient_scale,
-                top: dims.map(|n| n.saturating_sub(1) as f32),
-            })
+        let shade = match look.params.shading.in_lanes() {
+            None => None,
+            Some(by) => {
+                let Some(gradients) = Gradient8::new(volume.data(), dims) else { return false };
+                Some(Shade8 {
+                    gradients,
+                    by,
+                    light: look.params.light.map(|l| {
+                        let l = nalgebra::Vector3::from(l).normalize().cast::<f32>();
+                        [0, 1, 2].map(|a| _mm256_set1_ps(l[a]))
+                    }),
+                    ambient: look.params.ambient as f32,
+                    gradient_scale: look.gradient_scale,
+                    top: dims.map(|n| n.saturating_sub(1) as f32),
+                })
+            }
         };
         let reads = Reads { look, sampler, top, preintegrated, offset, step, shade };
         let mut w = self.idle_lanes();
@@ -484,30 +486,18 @@ fn shade8(reads: &Reads, shade: &Shade8, w: &Walk8, q: [__m256; 3]) -> __m256 {
     };
     let light = shade.light.unwrap_or(w.d.map(|d| _mm256_xor_ps(d, _mm256_set1_ps(-0.0))));
     let at = |p: [__m256; 3]| reads.sampler.sample([0, 1, 2].map(|a| clamp8(p[a], shade.top[a])));
-    let sum3 = |t: [__m256; 3]| _mm256_add_ps(_mm256_add_ps(t[0], t[1]), t[2]);
-    let (one, ambient) = (_mm256_set1_ps(1.0), _mm256_set1_ps(shade.ambient));
-    let rest = _mm256_set1_ps(1.0 - shade.ambient);
-    match shade.shading {
-        Shading::None => one,
-        Shading::Gradient => {
+    match shade.by {
+        ShadeBy::Gradient => {
             let gi = shade.gradients.at(q);
             // ∇ₓf = Gᵀ ∇_q f.
             let g = [0, 1, 2].map(|j| sum3([0, 1, 2].map(|a| _mm256_mul_ps(map(a, j), gi[a as usize]))));
-            let len = _mm256_sqrt_ps(sum3([0, 1, 2].map(|a| _mm256_mul_ps(g[a], g[a]))));
-            let dot = sum3([0, 1, 2].map(|a| _mm256_mul_ps(g[a], light[a])));
-            let cosine = _mm256_andnot_ps(_mm256_set1_ps(-0.0), _mm256_div_ps(dot, len));
-            let lit = _mm256_cmp_ps::<_CMP_GT_OQ>(len, _mm256_set1_ps(1e-12));
-            _mm256_blendv_ps(one, _mm256_add_ps(ambient, _mm256_mul_ps(rest, cosine)), lit)
+            lambert8(g, light, shade.ambient)
         }
-        Shading::ForwardDifference => {
+        ShadeBy::ForwardDifference => {
             // One world unit toward the light, in the source's index: G·l.
             let l = [0, 1, 2].map(|a| sum3([0, 1, 2].map(|j| _mm256_mul_ps(map(a, j), light[j as usize]))));
             let ahead = [0, 1, 2].map(|a| _mm256_add_ps(q[a], l[a]));
-            let drop = _mm256_sub_ps(at(q), at(ahead));
-            let scaled = _mm256_div_ps(drop, _mm256_set1_ps(shade.gradient_scale));
-            // `clamp(0, 1)`, a NaN kept: max and min return their second operand on NaN.
-            let clamped = _mm256_min_ps(one, _mm256_max_ps(_mm256_setzero_ps(), scaled));
-            _mm256_add_ps(ambient, _mm256_mul_ps(rest, clamped))
+            forward_difference8(_mm256_sub_ps(at(q), at(ahead)), shade.gradient_scale, shade.ambient)
         }
     }
 }

@@ -241,17 +241,33 @@ impl IndexSpace {
     }
 }
 
-/// Two-sided Lambert for index-space gradient `g` carried to the world by `to_world`, lit
-/// from `light`: `ambient` plus the rest times |cos| between the normal and the light, or 1
-/// where the gradient is too short for a normal. In f32, as the GPU and the lanes take it
-/// (`packet::Lanes::shade8`, term by term in this order).
-fn lambert(g: &Vector3<f32>, to_world: &[[f32; 3]; 3], light: &Vector3<f32>, ambient: f32) -> f32 {
-    let w: [f32; 3] = std::array::from_fn(|i| to_world[i][0] * g.x + to_world[i][1] * g.y + to_world[i][2] * g.z);
-    let len = (w[0] * w[0] + w[1] * w[1] + w[2] * w[2]).sqrt();
+/// Two-sided Lambert for world gradient `w` lit from `light`: `ambient` plus the rest
+/// times |cos| between the normal and the light, or 1 where the gradient is too short for
+/// a normal. In f32, as the GPU takes it; the lanes' `packet::lambert8` term by term.
+pub(crate) fn lambert(w: &Vector3<f32>, light: &Vector3<f32>, ambient: f32) -> f32 {
+    let len = (w.x * w.x + w.y * w.y + w.z * w.z).sqrt();
     if len > 1e-12 {
-        ambient + (1.0 - ambient) * ((w[0] * light.x + w[1] * light.y + w[2] * light.z) / len).abs()
+        ambient + (1.0 - ambient) * ((w.x * light.x + w.y * light.y + w.z * light.z) / len).abs()
     } else {
         1.0
+    }
+}
+
+/// The light a sample gets from the value's `drop` one world unit toward the light, full
+/// at `scale` (seed 002's forward difference); the lanes' `packet::forward_difference8`.
+pub(crate) fn lit_by_drop(drop: f32, scale: f32, ambient: f32) -> f32 {
+    ambient + (1.0 - ambient) * (drop / scale).clamp(0.0, 1.0)
+}
+
+impl Shading {
+    /// How the lanes shade: none for an unshaded picture.
+    #[cfg(target_arch = "x86_64")]
+    pub(crate) fn in_lanes(self) -> Option<packet::ShadeBy> {
+        match self {
+            Shading::None => None,
+            Shading::Gradient => Some(packet::ShadeBy::Gradient),
+            Shading::ForwardDifference => Some(packet::ShadeBy::ForwardDifference),
+        }
     }
 }
 
@@ -615,13 +631,14 @@ impl Caster<'_> {
         match self.params.shading {
             Shading::None => 1.0,
             Shading::Gradient => {
-                lambert(&self.sampler.gradient(p), &self.space.gradient_to_world(), &light.cast::<f32>(), ambient)
+                let (g, m) = (self.sampler.gradient(p), self.space.gradient_to_world());
+                let w = Vector3::from(m.map(|row| row[0] * g.x + row[1] * g.y + row[2] * g.z));
+                lambert(&w, &light.cast::<f32>(), ambient)
             }
             Shading::ForwardDifference => {
                 // ∇f·l ≈ (f(p + δl) - f(p)) / δ, δ = one world unit; the surface faces the
                 // light where values fall toward it.
-                let drop = self.sample(p) - self.sample(&(p + light_index));
-                ambient + (1.0 - ambient) * (drop / self.gradient_scale).clamp(0.0, 1.0)
+                lit_by_drop(self.sample(p) - self.sample(&(p + light_index)), self.gradient_scale, ambient)
             }
         }
     }
@@ -937,12 +954,10 @@ impl<'a> Caster<'a> {
     /// What the lanes need to shade as `shade` does: none for an unshaded picture (a
     /// shaded one has packets only with gradients, `packet_sampler`).
     fn packet_shading(&self, clipped: &[Option<Clipped>; packet::LANES]) -> Option<packet::PacketShading<'a>> {
-        if self.params.shading == Shading::None {
-            return None;
-        }
+        let by = self.params.shading.in_lanes()?;
         let mut shading = packet::PacketShading {
             gradients: self.gradients?,
-            shading: self.params.shading,
+            by,
             ambient: self.params.ambient as f32,
             gradient_scale: self.gradient_scale,
             to_world: self.space.gradient_to_world(),

@@ -10,7 +10,6 @@ use std::arch::x86_64::*;
 
 use nalgebra::Matrix3;
 
-use super::Shading;
 use crate::camera::Rays;
 use crate::transfer::{SegmentTable, Tables, LUT_SIZE, PREINTEGRATED_SIZE, SEGMENT_LENGTHS, SEGMENT_LEVELS};
 use defvol_core::volume::lanes::Trilinear8;
@@ -143,6 +142,44 @@ impl<'a> Gradient8<'a> {
     }
 }
 
+/// The shaded kinds of `Shading`, as the lanes take them.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) enum ShadeBy {
+    Gradient,
+    ForwardDifference,
+}
+
+/// `(t[0] + t[1]) + t[2]`.
+#[inline]
+#[target_feature(enable = "avx2")]
+pub(crate) fn sum3(t: [__m256; 3]) -> __m256 {
+    _mm256_add_ps(_mm256_add_ps(t[0], t[1]), t[2])
+}
+
+/// `volume::lambert` in the lanes, term by term: two-sided Lambert for world gradients
+/// `w` lit from `light`, 1 where a gradient is too short for a normal.
+#[inline]
+#[target_feature(enable = "avx2")]
+pub(crate) fn lambert8(w: [__m256; 3], light: [__m256; 3], ambient: f32) -> __m256 {
+    let len = _mm256_sqrt_ps(sum3(w.map(|w| _mm256_mul_ps(w, w))));
+    let dot = sum3([0, 1, 2].map(|a| _mm256_mul_ps(w[a], light[a])));
+    let cosine = _mm256_andnot_ps(_mm256_set1_ps(-0.0), _mm256_div_ps(dot, len));
+    let lit = _mm256_cmp_ps::<_CMP_GT_OQ>(len, _mm256_set1_ps(1e-12));
+    let shaded = _mm256_add_ps(_mm256_set1_ps(ambient), _mm256_mul_ps(_mm256_set1_ps(1.0 - ambient), cosine));
+    _mm256_blendv_ps(_mm256_set1_ps(1.0), shaded, lit)
+}
+
+/// `volume::lit_by_drop` in the lanes: the light a sample gets from the value's `drop`
+/// one world unit toward the light (full at `scale`).
+#[inline]
+#[target_feature(enable = "avx2")]
+pub(crate) fn forward_difference8(drop: __m256, scale: f32, ambient: f32) -> __m256 {
+    let scaled = _mm256_div_ps(drop, _mm256_set1_ps(scale));
+    // `clamp(0, 1)`, a NaN kept: max and min return their second operand on NaN.
+    let clamped = _mm256_min_ps(_mm256_set1_ps(1.0), _mm256_max_ps(_mm256_setzero_ps(), scaled));
+    _mm256_add_ps(_mm256_set1_ps(ambient), _mm256_mul_ps(_mm256_set1_ps(1.0 - ambient), clamped))
+}
+
 /// `a + (b - a)·t`, `lerp_cube`'s step.
 #[inline]
 #[target_feature(enable = "avx2")]
@@ -154,7 +191,7 @@ fn lerp8(a: __m256, b: __m256, t: __m256) -> __m256 {
 /// difference) and each lane's light.
 pub(super) struct PacketShading<'a> {
     pub(super) gradients: Gradient8<'a>,
-    pub(super) shading: Shading,
+    pub(super) by: ShadeBy,
     pub(super) ambient: f32,
     pub(super) gradient_scale: f32,
     /// An index-space gradient to a world one (`IndexSpace::gradient_to_world`).
@@ -343,31 +380,18 @@ impl<'a> Lanes<'a> {
     fn shade8(&self, shading: &PacketShading, t: __m256) -> __m256 {
         let p = [0, 1, 2].map(|a| _mm256_add_ps(self.o[a], _mm256_mul_ps(self.d[a], t)));
         let at = |q: [__m256; 3]| self.trilinear.sample([0, 1, 2].map(|a| clamp8(q[a], shading.top[a])));
-        let (one, ambient) = (_mm256_set1_ps(1.0), _mm256_set1_ps(shading.ambient));
-        let rest = _mm256_set1_ps(1.0 - shading.ambient);
-        match shading.shading {
-            Shading::None => one,
-            Shading::Gradient => {
-                // `lambert` in `cpu.rs`, term by term.
+        match shading.by {
+            ShadeBy::Gradient => {
+                // `Caster::shade`: the world gradient, term by term.
                 let g = shading.gradients.at(p);
-                let sum3 = |t: [__m256; 3]| _mm256_add_ps(_mm256_add_ps(t[0], t[1]), t[2]);
-                let m = &shading.to_world;
-                let w = m.map(|row| sum3([0, 1, 2].map(|j| _mm256_mul_ps(_mm256_set1_ps(row[j]), g[j]))));
-                let light = shading.light.map(|l| load(l));
-                let len = _mm256_sqrt_ps(sum3(w.map(|w| _mm256_mul_ps(w, w))));
-                let dot = sum3([0, 1, 2].map(|a| _mm256_mul_ps(w[a], light[a])));
-                let cosine = _mm256_andnot_ps(_mm256_set1_ps(-0.0), _mm256_div_ps(dot, len));
-                let lit = _mm256_cmp_ps::<_CMP_GT_OQ>(len, _mm256_set1_ps(1e-12));
-                _mm256_blendv_ps(one, _mm256_add_ps(ambient, _mm256_mul_ps(rest, cosine)), lit)
+                let w =
+                    shading.to_world.map(|row| sum3([0, 1, 2].map(|j| _mm256_mul_ps(_mm256_set1_ps(row[j]), g[j]))));
+                lambert8(w, shading.light.map(|l| load(l)), shading.ambient)
             }
-            Shading::ForwardDifference => {
+            ShadeBy::ForwardDifference => {
                 let toward = shading.light_index.map(|l| load(l));
                 let ahead = [0, 1, 2].map(|a| _mm256_add_ps(p[a], toward[a]));
-                let drop = _mm256_sub_ps(at(p), at(ahead));
-                let scaled = _mm256_div_ps(drop, _mm256_set1_ps(shading.gradient_scale));
-                // `clamp(0, 1)`, a NaN kept: max and min return their second operand on NaN.
-                let clamped = _mm256_min_ps(one, _mm256_max_ps(_mm256_setzero_ps(), scaled));
-                _mm256_add_ps(ambient, _mm256_mul_ps(rest, clamped))
+                forward_difference8(_mm256_sub_ps(at(p), at(ahead)), shading.gradient_scale, shading.ambient)
             }
         }
     }
