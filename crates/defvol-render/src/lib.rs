@@ -1,8 +1,8 @@
 //! Raycast images: cameras, transfer functions (with pre-integration), and two raycasters,
 //! each a part with its CPU path, GPU twin, shader and agreement tests: [`volume`], a
 //! regular grid, and [`mesh`], a tetrahedral mesh, which also shows the source volume
-//! through the deformed mesh ([`mesh::source`]); both shaders share `camera_tools.wgsl`.
-//! [`engine`] runs either on the run's backend.
+//! through the deformed mesh ([`mesh::source`]); both shaders share `camera_tools.wgsl`
+//! and `grid_gradient.wgsl`. [`engine`] runs either on the run's backend.
 
 // Errors are returned, not unwrapped (tests may unwrap).
 #![cfg_attr(not(test), deny(clippy::unwrap_used, clippy::expect_used))]

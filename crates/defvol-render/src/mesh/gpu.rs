@@ -98,7 +98,11 @@ impl GpuTetRaycaster {
         use defvol_gpu::gpu::Binding::{Read, ReadWrite, Uniform};
         let kernels = ctx.kernels(
             "tet_raycast.wgsl",
-            concat!(include_str!("../camera_tools.wgsl"), include_str!("tet_raycast.wgsl")),
+            concat!(
+                include_str!("../camera_tools.wgsl"),
+                include_str!("../grid_gradient.wgsl"),
+                include_str!("tet_raycast.wgsl")
+            ),
             &[Uniform, ReadWrite, Read, Read, Read, ReadWrite, Read, Read, ReadWrite, Read, Read, Read],
             ["geometry", "render"],
         );

@@ -134,7 +134,11 @@ impl GpuVolumeRaycaster {
         use defvol_gpu::gpu::Binding::{Read, ReadWrite, Uniform};
         let kernels = ctx.kernels(
             "raycast.wgsl",
-            concat!(include_str!("../camera_tools.wgsl"), include_str!("raycast.wgsl")),
+            concat!(
+                include_str!("../camera_tools.wgsl"),
+                include_str!("../grid_gradient.wgsl"),
+                include_str!("raycast.wgsl")
+            ),
             &[Uniform, Read, Read, Read, ReadWrite, ReadWrite, ReadWrite],
             ["render", "macro_cells"],
         );
