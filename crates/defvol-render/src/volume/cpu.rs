@@ -506,7 +506,8 @@ impl<'a> Sampler<'a> {
     /// The central-difference gradient at `p` (value per voxel) of samples clamped to the
     /// box a voxel either side, `(f(p + eₐ) - f(p - eₐ)) / 2`: read as the grid's central
     /// differences (the neighbours clamped at the faces) interpolated in p's own cell, the
-    /// same function from 32 voxels instead of 48 ([`packet::Gradient8`] in the lanes).
+    /// same function from 32 voxels instead of 48 ([`packet::Gradient8`] in the lanes). A
+    /// point past the box is clamped onto it first.
     pub(crate) fn gradient(&self, p: &Vector3<f32>) -> Vector3<f32> {
         let strides = [1, self.cell.nx, self.cell.nxy];
         let cells = [0, 1, 2].map(|a| self.cell_of(p[a], a));
