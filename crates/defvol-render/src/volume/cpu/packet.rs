@@ -2,9 +2,9 @@
 //! eight rays in the AVX2 lanes, so the samples, the table lookups, the shading and the
 //! compositing all run eight wide. Each lane does `Caster::composite`'s arithmetic in its
 //! order (unfused multiplies and adds, the same clamps and truncations), so a packet's
-//! pixels are the one-ray loop's bits. The macro-cell walk (`Caster::run_end`) runs in the lanes too:
-//! done per lane in scalar code, it stopped the vector loop at three steps in four (512²,
-//! 1.25 mm) and the time per frame was a third longer.
+//! pixels are the one-ray loop's bits. The macro-cell walk (`Caster::run_end`) runs in the
+//! lanes too: done per lane in scalar code, it stopped the vector loop at three steps in
+//! four (512², 1.25 mm) and the time per frame was a third longer.
 
 use std::arch::x86_64::*;
 
