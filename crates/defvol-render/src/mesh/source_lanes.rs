@@ -2,12 +2,12 @@
 //! sampled, shaded or not, trilinear and undisplaced): each lane its own ray in its own
 //! tet, a lane's step one sample of its ray. The samples' positions, trilinear reads, box
 //! test, table lookups, shading and compositing run once for eight, as the volume
-//! raycaster's packets run them; a lane whose samples in its tet are done walks on to the next tet (exit face,
-//! link, the tet's map onto the source) while the others wait in the same step. A lane
-//! whose walk ends goes back to the one-ray code (the last, shorter segment; entries,
-//! re-entries) and takes its strip's next ray when its own is done. Each lane does the
-//! one-ray walk's arithmetic (`SourceLook::cross`, `flush`) in the same order, so the
-//! pictures are the same bits.
+//! raycaster's packets run them; a lane whose samples in its tet are done walks on to the
+//! next tet (exit face, link, the tet's map onto the source) while the others wait in the
+//! same step. A lane whose walk ends goes back to the one-ray code (the last, shorter
+//! segment; entries, re-entries) and takes its strip's next ray when its own is done. Each
+//! lane does the one-ray walk's arithmetic (`SourceLook::cross`, `flush`) in the same
+//! order, so the pictures are the same bits.
 
 use std::arch::x86_64::*;
 
@@ -20,7 +20,7 @@ use super::geometry::TetGeometry;
 use super::lanes::{composite8, leave8};
 use super::look::{SourceLook, TetMap, EDGE_TOLERANCE};
 use crate::volume::packet::{
-    clamp8, forward_difference8, interpolate8, lambert8, lanes_i32, segment8, store, sum3, Gradient8, ShadeBy,
+    forward_difference8, interpolate8, lambert8, lanes_i32, segment8, store, sum3, Gradient8, ShadeBy,
 };
 
 /// Rays side by side.
@@ -99,8 +99,6 @@ struct Shade8<'a> {
     light: Option<[__m256; 3]>,
     ambient: f32,
     gradient_scale: f32,
-    /// The source's voxel-centre box's far corner, where `sample_clamped` clamps.
-    top: [f32; 3],
 }
 
 impl TetRaycaster {
@@ -136,7 +134,6 @@ impl TetRaycaster {
                     }),
                     ambient: look.params.ambient as f32,
                     gradient_scale: look.gradient_scale,
-                    top: dims.map(|n| n.saturating_sub(1) as f32),
                 })
             }
         };
@@ -481,21 +478,21 @@ fn shade8(reads: &Reads, shade: &Shade8, w: &Walk8, q: [__m256; 3]) -> __m256 {
     let maps = reads.look.maps.as_ptr().cast::<f32>();
     let base = _mm256_mullo_epi32(w.tet, _mm256_set1_epi32(MAP_FLOATS));
     // SAFETY: as in `samples_in8`: a map a tet, 12 floats, the lanes' tets the mesh's.
-    let map = |a: i32, j: i32| unsafe {
-        _mm256_i32gather_ps::<4>(maps, _mm256_add_epi32(base, _mm256_set1_epi32(4 * a + j)))
+    let map = |a: usize, j: usize| unsafe {
+        _mm256_i32gather_ps::<4>(maps, _mm256_add_epi32(base, _mm256_set1_epi32((4 * a + j) as i32)))
     };
     let light = shade.light.unwrap_or(w.d.map(|d| _mm256_xor_ps(d, _mm256_set1_ps(-0.0))));
-    let at = |p: [__m256; 3]| reads.sampler.sample([0, 1, 2].map(|a| clamp8(p[a], shade.top[a])));
+    let at = |p: [__m256; 3]| reads.sampler.sample(shade.gradients.clamp(p));
     match shade.by {
         ShadeBy::Gradient => {
             let gi = shade.gradients.at(q);
             // ∇ₓf = Gᵀ ∇_q f.
-            let g = [0, 1, 2].map(|j| sum3([0, 1, 2].map(|a| _mm256_mul_ps(map(a, j), gi[a as usize]))));
+            let g = [0, 1, 2].map(|j| sum3([0, 1, 2].map(|a| _mm256_mul_ps(map(a, j), gi[a]))));
             lambert8(g, light, shade.ambient)
         }
         ShadeBy::ForwardDifference => {
             // One world unit toward the light, in the source's index: G·l.
-            let l = [0, 1, 2].map(|a| sum3([0, 1, 2].map(|j| _mm256_mul_ps(map(a, j), light[j as usize]))));
+            let l = [0, 1, 2].map(|a| sum3([0, 1, 2].map(|j| _mm256_mul_ps(map(a, j), light[j]))));
             let ahead = [0, 1, 2].map(|a| _mm256_add_ps(q[a], l[a]));
             forward_difference8(_mm256_sub_ps(at(q), at(ahead)), shade.gradient_scale, shade.ambient)
         }

@@ -379,6 +379,7 @@ impl<'a> VolumeRaycaster<'a> {
             packets: None,
             #[cfg(target_arch = "x86_64")]
             gradients: packet::Gradient8::new(self.volume.data(), self.volume.dims()),
+            to_world: self.space.gradient_to_world(),
             volume: self.volume,
             sampler: Sampler::new(self.volume.data(), self.volume.dims()),
             tables: &self.tables,
@@ -577,6 +578,8 @@ struct Caster<'a> {
     /// The lanes' gradients, which shaded packets need.
     #[cfg(target_arch = "x86_64")]
     gradients: Option<packet::Gradient8<'a>>,
+    /// An index-space gradient to a world one (`IndexSpace::gradient_to_world`), made once.
+    to_world: [[f32; 3]; 3],
     volume: &'a Volume,
     sampler: Sampler<'a>,
     tables: &'a Tables,
@@ -632,8 +635,8 @@ impl Caster<'_> {
         match self.params.shading {
             Shading::None => 1.0,
             Shading::Gradient => {
-                let (g, m) = (self.sampler.gradient(p), self.space.gradient_to_world());
-                let w = Vector3::from(m.map(|row| row[0] * g.x + row[1] * g.y + row[2] * g.z));
+                let g = self.sampler.gradient(p);
+                let w = Vector3::from(self.to_world.map(|row| row[0] * g.x + row[1] * g.y + row[2] * g.z));
                 lambert(&w, &light.cast::<f32>(), ambient)
             }
             Shading::ForwardDifference => {
@@ -961,10 +964,9 @@ impl<'a> Caster<'a> {
             by,
             ambient: self.params.ambient as f32,
             gradient_scale: self.gradient_scale,
-            to_world: self.space.gradient_to_world(),
+            to_world: self.to_world,
             light: [[0.0; packet::LANES]; 3],
             light_index: [[0.0; packet::LANES]; 3],
-            top: self.volume.dims().map(|n| n.saturating_sub(1) as f32),
         };
         for (l, c) in clipped.iter().enumerate() {
             let Some(c) = c else { continue };
@@ -1231,7 +1233,6 @@ mod tests {
                 for eight in points.chunks_exact(8) {
                     // SAFETY (here and below): a Gradient8 exists only where the CPU has AVX2.
                     let axis = |a: usize| unsafe { super::packet::load(std::array::from_fn(|l| eight[l][a])) };
-                    // SAFETY: a Gradient8 exists only where the CPU has AVX2.
                     let got =
                         unsafe { lanes.at([axis(0), axis(1), axis(2)]) }.map(|v| unsafe { super::packet::store(v) });
                     for (l, p) in eight.iter().enumerate() {
@@ -1323,9 +1324,8 @@ mod tests {
     /// bit: point-sampled and pre-integrated, unshaded, gradient-shaded and shaded by the
     /// forward difference (the camera's light and one of its own), with and without
     /// empty-space skipping, early termination often and rarely reached, a tool in view, a
-    /// row not a multiple of eight,
-    /// over the phantom (tissue everywhere), a ball in air (rays jumping invisible cells) and
-    /// blocks in fat (rays landing in tissue after each jump).
+    /// row not a multiple of eight, over the phantom (tissue everywhere), a ball in air (rays
+    /// jumping invisible cells) and blocks in fat (rays landing in tissue after each jump).
     #[test]
     fn packets_give_the_one_ray_casters_bits() {
         let tf = TransferFunction::preset("ct_soft_tissue").unwrap();

@@ -91,6 +91,14 @@ impl<'a> Gradient8<'a> {
         })
     }
 
+    /// The points `p` (x, y, z lanes) clamped onto the grid's voxel-centre box, as
+    /// `Sampler::at` clamps them (the forward difference's samples read there too).
+    #[inline]
+    #[target_feature(enable = "avx2")]
+    pub(crate) fn clamp(&self, p: [__m256; 3]) -> [__m256; 3] {
+        [0, 1, 2].map(|a| clamp8(p[a], self.top[a]))
+    }
+
     /// The gradients at the eight points `p` (x, y, z lanes), value per voxel.
     ///
     /// # Safety
@@ -99,7 +107,7 @@ impl<'a> Gradient8<'a> {
     #[target_feature(enable = "avx2")]
     pub(crate) fn at(&self, p: [__m256; 3]) -> [__m256; 3] {
         let (zero, one) = (_mm256_setzero_si256(), _mm256_set1_epi32(1));
-        let v = [0, 1, 2].map(|a| clamp8(p[a], self.top[a]));
+        let v = self.clamp(p);
         let cell = [0, 1, 2].map(|a| _mm256_min_epi32(_mm256_cvttps_epi32(v[a]), _mm256_set1_epi32(self.cell_top[a])));
         let f = [0, 1, 2].map(|a| _mm256_sub_ps(v[a], _mm256_cvtepi32_ps(cell[a])));
         // Per axis the voxels before, at, after and two after the cell's first, clamped.
@@ -199,8 +207,6 @@ pub(super) struct PacketShading<'a> {
     /// Toward each lane's light: world frame, and in index space as `Caster::cast` takes it.
     pub(super) light: [[f32; LANES]; 3],
     pub(super) light_index: [[f32; LANES]; 3],
-    /// The voxel-centre box's top per axis, where `Sampler::at` clamps its points.
-    pub(super) top: [f32; 3],
 }
 
 /// The packet's rays in the vector lanes: where their samples are, how they walk the macro
@@ -379,7 +385,7 @@ impl<'a> Lanes<'a> {
     #[target_feature(enable = "avx2")]
     fn shade8(&self, shading: &PacketShading, t: __m256) -> __m256 {
         let p = [0, 1, 2].map(|a| _mm256_add_ps(self.o[a], _mm256_mul_ps(self.d[a], t)));
-        let at = |q: [__m256; 3]| self.trilinear.sample([0, 1, 2].map(|a| clamp8(q[a], shading.top[a])));
+        let at = |q: [__m256; 3]| self.trilinear.sample(shading.gradients.clamp(q));
         match shading.by {
             ShadeBy::Gradient => {
                 // `Caster::shade`: the world gradient, term by term.
@@ -585,7 +591,7 @@ pub(crate) fn store(v: __m256) -> [f32; LANES] {
 /// `x.clamp(0, top)` for finite x (a NaN to 0, as `Sampler::at` clamps).
 #[inline]
 #[target_feature(enable = "avx2")]
-pub(crate) fn clamp8(x: __m256, top: f32) -> __m256 {
+fn clamp8(x: __m256, top: f32) -> __m256 {
     _mm256_min_ps(_mm256_max_ps(x, _mm256_setzero_ps()), _mm256_set1_ps(top))
 }
 
