@@ -359,13 +359,12 @@ impl<'a> VolumeRaycaster<'a> {
             |(band, (rows, depth_rows))| {
                 let band_h = depth_rows.len() / w;
                 for tx in (0..w).step_by(TILE) {
-                    for dy in 0..band_h {
-                        caster.cast_row(&rays, band * TILE + dy, tx..(tx + TILE).min(w), |px, (color, d)| {
-                            let i = dy * w + px;
-                            rows[i * 4..i * 4 + 4].copy_from_slice(&color.map(to_level));
-                            depth_rows[i] = d;
-                        });
-                    }
+                    let tile = (tx..(tx + TILE).min(w), band * TILE..band * TILE + band_h);
+                    caster.cast_tile(&rays, tile, |(px, py), (color, d)| {
+                        let i = (py - band * TILE) * w + px;
+                        rows[i * 4..i * 4 + 4].copy_from_slice(&color.map(to_level));
+                        depth_rows[i] = d;
+                    });
                 }
             },
         );
@@ -590,29 +589,35 @@ struct Caster<'a> {
 }
 
 impl Caster<'_> {
-    /// The pixels `xs` of row `py`, each handed to `put` with its x: eight rays at once
-    /// where packets serve these parameters, else one by one.
-    fn cast_row(
+    /// The pixels `xs` of rows `ys`, each handed to `put` with its (x, y): a [`packet::Block`]
+    /// at once where packets serve these parameters, else one by one.
+    fn cast_tile(
         &self,
         rays: &Rays,
-        py: usize,
-        xs: std::ops::Range<usize>,
-        mut put: impl FnMut(usize, ([f32; 4], f32)),
+        (xs, ys): (std::ops::Range<usize>, std::ops::Range<usize>),
+        mut put: impl FnMut((usize, usize), ([f32; 4], f32)),
     ) {
         #[cfg(target_arch = "x86_64")]
         if let Some(trilinear) = self.packets {
-            for px0 in xs.clone().step_by(packet::LANES) {
-                let count = (xs.end - px0).min(packet::LANES);
-                let pixels = self.cast_packet(trilinear, rays, (px0, py), count);
-                for (px, pixel) in (px0..px0 + count).zip(pixels) {
-                    put(px, pixel);
+            use packet::Block;
+            for py in ys.clone().step_by(Block::ROWS) {
+                for px in xs.clone().step_by(Block::COLUMNS) {
+                    let block = Block { corner: (px, py), size: (xs.end - px, ys.end - py) };
+                    let pixels = self.cast_packet(trilinear, rays, block);
+                    for (l, pixel) in pixels.into_iter().enumerate() {
+                        if let Some(at) = block.pixel(l) {
+                            put(at, pixel);
+                        }
+                    }
                 }
             }
             return;
         }
-        for px in xs {
-            let (origin, direction) = rays.ray(px, py);
-            put(px, self.cast(&origin, &direction));
+        for py in ys {
+            for px in xs.clone() {
+                let (origin, direction) = rays.ray(px, py);
+                put((px, py), self.cast(&origin, &direction));
+            }
         }
     }
 
@@ -840,20 +845,19 @@ impl<'a> Caster<'a> {
         Trilinear8::new(self.volume.data(), &self.sampler.cell)
     }
 
-    /// The pixels (px0 + l, py) for l < `count` (at most [`packet::LANES`]): colour and
-    /// depth, as `cast` gives them.
+    /// The block's pixels, lane by lane: colour and depth, as `cast` gives them (lanes past
+    /// the picture's edge the background).
     fn cast_packet(
         &self,
         trilinear: Trilinear8<'a>,
         rays: &Rays,
-        (px0, py): (usize, usize),
-        count: usize,
+        block: packet::Block,
     ) -> [([f32; 4], f32); packet::LANES] {
         let mut pixels = [([0.0; 4], f32::INFINITY); packet::LANES];
         let mut clipped: [Option<Clipped>; packet::LANES] = Default::default();
         // SAFETY: a Trilinear8 exists only where the CPU has AVX2.
-        let setups = unsafe { self.clip_packet(rays, (px0, py), count) };
-        for ((pixel, lane), setup) in pixels.iter_mut().zip(&mut clipped).zip(setups).take(count) {
+        let setups = unsafe { self.clip_packet(rays, block) };
+        for ((pixel, lane), setup) in pixels.iter_mut().zip(&mut clipped).zip(setups) {
             match setup {
                 Setup::Missed(bg, behind) => *pixel = (bg, behind),
                 Setup::Inside(c) => *lane = Some(c),
@@ -875,7 +879,7 @@ impl<'a> Caster<'a> {
         let split = clipped.each_ref().map(|c| c.as_ref().map_or((0, 0.0), |c| segments(c.t_near, c.t_far, step)));
         // SAFETY: a Trilinear8 exists only where the CPU has AVX2.
         let terminated = unsafe { self.composite_packet(trilinear, &mut rays, &clipped, split.map(|s| s.0)) };
-        for l in 0..count {
+        for l in 0..packet::LANES {
             let (Some(ray), Some(c)) = (&mut rays[l], &clipped[l]) else { continue };
             let (full, remainder) = split[l];
             if !terminated[l] && remainder > 1e-6 * step {
@@ -887,28 +891,26 @@ impl<'a> Caster<'a> {
         pixels
     }
 
-    /// `Rays::ray` then [`Self::clip_ray`] for the packet's rays from pixel (px0, py), the
-    /// same bits: eight at once in the lanes for a perspective camera with no tool in the
-    /// scene, else ray by ray (the first `count` lanes; the rest miss).
+    /// `Rays::ray` then [`Self::clip_ray`] for the block's rays, the same bits: eight at once
+    /// in the lanes for a perspective camera with no tool in the scene, else ray by ray
+    /// (lanes past the picture's edge miss).
     #[target_feature(enable = "avx2")]
-    fn clip_packet(&self, rays: &Rays, (px0, py): (usize, usize), count: usize) -> [Setup; packet::LANES] {
+    fn clip_packet(&self, rays: &Rays, block: packet::Block) -> [Setup; packet::LANES] {
         let background = self.params.background.map(|c| c as f32);
         let missed = || Setup::Missed(background, f32::INFINITY);
         if !rays.is_perspective() || !self.params.tools.is_empty() {
             return std::array::from_fn(|l| {
-                if l >= count {
-                    return missed();
-                }
-                let (origin, direction) = rays.ray(px0 + l, py);
+                let Some((px, py)) = block.pixel(l) else { return missed() };
+                let (origin, direction) = rays.ray(px, py);
                 self.clip_ray(&origin, &direction)
             });
         }
         let o = self.space.index_from_world * (rays.eye.coords - self.space.origin);
         let top = self.volume.dims().map(|n| (n - 1) as f64);
-        let lanes = packet::setup8(rays, &self.space.index_from_world, (o.into(), top), (px0, py));
+        let lanes = packet::setup8(rays, &self.space.index_from_world, (o.into(), top), block.corner);
         let light = self.params.light.map(|l| Vector3::from(l).normalize());
         std::array::from_fn(|l| {
-            if l >= count {
+            if block.pixel(l).is_none() {
                 return missed();
             }
             let lane = |v: &[[f64; packet::LANES]; 3]| Vector3::from(std::array::from_fn(|a| v[a][l]));
@@ -1284,26 +1286,22 @@ mod tests {
             let rays = camera.rays();
             assert!(rays.is_perspective());
             let o = space.index_from_world * (rays.eye.coords - space.origin);
-            for py in 0..camera.height {
-                for px0 in (0..camera.width - 7).step_by(7) {
+            for py0 in 0..camera.height - 1 {
+                for px0 in (0..camera.width - 3).step_by(3) {
                     // SAFETY: the CPU has AVX2 (checked above).
                     let lanes =
-                        unsafe { super::packet::setup8(&rays, &space.index_from_world, (o.into(), top), (px0, py)) };
+                        unsafe { super::packet::setup8(&rays, &space.index_from_world, (o.into(), top), (px0, py0)) };
                     for l in 0..super::packet::LANES {
-                        let (origin, world) = rays.ray(px0 + l, py);
+                        let (px, py) = (px0 + l % 4, py0 + l / 4);
+                        let (origin, world) = rays.ray(px, py);
                         let (want_o, d) = space.ray(&origin, &world);
                         assert_eq!(want_o.map(f64::to_bits), o.map(f64::to_bits));
                         for a in 0..3 {
-                            assert_eq!(
-                                lanes.direction[a][l].to_bits(),
-                                world[a].to_bits(),
-                                "pixel ({}, {py})",
-                                px0 + l
-                            );
-                            assert_eq!(lanes.d[a][l].to_bits(), d[a].to_bits(), "pixel ({}, {py})", px0 + l);
+                            assert_eq!(lanes.direction[a][l].to_bits(), world[a].to_bits(), "pixel ({px}, {py})");
+                            assert_eq!(lanes.d[a][l].to_bits(), d[a].to_bits(), "pixel ({px}, {py})");
                         }
                         let want = clip(volume.dims(), &want_o, &d);
-                        assert_eq!(lanes.inside[l], want.is_some(), "pixel ({}, {py})", px0 + l);
+                        assert_eq!(lanes.inside[l], want.is_some(), "pixel ({px}, {py})");
                         if let Some((near, far)) = want {
                             assert_eq!(
                                 (lanes.near[l].to_bits(), lanes.far[l].to_bits()),
@@ -1323,9 +1321,10 @@ mod tests {
     /// Every pixel of eight-ray packets is the one-ray caster's, colour and depth to the
     /// bit: point-sampled and pre-integrated, unshaded, gradient-shaded and shaded by the
     /// forward difference (the camera's light and one of its own), with and without
-    /// empty-space skipping, early termination often and rarely reached, a tool in view, a
-    /// row not a multiple of eight, over the phantom (tissue everywhere), a ball in air (rays
-    /// jumping invisible cells) and blocks in fat (rays landing in tissue after each jump).
+    /// empty-space skipping, early termination often and rarely reached, a tool in view,
+    /// packets cut by the picture's right and bottom edges (45x37), over the phantom
+    /// (tissue everywhere), a ball in air (rays jumping invisible cells) and blocks in fat
+    /// (rays landing in tissue after each jump).
     #[test]
     fn packets_give_the_one_ray_casters_bits() {
         let tf = TransferFunction::preset("ct_soft_tissue").unwrap();
@@ -1369,18 +1368,22 @@ mod tests {
                 jumped |= caster
                     .cells
                     .is_some_and(|cells| 2 * cells.visible.iter().filter(|v| !**v).count() > cells.visible.len());
-                for py in 0..camera.height {
-                    for px0 in (0..camera.width).step_by(super::packet::LANES) {
-                        let count = (camera.width - px0).min(super::packet::LANES);
-                        let pixels = caster.cast_packet(trilinear, &camera.rays(), (px0, py), count);
-                        for (l, (color, depth)) in pixels.iter().take(count).enumerate() {
-                            let (origin, direction) = camera.ray(px0 + l, py);
+                let (columns, rows) = (super::packet::Block::COLUMNS, super::packet::Block::ROWS);
+                for py0 in (0..camera.height).step_by(rows) {
+                    for px0 in (0..camera.width).step_by(columns) {
+                        let block = super::packet::Block {
+                            corner: (px0, py0),
+                            size: (camera.width - px0, camera.height - py0),
+                        };
+                        let pixels = caster.cast_packet(trilinear, &camera.rays(), block);
+                        for (l, (color, depth)) in pixels.iter().enumerate() {
+                            let Some((px, py)) = block.pixel(l) else { continue };
+                            let (origin, direction) = camera.ray(px, py);
                             let (want, want_depth) = caster.cast(&origin, &direction);
                             assert_eq!(
                                 (color.map(f32::to_bits), depth.to_bits()),
                                 (want.map(f32::to_bits), want_depth.to_bits()),
-                                "pixel ({}, {py}), {params:?}: {color:?} at {depth} against {want:?} at {want_depth}",
-                                px0 + l
+                                "pixel ({px}, {py}), {params:?}: {color:?} at {depth} against {want:?} at {want_depth}"
                             );
                             tissue += usize::from(depth.is_finite());
                             let light = -direction;
