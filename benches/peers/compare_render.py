@@ -3,6 +3,8 @@ timed (point-sampled and pre-integrated, unshaded), VTK's fixed-point caster on 
 exported work, both PSNRs against the same f64 reference, and VTK's time over defvol's.
 The two took turns for ROUNDS rounds: a round's ratio is its two medians' (both measured
 while the host was in one state), and the table gives the median and the range of them.
+A second table compares at equal accuracy, as the field compares renderers: for each step
+VTK ran, defvol's fastest step and sampling (of those run) whose PSNR is at least VTK's.
 
 usage: compare_render.py WORK_DIR ROUNDS THREADS
    WORK_DIR holds defvol-R.jsonl (`defvol bench render --json`) and vtk-R.jsonl
@@ -44,6 +46,34 @@ def main():
               f'{min(ratios):6.2f}-{max(ratios):.2f}x')
         print(json.dumps({"stage": "render", "case": case, "step_mm": step, "threads": threads,
                           "defvol": [r for r, _ in runs], "vtk": [p for _, p in runs],
+                          "ratio_vtk": statistics.median(ratios), "ratios_vtk": ratios}), file=sys.stderr)
+    at_equal_accuracy(pairs, threads)
+
+
+def at_equal_accuracy(pairs, threads):
+    """For each case and step VTK ran: defvol's fastest run (any step and sampling) whose
+    PSNR is at least VTK's there, both timed in the same rounds."""
+    print(f'\nat equal accuracy (defvol\'s fastest run at VTK\'s PSNR or above)')
+    print(f'{"case":<14} {"vtk step":>8} {"vtk ms":>8} {"dB":>6} {"step mm":>7} {"sampling":<15} '
+          f'{"defvol ms":>10} {"dB":>6} {"vtk/defvol":>10} {"per round":>13}')
+    vtk_runs = {(case, step): [peer for _, peer in runs] for (case, step, _), runs in pairs.items()}
+    for (case, step), peers in sorted(vtk_runs.items()):
+        floor = peers[-1]["error"]["value"]
+        closer = [(key, [row for row, _ in runs]) for key, runs in pairs.items()
+                  if key[0] == case and runs[-1][0]["error"]["value"] >= floor]
+        if not closer:
+            print(f'{case:<14} {step:8.2f} no defvol run reached {floor:.1f} dB')
+            continue
+        median = lambda rows: statistics.median(row["time_ms"]["median"] for row in rows)
+        (_, ours_step, preintegrated), rows = min(closer, key=lambda c: median(c[1]))
+        ratios = [peer["time_ms"]["median"] / row["time_ms"]["median"] for row, peer in zip(rows, peers)]
+        sampling = "pre-integrated" if preintegrated else "point"
+        theirs = statistics.median(peer["time_ms"]["median"] for peer in peers)
+        print(f'{case:<14} {step:8.2f} {theirs:8.1f} {floor:6.1f} {ours_step:7.2f} {sampling:<15} '
+              f'{median(rows):10.1f} {rows[-1]["error"]["value"]:6.1f} {statistics.median(ratios):9.2f}x '
+              f'{min(ratios):6.2f}-{max(ratios):.2f}x')
+        print(json.dumps({"stage": "render", "comparison": "equal_accuracy", "case": case, "vtk_step_mm": step,
+                          "defvol_step_mm": ours_step, "preintegrated": preintegrated, "threads": threads,
                           "ratio_vtk": statistics.median(ratios), "ratios_vtk": ratios}), file=sys.stderr)
 
 

@@ -6,7 +6,8 @@
 # reference with the same PSNR (compare_render.py). The two take turns, ROUNDS times, so
 # that both see the host in the same state (on a shared 2-core VM, VTK's median alone moved
 # 120-181 ms between three runs of the script); each round's ratio comes from its own two
-# medians. A table on stdout, one JSON object a case and step on stderr.
+# medians. A second table compares at equal accuracy (defvol's fastest run at VTK's PSNR
+# or above). Tables on stdout, one JSON object a comparison on stderr.
 # Outside the test command: VTK comes from PyPI into its own virtual environment.
 # Usage: benches/peers/render.sh [SIZES] [STEPS] [RUNS] [ROUNDS]   (default 512 1,1.25 7 3)
 # DEFVOL_BIN names a built defvol; else the release binary is built.
