@@ -50,10 +50,15 @@ def main():
     at_equal_accuracy(pairs, threads)
 
 
+def median(rows):
+    """The median of the rows' medians (one a round)."""
+    return statistics.median(row["time_ms"]["median"] for row in rows)
+
+
 def at_equal_accuracy(pairs, threads):
     """For each case and step VTK ran: defvol's fastest run (any step and sampling) whose
     PSNR is at least VTK's there, both timed in the same rounds."""
-    print(f'\nat equal accuracy (defvol\'s fastest run at VTK\'s PSNR or above)')
+    print("\nat equal accuracy (defvol's fastest run at VTK's PSNR or above)")
     print(f'{"case":<14} {"vtk step":>8} {"vtk ms":>8} {"dB":>6} {"step mm":>7} {"sampling":<15} '
           f'{"defvol ms":>10} {"dB":>6} {"vtk/defvol":>10} {"per round":>13}')
     vtk_runs = {(case, step): [peer for _, peer in runs] for (case, step, _), runs in pairs.items()}
@@ -64,11 +69,10 @@ def at_equal_accuracy(pairs, threads):
         if not closer:
             print(f'{case:<14} {step:8.2f} no defvol run reached {floor:.1f} dB')
             continue
-        median = lambda rows: statistics.median(row["time_ms"]["median"] for row in rows)
         (_, ours_step, preintegrated), rows = min(closer, key=lambda c: median(c[1]))
         ratios = [peer["time_ms"]["median"] / row["time_ms"]["median"] for row, peer in zip(rows, peers)]
         sampling = "pre-integrated" if preintegrated else "point"
-        theirs = statistics.median(peer["time_ms"]["median"] for peer in peers)
+        theirs = median(peers)
         print(f'{case:<14} {step:8.2f} {theirs:8.1f} {floor:6.1f} {ours_step:7.2f} {sampling:<15} '
               f'{median(rows):10.1f} {rows[-1]["error"]["value"]:6.1f} {statistics.median(ratios):9.2f}x '
               f'{min(ratios):6.2f}-{max(ratios):.2f}x')
