@@ -90,7 +90,7 @@ fn percentile(samples: &[f64], p: f64) -> f64 {
 }
 
 /// The default scene with the solver alone at 1 kHz, on a lattice of about `tets`.
-fn haptic_scene(tets: usize) -> Result<Scene, NodeBenchError> {
+pub fn haptic_scene(tets: usize) -> Result<Scene, NodeBenchError> {
     let mut scene = Scene::default_scene().map_err(|e| NodeBenchError::Setup(e.to_string()))?;
     scene.stages = crate::scene::Stages { solver: true, warp: false, dpcm: false, raycast: false };
     scene.solver.dt = 1e-3;

@@ -18,6 +18,7 @@ mod node_dds;
 #[cfg(all(feature = "ros", feature = "mcap", feature = "shm"))]
 mod readme;
 mod render;
+mod scenes;
 #[cfg(feature = "mcap")]
 mod session;
 #[cfg(feature = "shm")]

@@ -150,6 +150,7 @@ enum Kernel {
     SpringForces,
     SpringForcesPredicted,
     NodeTerms,
+    CgExtrapolate,
     CgStartSpmv,
     CgInit,
     CgInitReduce,
@@ -178,11 +179,12 @@ enum Kernel {
 }
 
 impl Kernel {
-    const ALL: [Kernel; 29] = [
+    const ALL: [Kernel; 30] = [
         Kernel::SpringTerms,
         Kernel::SpringForces,
         Kernel::SpringForcesPredicted,
         Kernel::NodeTerms,
+        Kernel::CgExtrapolate,
         Kernel::CgStartSpmv,
         Kernel::CgInit,
         Kernel::CgInitReduce,
@@ -216,6 +218,7 @@ impl Kernel {
             Kernel::SpringForces => "spring_forces",
             Kernel::SpringForcesPredicted => "spring_forces_predicted",
             Kernel::NodeTerms => "node_terms",
+            Kernel::CgExtrapolate => "cg_extrapolate",
             Kernel::CgStartSpmv => "cg_start_spmv",
             Kernel::CgInit => "cg_init",
             Kernel::CgInitReduce => "cg_init_reduce",
@@ -260,6 +263,7 @@ struct Buffers {
     dv: wgpu::Buffer,
     z: wgpu::Buffer,
     p: wgpu::Buffer,
+    q: wgpu::Buffer,
     scalars: wgpu::Buffer,
     aux: wgpu::Buffer,
     force: wgpu::Buffer,
@@ -268,6 +272,10 @@ struct Buffers {
     rhs: wgpu::Buffer,
     /// A compliance probe's right-hand side rows, copied into `rhs` once it is cleared.
     probe_rhs: wgpu::Buffer,
+    /// The Δv the last step's solve started from, for the next one's extrapolated start.
+    previous_dv: wgpu::Buffer,
+    /// The step's Δv while a compliance probe borrows `dv` (put back before the next step).
+    held_dv: wgpu::Buffer,
     bound: Vec<wgpu::Buffer>,
     /// Contacts the contact buffers hold.
     contact_capacity: usize,
@@ -302,6 +310,10 @@ pub struct GpuSimulation {
     bind_group: wgpu::BindGroup,
     buffers: Buffers,
     history_valid: bool,
+    /// Implicit steps solved, for the extrapolated start (from the second on, as on the CPU).
+    solves: u64,
+    /// Whether a compliance probe holds `dv` since the last step (its Δv in `held_dv`).
+    probed: bool,
     /// CG windows the last solve of each [`Solve`] needed: queued before its first check.
     windows_ahead: [std::cell::Cell<u32>; 2],
     /// The `system` counts of the last implicit solve (its rows, contacts and touched rows
@@ -437,10 +449,13 @@ impl GpuSimulation {
             dv: bound[15].clone(),
             z: bound[17].clone(),
             p: bound[18].clone(),
+            q: bound[19].clone(),
             scalars: bound[21].clone(),
             aux: bound[22].clone(),
             force: bound[23].clone(),
             probe_rhs: ctx.zeroed_buffer("probe_rhs", (CONTACT_ROWS * 16) as u64),
+            previous_dv: ctx.zeroed_buffer("previous dv", rows as u64 * 16),
+            held_dv: ctx.zeroed_buffer("held dv", rows as u64 * 16),
             bound,
             contact_capacity,
         };
@@ -454,6 +469,8 @@ impl GpuSimulation {
             bind_group,
             buffers,
             history_valid: false,
+            solves: 0,
+            probed: false,
             windows_ahead: Default::default(),
             system: [n as u32, 0, 0, 0],
             multigrid: None,
@@ -578,7 +595,7 @@ impl GpuSimulation {
         }
         let params = GpuParams {
             gravity_h: [p.gravity[0] as f32, p.gravity[1] as f32, p.gravity[2] as f32, p.dt as f32],
-            counts: [self.nodes, self.springs, tools.len() as u32, groups(system[0])],
+            counts: [self.nodes, self.springs, tools.len() as u32, 0],
             cg: [
                 (p.cg_tolerance * p.cg_tolerance) as f32,
                 p.cg_max_iterations as f32,
@@ -827,16 +844,23 @@ impl GpuSimulation {
     /// read back in one (see [`GpuSimulation::solve_and_update`]). Where contacts separate at
     /// the step's end they are released, the update undone and the step solved again
     /// without them (at most four rounds, as on the CPU); the CG statistics of all rounds.
+    /// The preconditioner's rules judge the first round alone, as the CPU's do.
     fn implicit_step(&mut self) -> Result<StepOutcome, GpuError> {
         let (mut terms, mut system) = self.upload_system();
-        let (mut iterations, mut releases) = (0, 0);
+        let (mut iterations, mut releases, mut first) = (0, 0, 0);
         loop {
-            let (cg, (proxy_dv, end_rates), state) = self.solve_and_update(&terms, system)?;
+            let (cg, (proxy_dv, end_rates), state) = self.solve_and_update(&terms, system, releases == 0)?;
+            if releases == 0 {
+                first = cg.iterations;
+            }
             iterations += cg.iterations;
             let contacts = self.mirror.active_contacts().len();
             if releases == 4 || !self.mirror.release_contacts(&end_rates[..contacts]) {
                 self.mirror.record_friction(&end_rates[contacts..]);
                 self.system = system;
+                self.solves += 1;
+                self.probed = false;
+                self.note_iterations(first);
                 let cg = CgStats { iterations, relative_residual: cg.relative_residual };
                 return Ok(StepOutcome { proxy_dv, cg, state });
             }
@@ -846,13 +870,35 @@ impl GpuSimulation {
         }
     }
 
-    /// Assembles and solves, with the contacts' outcome and the update behind the solve
-    /// (no-ops until CG is done): when the foretold CG windows were enough, the outcome and
-    /// the state come back with the check, one read-back for the step; else in one more.
+    /// The step's start, before its first assembly: the Δv a compliance probe borrowed put
+    /// back, and CG's start extrapolated from the last two steps' (from the second step on,
+    /// as on the CPU).
+    fn encode_start(&self, encoder: &mut wgpu::CommandEncoder, rows: u32) {
+        let b = &self.buffers;
+        let mut whole =
+            |from: &wgpu::Buffer, to: &wgpu::Buffer| self.ctx.copy_buffer(encoder, from, 0, to, 0, from.size());
+        if self.probed {
+            whole(&b.held_dv, &b.dv);
+        }
+        let extrapolate = self.solves >= 2;
+        if extrapolate {
+            whole(&b.previous_dv, &b.q);
+        }
+        whole(&b.dv, &b.previous_dv);
+        if extrapolate {
+            self.encode(encoder, &[(Kernel::CgExtrapolate, rows)]);
+        }
+    }
+
+    /// Assembles and solves (the step's `first` solve from its extrapolated start), with the
+    /// contacts' outcome and the update behind the solve (no-ops until CG is done): when the
+    /// foretold CG windows were enough, the outcome and the state come back with the check,
+    /// one read-back for the step; else in one more.
     fn solve_and_update(
         &self,
         terms: &[ContactTerms],
         system: [u32; 4],
+        first: bool,
     ) -> Result<(CgStats, Outcome, State), GpuError> {
         let tools = system[3] as usize;
         let rows = tools + terms.len();
@@ -866,7 +912,13 @@ impl GpuSimulation {
         let node_bytes = self.nodes as u64 * 16;
         parts.extend([(&self.buffers.x, node_bytes), (&self.buffers.v, node_bytes)]);
         let assembly = self.assembly(system);
-        let (cg, bytes) = self.cg_then(system, Solve::Step, &|e| self.encode(e, &assembly), &after, &parts)?;
+        let before = |e: &mut wgpu::CommandEncoder| {
+            if first {
+                self.encode_start(e, system[0]);
+            }
+            self.encode(e, &assembly);
+        };
+        let (cg, bytes) = self.cg_then(system, Solve::Step, &before, &after, &parts)?;
         let (outcome, state) = bytes.split_at(rows * 16);
         Ok((cg, Self::decode_outcome(terms, tools, outcome)?, self.decode_state(state)))
     }
@@ -907,8 +959,14 @@ impl GpuSimulation {
         let at = (contacts * std::mem::size_of::<GpuContactTerm>()) as u64;
         self.ctx.queue.write_buffer(&self.buffers.bound[CONTACT_BINDINGS.start], at, bytemuck::bytes_of(&probe));
         // The writes land before the submission's commands: b's rows go in once rhs and Δv
-        // are cleared, in the solve's own submission.
+        // are cleared, in the solve's own submission; the step's Δv is held for the next
+        // step's start (the first probe since that step holds it).
+        let hold = !self.probed;
         let clear_then_b = |encoder: &mut wgpu::CommandEncoder| {
+            if hold {
+                let dv = &self.buffers.dv;
+                self.ctx.copy_buffer(encoder, dv, 0, &self.buffers.held_dv, 0, dv.size());
+            }
             encoder.clear_buffer(&self.buffers.rhs, 0, None);
             encoder.clear_buffer(&self.buffers.dv, 0, None);
             for (k, row) in rhs.keys().enumerate() {
@@ -918,6 +976,7 @@ impl GpuSimulation {
         };
         let outcome = [(&self.buffers.bound[CONTACT_BINDINGS.end - 1], 16)];
         let (_, bytes) = self.cg_then(system, Solve::Probe, &clear_then_b, &[(Kernel::ProbeOutcome, 1)], &outcome)?;
+        self.probed = true;
         let out: [f32; 4] = bytemuck::pod_read_unaligned(&bytes);
         Ok(f64::from(out[0]))
     }
@@ -954,11 +1013,7 @@ impl GpuSimulation {
         // The implicit step rewrites `system` with its simulated tools and contacts.
         self.upload_params(&tools, [self.nodes, 0, 0, 0]);
         let StepOutcome { proxy_dv, cg, state: [x, v] } = match self.mirror.params().integrator {
-            Integrator::ImplicitEuler => {
-                let outcome = self.implicit_step()?;
-                self.note_iterations(outcome.cg.iterations);
-                outcome
-            }
+            Integrator::ImplicitEuler => self.implicit_step()?,
             _ => {
                 let kernels = self.explicit_kernels().repeat(steps as usize);
                 let cg = CgStats { iterations: 0, relative_residual: 0.0 };

@@ -15,7 +15,7 @@ struct Tool {
 
 struct Params {
     gravity_h: vec4<f32>,  // gravity xyz, time step h
-    counts: vec4<u32>,     // nodes, springs, tools, partial-sum slots
+    counts: vec4<u32>,     // nodes, springs, tools, -
     cg: vec4<f32>,         // tolerance^2, max iterations, multigrid's fine damping ω (0: block Jacobi), -
     tools: array<Tool, 4>,
     system: vec4<u32>,     // rows (nodes + simulated tools' rows), contacts, touched rows, simulated tools' rows
@@ -413,10 +413,12 @@ fn workgroup_sum(value: vec4<f32>, lid: u32, wid: u32) {
     }
 }
 
-// Single-workgroup sum of all partials.
+// Single-workgroup sum of all partials: one a workgroup of the system's rows (the
+// simulated tools' rows too, which can open a workgroup of their own).
 fn reduce_partials(lid: u32) -> vec4<f32> {
     var acc = vec4<f32>(0.0);
-    for (var k = lid; k < params.counts.w; k = k + WG) {
+    let slots = (params.system.x + WG - 1u) / WG;
+    for (var k = lid; k < slots; k = k + WG) {
         acc = acc + partials[k];
     }
     shared_sum[lid] = acc;
@@ -431,6 +433,16 @@ fn reduce_partials(lid: u32) -> vec4<f32> {
 }
 
 // ---- conjugate gradient ------------------------------------------------------------------
+
+// CG's start, extrapolated from the last two steps' Δv (the previous one copied into q
+// beforehand), as cpu/implicit.rs `implicit_euler` starts it.
+@compute @workgroup_size(256)
+fn cg_extrapolate(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let i = gid.x;
+    if (i < params.system.x) {
+        dv[i] = vec4<f32>(dv[i].xyz * 2.0 - q[i].xyz, 0.0);
+    }
+}
 
 // q = A dv (dv copied into p beforehand), for the warm-started initial residual.
 @compute @workgroup_size(256)
