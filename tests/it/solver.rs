@@ -144,6 +144,36 @@ fn explicit_schemes_fail_past_the_seed_limit_and_it_is_detected() {
     ));
 }
 
+/// A diverged step says where it points: the step's CG outcome, the spring stretched most
+/// (and where), the node that moved farthest, and each tool's contacts; the last stable
+/// state stays.
+#[test]
+fn a_divergence_names_cg_the_worst_spring_the_farthest_node_and_each_tool() {
+    use defvol::solver::{Tool, ToolShape};
+    let model = seed_bar(3000.0);
+    // A hundred thousand g and one CG iteration a step: the bar is flung apart at once.
+    let params = SolverParams { gravity: [0.0, 0.0, -1e6], cg_max_iterations: 1, ..Default::default() };
+    let mut tool = Tool::new(ToolShape::Sphere { radius: 0.002 }, 20_000.0);
+    tool.world_from_tool = nalgebra::Isometry3::translation(0.0, 0.0, 1.0);
+    let mut sim = Simulation::<f64>::new(&model, params, vec![tool]).unwrap();
+    let reason = match sim.step() {
+        Err(SolverError::Diverged { step: 1, reason, .. }) => reason,
+        other => panic!("expected the first step to diverge, got {other:?}"),
+    };
+    assert!(reason.contains("CG 1 its") && reason.contains("(did not converge)"), "{reason}");
+    let ratio: f64 = reason
+        .split("worst spring ")
+        .nth(1)
+        .and_then(|r| r.split(" at ").nth(1))
+        .and_then(|r| r.split(' ').next()?.parse().ok())
+        .unwrap_or_else(|| panic!("a spring's length to its rest length: {reason}"));
+    assert!(!(0.5..=2.0).contains(&ratio), "the worst spring is far from its rest length: {reason}");
+    let node: usize = reason.split("node ").nth(1).and_then(|r| r.split(' ').next()?.parse().ok()).unwrap();
+    assert!(!model.fixed[node], "the farthest node is a free one: {reason}");
+    assert!(reason.contains("tool 0: 0 surface contacts"), "{reason}");
+    assert!(sim.positions_f64().iter().zip(&model.rest).all(|(x, r)| x == r), "the last stable state (rest) kept");
+}
+
 #[test]
 fn implicit_euler_stays_bounded_up_to_h_005_and_k_1e6() {
     for k in [3000.0, 30_000.0, 1e6] {

@@ -67,7 +67,13 @@ impl<T: Real> Simulation<T> {
         Ok(report)
     }
 
+    /// Why the state reached is not physical, with where it points ([`Self::diagnosis`]).
     pub(super) fn divergence(&self, report: &StepReport) -> Option<String> {
+        let reason = self.divergence_reason(report)?;
+        Some(format!("{reason}; {}", self.diagnosis()))
+    }
+
+    fn divergence_reason(&self, report: &StepReport) -> Option<String> {
         if !self.u.iter().chain(self.v.iter()).all(|p| p.iter().all(|c| c.is_finite())) {
             return Some("non-finite positions or velocities".into());
         }
@@ -82,5 +88,53 @@ impl<T: Real> Simulation<T> {
             return Some(format!("a node moved {:.3e} m, twice the mesh's size", report.max_displacement));
         }
         None
+    }
+
+    /// Where a diverged state points: the step's CG outcome, the spring stretched or crushed
+    /// most, the node that moved farthest, and each tool's contacts and simulated tool.
+    fn diagnosis(&self) -> String {
+        let mut parts = Vec::new();
+        if self.params.integrator == Integrator::ImplicitEuler {
+            let cg = self.last_cg;
+            let unconverged = match cg.relative_residual <= self.params.cg_tolerance {
+                true => "",
+                false => " (did not converge)",
+            };
+            parts
+                .push(format!("CG {} its, relative residual {:.1e}{unconverged}", cg.iterations, cg.relative_residual));
+        }
+        let point = |p: Vector3<f64>| format!("({:.4}, {:.4}, {:.4}) m", p.x, p.y, p.z);
+        let world = |i: usize| self.world(i).map(T::to_f64);
+        let strain = |e: usize| {
+            let [a, b] = self.springs[e].map(|n| n as usize);
+            let ratio = (world(b) - world(a)).norm() / self.rest_length[e].to_f64();
+            (ratio - 1.0).abs().max(1.0 / ratio - 1.0)
+        };
+        let worst_spring = (0..self.springs.len()).max_by(|&a, &b| strain(a).total_cmp(&strain(b)));
+        if let Some(e) = worst_spring {
+            let [a, b] = self.springs[e].map(|n| n as usize);
+            let ratio = (world(b) - world(a)).norm() / self.rest_length[e].to_f64();
+            let at = point((world(a) + world(b)) * 0.5);
+            parts.push(format!("worst spring {e} (nodes {a}-{b}) at {ratio:.3} of its rest length, at {at}"));
+        }
+        let moved = |i: usize| self.u[i].map(T::to_f64).norm();
+        if let Some(i) = (0..self.u.len()).max_by(|&a, &b| moved(a).total_cmp(&moved(b))) {
+            parts.push(format!("node {i} moved farthest, {:.3e} m, to {}", moved(i), point(world(i))));
+        }
+        for (index, t) in self.tools.iter().enumerate() {
+            let contacts: Vec<_> = self.contacts.iter().filter(|c| c.tool == index).collect();
+            let deepest = contacts.iter().map(|c| c.depth).fold(0.0, f64::max);
+            let mut tool = match t.contact {
+                ContactModel::Surface => {
+                    format!("tool {index}: {} surface contacts, deepest {deepest:.2e} m", contacts.len())
+                }
+                ContactModel::Nodes => format!("tool {index}: contact on the nodes"),
+            };
+            if let Some(proxy) = self.proxies.iter().find(|p| p.tool == index) {
+                tool += &format!(", simulated tool at {} (device at {})", point(proxy.x), point(proxy.device));
+            }
+            parts.push(tool);
+        }
+        parts.join("; ")
     }
 }
