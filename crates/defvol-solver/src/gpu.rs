@@ -1298,6 +1298,46 @@ mod tests {
         }
     }
 
+    /// 256 nodes fill one workgroup, so a coupled tool's row opens a second: CG's reductions
+    /// count it (they once stopped at the nodes' workgroups, and CG stalled, then diverged
+    /// once the contact coupled that row), and the GPU takes the CPU's iterations and path
+    /// through a press, its local model solved after each step as the force loop does.
+    #[test]
+    fn a_simulated_tools_row_in_a_workgroup_of_its_own_is_counted() {
+        let Some(ctx) = defvol_gpu::gpu::test_context() else { return };
+        let (lo, hi) = (Vector3::new(0.0, 0.0, -0.03), Vector3::new(0.15, 0.03, 0.0));
+        let mesh = generate::lattice(lo, hi, [15, 3, 3], CellSplit::Five).unwrap();
+        assert_eq!(mesh.nodes().len() as u32, WORKGROUP);
+        let fixed = FixedNodes::Plane { normal: [0.0, 0.0, 1.0], offset: -0.03 }.select(mesh.nodes()).unwrap();
+        let material = Material::Uniform { stiffness: 300.0, damping: 2.0 };
+        let model = MassSpringModel::new(&mesh, &material, 1000.0, &fixed, None).unwrap();
+        let mut tool = Tool::new(ToolShape::Sphere { radius: 0.002 }, 20_000.0);
+        tool.coupling = Some(Coupling { stiffness: 2000.0, damping: 5.0, mass: 0.02, max_force: 10.0 });
+        let params = SolverParams { preconditioner: Preconditioner::BlockJacobi, ..Default::default() };
+        let mut cpu = Simulation::<f32>::new(&model, params.clone(), vec![tool.clone()]).unwrap();
+        let mut gpu = GpuSimulation::new(ctx, &model, params, vec![tool]).unwrap();
+        let (mut pressed, mut moved) = (0.0f64, 0.0f64);
+        for k in 0..40 {
+            let pose = Isometry3::translation(0.075, 0.015, 0.004 - 0.008 * (k as f64 / 20.0).min(1.0));
+            cpu.tool_mut(0).unwrap().world_from_tool = pose;
+            gpu.tool_mut(0).unwrap().world_from_tool = pose;
+            let (rc, rg) = (cpu.step().unwrap(), gpu.step().unwrap());
+            let (cpu_local, gpu_local) = (cpu.local_models(), gpu.local_models().unwrap());
+            assert_eq!(cpu_local.len(), gpu_local.len());
+            let (its_c, its_g) = (rc.cg_iterations, rg.cg_iterations);
+            assert!(its_c.abs_diff(its_g) <= its_c / 5 + 2, "step {k}: CG its {its_c} / {its_g}");
+            let (fc, fg) = (Vector3::from(rc.reaction(0).force), Vector3::from(rg.reaction(0).force));
+            pressed = pressed.max(fc.norm());
+            moved = moved.max(rc.max_displacement);
+            assert!((fc - fg).norm() <= 1e-3 * pressed.max(1.0), "step {k}: reactions {fc} / {fg} N");
+            let gap = (cpu.displacements().iter().zip(gpu.mirror().displacements()))
+                .map(|(a, b)| f64::from((a - b).norm()))
+                .fold(0.0, f64::max);
+            assert!(gap <= 1e-3 * moved.max(1e-4), "step {k}: nodes {gap} m apart");
+        }
+        assert!(pressed > 1.0 && moved > 1e-3, "the tool pressed: {pressed} N, {moved} m");
+    }
+
     /// Every integrator, with a tool pressing in: GPU and CPU (f32) agree after 100 steps.
     #[test]
     fn gpu_matches_cpu_for_every_integrator() {
