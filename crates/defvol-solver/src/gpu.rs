@@ -320,10 +320,10 @@ pub struct GpuSimulation {
     /// stay assembled until the next step).
     system: [u32; 4],
     /// The multigrid preconditioner once in use (`amg` from the first implicit step, `auto`
-    /// after a block-Jacobi solve past [`crate::AUTO_AMG_ABOVE`] iterations), and the model
-    /// its hierarchy is built from (none where it will not be, or does not fit).
+    /// after a block-Jacobi solve past [`crate::AUTO_AMG_ABOVE`] iterations), and whether
+    /// it can be (not where it will not be, or does not fit).
     multigrid: Option<Multigrid>,
-    multigrid_source: Option<MassSpringModel>,
+    multigrid_possible: bool,
     multigrid_wanted: bool,
 }
 
@@ -358,9 +358,8 @@ impl GpuSimulation {
         }
         ctx.require_storage_buffers("the solver", STORAGE_BUFFERS)?;
         let multigrid_wanted = params.preconditioner == Preconditioner::Amg;
-        let multigrid_source = (params.integrator == Integrator::ImplicitEuler
-            && params.preconditioner != Preconditioner::BlockJacobi)
-            .then(|| model.clone());
+        let multigrid_possible =
+            params.integrator == Integrator::ImplicitEuler && params.preconditioner != Preconditioner::BlockJacobi;
         let mirror = Simulation::<f32>::new(model, params, tools)?;
         let n = model.node_count();
         let e = model.springs.len();
@@ -474,7 +473,7 @@ impl GpuSimulation {
             windows_ahead: Default::default(),
             system: [n as u32, 0, 0, 0],
             multigrid: None,
-            multigrid_source,
+            multigrid_possible,
             multigrid_wanted,
         })
     }
@@ -539,24 +538,21 @@ impl GpuSimulation {
         }
     }
 
-    /// Builds the multigrid hierarchy on the CPU from the system at the last accepted state
-    /// (as the CPU path builds it) and uploads it. Past the adapter's limits: an error under
-    /// `amg`; under `auto`, block Jacobi on, saying why.
-    fn build_multigrid(&mut self) -> Result<(), GpuSolverError> {
-        let Some(model) = &self.multigrid_source else { return Ok(()) };
-        let params = SolverParams { preconditioner: Preconditioner::Amg, ..self.mirror.params().clone() };
-        let mut at_state = Simulation::<f32>::new(model, params, Vec::new())?;
-        let velocities: Vec<Vector3<f64>> = self.mirror.velocities().iter().map(|v| v.cast()).collect();
-        at_state.set_state(&self.mirror.positions_f64(), &velocities);
-        at_state.assembled_system()?;
-        at_state.prepare_preconditioner();
-        let Some(amg) = at_state.multigrid() else {
+    /// Builds the multigrid hierarchy on the CPU from the step's system (`tools` its contact
+    /// tools, after the mirror's `prepare_step`), where and as the CPU path builds it, and
+    /// uploads it. Past the adapter's limits: an error under `amg`; under `auto`, block
+    /// Jacobi on, saying why.
+    fn build_multigrid(&mut self, tools: &[ContactTool<f32>]) -> Result<(), GpuSolverError> {
+        if !self.multigrid_possible {
+            return Ok(());
+        }
+        let Some(amg) = self.mirror.multigrid_at_step(tools) else {
             tracing::warn!("no multigrid hierarchy for this mesh (nothing to aggregate): block Jacobi on the GPU");
-            self.multigrid_source = None;
+            self.multigrid_possible = false;
             return Ok(());
         };
         let (aux, force) = (self.buffers.aux.clone(), self.buffers.force.clone());
-        match DeviceCoarseCorrection::on(self.ctx.clone(), amg, aux, force, 4) {
+        match DeviceCoarseCorrection::on(self.ctx.clone(), &amg, aux, force, 4) {
             Ok(coarse) => {
                 let saved_p = self.ctx.zeroed_buffer("saved direction", self.buffers.p.size());
                 let omega = amg.fine_omega as f32;
@@ -565,7 +561,7 @@ impl GpuSimulation {
             }
             Err(e) if self.mirror.params().preconditioner == Preconditioner::Auto => {
                 tracing::warn!("the multigrid hierarchy does not fit the GPU ({e}): block Jacobi on");
-                self.multigrid_source = None;
+                self.multigrid_possible = false;
                 Ok(())
             }
             Err(e) => Err(e.into()),
@@ -1006,10 +1002,10 @@ impl GpuSimulation {
 
     /// `steps` steps (more than one only for an explicit batch) and one read-back.
     fn steps_in_one_submission(&mut self, steps: u32) -> Result<StepReport, GpuSolverError> {
-        if self.multigrid_wanted && self.multigrid.is_none() {
-            self.build_multigrid()?;
-        }
         let tools = self.mirror.prepare_step()?;
+        if self.multigrid_wanted && self.multigrid.is_none() {
+            self.build_multigrid(&tools)?;
+        }
         // The implicit step rewrites `system` with its simulated tools and contacts.
         self.upload_params(&tools, [self.nodes, 0, 0, 0]);
         let StepOutcome { proxy_dv, cg, state: [x, v] } = match self.mirror.params().integrator {

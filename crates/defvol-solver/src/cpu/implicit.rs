@@ -359,6 +359,17 @@ impl<T: Real> Simulation<T> {
         Ok((self.system_triplets(true), rhs))
     }
 
+    /// The multigrid hierarchy for the step about to be solved (after `prepare_step`, with
+    /// its contact `tools`), as this path builds it there: on the springs' matrix, the fine
+    /// smoother's damping from the whole system (the simulated tools' rows and contacts
+    /// with it). The GPU's device twin is built from it.
+    #[cfg_attr(not(feature = "gpu"), allow(dead_code))]
+    pub(crate) fn multigrid_at_step(&mut self, tools: &[ContactTool<T>]) -> Option<Amg> {
+        self.assemble(tools);
+        self.build_amg();
+        self.amg.take().map(|state| state.amg)
+    }
+
     /// The multigrid hierarchy in use, if any (its device twin is built from it).
     pub fn multigrid(&self) -> Option<&Amg> {
         self.amg.as_ref().map(|state| &state.amg)
