@@ -21,8 +21,7 @@ const SLEEP_ENERGY: f64 = 1e-9;
 /// Steps the mesh must stay that quiet first.
 pub(super) const SLEEP_AFTER: u32 = 20;
 /// Below this many nodes a step runs on one thread: handing a few microseconds of work to
-/// another core costs more than it saves. On the 2-core EPYC VM a 1,280-node step took 0.96 ms
-/// on one thread and 1.03 ms on two; a 4,800-node one 4.7 ms and 3.2 ms.
+/// another core costs more than it saves (see docs/perf/journal.md#one-thread-for-small-steps).
 const SERIAL_BELOW_NODES: usize = 2500;
 
 #[derive(Clone)]
@@ -185,8 +184,8 @@ impl FeedbackLoop {
     /// Threads a step is worth: one below 2,500 nodes, where handing work to another core
     /// costs more than it saves; the node runs the solver on a pool of that many, so that a
     /// small step never hands work across threads. With a coupled tool one core is left to
-    /// the force loop, which answers its poses while the solver works (on two cores, the
-    /// solver on both put the p99 of an answer at 1.0-1.4 ms instead of under one).
+    /// the force loop, which answers its poses while the solver works (see
+    /// docs/perf/journal.md#a-core-for-the-force-loop).
     pub fn threads(&self) -> usize {
         let cores = std::thread::available_parallelism().map_or(1, usize::from);
         let coupled = self.tools.iter().any(|t| t.tool.coupling.is_some());

@@ -5,7 +5,7 @@
 //! threads that only need throughput (the solver's, the warp and raycast workers', the
 //! recorder's) take a positive nice value and ordinary scheduling, which needs no
 //! privilege. On two cores, with every stage and the recorder beside it, this is what keeps
-//! an answer's p99 under a millisecond: at a raised nice value alone it was 1.1-1.2 ms.
+//! an answer's p99 under a millisecond (see docs/perf/journal.md#a-core-for-the-force-loop).
 
 /// The force loop's real-time priority (1-99): above ordinary threads, below the kernel's
 /// own real-time work.

@@ -107,9 +107,9 @@ impl Camera {
     }
 
     /// This camera's rays, what is the same for every pixel worked out once: the field of
-    /// view's tangent was a libm call per ray (about 2 % of a tet raycast, profiled), and
-    /// the pose's quaternion turned the origin and the direction of every ray (5 % of a
-    /// volume raycast, profiled, before it became a matrix here).
+    /// view's tangent (a libm call per ray otherwise), and the pose as a matrix (not a
+    /// quaternion turning the origin and the direction of every ray; see
+    /// docs/perf/journal.md#camera-rays-set-up-once).
     pub fn rays(&self) -> Rays<'_> {
         let aspect = self.width as f64 / self.height as f64;
         let tangent = match self.projection {

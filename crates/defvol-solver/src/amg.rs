@@ -10,8 +10,8 @@
 //!   below it additive levels `ω D⁻¹ b + P (cycle) R b`, which never multiply by the
 //!   coarse matrices (smoothed aggregation makes them the widest: ~300 nonzeros a row),
 //!   and a dense Cholesky solve at the coarsest. Every part is symmetric positive-definite,
-//!   so the whole is a valid CG preconditioner. On the 157k-tet cantilever this ran 1.5x
-//!   faster per step than multiplicative coarse levels, at 1.5x the iterations.
+//!   so the whole is a valid CG preconditioner. More iterations than multiplicative coarse
+//!   levels, each far cheaper (see docs/perf/journal.md#additive-coarse-levels).
 //!
 //! The hierarchy is built from the matrix of one step and reused while it keeps CG fast
 //! (A changes slowly from step to step); any fixed SPD preconditioner leaves CG exact.

@@ -79,10 +79,8 @@ pub enum Preconditioner {
     Auto,
 }
 
-/// Block-Jacobi CG iterations beyond which `Preconditioner::Auto` turns to multigrid. On the
-/// 2-core EPYC VM, 1,280 nodes at h = 10 ms: Jacobi 40 iterations 2.9 ms, AMG 7 iterations
-/// 3.1 ms; 4,800 nodes: Jacobi 58 iterations 12.8 ms, AMG 10 iterations 11.1 ms; at h = 1
-/// ms Jacobi needs 9-14 and runs 2x faster than AMG.
+/// Block-Jacobi CG iterations beyond which `Preconditioner::Auto` turns to multigrid: about
+/// where a step costs the same with either (see docs/perf/journal.md#when-auto-turns-to-multigrid).
 pub const AUTO_AMG_ABOVE: u32 = 40;
 
 /// Time stepping and linear-solver settings.

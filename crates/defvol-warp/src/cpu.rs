@@ -33,14 +33,12 @@ pub fn default_grid(source: &Volume, deformed: &[Vector3<f64>]) -> Grid {
 
 /// Output slices a task rasterizes together: as many as fit in this many bytes (a slab
 /// stays in a core's cache from its fill to its last tet, and each tet's source footprint
-/// is read once for all its slices in the slab), at least one. A Zen 4 core's L2: with
-/// 32³ bricks rotated 17.3-17.7 -> 16.8-17.1 ms and upright, bend 2-3 % faster than half
-/// of it, 2 MiB no better (three alternating rounds on a 2-core AMD EPYC).
+/// is read once for all its slices in the slab), at least one: a core's L2 (see
+/// docs/perf/journal.md#warp-slabs).
 const SLAB_BYTES: usize = 1 << 20;
 
 /// [`SLAB_BYTES`] for a re-warped region: a local press has a few slabs to share between
-/// the threads, which thinner ones balance (upright and bend presses 0.78-0.84 ms with 1
-/// MiB slabs, 0.69-0.77 ms with 512 KiB, three alternating rounds).
+/// the threads, which thinner ones balance (see docs/perf/journal.md#warp-slabs).
 const REGION_SLAB_BYTES: usize = 1 << 19;
 
 fn slab_depth<T>(nx: usize, ny: usize, path: WarpPath, bytes: usize) -> usize {
@@ -69,7 +67,7 @@ fn slab_bins(maps: &[Option<TetMap>], first: usize, last: usize, depth: usize) -
 /// Sets every sample of `out` to `value`. f32 samples are stored by `rep stosd` on x86-64:
 /// the CPU's fast-string stores write whole cache lines without reading them first, where a
 /// loop of vector stores reads each line of the (uncached) output before overwriting it
-/// (3-8 % of a rotated warp on one thread, side by side).
+/// (see docs/perf/journal.md#background-by-fast-string-stores).
 fn fill<T: Real>(out: &mut [T], value: f32) {
     match T::as_f32_mut(out) {
         #[cfg(target_arch = "x86_64")]

@@ -9,8 +9,9 @@
 //! prefix sum of their counts on the device, dispatched indirectly), an invocation a row,
 //! so a tet a hundred times bigger than the rest does not leave the GPU waiting on it; the
 //! background is written afterwards, only where no tet wrote. (One workgroup a tet, the
-//! first kernel, ran up to 2.6x slower on an H100 where tets are large and was removed:
-//! `WarpOptions::path` chooses among the CPU's loops only.)
+//! first kernel, was slow where tets are large and was removed, see
+//! docs/perf/journal.md#the-gpu-warp-a-row-an-invocation: `WarpOptions::path` chooses
+//! among the CPU's loops only.)
 //!
 //! Differences from the CPU path: maps and spans are computed in f32 on box-local
 //! coordinates, so voxels within ~1e-5 (in barycentric terms) of a tet face may be decided

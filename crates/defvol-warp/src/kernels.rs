@@ -421,8 +421,7 @@ impl<'a> Sampler<'a> {
     /// The bricks a tet's spans are sampled from as one stream: plain trilinear on the
     /// fast path, a rest tet inside the source (no box tests). Whatever the direction: run
     /// by run, runs along the source's rows read row-major windows faster than bricks,
-    /// but as a stream the bricks win there too (bend 21.3 -> 15.4 ms, upright 15.7 ->
-    /// 13.7-14.1 ms, four alternating rounds).
+    /// but as a stream the bricks win there too (see docs/perf/journal.md#bricks-as-a-stream).
     fn streams(&self, m: &TetMap) -> Option<&'a Bricks> {
         self.bricks.filter(|_| self.lanes && m.src_inside)
     }

@@ -394,7 +394,8 @@ mod x86 {
     }
 
     /// `[e(0), e(1), e(2)]`, written out: the samplers hold no closures, which LLVM may leave
-    /// out of line once their function grows (a rotated warp ran 2.6x slower so).
+    /// out of line once their function grows, spilling the lanes (see
+    /// docs/perf/journal.md#samplers-written-out).
     macro_rules! per_axis {
         ($a:ident => $e:expr) => {
             [
@@ -455,9 +456,9 @@ mod x86 {
     }
 
     /// The eight corners of `$width` cells (first corners `$b`, lane for lane) by scalar
-    /// loads, which on AMD's Zen 4 take half the time of `vgatherdps` fetching the same
-    /// floats (so the same bits). Macros, as is [`window!`]: as functions LLVM left them out
-    /// of line, spilling the lanes (a rotated warp 2.6x slower).
+    /// loads, cheaper than `vgatherdps` fetching the same floats (so the same bits). Macros,
+    /// as is [`window!`]: as functions LLVM left them out of line, spilling the lanes (see
+    /// docs/perf/journal.md#samplers-written-out).
     macro_rules! loads {
         ($ptr:ident, $b:ident, $corners:expr, $width:literal, $ps:ty, $store:ident, $set:ident, $($l:literal),+) => {{
             let mut index = [0i32; $width];
@@ -503,10 +504,10 @@ mod x86 {
     /// [`loads!`] for layouts where each even corner's +x neighbour is the next float
     /// ([`Corners::paired`]): a lane's two x-corners are one 8-byte load, two lanes' pairs
     /// fill one 128-bit half, and a shuffle splits the halves into the two corners' lanes.
-    /// Half the loads and inserts of `loads!`, the same floats (rot45 warp 3 %, the source
-    /// through the mesh 4 % faster). `$pack` puts lanes (0, 1) and (2, 3) of each four in
-    /// the first and second register, from vector loads: the same pairs built from 64-bit
-    /// integers went through the stack (rot45 17 % slower).
+    /// Half the loads and inserts of `loads!`, the same floats. `$pack` puts lanes (0, 1)
+    /// and (2, 3) of each four in the first and second register, from vector loads: the
+    /// same pairs built from 64-bit integers go through the stack (see
+    /// docs/perf/journal.md#paired-corner-loads).
     macro_rules! pairs {
         ($ptr:ident, $b:ident, $corners:expr, $width:literal, $ps:ty, $store:ident, $pack:ident, $shuffle:ident) => {{
             let mut index = [0i32; $width];

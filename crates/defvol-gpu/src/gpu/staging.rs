@@ -58,9 +58,8 @@ fn copy_parallel(out: &mut [u8], from: &[u8]) {
     out.par_chunks_mut(COPY_CHUNK_BYTES).zip(from.par_chunks(COPY_CHUNK_BYTES)).for_each(|(o, f)| o.copy_from_slice(f));
 }
 
-/// Staging buffers kept between read-backs. Pinned host memory is slow to allocate: a new
-/// 81 MB staging buffer for each warp read back cost ~100 ms on an H100 machine, where the
-/// copies themselves take a few.
+/// Staging buffers kept between read-backs. Pinned host memory is slow to allocate, far
+/// slower than the copies it holds (see docs/perf/journal.md#staging-buffers-kept).
 #[derive(Default)]
 pub(super) struct StagingPool {
     free: Mutex<Vec<wgpu::Buffer>>,

@@ -86,9 +86,9 @@ pub(crate) const MAX_PIECES: usize = 4096;
 pub(crate) const LANES_MAX_TETS: usize = i32::MAX as usize / (std::mem::size_of::<TetGeometry>() / 4);
 
 /// Steps the pre-integrated table's lengths reach: a segment through a tet is one lookup
-/// where it can be (through 155k tets over the phantom, segments average 1.75 mm against
-/// 1 mm steps; 1.33x faster than pieces of a step, the same PSNR), its length levels still
-/// an eighth of a step apart.
+/// where it can be (segments through a fine mesh are longer than a step: fewer lookups,
+/// the same PSNR; see docs/perf/journal.md#pre-integrated-segment-lengths), its length
+/// levels still an eighth of a step apart.
 const TABLE_STEPS: f64 = 4.0;
 
 /// Per tet and face: the neighbour across it as tet · 4 + its face, or -1.
@@ -257,8 +257,8 @@ fn plane_t(plane: &[f32; 4], o: &V3, d: &V3) -> (f32, f32) {
 /// The face a ray `o + d·t` leaves a tet by (planes as in [`TetGeometry`]): of the faces
 /// other than `face_in` it moves out through (denominator above 1e-7), the one with the
 /// smallest ray parameter, and that parameter; none where no face lies ahead. The four
-/// faces at once in SSE lanes, without a branch per face (on a 2-core Intel Xeon the
-/// 155k-tet frame 5-10 % faster, frame by frame; the shader compares without dividing, as
+/// faces at once in SSE lanes, without a branch per face (see
+/// docs/perf/journal.md#exit-faces-in-sse-lanes; the shader compares without dividing, as
 /// the one-face loop does: the same face but where a ray passes within rounding of an
 /// edge).
 #[cfg(target_arch = "x86_64")]
@@ -292,7 +292,7 @@ fn exit_face(planes: &[[f32; 4]; 4], o: &V3, d: &V3, face_in: u32) -> Option<(u3
 
 /// `t_exit` no earlier than `t_in` and no later than `t_stop`, by plain comparisons: the
 /// walk's values are never NaN, so `f32::max`/`min`'s NaN handling (a compare and a blend
-/// each) only lengthened every step (512², 155k tets, frame by frame: 3-4 % faster).
+/// each) only lengthened every step (see docs/perf/journal.md#plain-comparisons-in-the-walk).
 #[inline(always)]
 fn ahead(t_exit: f32, t_in: f32, t_stop: f32) -> f32 {
     let t = if t_exit > t_in { t_exit } else { t_in };

@@ -111,8 +111,7 @@ impl SampleLine {
     /// One past the last sample at or before `t_out`, from sample `k` on.
     fn end(&self, k: u32, t_out: f32) -> u32 {
         let guess = (t_out - self.t0) / self.dt - self.offset;
-        // Truncation is the floor from 0 up; `floor` would be a libm call on baseline x86-64
-        // (profiled: 2.5 % of the source's time).
+        // Truncation is the floor from 0 up; `floor` would be a libm call on baseline x86-64.
         let mut end = if guess.is_finite() { (guess.max(0.0) as u32 + 1).max(k) } else { k };
         while end > k && self.t(end - 1) > t_out {
             end -= 1;
@@ -303,8 +302,8 @@ impl SourceLook {
         let (step, offset) = (self.params.step as f32, if preintegrated { 0.0 } else { 0.5 });
         let inside = queue.inside(self.volume.dims(), n);
         // Every entry looked up before any is composited, eight wide: independent loads
-        // from a table larger than the core's cache, which the core then overlaps
-        // (profiled: one per sample, each waited for, was a fifth of the source's time).
+        // from a table larger than the core's cache, which the core then overlaps (one per
+        // sample, each waited for, was costly: see docs/perf/journal.md#small-code-generation-fixes).
         let mut entries = [[0.0f32; 4]; BATCH];
         if preintegrated {
             let mut fronts = [0.0f32; BATCH];
@@ -617,8 +616,7 @@ impl Queue<'_> {
 
     /// [`Self::sample`], eight lanes a loop, each stored whole: spare lanes read points
     /// queued before, or the origin (inside the clamps), and no one reads them back. A
-    /// store of the first few lanes only was a `memcpy` call per loop (profiled: 2.5 % of
-    /// the source's time).
+    /// store of the first few lanes only was a `memcpy` call per loop.
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2")]
     fn sample_avx2(&self, out: &mut [f32; BATCH], n: usize) {

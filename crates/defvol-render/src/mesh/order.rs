@@ -1,7 +1,7 @@
 //! The order the raycaster keeps a mesh's tets in: along a Morton (Z-order) curve of their
 //! centroids, so that the tets a ray crosses one after another lie near each other in
-//! memory whatever order the mesh's file listed them in (on a 2-core Intel Xeon the
-//! 155k-tet frame took ~1.2x as long with its tets shuffled as in the lattice's order).
+//! memory whatever order the mesh's file listed them in (a shuffled mesh's frame ran
+//! slower; see docs/perf/journal.md#tets-in-morton-order).
 
 use defvol_core::mesh::{bounds, TetMesh};
 use nalgebra::Vector3;

@@ -516,8 +516,7 @@ fn start_walk(w: &mut Walk8, lane: usize, (tet, face, t): (u32, u32, f32)) {
 
 /// Element `lane` of `v` set to `x`, by a blend with `x` in every element: storing the
 /// vector, writing the element and loading the vector back stalled each load on the
-/// store before it (a lane's ray and walk set up so took about a tenth of the strip's
-/// time; blended, the frame 7 % faster).
+/// store before it (see docs/perf/journal.md#a-lane-set-by-a-blend).
 #[target_feature(enable = "avx2")]
 fn set(v: &mut __m256, lane: usize, x: f32) {
     *v = _mm256_blendv_ps(*v, _mm256_set1_ps(x), _mm256_castsi256_ps(lane_mask(lane)));

@@ -16,8 +16,7 @@ use defvol_core::volume::lanes::Trilinear8;
 
 /// Steps ahead whose cells a packet asks the cache for: a step (eight rays' samples, table
 /// lookups and compositing) is too long for the core to run the next ones' loads early
-/// on its own. 512², 1-1.25 mm, 2 threads, three alternating rounds on a 2-core AMD EPYC:
-/// 5-10 % faster; 8 steps the same as 4.
+/// on its own; further ahead gains nothing (see docs/perf/journal.md#packets-prefetch).
 const AHEAD: f32 = 4.0;
 
 /// Rays in a packet.
@@ -26,10 +25,8 @@ pub(super) const LANES: usize = 8;
 /// A packet's pixels: two rows of four from `corner` (lane l at (l % 4, l / 4) past it),
 /// those past the picture's edge left out (`size`: the columns and rows from `corner` to
 /// that edge). Two rows of four lie closer together than one row of eight, so their rays
-/// leave their macro cells at nearer steps and read nearer voxels: a few per cent faster at
-/// most (512², point-sampled 1 mm, alternating rounds against rows of eight: 1-3 % in five
-/// of six rounds on a 2-core AMD EPYC, within the noise on a 2-core Intel Xeon, the means
-/// of four rounds 40.7 and 40.6 ms; the same pixels).
+/// leave their macro cells at nearer steps and read nearer voxels; the same pixels (see
+/// docs/perf/journal.md#packets-of-two-rows-of-four).
 #[derive(Debug, Clone, Copy)]
 pub(super) struct Block {
     pub(super) corner: (usize, usize),
@@ -57,7 +54,7 @@ pub(super) struct CellWalk<'a> {
 }
 
 /// A macro cell's edge as a shift (8 voxels, `CELL` in `cpu.rs`): a constant in the walk's
-/// code, where a shift read at run time cost the packets 1-5 %.
+/// code, where a shift read at run time slows the packets.
 const CELL_SHIFT: i32 = 3;
 
 /// The packet's rays in index space, lane for lane, as `Caster::composite` takes them: a
@@ -83,9 +80,8 @@ pub(super) struct PacketEnd {
 
 /// [`super::Sampler::gradient`] at eight points, the same arithmetic: each lane's 32 voxels
 /// gathered (its cell's corners and their neighbours a voxel out along each axis, clamped
-/// into the grid), their central differences interpolated in its cell: a gradient-shaded
-/// 512² frame of the phantom took 0.8x the time of six clamped trilinear samples a step
-/// (2-core Intel Xeon, 2026-11-28).
+/// into the grid), their central differences interpolated in its cell: cheaper than six
+/// clamped trilinear samples a step (see docs/perf/journal.md#gradients-of-eight-points).
 #[derive(Clone, Copy)]
 pub(crate) struct Gradient8<'a> {
     data: &'a [f32],
@@ -318,9 +314,9 @@ impl<'a> Lanes<'a> {
         let (tiny, one, half, infinity) =
             (_mm256_set1_ps(1e-5), _mm256_set1_ps(1.0), _mm256_set1_ps(0.5), _mm256_set1_ps(f32::INFINITY));
         // The next step's samples (each lane going on from its segment), read before this
-        // step's lookups and compositing so that their loads overlap them: 5-8 % faster
-        // point-sampled (512², 1-1.25 mm, three alternating rounds). Read again where a lane
-        // jumped or reads its front; two steps ahead were slower (more registers spilled).
+        // step's lookups and compositing so that their loads overlap them. Read again where
+        // a lane jumped or reads its front; two steps ahead spill registers (see
+        // docs/perf/journal.md#packets-read-the-next-step-ahead).
         let (mut ahead_value, mut stale) = (_mm256_setzero_ps(), true);
         while _mm256_movemask_ps(running) != 0 {
             let at_end = _mm256_andnot_ps(_mm256_castsi256_ps(_mm256_cmpgt_epi32(end, k)), running);
@@ -513,8 +509,8 @@ pub(super) struct Setup8 {
 /// row of four lanes of f64 at a time with their operations in their order (nalgebra's
 /// `normalize` divides by the norm, its matrix products add a row's terms first to last),
 /// so the same bits. `o` is the eye in index space (the same for every ray), `top` the
-/// box's far corner (n - 1 on each axis). One ray at a time the set-up took about a tenth
-/// of a frame (512², 1 mm, point-sampled; profiled).
+/// box's far corner (n - 1 on each axis). One ray at a time the set-up was a large part of
+/// a frame (see docs/perf/journal.md#small-code-generation-fixes).
 #[target_feature(enable = "avx2")]
 pub(super) fn setup8(
     view: &Rays,
@@ -783,7 +779,7 @@ fn tet_segment8_entries(table: &SegmentTable, front: __m256, back: __m256, lengt
     let first =
         lanes_i32(_mm256_add_epi32(_mm256_mullo_epi32(_mm256_add_epi32(_mm256_mullo_epi32(i, n_), j), depth_), l));
     // A loop, not `array::from_fn`: its closure, compiled for AVX2, was called once per
-    // lane rather than inlined (the tet walk's lookups 5 % faster).
+    // lane rather than inlined.
     let mut out = [_mm_setzero_ps(); LANES];
     for (lane, out) in out.iter_mut().enumerate() {
         let at = first[lane] as usize;
