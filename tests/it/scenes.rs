@@ -104,6 +104,9 @@ fn default_scene_on_the_gpu_follows_the_cpu_through_the_press() {
     }
 }
 
+/// Text replacements in a scene file: (what it says, what it says instead).
+type Edits = Vec<(&'static str, &'static str)>;
+
 /// The shipped default scene with `edits` made to its text (the variants its comments
 /// document), the probe starting its path at `start`.
 fn shipped_variant(edits: &[(&str, &str)]) -> Scene {
@@ -164,7 +167,7 @@ fn the_documented_variants_of_the_default_scene_run_past_contact_on_both_backend
         ("radius: 0.002 }", "radius: 0.02 }"),
         solver_only,
     ];
-    let variants: [(&str, Vec<(&str, &str)>, f64); 5] = [
+    let variants: [(&str, Edits, f64); 5] = [
         (
             "friction and rotational coupling",
             vec![("# rotational_coupling:", "rotational_coupling:"), ("# friction:", "friction:"), solver_only],
