@@ -1,10 +1,12 @@
-//! Every defvol command in the README's shell blocks, run through the real binaries in the
-//! README's order: each line as it stands, on tiny files standing in for the ones it names
+//! Every defvol command in the shell blocks of the README and of the guide in `docs/`, run
+//! through the real binaries in the order they appear (the README first): each line as it stands, on tiny files standing in for the ones it names
 //! (`ct.nii.gz`, `organ.vtu`, …), with the sizes that would take minutes cut by the
 //! replacements listed beside it. A README command the table lacks fails the test, and so
 //! does a listed line the README no longer has. The build-loop lines (`cargo test`,
 //! `cargo clippy`, `tests/run.sh`) are this suite itself. Node lines run inside a private
-//! network namespace (tests/netns-run), as every DDS participant here does.
+//! network namespace (tests/netns-run), as every DDS participant here does. And every
+//! relative link of those pages, and every pointer from a code comment into the perf
+//! journal, reaches a file and a heading that exist.
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
@@ -167,9 +169,36 @@ fn root() -> &'static Path {
     Path::new(env!("CARGO_MANIFEST_DIR"))
 }
 
-/// The commands of the README's shell blocks: comments and build-loop lines left out.
+/// The README, then every Markdown page under `docs/` (sorted by path).
+fn guide_pages() -> Vec<PathBuf> {
+    let mut pages = vec![root().join("README.md")];
+    let mut docs = Vec::new();
+    let mut folders = vec![root().join("docs")];
+    while let Some(folder) = folders.pop() {
+        for entry in std::fs::read_dir(folder).unwrap().map(|e| e.unwrap().path()) {
+            match entry.is_dir() {
+                true => folders.push(entry),
+                false if entry.extension().is_some_and(|e| e == "md") => docs.push(entry),
+                false => {}
+            }
+        }
+    }
+    docs.sort();
+    pages.extend(docs);
+    pages
+}
+
+/// The commands of the guide's shell blocks: comments and build-loop lines left out.
 fn readme_commands() -> Vec<String> {
-    let text = std::fs::read_to_string(root().join("README.md")).unwrap();
+    let mut commands = Vec::new();
+    for page in guide_pages() {
+        commands.extend(shell_commands(&std::fs::read_to_string(page).unwrap()));
+    }
+    commands
+}
+
+/// The defvol commands of one page's `sh` and `bash` blocks.
+fn shell_commands(text: &str) -> Vec<String> {
     let mut commands = Vec::new();
     let mut in_shell = false;
     for line in text.lines() {
@@ -276,4 +305,102 @@ fn every_readme_command_runs_as_written_on_tiny_stand_ins() {
     }
     let rows = std::fs::read_to_string(dir.path().join("solver.jsonl")).unwrap();
     assert!(rows.lines().all(|l| serde_json::from_str::<serde_json::Value>(l).is_ok()), "{rows}");
+}
+
+/// A heading's anchor as GitHub makes it: lower case, letters, digits, `-` and `_` kept,
+/// spaces turned to `-`, the rest dropped.
+fn anchor(heading: &str) -> String {
+    heading
+        .trim()
+        .to_lowercase()
+        .chars()
+        .filter_map(|c| match c {
+            ' ' => Some('-'),
+            c if c.is_alphanumeric() || c == '-' || c == '_' => Some(c),
+            _ => None,
+        })
+        .collect()
+}
+
+/// The anchors of a Markdown file's headings (outside code blocks).
+fn anchors(page: &Path) -> Vec<String> {
+    let text = std::fs::read_to_string(page).unwrap_or_else(|e| panic!("{}: {e}", page.display()));
+    let mut in_code = false;
+    let mut found = Vec::new();
+    for line in text.lines() {
+        in_code ^= line.starts_with("```");
+        if !in_code && line.starts_with('#') {
+            found.push(anchor(line.trim_start_matches('#')));
+        }
+    }
+    found
+}
+
+/// Where `target` (a path, maybe with `#anchor`, relative to `from`'s folder) leads: none
+/// when it does (a file, a folder, or a heading of a Markdown file).
+fn dead_link(from: &Path, target: &str) -> Option<String> {
+    let (path, heading) = target.split_once('#').unwrap_or((target, ""));
+    let file = if path.is_empty() { from.to_path_buf() } else { from.parent().unwrap().join(path) };
+    if !file.exists() {
+        return Some(format!("{}: no {}", from.display(), file.display()));
+    }
+    let is_page = file.extension().is_some_and(|e| e == "md");
+    (is_page && !heading.is_empty() && !anchors(&file).contains(&heading.to_owned()))
+        .then(|| format!("{}: no heading #{heading} in {}", from.display(), file.display()))
+}
+
+/// The relative targets of a Markdown text's links `[text](target)`, outside code blocks.
+fn relative_links(text: &str) -> Vec<String> {
+    let mut in_code = false;
+    let mut links = Vec::new();
+    for line in text.lines() {
+        in_code ^= line.starts_with("```");
+        if in_code {
+            continue;
+        }
+        for part in line.split("](").skip(1) {
+            let target = part.split(')').next().unwrap_or("").trim();
+            let external = target.contains("://") || target.starts_with("mailto:");
+            if !target.is_empty() && !external {
+                links.push(target.to_owned());
+            }
+        }
+    }
+    links
+}
+
+#[test]
+fn every_relative_link_of_the_pages_and_every_journal_pointer_of_the_code_leads_somewhere() {
+    let mut pages = guide_pages();
+    pages.extend(["ARCHITECTURE.md", "CONTRIBUTING.md", "CHANGELOG.md"].map(|p| root().join(p)));
+    let mut dead: Vec<String> = Vec::new();
+    let mut links = 0;
+    for page in &pages {
+        for target in relative_links(&std::fs::read_to_string(page).unwrap()) {
+            links += 1;
+            dead.extend(dead_link(page, &target));
+        }
+    }
+    // Comments that moved a measurement to the journal point at its entry.
+    let journal = root().join("docs/perf/journal.md");
+    let mut pointers = 0;
+    let mut folders = vec![root().join("crates"), root().join("src")];
+    while let Some(folder) = folders.pop() {
+        for entry in std::fs::read_dir(folder).unwrap().map(|e| e.unwrap().path()) {
+            if entry.is_dir() {
+                folders.push(entry);
+                continue;
+            }
+            let Ok(text) = std::fs::read_to_string(&entry) else { continue };
+            for part in text.split("docs/perf/journal.md#").skip(1) {
+                let heading: String = part.chars().take_while(|c| c.is_alphanumeric() || *c == '-').collect();
+                pointers += 1;
+                if !anchors(&journal).contains(&heading) {
+                    dead.push(format!("{}: no heading #{heading} in the journal", entry.display()));
+                }
+            }
+        }
+    }
+    assert!(links > 5 && pointers > 10, "{links} links and {pointers} journal pointers read");
+    assert!(dead.is_empty(), "dead links: {dead:#?}");
 }
