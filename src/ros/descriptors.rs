@@ -173,6 +173,34 @@ const TABLE: &[(&str, Descriptor)] = &[
     ("camera.rate_hz", float("Most frames per simulated second", 0.01, 1e4)),
 ];
 
+/// Every parameter as a Markdown table (name, what it is, its range and constraints, and
+/// how a change takes effect), in the order above: the reference `docs/scenes.md` carries,
+/// held to this by the suite.
+pub fn reference_table() -> String {
+    let mut out = String::from("| parameter | what | values | changed by |\n| --- | --- | --- | --- |\n");
+    for (name, d) in TABLE {
+        let range = match d.range {
+            Range::Unbounded => String::new(),
+            Range::Float { from, to, .. } => format!("{} to {}", number(from), number(to)),
+            Range::Integer { from, to, .. } => format!("{from} to {to}"),
+        };
+        let values: Vec<&str> =
+            [range.as_str(), d.additional_constraints].into_iter().filter(|v| !v.is_empty()).collect();
+        let changed_by = if d.read_only { "a restart" } else { "`ros2 param set` (the scene reloads)" };
+        let name = name.replace('#', "N");
+        out += &format!("| `{name}` | {} | {} | {changed_by} |\n", d.description, values.join("; "));
+    }
+    out
+}
+
+/// A range's end as a reader writes it: plain where that is short, else in powers of ten.
+fn number(x: f64) -> String {
+    match x == 0.0 || (1e-3..1e5).contains(&x.abs()) {
+        true => format!("{x}"),
+        false => format!("{x:e}"),
+    }
+}
+
 /// The description of the parameter called `name`, if it is one defvol knows.
 pub fn describe(name: &str) -> Option<&'static Descriptor> {
     TABLE.iter().find(|(pattern, _)| matches(pattern, name)).map(|(_, descriptor)| descriptor)

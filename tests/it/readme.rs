@@ -404,3 +404,16 @@ fn every_relative_link_of_the_pages_and_every_journal_pointer_of_the_code_leads_
     assert!(links > 5 && pointers > 10, "{links} links and {pointers} journal pointers read");
     assert!(dead.is_empty(), "dead links: {dead:#?}");
 }
+
+/// The parameter reference of `docs/scenes.md` (between its markers) is the node's own table
+/// of parameters (`defvol::ros::descriptors::reference_table`), so the page cannot drift from
+/// what `ros2 param describe` says.
+#[test]
+fn the_scene_reference_is_the_parameters_own_table() {
+    let page = std::fs::read_to_string(root().join("docs/scenes.md")).unwrap();
+    let (begin, end) = ("<!-- parameters: begin -->\n", "<!-- parameters: end -->");
+    let table = page.split_once(begin).and_then(|(_, rest)| rest.split_once(end)).map(|(table, _)| table);
+    let expected = defvol::ros::descriptors::reference_table();
+    assert!(expected.lines().count() > 40, "{expected}");
+    assert_eq!(table, Some(expected.as_str()), "docs/scenes.md's parameter table should read:\n{expected}");
+}
