@@ -169,23 +169,26 @@ fn root() -> &'static Path {
     Path::new(env!("CARGO_MANIFEST_DIR"))
 }
 
-/// The README, then every Markdown page under `docs/` (sorted by path).
-fn guide_pages() -> Vec<PathBuf> {
-    let mut pages = vec![root().join("README.md")];
-    let mut docs = Vec::new();
-    let mut folders = vec![root().join("docs")];
+/// Every file under `folder`, at any depth, sorted by path.
+fn files_under(folder: &Path) -> Vec<PathBuf> {
+    let mut files = Vec::new();
+    let mut folders = vec![folder.to_path_buf()];
     while let Some(folder) = folders.pop() {
         for entry in std::fs::read_dir(folder).unwrap().map(|e| e.unwrap().path()) {
             match entry.is_dir() {
                 true => folders.push(entry),
-                false if entry.extension().is_some_and(|e| e == "md") => docs.push(entry),
-                false => {}
+                false => files.push(entry),
             }
         }
     }
-    docs.sort();
-    pages.extend(docs);
-    pages
+    files.sort();
+    files
+}
+
+/// The README, then every Markdown page under `docs/` (sorted by path).
+fn guide_pages() -> Vec<PathBuf> {
+    let docs = files_under(&root().join("docs")).into_iter().filter(|f| f.extension().is_some_and(|e| e == "md"));
+    std::iter::once(root().join("README.md")).chain(docs).collect()
 }
 
 /// The commands of the guide's shell blocks: comments and build-loop lines left out.
@@ -383,21 +386,15 @@ fn every_relative_link_of_the_pages_and_every_journal_pointer_of_the_code_leads_
     }
     // Comments that moved a measurement to the journal point at its entry.
     let journal = root().join("docs/perf/journal.md");
+    let headings = anchors(&journal);
     let mut pointers = 0;
-    let mut folders = vec![root().join("crates"), root().join("src")];
-    while let Some(folder) = folders.pop() {
-        for entry in std::fs::read_dir(folder).unwrap().map(|e| e.unwrap().path()) {
-            if entry.is_dir() {
-                folders.push(entry);
-                continue;
-            }
-            let Ok(text) = std::fs::read_to_string(&entry) else { continue };
-            for part in text.split("docs/perf/journal.md#").skip(1) {
-                let heading: String = part.chars().take_while(|c| c.is_alphanumeric() || *c == '-').collect();
-                pointers += 1;
-                if !anchors(&journal).contains(&heading) {
-                    dead.push(format!("{}: no heading #{heading} in the journal", entry.display()));
-                }
+    for file in ["crates", "src"].iter().flat_map(|folder| files_under(&root().join(folder))) {
+        let Ok(text) = std::fs::read_to_string(&file) else { continue };
+        for part in text.split("docs/perf/journal.md#").skip(1) {
+            let heading: String = part.chars().take_while(|c| c.is_alphanumeric() || *c == '-').collect();
+            pointers += 1;
+            if !headings.contains(&heading) {
+                dead.push(format!("{}: no heading #{heading} in the journal", file.display()));
             }
         }
     }

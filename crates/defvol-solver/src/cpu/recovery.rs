@@ -105,15 +105,16 @@ impl<T: Real> Simulation<T> {
         }
         let point = |p: Vector3<f64>| format!("({:.4}, {:.4}, {:.4}) m", p.x, p.y, p.z);
         let world = |i: usize| self.world(i).map(T::to_f64);
-        let strain = |e: usize| {
-            let [a, b] = self.springs[e].map(|n| n as usize);
-            let ratio = (world(b) - world(a)).norm() / self.rest_length[e].to_f64();
-            (ratio - 1.0).abs().max(1.0 / ratio - 1.0)
+        let ends = |e: usize| self.springs[e].map(|n| n as usize);
+        let ratio = |e: usize| {
+            let [a, b] = ends(e);
+            (world(b) - world(a)).norm() / self.rest_length[e].to_f64()
         };
+        // Stretched or crushed alike: 2 and 0.5 of the rest length are as far from it.
+        let strain = |e: usize| (ratio(e) - 1.0).abs().max(1.0 / ratio(e) - 1.0);
         let worst_spring = (0..self.springs.len()).max_by(|&a, &b| strain(a).total_cmp(&strain(b)));
         if let Some(e) = worst_spring {
-            let [a, b] = self.springs[e].map(|n| n as usize);
-            let ratio = (world(b) - world(a)).norm() / self.rest_length[e].to_f64();
+            let ([a, b], ratio) = (ends(e), ratio(e));
             let at = point((world(a) + world(b)) * 0.5);
             parts.push(format!("worst spring {e} (nodes {a}-{b}) at {ratio:.3} of its rest length, at {at}"));
         }
