@@ -106,7 +106,7 @@ pub fn warp(opts: &WarpBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result<
                         runs: times.len(),
                         time_ms: time_stats(times),
                         error: Some(ErrorMeasure { metric: "max_abs_over_range", value: error, reference: "f64" }),
-                        work: json!({"voxels": stats.voxels, "inside": stats.inside, "candidates": stats.candidates,
+                        work: json!({"tets": mesh.tets().len(), "voxels": stats.voxels, "inside": stats.inside, "candidates": stats.candidates,
                             "useful_fraction": stats.inside as f64 / stats.candidates.max(1) as f64,
                             "mvoxels_per_s": stats.voxels as f64 / median / 1e3}),
                         gpu: None,
@@ -172,7 +172,7 @@ pub fn warp(opts: &WarpBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Result<
                     runs: times.len(),
                     time_ms: time_stats(times),
                     error: None,
-                    work: json!({"voxels": stats.voxels, "inside": stats.inside}),
+                    work: json!({"tets": mesh.tets().len(), "voxels": stats.voxels, "inside": stats.inside}),
                     gpu: None,
                 });
             }
@@ -235,7 +235,7 @@ fn warp_gpu_rows(
         runs: times.len(),
         time_ms: time_stats(times),
         error: Some(ErrorMeasure { metric: "max_abs_over_range", value: error, reference: "f64" }),
-        work: json!({"voxels": grid.len(), "mvoxels_per_s": grid.len() as f64 / median / 1e3}),
+        work: json!({"tets": work.mesh.tets().len(), "voxels": grid.len(), "mvoxels_per_s": grid.len() as f64 / median / 1e3}),
         gpu: cost,
     });
     Ok(())

@@ -153,9 +153,17 @@ fn row_printer(json: bool, header: &str, table_row: fn(&bench::BenchRow) -> Stri
     if !json {
         println!("{header}");
     }
+    // Each row says when and by which command it was measured, so a report can show both.
+    let date = jiff::Timestamp::now().strftime("%Y-%m-%d").to_string();
+    let command = std::iter::once("defvol".to_owned()).chain(std::env::args().skip(1)).collect::<Vec<_>>().join(" ");
     move |row| {
         if json {
-            match serde_json::to_string(row) {
+            let line = serde_json::to_value(row).and_then(|mut value| {
+                value["date"] = date.clone().into();
+                value["command"] = command.clone().into();
+                serde_json::to_string(&value)
+            });
+            match line {
                 Ok(line) => println!("{line}"),
                 Err(e) => tracing::error!("cannot encode a benchmark row: {e}"),
             }

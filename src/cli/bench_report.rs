@@ -17,6 +17,10 @@ pub struct ReportArgs {
     /// instead of running the benchmarks; a line that is not a row is named and skipped.
     #[arg(long, num_args = 1..)]
     from: Vec<PathBuf>,
+    /// Markdown pages whose `bench tables` and `bench summary` blocks are rewritten from the
+    /// rows (`docs/performance.md`, `README.md`).
+    #[arg(long, value_delimiter = ',')]
+    pages: Vec<PathBuf>,
     /// Stages to run (without `--from`).
     #[arg(long, value_delimiter = ',', default_value = "solver,warp,dpcm,render,node", conflicts_with = "from")]
     stages: Vec<String>,
@@ -73,6 +77,7 @@ pub fn run(args: &ReportArgs) -> Result<()> {
         command: std::env::args().collect::<Vec<_>>().join(" "),
     };
     let written = report::write_report(&args.dir, &rows, &skipped, &about)?;
+    report::rewrite_pages(&args.pages, &rows)?;
     #[cfg(feature = "rerun")]
     if let Some(path) = &args.rerun {
         log_to_rerun(path, &rows)?;

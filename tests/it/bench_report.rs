@@ -382,3 +382,61 @@ fn gpu_rows_are_series_of_their_own_beside_the_cpu_ones() {
         assert!(gpu > 0 && gpu < series_of(&of_stage).len(), "{stage}: gpu series beside cpu ones");
     }
 }
+
+fn sized_solver_row(tets: usize, backend: &str, time: f64, date: &str) -> String {
+    format!(
+        r#"{{"stage":"solver","case":"cantilever_{tets}tets","backend":"{backend}","device":"test machine","params":{{"cg_tolerance":0.01,"integrator":"implicit_euler","preconditioner":"amg"}},"runs":3,"time_ms":{{"min":{time},"median":{time},"max":{time}}},"error":{{"metric":"max_node_distance_over_max_displacement","value":0.0002,"reference":"f64"}},"work":{{"tets":{tets}}},"date":"{date}","command":"defvol bench solver --json"}}"#
+    )
+}
+
+/// The pages' blocks: every row in the tables; in the summary, the fastest row of the
+/// largest case on each backend beside the published figure nearest its size.
+#[test]
+fn the_pages_blocks_are_rewritten_from_the_rows_with_each_rows_machine_and_date() {
+    let lines = [
+        sized_solver_row(13_120, "cpu", 9.0, "2026-12-01"),
+        sized_solver_row(149_040, "cpu", 80.0, "2026-12-02"),
+        sized_solver_row(149_040, "cpu", 50.0, "2026-12-03"),
+        sized_solver_row(149_040, "gpu", 7.0, "2026-12-04"),
+    ];
+    let dir = tempfile::tempdir().unwrap();
+    let rows = dir.path().join("rows.jsonl");
+    std::fs::write(&rows, lines.join("\n")).unwrap();
+    let (readme, guide, other) = (dir.path().join("README.md"), dir.path().join("perf.md"), dir.path().join("x.md"));
+    std::fs::write(&readme, "# a\n<!-- bench summary: begin -->\nold\n<!-- bench summary: end -->\ntail\n").unwrap();
+    std::fs::write(&guide, "intro\n<!-- bench tables: begin -->\n<!-- bench tables: end -->\n").unwrap();
+    std::fs::write(&other, "no markers\n").unwrap();
+    let pages = format!("{},{}", readme.display(), guide.display());
+    let (_out_dir, out) = report(&["--from", rows.to_str().unwrap(), "--pages", &pages]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+
+    let readme = std::fs::read_to_string(&readme).unwrap();
+    assert!(readme.starts_with("# a\n") && readme.ends_with("-->\ntail\n") && !readme.contains("old"), "{readme}");
+    let summary = defvol::bench::report::block(&readme, "bench summary").unwrap();
+    let body: Vec<&str> = summary.lines().skip(2).collect();
+    assert_eq!(body.len(), 2, "one headline per backend:\n{summary}");
+    assert!(body[0].contains("| 50 ms, cpu") && body[0].contains("2026-12-03"), "{}", body[0]);
+    assert!(body[1].contains("| 7 ms, gpu") && body[1].contains("2026-12-04"), "{}", body[1]);
+    // 1000 / 12 Hz: the Foot's 156,612 tets are nearest 149,040.
+    assert!(body.iter().all(|l| l.contains("83.33 ms (GeForce 7800, implicit Euler, Foot")), "{summary}");
+    assert!(body.iter().all(|l| l.contains("| test machine |") && l.contains("`defvol bench solver --json`")));
+
+    let guide = std::fs::read_to_string(&guide).unwrap();
+    let tables = defvol::bench::report::block(&guide, "bench tables").unwrap();
+    for (line, (time, date)) in tables.lines().filter(|l| l.starts_with("| cantilever")).zip([
+        ("9", "2026-12-01"),
+        ("80", "2026-12-02"),
+        ("50", "2026-12-03"),
+        ("7", "2026-12-04"),
+    ]) {
+        assert!(
+            line.contains(&format!("| {time} |")) && line.ends_with(&format!("| test machine | {date} |")),
+            "{line}"
+        );
+    }
+    assert_eq!(tables.lines().filter(|l| l.starts_with("| cantilever")).count(), 4, "{tables}");
+
+    let (_out_dir, out) = report(&["--from", rows.to_str().unwrap(), "--pages", other.to_str().unwrap()]);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && stderr.contains("x.md has no `<!-- bench tables: begin -->`"), "{stderr}");
+}

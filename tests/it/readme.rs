@@ -154,9 +154,9 @@ const RUNS: &[Run] = &[
         writes: &[],
     },
     Run {
-        line: "defvol bench report docs/bench --stages solver",
-        replace: &[("--stages solver", "--stages solver --quick")],
-        writes: &["docs/bench/solver.svg", "docs/bench/index.html", "docs/bench/rows.jsonl"],
+        line: "defvol bench report docs/perf --stages solver,warp,dpcm,render --pages README.md,docs/performance.md",
+        replace: &[("--stages solver,warp,dpcm,render", "--stages solver --quick")],
+        writes: &["docs/perf/solver.svg", "docs/perf/index.html", "docs/perf/rows.jsonl"],
     },
     Run {
         line: "tests/netns-run defvol bench report report",
@@ -239,6 +239,11 @@ fn stand_ins(dir: &Path) {
         std::process::id()
     );
     std::fs::write(dir.join("my_params.yaml"), params).unwrap();
+    // The pages whose figures `bench report --pages` rewrites.
+    std::fs::create_dir_all(dir.join("docs")).unwrap();
+    for page in ["README.md", "docs/performance.md"] {
+        std::fs::copy(root().join(page), dir.join(page)).unwrap();
+    }
 }
 
 /// The line's program and arguments as the suite runs them; stdout's file for a `>`.
@@ -413,4 +418,33 @@ fn the_scene_reference_is_the_parameters_own_table() {
     let expected = defvol::ros::descriptors::reference_table();
     assert!(expected.lines().count() > 40, "{expected}");
     assert_eq!(table, Some(expected.as_str()), "docs/scenes.md's parameter table should read:\n{expected}");
+}
+
+/// The figures of the README's performance table and of `docs/performance.md` are those
+/// `defvol bench report --pages` writes from the rows it keeps (`docs/perf/rows.jsonl`):
+/// none typed by hand, each row dated and naming its machine and command.
+#[test]
+fn the_pages_figures_are_the_benchmark_rows_own() {
+    use defvol::bench::report::{block, parse_rows, summary, tables, SUMMARY, TABLES};
+    let text = std::fs::read_to_string(root().join("docs/perf/rows.jsonl")).unwrap();
+    let (rows, skipped) = parse_rows(&text, "docs/perf/rows.jsonl");
+    assert!(skipped.is_empty() && rows.len() > 20, "{skipped:?}");
+    for stage in ["solver", "warp", "dpcm", "render"] {
+        assert!(rows.iter().any(|r| r.stage == stage), "no {stage} rows");
+    }
+    for row in &rows {
+        assert!(
+            row.date.is_some() && row.command.as_deref().is_some_and(|c| c.starts_with("defvol bench ")),
+            "{}",
+            row.line
+        );
+    }
+    let readme = std::fs::read_to_string(root().join("README.md")).unwrap();
+    assert_eq!(
+        block(&readme, SUMMARY),
+        Some(summary(&rows).as_str()),
+        "README.md: rerun the command in docs/performance.md"
+    );
+    let page = std::fs::read_to_string(root().join("docs/performance.md")).unwrap();
+    assert_eq!(block(&page, TABLES), Some(tables(&rows).as_str()), "docs/performance.md: rerun its command");
 }

@@ -4,11 +4,13 @@
 
 mod plot;
 mod rows;
+mod tables;
 
 use std::path::{Path, PathBuf};
 
 pub use plot::{drawn_series, latency_quantiles, stage_svg, tick_text, DrawnSeries};
 pub use rows::{parse_rows, seed_points, series_of, Row, Series, Skipped, STAGES};
+pub use tables::{block, rewrite_block, summary, tables, SUMMARY, TABLES};
 
 #[derive(Debug, thiserror::Error)]
 pub enum ReportError {
@@ -16,6 +18,10 @@ pub enum ReportError {
     Write { path: PathBuf, source: std::io::Error },
     #[error("cannot draw the {stage} plot: {why}")]
     Draw { stage: String, why: String },
+    #[error("cannot read {path}: {source}")]
+    Read { path: PathBuf, source: std::io::Error },
+    #[error("{path} has no `<!-- bench tables: begin -->` or `<!-- bench summary: begin -->` block (each with its `end` marker) to rewrite")]
+    NoBlock { path: PathBuf },
 }
 
 /// What the page says of where the rows come from.
@@ -100,4 +106,26 @@ fn page(figures: &[(&str, usize, usize)], rows: &[Row], skipped: &[Skipped], abo
         html += "</ul>\n";
     }
     html + "</body></html>\n"
+}
+
+/// Rewrites the `bench tables` and `bench summary` blocks of each Markdown page from `rows`;
+/// a page with neither is an error, and no page is written until all were read.
+pub fn rewrite_pages(pages: &[PathBuf], rows: &[Row]) -> Result<(), ReportError> {
+    let blocks = [(TABLES, tables(rows)), (SUMMARY, summary(rows))];
+    let mut rewritten = Vec::new();
+    for path in pages {
+        let text = std::fs::read_to_string(path).map_err(|source| ReportError::Read { path: path.clone(), source })?;
+        let mut page = text.clone();
+        for (name, block) in &blocks {
+            page = rewrite_block(&page, name, block).unwrap_or(page);
+        }
+        if blocks.iter().all(|(name, _)| block(&text, name).is_none()) {
+            return Err(ReportError::NoBlock { path: path.clone() });
+        }
+        rewritten.push((path, page));
+    }
+    for (path, page) in rewritten {
+        write(path, &page)?;
+    }
+    Ok(())
 }

@@ -21,6 +21,14 @@ pub struct Row {
     pub time_ms: Times,
     #[serde(default)]
     pub error: Option<RowError>,
+    #[serde(default)]
+    pub work: serde_json::Value,
+    /// The day it was measured (UTC); rows from before rows were dated have none.
+    #[serde(default)]
+    pub date: Option<String>,
+    /// The `defvol bench` command that measured it.
+    #[serde(default)]
+    pub command: Option<String>,
     /// The JSON line as read, kept whole (work, GPU costs) for the report's `rows.jsonl`.
     #[serde(skip)]
     pub line: String,
@@ -150,6 +158,20 @@ fn series_label(row: &Row, with_device: bool) -> String {
     if row.stage == "node" {
         parts.push(row.case.clone());
     }
+    parts.extend(scheme_parts(row));
+    if with_device {
+        parts.push(format!("({})", row.device));
+    }
+    parts.join(" · ")
+}
+
+/// The row's scheme: the values of its stage's series params (`amg`, `spans`, …).
+pub fn scheme(row: &Row) -> String {
+    scheme_parts(row).join(" · ")
+}
+
+fn scheme_parts(row: &Row) -> Vec<String> {
+    let mut parts = Vec::new();
     for key in series_params(&row.stage) {
         match row.params.get(*key) {
             Some(serde_json::Value::String(s)) => parts.push(s.clone()),
@@ -159,43 +181,51 @@ fn series_label(row: &Row, with_device: bool) -> String {
             _ => {}
         }
     }
-    if with_device {
-        parts.push(format!("({})", row.device));
-    }
-    parts.join(" · ")
+    parts
 }
 
-/// A published figure from the seed papers: time only (they give no error).
+/// A published figure from the source papers: time only (they give no error).
 #[derive(Debug, Clone, PartialEq)]
 pub struct SeedPoint {
     pub label: String,
     pub time_ms: f64,
+    /// Its size in the unit the stage's rows count (`size_key`): tets, voxels or markers.
+    pub size: f64,
 }
 
 /// Frames per second as milliseconds a frame.
-fn per_second(label: impl Into<String>, hz: f64) -> SeedPoint {
-    SeedPoint { label: label.into(), time_ms: 1000.0 / hz }
+fn per_second(label: impl Into<String>, hz: f64, size: f64) -> SeedPoint {
+    SeedPoint { label: label.into(), time_ms: 1000.0 / hz, size }
 }
 
-/// The seeds' published figures for a stage: 000's Table 1 (implicit Euler on a GeForce
-/// 7800; its raycaster), 003's GTX 680 warp, 004's Table 1 (GeForce 8800 GTX).
+/// The `work` entry that sizes a stage's rows, as its published figures are sized.
+pub fn size_key(stage: &str) -> &'static str {
+    match stage {
+        "dpcm" => "markers",
+        _ => "tets",
+    }
+}
+
+/// The papers' published figures for a stage: the mass-spring paper's Table 1 (implicit
+/// Euler on a GeForce 7800; its raycaster), Gascón et al.'s GTX 680 warp, Sillam et al.'s
+/// Table 1 (GeForce 8800 GTX).
 pub fn seed_points(stage: &str) -> Vec<SeedPoint> {
     match stage {
         "solver" => vec![
-            per_second("seed 000 implicit Euler, Bar 80 tets", 282.0),
-            per_second("seed 000 implicit Euler, Dolphin 13,766 tets", 113.0),
-            per_second("seed 000 implicit Euler, Knee-small 35,118 tets", 56.0),
-            per_second("seed 000 implicit Euler, Knee 112,299 tets", 22.0),
-            per_second("seed 000 implicit Euler, Foot 156,612 tets", 12.0),
+            per_second("GeForce 7800, implicit Euler, Bar 80 tets", 282.0, 80.0),
+            per_second("GeForce 7800, implicit Euler, Dolphin 13,766 tets", 113.0, 13_766.0),
+            per_second("GeForce 7800, implicit Euler, Knee-small 35,118 tets", 56.0, 35_118.0),
+            per_second("GeForce 7800, implicit Euler, Knee 112,299 tets", 22.0, 112_299.0),
+            per_second("GeForce 7800, implicit Euler, Foot 156,612 tets", 12.0, 156_612.0),
         ],
-        "warp" => vec![SeedPoint { label: "seed 003 GTX 680, 700 tets, 4.99M voxels".into(), time_ms: 14.86 }],
+        "warp" => vec![SeedPoint { label: "GTX 680, 700 tets, 4.99M voxels".into(), time_ms: 14.86, size: 700.0 }],
         "dpcm" => crate::bench::dpcm::SEED_TABLE_1
             .iter()
-            .map(|&(markers, hz)| per_second(format!("seed 004 8800 GTX, 1100x1100, {markers} markers"), hz))
+            .map(|&(markers, hz)| per_second(format!("8800 GTX, 1100x1100, {markers} markers"), hz, markers as f64))
             .collect(),
         "render" => vec![
-            per_second("seed 000 raycaster, Knee 112,299 tets", 11.2),
-            per_second("seed 000 raycaster, Foot 156,612 tets", 6.2),
+            per_second("GeForce 7800 raycaster, Knee 112,299 tets", 11.2, 112_299.0),
+            per_second("GeForce 7800 raycaster, Foot 156,612 tets", 6.2, 156_612.0),
         ],
         _ => Vec::new(),
     }
