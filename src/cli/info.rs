@@ -6,7 +6,6 @@ use std::path::PathBuf;
 
 use anyhow::Result;
 use defvol::io;
-use defvol::mesh::TetMesh;
 use defvol::volume::Volume;
 use serde_json::{json, Value};
 
@@ -25,7 +24,7 @@ pub struct InfoArgs {
 
 pub fn run(args: InfoArgs) -> Result<()> {
     let info = if io::is_mesh(&args.path) {
-        mesh_info(&io::read_mesh(&args.path)?)
+        mesh_info(&io::read_mesh_with_metadata(&args.path)?)
     } else if io::is_dicom(&args.path) {
         let read = io::read_dicom(&args.path, args.series.as_deref())?;
         let mut info = volume_info(&read.volume, read.units.as_deref());
@@ -62,8 +61,18 @@ fn volume_info(v: &Volume, units: Option<&str>) -> Value {
     })
 }
 
-fn mesh_info(mesh: &TetMesh) -> Value {
+fn mesh_info(read: &io::MeshRead) -> Value {
+    let mesh = &read.mesh;
     let (lo, hi) = mesh.bounds();
+    // A cell array's distinct values (Gmsh's regions: a handful each).
+    let regions = |values: &[f32]| {
+        let mut distinct: Vec<f32> = values.to_vec();
+        distinct.sort_by(f32::total_cmp);
+        distinct.dedup();
+        distinct
+    };
+    let cell_arrays: serde_json::Map<String, Value> =
+        read.cell_arrays.iter().map(|a| (a.name.clone(), json!(regions(&a.values)))).collect();
     let (min, max) = mesh.dihedral_range();
     json!({
         "kind": "mesh",
@@ -75,6 +84,9 @@ fn mesh_info(mesh: &TetMesh) -> Value {
         // A mesh with some tets inverted is refused when read (naming one); all inverted
         // is the other handedness, flipped whole.
         "inverted_tets": 0,
+        "unused_nodes_dropped": read.unused_nodes,
+        "other_cells_skipped": read.skipped,
+        "cell_arrays": cell_arrays,
     })
 }
 

@@ -67,10 +67,17 @@ def write_meshes(out, manifest):
         ("meshio_gmsh41_ascii.msh", "gmsh", dict(binary=False), only_tets, 0),
         ("meshio_tetgen.node", "tetgen", {}, only_tets, 0),
     ]
+    # A file whose extension lies: VTK XML saved as `.vtk`, as some tools and users do.
+    variants.append(("meshio_vtu_named.vtk", "vtu", dict(binary=True, compression="zlib"), mixed, 3))
     for name, fmt, kw, mesh, skipped in variants:
         meshio.write(os.path.join(out, name), mesh, file_format=fmt, **kw)
         arrays = fmt in ("vtu", "vtk")
         manifest[name] = dict(expected, kind="mesh", tool="meshio", skipped=skipped, has_array=arrays)
+    # A node no cell uses (a mesher's leftover), last: read without it.
+    stray = np.vstack([points, [[5.0, 5.0, 5.0]]])
+    strays = meshio.Mesh(stray, [("tetra", tets)], point_data={"dose": np.append(dose, 99.0)})
+    meshio.write(os.path.join(out, "meshio_stray_node.vtu"), strays, file_format="vtu", binary=False)
+    manifest["meshio_stray_node.vtu"] = dict(expected, kind="mesh", tool="meshio", skipped=0, has_array=True)
     write_vtk_meshes(out, manifest, points, tets, triangles, dose, expected)
     write_gmsh_meshes(out, manifest, points, tets, triangles, expected)
 
@@ -134,6 +141,12 @@ def write_gmsh_meshes(out, manifest, points, tets, triangles, expected):
     gmsh.model.mesh.addElementsByType(surface, 2, [], (triangles + 1).flatten().tolist())
     gmsh.model.addPhysicalGroup(3, [volume], name="organ")
     gmsh.model.addPhysicalGroup(2, [surface], name="wall")
+    # Gmsh's first format: ASCII only, no $MeshFormat.
+    gmsh.option.setNumber("Mesh.MshFileVersion", 1)
+    gmsh.option.setNumber("Mesh.Binary", 0)
+    gmsh.option.setNumber("Mesh.SaveAll", 1)
+    gmsh.write(os.path.join(out, "gmsh_1_ascii.msh"))
+    manifest["gmsh_1_ascii.msh"] = dict(expected, kind="mesh", tool="gmsh", skipped=2, has_array=False)
     for version in (2.2, 4.1):
         for binary in (0, 1):
             name = f"gmsh_{str(version).replace('.', '')}_{'binary' if binary else 'ascii'}.msh"

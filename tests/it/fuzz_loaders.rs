@@ -244,6 +244,7 @@ fn no_mesh_file_crashes_the_mesh_loaders() {
     let (v2, v4) = gmsh_binary(&mesh);
     seeds.push(("v2.msh".to_owned(), v2));
     seeds.push(("v4.msh".to_owned(), v4));
+    seeds.push(("v1.msh".to_owned(), GMSH_1.as_bytes().to_vec()));
     // An ascii VTK XML grid with appended raw data, and a legacy 5.1 ascii file.
     seeds.push((
         "ascii.vtu".to_owned(),
@@ -374,4 +375,50 @@ fn no_dicom_file_crashes_the_dicom_loader() {
     fuzz("DICOM loader", &seeds, ITERATIONS, |name, bytes| {
         let _ = io::parse_dicom(Path::new(name), bytes);
     });
+}
+
+/// Two tets sharing a face, a boundary triangle and a line, in Gmsh's first format
+/// (physical regions 7 and 8, elementary 1 and 2).
+const GMSH_1: &str = "$NOD\n6\n1 0 0 0\n2 1 0 0\n3 0 1 0\n4 0 0 1\n5 1 1 1\n9 3 3 3\n$ENDNOD\n$ELM\n4\n\
+1 4 7 1 4 1 2 3 4\n2 4 8 2 4 2 3 4 5\n3 2 9 3 3 1 2 3\n4 1 9 4 2 1 2\n$ENDELM\n";
+
+/// Gmsh 1: the tets, their regions as cell arrays, the stray node 9 dropped; and each kind
+/// of damage refused by name.
+#[test]
+fn a_gmsh_1_file_reads_with_its_regions_and_its_damage_is_named() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("old.msh");
+    std::fs::write(&path, GMSH_1).unwrap();
+    let read = io::read_mesh_with_metadata(&path).unwrap();
+    assert_eq!(read.mesh.tets(), &[[0, 1, 2, 3], [1, 2, 3, 4]]);
+    assert_eq!(read.mesh.nodes().len(), 5);
+    assert_eq!((read.unused_nodes, read.skipped.values().sum::<usize>()), (1, 2));
+    let arrays: Vec<(&str, &[f32])> = read.cell_arrays.iter().map(|a| (a.name.as_str(), a.values.as_slice())).collect();
+    assert_eq!(arrays, [("gmsh:physical", &[7.0, 8.0][..]), ("gmsh:geometrical", &[1.0, 2.0][..])]);
+
+    let damaged = [
+        (GMSH_1.replace("$ENDELM\n", ""), "the file ends where `$ENDELM` should be"),
+        (GMSH_1.replace("1 4 7 1 4 1 2 3 4", "1 4 7 1 3 1 2 3"), "element 1: 3 nodes listed where type 4 has 4"),
+        (GMSH_1.replace("3 2 9 3 3", "3 99 9 3 3"), "element 3: type 99 is not known"),
+        (GMSH_1.replace("2 4 8 2 4 2 3 4 5", "2 4 8 2 4 2 3 4 77"), "element 2 references unknown node 77"),
+        (GMSH_1.replace("$NOD\n6", "$NOD\n60"), "60 nodes announced"),
+        ("$MeshFormat\n3.0 0 8\n$EndMeshFormat\n".to_owned(), "version 3.0: only 1, 2.2 and 4.1 are read"),
+    ];
+    for (text, expected) in damaged {
+        let error = io::parse_mesh(Path::new("old.msh"), text.as_bytes(), MeshFormat::Gmsh).unwrap_err().to_string();
+        assert!(error.contains("old.msh") && error.contains(expected), "`{expected}` not in: {error}");
+    }
+}
+
+/// A VTK XML grid saved as `.vtk` and a legacy file saved as `.vtu` read by what they hold.
+#[test]
+fn the_content_not_the_extension_picks_the_mesh_parser() {
+    let dir = tempfile::tempdir().unwrap();
+    let mesh = generate::lattice(Vector3::zeros(), Vector3::repeat(1.0), [2, 1, 1], CellSplit::Five).unwrap();
+    for (written, named) in [("a.vtu", "xml_named.vtk"), ("b.vtk", "legacy_named.vtu"), ("c.msh", "gmsh_named.vtu")] {
+        io::write_mesh(&dir.path().join(written), &mesh, None, None).unwrap();
+        std::fs::rename(dir.path().join(written), dir.path().join(named)).unwrap();
+        let read = io::read_mesh(&dir.path().join(named)).unwrap_or_else(|e| panic!("{named}: {e}"));
+        assert_eq!((read.nodes().len(), read.tets()), (mesh.nodes().len(), mesh.tets()), "{named}");
+    }
 }

@@ -1,4 +1,4 @@
-//! Gmsh `.msh` versions 2.2 and 4.1, ASCII and binary, read here (every count checked
+//! Gmsh `.msh` version 1 (ASCII), 2.2 and 4.1 (ASCII and binary), read here (every count checked
 //! against the bytes that are there); written as 4.1 ASCII. Linear tets (type 4) become the
 //! mesh; the other elements Gmsh writes beside them (points, lines, boundary triangles of the
 //! physical groups) are counted and skipped.
@@ -7,7 +7,7 @@ use std::collections::HashMap;
 
 use nalgebra::Vector3;
 
-use super::mesh_file::MeshFile;
+use super::mesh_file::{CellArray, MeshFile};
 
 type Fault = String;
 
@@ -141,8 +141,16 @@ fn bounded(count: u64, per: usize, c: &Cursor, what: &str) -> Result<usize, Faul
 
 pub(super) fn parse(bytes: &[u8]) -> Result<MeshFile, Fault> {
     let mut c = Cursor { bytes, position: 0, size_t: 8 };
-    if c.word() != Some("$MeshFormat") {
-        return Err("missing $MeshFormat".into());
+    match c.word() {
+        Some("$MeshFormat") => {}
+        Some("$NOD") => return parse_v1(&mut c),
+        Some(first) => {
+            let first: String = first.chars().take(30).collect();
+            return Err(format!(
+                "not a Gmsh file: it starts with `{first}`, where version 1 starts with `$NOD` and 2.2 and 4.1 with `$MeshFormat`"
+            ));
+        }
+        None => return Err("the file is empty".into()),
     }
     let version: String = c.number("the version")?;
     let binary = c.number::<u32>("the file type")? == 1;
@@ -160,7 +168,7 @@ pub(super) fn parse(bytes: &[u8]) -> Result<MeshFile, Fault> {
     let v4 = match version.as_str() {
         "4.1" => true,
         v if v.starts_with("2.") => false,
-        other => return Err(format!("version {other}: only 2.2 and 4.1 are read")),
+        other => return Err(format!("version {other}: only 1, 2.2 and 4.1 are read")),
     };
     let mut mesh = MeshFile::default();
     let mut index_of_tag: HashMap<u64, u32> = HashMap::new();
@@ -168,9 +176,9 @@ pub(super) fn parse(bytes: &[u8]) -> Result<MeshFile, Fault> {
         match word {
             "$EndMeshFormat" => {}
             "$Nodes" if v4 => read_nodes_v4(&mut c, binary, &mut mesh, &mut index_of_tag)?,
-            "$Nodes" | "$NOD" => read_nodes_v2(&mut c, binary, &mut mesh, &mut index_of_tag)?,
+            "$Nodes" => read_nodes_v2(&mut c, binary, &mut mesh, &mut index_of_tag)?,
             "$Elements" if v4 => read_elements_v4(&mut c, binary, &mut mesh, &index_of_tag)?,
-            "$Elements" | "$ELM" => read_elements_v2(&mut c, binary, &mut mesh, &index_of_tag)?,
+            "$Elements" => read_elements_v2(&mut c, binary, &mut mesh, &index_of_tag)?,
             section if section.starts_with('$') && !section.starts_with("$End") => c.skip_section(&section[1..])?,
             other => {
                 return Err(format!("unexpected `{}` between sections", other.chars().take(30).collect::<String>()))
@@ -178,6 +186,60 @@ pub(super) fn parse(bytes: &[u8]) -> Result<MeshFile, Fault> {
         }
     }
     Ok(mesh)
+}
+
+/// Gmsh's first format (no `$MeshFormat`; ASCII only): `$NOD` count, `tag x y z` lines,
+/// `$ENDNOD`; `$ELM` count, `tag type physical elementary nodes node…` lines, `$ENDELM`.
+/// The two region numbers become the cell arrays meshio names `gmsh:physical` and
+/// `gmsh:geometrical`.
+fn parse_v1(c: &mut Cursor) -> Result<MeshFile, Fault> {
+    let mut mesh = MeshFile::default();
+    let mut index_of_tag: HashMap<u64, u32> = HashMap::new();
+    let count: u64 = c.number("the node count after $NOD")?;
+    for _ in 0..bounded(count, 8, c, "nodes")? {
+        let tag: u64 = c.number("a node tag")?;
+        let p = Vector3::new(c.number("x")?, c.number("y")?, c.number("z")?);
+        add_node(&mut mesh, &mut index_of_tag, tag, p)?;
+    }
+    expect(c, "$ENDNOD", "after the last node")?;
+    expect(c, "$ELM", "after $ENDNOD")?;
+    let count: u64 = c.number("the element count after $ELM")?;
+    let (mut physical, mut elementary) = (Vec::new(), Vec::new());
+    let mut nodes = Vec::new();
+    for _ in 0..bounded(count, 10, c, "elements")? {
+        let tag: u64 = c.number("an element tag")?;
+        let ty: u32 = c.number("an element type")?;
+        let regions: [f32; 2] = [c.number("a physical region")?, c.number("an elementary region")?];
+        let listed: usize = c.number("an element's node count")?;
+        let per = nodes_per_element(ty).ok_or_else(|| format!("element {tag}: type {ty} is not known"))?;
+        if listed != per {
+            return Err(format!("element {tag}: {listed} nodes listed where type {ty} has {per}"));
+        }
+        nodes.clear();
+        for _ in 0..per {
+            nodes.push(c.number("a node tag")?);
+        }
+        let tets = mesh.tets.len();
+        add_element(&mut mesh, &index_of_tag, tag, ty, &nodes)?;
+        if mesh.tets.len() > tets {
+            physical.push(regions[0]);
+            elementary.push(regions[1]);
+        }
+    }
+    expect(c, "$ENDELM", "after the last element")?;
+    mesh.cell_arrays.push(CellArray { name: "gmsh:physical".into(), values: physical });
+    mesh.cell_arrays.push(CellArray { name: "gmsh:geometrical".into(), values: elementary });
+    Ok(mesh)
+}
+
+fn expect(c: &mut Cursor, word: &str, place: &str) -> Result<(), Fault> {
+    match c.word() {
+        Some(found) if found == word => Ok(()),
+        Some(found) => {
+            Err(format!("`{word}` expected {place}, found `{}`", found.chars().take(30).collect::<String>()))
+        }
+        None => Err(format!("the file ends where `{word}` should be, {place}")),
+    }
 }
 
 fn add_node(mesh: &mut MeshFile, index_of_tag: &mut HashMap<u64, u32>, tag: u64, p: Vector3<f64>) -> Result<(), Fault> {
@@ -224,7 +286,7 @@ fn read_nodes_v2(c: &mut Cursor, binary: bool, mesh: &mut MeshFile, tags: &mut H
         let tag = u64::try_from(tag).map_err(|_| format!("node tag {tag} is negative"))?;
         add_node(mesh, tags, tag, p)?;
     }
-    c.skip_section("Nodes").or_else(|_| c.skip_section("NOD"))
+    c.skip_section("Nodes")
 }
 
 fn read_elements_v2(c: &mut Cursor, binary: bool, mesh: &mut MeshFile, tags: &HashMap<u64, u32>) -> Result<(), Fault> {
@@ -275,7 +337,7 @@ fn read_elements_v2(c: &mut Cursor, binary: bool, mesh: &mut MeshFile, tags: &Ha
             add_element(mesh, tags, tag, ty, &nodes)?;
         }
     }
-    c.skip_section("Elements").or_else(|_| c.skip_section("ELM"))
+    c.skip_section("Elements")
 }
 
 fn read_nodes_v4(c: &mut Cursor, binary: bool, mesh: &mut MeshFile, tags: &mut HashMap<u64, u32>) -> Result<(), Fault> {

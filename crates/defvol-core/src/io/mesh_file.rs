@@ -19,12 +19,21 @@ pub(crate) struct PointArray {
     pub active_scalars: bool,
 }
 
+/// A named array of one value per tet (Gmsh's physical and elementary regions).
+#[derive(Debug, Clone, PartialEq)]
+pub struct CellArray {
+    pub name: String,
+    pub values: Vec<f32>,
+}
+
 /// A mesh as its file holds it: nodes, tets, point arrays, and the other cells skipped.
 #[derive(Debug, Clone, Default)]
 pub(crate) struct MeshFile {
     pub nodes: Vec<Vector3<f64>>,
     pub tets: Vec<[u32; 4]>,
     pub arrays: Vec<PointArray>,
+    /// Arrays of one value per tet.
+    pub cell_arrays: Vec<CellArray>,
     /// Cells other than linear tets, by kind.
     pub skipped: BTreeMap<&'static str, usize>,
     /// The length unit the file records (field data `metres_per_unit`), when it does.
@@ -57,14 +66,56 @@ impl MeshFile {
         }
     }
 
-    pub(crate) fn into_mesh(self, path: &Path) -> Result<MeshRead, IoError> {
+    pub(crate) fn into_mesh(mut self, path: &Path) -> Result<MeshRead, IoError> {
         if !self.skipped.is_empty() {
             let skipped: Vec<String> = self.skipped.iter().map(|(kind, n)| format!("{n} {kind}")).collect();
             tracing::info!("{}: kept {} tets, skipped {}", path.display(), self.tets.len(), skipped.join(", "));
         }
+        let unused_nodes = self.drop_unused_nodes();
+        if unused_nodes > 0 {
+            tracing::info!("{}: dropped {unused_nodes} nodes that no tet uses (the rest renumbered)", path.display());
+        }
         let scalars = self.scalars();
         let mesh = TetMesh::new(self.nodes, self.tets, scalars, &path.display().to_string())?;
-        Ok(MeshRead { mesh, skipped: self.skipped, metres_per_unit: self.metres_per_unit })
+        Ok(MeshRead {
+            mesh,
+            skipped: self.skipped,
+            metres_per_unit: self.metres_per_unit,
+            cell_arrays: self.cell_arrays,
+            unused_nodes,
+        })
+    }
+
+    /// Drops the nodes no tet uses (a mesher's or a cut's leftovers, which would carry no
+    /// mass), renumbering the tets and the point arrays; returns how many went. An index past
+    /// the nodes is left as it is, for [`TetMesh::new`] to refuse.
+    pub(crate) fn drop_unused_nodes(&mut self) -> usize {
+        let mut used = vec![false; self.nodes.len()];
+        for &node in self.tets.iter().flatten() {
+            if let Some(u) = used.get_mut(node as usize) {
+                *u = true;
+            }
+        }
+        let unused = used.iter().filter(|u| !**u).count();
+        if unused == 0 {
+            return 0;
+        }
+        let mut renumbered = vec![0u32; used.len()];
+        for (next, (slot, _)) in renumbered.iter_mut().zip(&used).filter(|(_, u)| **u).enumerate() {
+            *slot = next as u32;
+        }
+        for node in self.tets.iter_mut().flatten() {
+            if let Some(&index) = renumbered.get(*node as usize) {
+                *node = index;
+            }
+        }
+        let mut kept = used.iter();
+        self.nodes.retain(|_| *kept.next().unwrap_or(&true));
+        for array in self.arrays.iter_mut().filter(|a| a.values.len() == used.len() * a.components) {
+            let values = array.values.chunks(array.components).zip(&used).filter(|(_, u)| **u);
+            array.values = values.flat_map(|(v, _)| v.iter().copied()).collect();
+        }
+        unused
     }
 }
 
@@ -76,6 +127,10 @@ pub struct MeshRead {
     pub skipped: SkippedCells,
     /// Metres per file unit, when the file records it (defvol's VTK files do).
     pub metres_per_unit: Option<f64>,
+    /// Arrays of one value per tet (Gmsh 1's physical and elementary regions).
+    pub cell_arrays: Vec<CellArray>,
+    /// Nodes no tet used, dropped on reading.
+    pub unused_nodes: usize,
 }
 
 impl MeshRead {

@@ -1,8 +1,9 @@
 //! Mesh and volume files, chosen by extension, as the field's tools write them.
 //!
 //! Meshes: VTK XML `.vtu` in every encoding VTK and meshio write (`vtk_xml.rs`), legacy
-//! `.vtk` 2.0-5.1 ASCII and binary (`vtk_legacy.rs`), Gmsh 2.2 and 4.1 ASCII and binary
-//! (`gmsh.rs`; 4.1 through mshio), TetGen `.node`/`.ele`. Volumes: NIfTI-1 (the nifti crate),
+//! `.vtk` 2.0-5.1 ASCII and binary (`vtk_legacy.rs`), Gmsh 1 ASCII, 2.2 and 4.1 ASCII and
+//! binary (`gmsh.rs`), TetGen `.node`/`.ele`; the content, not the extension, picks the
+//! parser of a one-file mesh. Volumes: NIfTI-1 (the nifti crate),
 //! NRRD and MetaImage (text headers read here), DICOM series (dicom-rs, `dicom.rs`). Other
 //! cells than tets are counted and skipped.
 //!
@@ -29,7 +30,7 @@ mod vtk_xml;
 
 pub use dicom::{parse_dicom, read_dicom, DicomRead, SeriesInfo};
 pub use error::IoError;
-pub use mesh_file::{MeshRead, SkippedCells};
+pub use mesh_file::{CellArray, MeshRead, SkippedCells};
 
 use error::{io_error, malformed};
 use files::{file_name, write_atomically};
@@ -68,6 +69,29 @@ impl MeshFormat {
             None
         }
     }
+
+    /// The format the bytes say they are, whatever the file is named.
+    fn of_content(bytes: &[u8]) -> Option<Self> {
+        let start = bytes.iter().position(|b| !b.is_ascii_whitespace()).map_or(&bytes[..0], |i| &bytes[i..]);
+        let start = start.strip_prefix(b"\xEF\xBB\xBF").unwrap_or(start);
+        if start.starts_with(b"<?xml") || start.starts_with(b"<VTKFile") {
+            Some(Self::VtkXml)
+        } else if start.starts_with(b"# vtk DataFile") {
+            Some(Self::VtkLegacy)
+        } else if start.starts_with(b"$MeshFormat") || start.starts_with(b"$NOD") {
+            Some(Self::Gmsh)
+        } else {
+            None
+        }
+    }
+
+    fn name(self) -> &'static str {
+        match self {
+            Self::VtkXml => "VTK XML",
+            Self::VtkLegacy => "legacy VTK",
+            Self::Gmsh => "Gmsh",
+        }
+    }
 }
 
 fn parse_mesh_file(path: &Path, bytes: &[u8], format: MeshFormat) -> Result<MeshFile, IoError> {
@@ -98,17 +122,30 @@ fn read_mesh_file(path: &Path) -> Result<MeshFile, IoError> {
         tetgen::parse_elements(&mut mesh, first_index, &ele).map_err(|message| malformed(&ele_path, message))?;
         return Ok(mesh);
     }
-    let Some(format) = MeshFormat::of(path) else {
+    let named = MeshFormat::of(path);
+    if named.is_none() && !path.is_file() {
         return Err(IoError::UnsupportedExtension { path: path.to_owned(), expected: MESH_TYPES });
-    };
+    }
     let bytes = std::fs::read(path).map_err(io_error(path))?;
+    // The content decides: files saved under another format's extension are common.
+    let format = match (MeshFormat::of_content(&bytes), named) {
+        (Some(found), Some(named)) if found != named => {
+            let (found_name, named_name) = (found.name(), named.name());
+            tracing::warn!("{}: named as {named_name} but holds {found_name}; read as {found_name}", path.display());
+            found
+        }
+        (Some(found), _) => found,
+        (None, Some(named)) => named,
+        (None, None) => return Err(IoError::UnsupportedExtension { path: path.to_owned(), expected: MESH_TYPES }),
+    };
     parse_mesh_file(path, &bytes, format)
 }
 
 /// A named one-component point array of a mesh file: node values to render when the file
 /// holds several (dose, temperature, a segmentation's labels).
 pub fn read_mesh_point_array(path: &Path, name: &str) -> Result<Vec<f32>, IoError> {
-    let file = read_mesh_file(path)?;
+    let mut file = read_mesh_file(path)?;
+    file.drop_unused_nodes();
     let names: Vec<&str> = file.arrays.iter().filter(|a| a.components == 1).map(|a| a.name.as_str()).collect();
     let message = format!("no one-component point array `{name}`; it has {names:?}");
     match file.arrays.iter().find(|a| a.name == name && a.components == 1) {
@@ -117,7 +154,7 @@ pub fn read_mesh_point_array(path: &Path, name: &str) -> Result<Vec<f32>, IoErro
     }
 }
 
-/// Reads a tetrahedral mesh (VTK `.vtu`/`.vtk`, Gmsh `.msh` 2.2 or 4.1, TetGen `.node`/`.ele`).
+/// Reads a tetrahedral mesh (VTK `.vtu`/`.vtk`, Gmsh `.msh` 1, 2.2 or 4.1, TetGen `.node`/`.ele`).
 pub fn read_mesh(path: &Path) -> Result<TetMesh, IoError> {
     Ok(read_mesh_with_metadata(path)?.mesh)
 }
