@@ -85,6 +85,7 @@ fn mesh_info(read: &io::MeshRead) -> Value {
         // is the other handedness, flipped whole.
         "inverted_tets": 0,
         "unused_nodes_dropped": read.unused_nodes,
+        "cells_split_into_tets": read.split,
         "other_cells_skipped": read.skipped,
         "cell_arrays": cell_arrays,
     })

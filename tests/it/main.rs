@@ -13,6 +13,7 @@ mod file_interop;
 mod fuzz_loaders;
 mod haptic;
 mod layers;
+mod mixed_cells;
 #[cfg(feature = "ros")]
 mod node_dds;
 #[cfg(all(feature = "ros", feature = "mcap", feature = "shm"))]

@@ -1,13 +1,15 @@
 //! Gmsh `.msh` version 1 (ASCII), 2.2 and 4.1 (ASCII and binary), read here (every count checked
 //! against the bytes that are there); written as 4.1 ASCII. Linear tets (type 4) become the
-//! mesh; the other elements Gmsh writes beside them (points, lines, boundary triangles of the
-//! physical groups) are counted and skipped.
+//! mesh, hexahedra, prisms and pyramids (types 5-7) are split into tets; the other elements
+//! Gmsh writes beside them (points, lines, boundary triangles of the physical groups) are
+//! counted and skipped.
 
 use std::collections::HashMap;
 
 use nalgebra::Vector3;
 
 use super::mesh_file::{CellArray, MeshFile};
+use super::solids::Solid;
 
 type Fault = String;
 
@@ -219,12 +221,9 @@ fn parse_v1(c: &mut Cursor) -> Result<MeshFile, Fault> {
         for _ in 0..per {
             nodes.push(c.number("a node tag")?);
         }
-        let tets = mesh.tets.len();
-        add_element(&mut mesh, &index_of_tag, tag, ty, &nodes)?;
-        if mesh.tets.len() > tets {
-            physical.push(regions[0]);
-            elementary.push(regions[1]);
-        }
+        let added = add_element(&mut mesh, &index_of_tag, tag, ty, &nodes)?;
+        physical.extend(std::iter::repeat_n(regions[0], added));
+        elementary.extend(std::iter::repeat_n(regions[1], added));
     }
     expect(c, "$ENDELM", "after the last element")?;
     mesh.cell_arrays.push(CellArray { name: "gmsh:physical".into(), values: physical });
@@ -257,17 +256,28 @@ fn add_element(
     tag: u64,
     ty: u32,
     nodes: &[u64],
-) -> Result<(), Fault> {
-    if ty != TET4 {
-        *mesh.skipped.entry(element_name(ty)).or_insert(0) += 1;
-        return Ok(());
+) -> Result<usize, Fault> {
+    let solid = match ty {
+        TET4 => None,
+        5 => Some(Solid::Hexahedron),
+        6 => Some(Solid::Wedge),
+        7 => Some(Solid::Pyramid),
+        _ => {
+            *mesh.skipped.entry(element_name(ty)).or_insert(0) += 1;
+            return Ok(0);
+        }
+    };
+    let mut indices = Vec::with_capacity(nodes.len());
+    for node in nodes {
+        indices.push(*index_of_tag.get(node).ok_or_else(|| format!("element {tag} references unknown node {node}"))?);
     }
-    let mut t = [0u32; 4];
-    for (slot, node) in t.iter_mut().zip(nodes) {
-        *slot = *index_of_tag.get(node).ok_or_else(|| format!("element {tag} references unknown node {node}"))?;
+    match solid {
+        Some(solid) => mesh.push_solid(solid, &indices).map_err(|why| format!("element {tag}: {why}")),
+        None => {
+            mesh.tets.push([indices[0], indices[1], indices[2], indices[3]]);
+            Ok(1)
+        }
     }
-    mesh.tets.push(t);
-    Ok(())
 }
 
 fn read_nodes_v2(c: &mut Cursor, binary: bool, mesh: &mut MeshFile, tags: &mut HashMap<u64, u32>) -> Result<(), Fault> {

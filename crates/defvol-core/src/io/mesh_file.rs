@@ -7,6 +7,7 @@ use std::path::Path;
 use nalgebra::Vector3;
 
 use super::error::IoError;
+use super::solids::{self, Solid};
 use crate::mesh::TetMesh;
 
 /// A named point array of a mesh file: `components` values per node.
@@ -36,6 +37,10 @@ pub(crate) struct MeshFile {
     pub cell_arrays: Vec<CellArray>,
     /// Cells other than linear tets, by kind.
     pub skipped: BTreeMap<&'static str, usize>,
+    /// Hexahedra, wedges and pyramids split into tets, by kind.
+    pub split: BTreeMap<&'static str, usize>,
+    /// The tets those splits made, to be oriented once the nodes are all read.
+    pub split_tets: Vec<usize>,
     /// The length unit the file records (field data `metres_per_unit`), when it does.
     pub metres_per_unit: Option<f64>,
 }
@@ -66,10 +71,43 @@ impl MeshFile {
         }
     }
 
+    /// Adds a hexahedron, wedge or pyramid (`nodes` in VTK's order, mesh indices) as tets;
+    /// returns how many.
+    pub(crate) fn push_solid(&mut self, solid: Solid, nodes: &[u32]) -> Result<usize, String> {
+        let tets = solids::split(solid, nodes)?;
+        let count = tets.len();
+        for tet in tets {
+            self.split_tets.push(self.tets.len());
+            self.tets.push(tet);
+        }
+        *self.split.entry(solid.name()).or_insert(0) += 1;
+        Ok(count)
+    }
+
+    /// Turns each tet a split made to a positive volume (an index past the nodes is left for
+    /// [`TetMesh::new`] to refuse).
+    fn orient_split_tets(&mut self) {
+        for &t in &self.split_tets {
+            let tet = &mut self.tets[t];
+            let Some(p) = tet.iter().map(|&n| self.nodes.get(n as usize)).collect::<Option<Vec<_>>>() else {
+                continue;
+            };
+            if (p[1] - p[0]).cross(&(p[2] - p[0])).dot(&(p[3] - p[0])) < 0.0 {
+                tet.swap(2, 3);
+            }
+        }
+    }
+
     pub(crate) fn into_mesh(mut self, path: &Path) -> Result<MeshRead, IoError> {
         if !self.skipped.is_empty() {
             let skipped: Vec<String> = self.skipped.iter().map(|(kind, n)| format!("{n} {kind}")).collect();
             tracing::info!("{}: kept {} tets, skipped {}", path.display(), self.tets.len(), skipped.join(", "));
+        }
+        if !self.split.is_empty() {
+            let split: Vec<String> = self.split.iter().map(|(kind, n)| format!("{n} {kind}")).collect();
+            let tets = self.split_tets.len();
+            tracing::info!("{}: split {} into {tets} tets (conforming)", path.display(), split.join(", "));
+            self.orient_split_tets();
         }
         let unused_nodes = self.drop_unused_nodes();
         if unused_nodes > 0 {
@@ -80,6 +118,7 @@ impl MeshFile {
         Ok(MeshRead {
             mesh,
             skipped: self.skipped,
+            split: self.split,
             metres_per_unit: self.metres_per_unit,
             cell_arrays: self.cell_arrays,
             unused_nodes,
@@ -125,6 +164,8 @@ pub struct MeshRead {
     pub mesh: TetMesh,
     /// The cells other than linear tets the file held, by kind: counted, and skipped.
     pub skipped: SkippedCells,
+    /// The hexahedra, wedges and pyramids the file held, by kind: split into tets.
+    pub split: SkippedCells,
     /// Metres per file unit, when the file records it (defvol's VTK files do).
     pub metres_per_unit: Option<f64>,
     /// Arrays of one value per tet (Gmsh 1's physical and elementary regions).

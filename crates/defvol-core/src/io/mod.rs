@@ -1,11 +1,12 @@
-//! Mesh and volume files, chosen by extension, as the field's tools write them.
+//! Mesh and volume files as the field's tools write them.
 //!
 //! Meshes: VTK XML `.vtu` in every encoding VTK and meshio write (`vtk_xml.rs`), legacy
 //! `.vtk` 2.0-5.1 ASCII and binary (`vtk_legacy.rs`), Gmsh 1 ASCII, 2.2 and 4.1 ASCII and
 //! binary (`gmsh.rs`), TetGen `.node`/`.ele`; the content, not the extension, picks the
-//! parser of a one-file mesh. Volumes: NIfTI-1 (the nifti crate),
-//! NRRD and MetaImage (text headers read here), DICOM series (dicom-rs, `dicom.rs`). Other
-//! cells than tets are counted and skipped.
+//! parser of a one-file mesh. Hexahedra, wedges and pyramids are split into tets
+//! (`solids.rs`); other cells are counted and skipped. Volumes, by extension: NIfTI-1 (the
+//! nifti crate), NRRD and MetaImage (text headers read here), DICOM series (dicom-rs,
+//! `dicom.rs`).
 //!
 //! No input crashes the process: every count and size a header gives is checked against the
 //! bytes that are there before anything is allocated from it, and arithmetic on header
@@ -23,6 +24,7 @@ mod metaimage;
 mod nifti_io;
 mod nrrd;
 mod raw;
+mod solids;
 mod tetgen;
 mod vtk;
 mod vtk_legacy;

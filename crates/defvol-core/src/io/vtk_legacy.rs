@@ -6,6 +6,7 @@
 use nalgebra::Vector3;
 
 use super::mesh_file::{MeshFile, PointArray};
+use super::solids;
 
 type Fault = String;
 
@@ -257,6 +258,12 @@ pub(super) fn parse(bytes: &[u8]) -> Result<MeshFile, Fault> {
         return Err(format!("{} cells but {} cell types", cells.len(), cell_types.len()));
     }
     for (cell, (vertices, ty)) in cells.iter().zip(&cell_types).enumerate() {
+        if let Some((solid, order)) = solids::of_vtk(*ty as i64) {
+            let global: Vec<u32> = vertices.iter().map(|&v| u32::try_from(v).unwrap_or(u32::MAX)).collect();
+            let nodes = solids::vtk_nodes(solid, order, &global).map_err(|why| format!("cell {cell}: {why}"))?;
+            mesh.push_solid(solid, &nodes).map_err(|why| format!("cell {cell}: {why}"))?;
+            continue;
+        }
         if *ty != VTK_TETRA {
             *mesh.skipped.entry(super::vtk_xml::cell_type_name(*ty as i64)).or_insert(0) += 1;
             continue;

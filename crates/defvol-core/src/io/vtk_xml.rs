@@ -13,6 +13,7 @@ use roxmltree::{Document, Node};
 
 use super::error::MAX_DECODED_BYTES;
 use super::mesh_file::{MeshFile, PointArray};
+use super::solids;
 
 /// What went wrong, in words; the caller adds the file's name.
 type Fault = String;
@@ -160,6 +161,19 @@ fn read_piece(piece: Node, layout: &Layout, appended: Option<&Appended>, mesh: &
         }
         let vertices = &connectivity[start..end];
         start = end;
+        if let Some((solid, order)) = solids::of_vtk(*ty as i64) {
+            let mut global = Vec::with_capacity(vertices.len());
+            for &v in vertices {
+                let local = index(v, points.saturating_sub(1))
+                    .map_err(|e| format!("cell {cell}: vertex {e} (the piece has {points} points)"))?;
+                global.push(
+                    u32::try_from(first_node + local).map_err(|_| format!("cell {cell}: vertex index beyond u32"))?,
+                );
+            }
+            let nodes = solids::vtk_nodes(solid, order, &global).map_err(|why| format!("cell {cell}: {why}"))?;
+            mesh.push_solid(solid, &nodes).map_err(|why| format!("cell {cell}: {why}"))?;
+            continue;
+        }
         if *ty as i64 != VTK_TETRA {
             *mesh.skipped.entry(cell_type_name(*ty as i64)).or_insert(0) += 1;
             continue;
