@@ -6,6 +6,7 @@ use std::path::PathBuf;
 use anyhow::{bail, Context, Result};
 
 use defvol::io;
+use defvol::mesh::Inversion;
 use defvol::scene::{BackendArgs, MeshSource, Scene};
 use defvol::solver::FixedNodes;
 use defvol::solver::{SolverEngine, StepReport};
@@ -105,10 +106,12 @@ struct CsvRow {
     reaction_fx: f64,
     reaction_fy: f64,
     reaction_fz: f64,
+    /// Tets turned inside out after the step.
+    inverted_tets: usize,
 }
 
-impl From<&StepReport> for CsvRow {
-    fn from(r: &StepReport) -> Self {
+impl CsvRow {
+    fn new(r: &StepReport, inverted_tets: usize) -> Self {
         let f = r.reaction(0).force;
         Self {
             step: r.step,
@@ -121,6 +124,7 @@ impl From<&StepReport> for CsvRow {
             reaction_fx: f[0],
             reaction_fy: f[1],
             reaction_fz: f[2],
+            inverted_tets,
         }
     }
 }
@@ -186,6 +190,8 @@ pub fn run(args: SimulateArgs) -> Result<()> {
     let mut csv = csv::Writer::from_path(&csv_path).with_context(|| format!("creating {}", csv_path.display()))?;
     let dt = loaded.scene.solver.dt;
     let mut outcome = Ok(());
+    // The first step that turned tets inside out, and the most any step did.
+    let (mut first_inverted, mut most_inverted): (Option<u64>, Inversion) = (None, Inversion::default());
     for step in 0..args.steps {
         let t = (step + 1) as f64 * dt;
         for (index, tool) in loaded.tools_at(t).into_iter().enumerate() {
@@ -193,7 +199,15 @@ pub fn run(args: SimulateArgs) -> Result<()> {
         }
         match engine.step() {
             Ok(report) => {
-                csv.serialize(CsvRow::from(&report))?;
+                let inverted = loaded.mesh.inverted(&engine.positions());
+                if inverted.count > 0 && first_inverted.is_none() {
+                    first_inverted = Some(report.step);
+                    tracing::warn!("step {}: {}", report.step, describe(&inverted));
+                }
+                if inverted.count > most_inverted.count {
+                    most_inverted = inverted;
+                }
+                csv.serialize(CsvRow::new(&report, inverted.count))?;
                 if report.step % 10 == 0 || report.step == args.steps {
                     tracing::info!(
                         "step {:>5} t={:.3}s CG {:>4} its residual {:.1e} max displacement {:.3e} m reaction {} N",
@@ -214,6 +228,14 @@ pub fn run(args: SimulateArgs) -> Result<()> {
     }
     // Whatever happened, keep what was computed: the CSV so far and the last stable mesh.
     csv.flush()?;
+    if let Some(step) = first_inverted {
+        let last = loaded.mesh.inverted(&engine.positions());
+        tracing::warn!(
+            "tets turned inside out from step {step}: at most {} in a step; after the last step {}",
+            most_inverted.count,
+            if last.count > 0 { describe(&last) } else { "none".to_owned() }
+        );
+    }
     let (rest_path, mesh_path) = (args.out.join("rest.vtu"), args.out.join("final.vtu"));
     io::write_mesh(&rest_path, &loaded.mesh, None, Some(1.0))?;
     io::write_mesh(&mesh_path, &loaded.mesh, Some(&engine.positions()), Some(1.0))?;
@@ -237,4 +259,13 @@ pub fn run(args: SimulateArgs) -> Result<()> {
     }
     outcome.context("simulation stopped")?;
     Ok(())
+}
+
+/// "N tets inverted (the worst, tet T, at R of its rest volume)".
+fn describe(inversion: &Inversion) -> String {
+    let worst = inversion
+        .worst
+        .map_or(String::new(), |(tet, ratio)| format!(" (the worst, tet {tet}, at {ratio:.3} of its rest volume)"));
+    let tets = if inversion.count == 1 { "tet" } else { "tets" };
+    format!("{} {tets} inverted{worst}", inversion.count)
 }

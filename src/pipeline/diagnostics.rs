@@ -68,6 +68,17 @@ impl Pipeline {
                     _ => (DiagnosticStatus::OK, "running".to_owned()),
                 };
                 let mut values = vec![kv("backend", p.backend_name()), kv("step_ms", format!("{:.3}", times.solver))];
+                // Tets turned inside out: the mesh is past what it can represent there.
+                let inverted = p.mesh().inverted(p.positions());
+                values.push(kv("inverted_tets", inverted.count));
+                if let Some((tet, ratio)) = inverted.worst {
+                    values.push(kv("worst_inverted_tet", format!("{tet} at {ratio:.3} of its rest volume")));
+                }
+                let (level, message) = match (inverted.count, level) {
+                    (0, _) => (level, message),
+                    (n, DiagnosticStatus::OK) => (DiagnosticStatus::WARN, format!("{n} tets turned inside out")),
+                    (n, _) => (level, format!("{message}; {n} tets turned inside out")),
+                };
                 if let Some(r) = report {
                     values.extend([
                         kv("step", r.step),

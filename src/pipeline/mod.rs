@@ -1149,6 +1149,8 @@ mod tests {
         let warp = report.status.iter().find(|s| s.name == "defvol: warp").unwrap();
         let value = |key: &str| warp.values.iter().find(|v| v.key == key).map(|v| v.value.as_str());
         assert_eq!((value("shared_subscribers"), value("shared_published")), (Some("1"), Some("true")));
+        let solver = report.status.iter().find(|s| s.name == "defvol: solver").unwrap();
+        assert!(solver.values.iter().any(|v| v.key == "inverted_tets" && v.value == "0"), "{solver:?}");
         assert!(
             lender.published.lock().unwrap().iter().skip(3).count() >= 2,
             "buffers came back holding older volumes"

@@ -677,3 +677,86 @@ fn a_contact_too_soft_for_its_coupling_is_said_so_and_the_centre_goes_in() {
         assert_eq!(inside, soft, "k_c {contact_stiffness}: the centre at {tip}");
     }
 }
+
+/// Two 2 cm blocks of a 2x2x2 lattice, the second at `offset` from the first, the nodes they
+/// share merged: touching along an edge or at a node, as meshes cut from a segmentation do.
+/// The first is held at its bottom, the second at the face away from the first.
+fn touching_blocks(offset: Vector3<f64>) -> MassSpringModel {
+    let size = Vector3::repeat(0.02);
+    let a = generate::lattice(Vector3::zeros(), size, [2, 2, 2], CellSplit::Five).unwrap();
+    let b = generate::lattice(offset, offset + size, [2, 2, 2], CellSplit::Five).unwrap();
+    let mut nodes = a.nodes().to_vec();
+    let mut tets = a.tets().to_vec();
+    let index: Vec<u32> = (b.nodes().iter())
+        .map(|p| match nodes.iter().position(|q| (p - q).norm() < 1e-12) {
+            Some(shared) => shared as u32,
+            None => {
+                nodes.push(*p);
+                nodes.len() as u32 - 1
+            }
+        })
+        .collect();
+    tets.extend(b.tets().iter().map(|t| t.map(|n| index[n as usize])));
+    let mesh = defvol::mesh::TetMesh::new(nodes, tets, None, "touching blocks").unwrap();
+    let far = if offset.z > 0.0 { offset.z + size.z } else { 0.0 };
+    let fixed: Vec<bool> = (mesh.nodes().iter()).map(|p| p.z.abs() < 1e-12 || (p.z - far).abs() < 1e-12).collect();
+    // Stiff enough that the probe's largest pull dents it by a tenth of a millimetre.
+    MassSpringModel::new(&mesh, &Material::Uniform { stiffness: 30_000.0, damping: 1.0 }, 1000.0, &fixed, None).unwrap()
+}
+
+/// How deep `p` lies inside the box from `lo` of side 2 cm (negative: outside).
+fn depth_in_block(p: &Vector3<f64>, lo: Vector3<f64>) -> f64 {
+    (0..3).map(|a| (p[a] - lo[a]).min(lo[a] + 0.02 - p[a])).fold(f64::INFINITY, f64::min)
+}
+
+/// A coupled 1 mm probe dragged across where two blocks touch (through the shared edge, or
+/// over the shared node), on both backends: finite forces, the probe held outside both
+/// blocks at every step, and the GPU's probe where the CPU's is.
+#[test]
+fn a_probe_dragged_across_where_two_bodies_touch_is_held_outside_both() {
+    let radius = 0.001;
+    for (what, offset, z) in [("edge", Vector3::new(0.02, 0.02, 0.0), 0.01), ("node", Vector3::repeat(0.02), 0.02)] {
+        let model = touching_blocks(offset);
+        let mut tool = Tool::new(ToolShape::Sphere { radius }, 20_000.0);
+        tool.coupling = Some(defvol::solver::Coupling { stiffness: 2000.0, damping: 5.0, mass: 0.02, max_force: 3.0 });
+        tool.world_from_tool = Isometry3::translation(0.026, 0.014, z);
+        let params = SolverParams { gravity: [0.0; 3], dt: 0.002, cg_tolerance: 1e-9, ..Default::default() };
+        // The device's path: from the open quadrant through the touching edge or node to
+        // the other open quadrant, then held there.
+        let device = |step: usize| {
+            let s = (step as f64 / 150.0).min(1.0);
+            Isometry3::translation(0.026 - 0.012 * s, 0.014 + 0.012 * s, z)
+        };
+        let check = |backend: &str, step: usize, tip: Vector3<f64>, force: [f64; 3]| {
+            assert!(force.iter().all(|f| f.is_finite()), "{what} {backend} step {step}: force {force:?}");
+            let deepest = depth_in_block(&tip, Vector3::zeros()).max(depth_in_block(&tip, offset));
+            assert!(
+                deepest < 0.5 * radius,
+                "{what} {backend} step {step}: the probe's centre {deepest} m inside a block"
+            );
+        };
+        let mut cpu = Simulation::<f32>::new(&model, params.clone(), vec![tool.clone()]).unwrap();
+        let mut tips = Vec::new();
+        for step in 0..300 {
+            cpu.tool_mut(0).unwrap().world_from_tool = device(step);
+            let report = cpu.step().unwrap();
+            let tip = cpu.simulated_pose(0).unwrap().translation.vector;
+            check("cpu", step, tip, report.reaction(0).force);
+            tips.push(tip);
+        }
+        // Through an edge the two open quadrants meet in a line: the probe cannot pass.
+        let pulled = device(300).translation.vector - tips[299];
+        assert!(what == "node" || pulled.norm() > 5e-3, "{what}: the probe is {pulled} from the device, not held");
+        #[cfg(feature = "gpu")]
+        if let Some(ctx) = defvol::gpu::test_context() {
+            let mut gpu = defvol::solver::gpu::GpuSimulation::new(ctx, &model, params, vec![tool]).unwrap();
+            for (step, cpu_tip) in tips.iter().enumerate() {
+                gpu.tool_mut(0).unwrap().world_from_tool = device(step);
+                let report = gpu.step().unwrap();
+                let tip = gpu.mirror().simulated_pose(0).unwrap().translation.vector;
+                check("gpu", step, tip, report.reaction(0).force);
+                assert!((tip - cpu_tip).norm() < 2e-4, "{what} step {step}: gpu probe at {tip}, cpu at {cpu_tip}");
+            }
+        }
+    }
+}

@@ -161,13 +161,74 @@ pub struct Surface {
     /// For node i, the faces around it: `node_faces[node_offsets[i]..node_offsets[i+1]]`.
     node_offsets: Vec<u32>,
     node_faces: Vec<u32>,
-    edge_faces: HashMap<[u32; 2], [u32; 2]>,
+    /// For each face, the face across its edge opposite each of its vertices.
+    partners: Vec<[u32; 3]>,
     bvh: Vec<BvhNode>,
     order: Vec<u32>,
     spacing: f64,
     /// How far any node may have moved since the boxes were fitted (m): every box is read
     /// grown by it.
     drift: f64,
+}
+
+/// For each face, the face across its edge opposite each of its vertices. Where more than
+/// two faces meet at an edge (two bodies touching along it, as meshes cut from a
+/// segmentation do), each is paired with the face that closes the same wedge of material
+/// around the edge, so each body keeps its own pseudo-normal there; a face left unpaired
+/// is its own partner.
+fn edge_partners(faces: &[[u32; 3]], rest: &[Vector3<f64>]) -> Vec<[u32; 3]> {
+    let mut around: HashMap<[u32; 2], Vec<(u32, usize)>> = HashMap::new();
+    for (f, face) in faces.iter().enumerate() {
+        for k in 0..3 {
+            let (i, j) = (face[(k + 1) % 3], face[(k + 2) % 3]);
+            around.entry([i.min(j), i.max(j)]).or_default().push((f as u32, k));
+        }
+    }
+    let mut partners: Vec<[u32; 3]> = (0..faces.len() as u32).map(|f| [f; 3]).collect();
+    for (edge, sharing) in around {
+        if let [(f, k), (g, l)] = sharing[..] {
+            partners[f as usize][k] = g;
+            partners[g as usize][l] = f;
+        } else {
+            pair_around_edge(edge, &sharing, faces, rest, &mut partners);
+        }
+    }
+    partners
+}
+
+/// Pairs the faces around a non-manifold edge: sorted by angle about it, each face's body
+/// lies ahead of it or behind it, and it is paired with its neighbour on that side when
+/// that neighbour's body lies back towards it.
+fn pair_around_edge(
+    edge: [u32; 2],
+    sharing: &[(u32, usize)],
+    faces: &[[u32; 3]],
+    rest: &[Vector3<f64>],
+    partners: &mut [[u32; 3]],
+) {
+    let a = rest[edge[0] as usize];
+    let Some(axis) = (rest[edge[1] as usize] - a).try_normalize(0.0) else { return };
+    let u = axis.cross(&if axis.x.abs() < 0.9 { Vector3::x() } else { Vector3::y() }).normalize();
+    let v = axis.cross(&u);
+    let mut fan: Vec<(f64, u32, usize, bool)> = sharing
+        .iter()
+        .map(|&(f, k)| {
+            let [p, q, r] = faces[f as usize].map(|n| rest[n as usize]);
+            let wing = rest[faces[f as usize][k] as usize] - a;
+            let outward = (q - p).cross(&(r - p));
+            // The body is on the inward side; ahead means towards increasing angle.
+            let ahead = -outward.dot(&axis.cross(&wing)) > 0.0;
+            (wing.dot(&v).atan2(wing.dot(&u)), f, k, ahead)
+        })
+        .collect();
+    fan.sort_by(|x, y| x.0.total_cmp(&y.0));
+    let m = fan.len();
+    for (n, &(_, f, k, ahead)) in fan.iter().enumerate() {
+        let (_, g, _, g_ahead) = fan[if ahead { (n + 1) % m } else { (n + m - 1) % m }];
+        if g_ahead != ahead {
+            partners[f as usize][k] = g;
+        }
+    }
 }
 
 impl Surface {
@@ -184,16 +245,12 @@ impl Surface {
         }
         let mut cursor = node_offsets.clone();
         let mut node_faces = vec![0u32; node_offsets[rest.len()] as usize];
-        let mut edge_faces: HashMap<[u32; 2], [u32; 2]> = HashMap::new();
         let mut length = 0.0;
         for (fi, f) in faces.iter().enumerate() {
             for (k, &i) in f.iter().enumerate() {
                 node_faces[cursor[i as usize] as usize] = fi as u32;
                 cursor[i as usize] += 1;
-                let j = f[(k + 1) % 3];
-                let key = [i.min(j), i.max(j)];
-                edge_faces.entry(key).and_modify(|e| e[1] = fi as u32).or_insert([fi as u32; 2]);
-                length += (rest[j as usize] - rest[i as usize]).norm();
+                length += (rest[f[(k + 1) % 3] as usize] - rest[i as usize]).norm();
             }
         }
         let spacing = if faces.is_empty() { 0.0 } else { length / (3 * faces.len()) as f64 };
@@ -201,7 +258,7 @@ impl Surface {
             faces: faces.to_vec(),
             node_offsets,
             node_faces,
-            edge_faces,
+            partners: edge_partners(faces, rest),
             bvh: Vec::new(),
             order: (0..faces.len() as u32).collect(),
             spacing,
@@ -361,8 +418,30 @@ impl Surface {
     /// for points whose nearest surface point is the node.
     fn node_normal<P: Positions + ?Sized>(&self, i: u32, x: &P) -> Vector3<f64> {
         let range = self.node_offsets[i as usize] as usize..self.node_offsets[i as usize + 1] as usize;
+        self.angle_weighted(i, self.node_faces[range].iter().copied(), x)
+    }
+
+    /// [`Self::node_normal`] over the fan of faces around node i that holds face `f`: where
+    /// two bodies touch at a node, each keeps its own normal there.
+    fn fan_normal<P: Positions + ?Sized>(&self, i: u32, f: u32, x: &P) -> Vector3<f64> {
+        let mut fan = vec![f];
+        let mut next = 0;
+        while let Some(&g) = fan.get(next) {
+            next += 1;
+            let face = self.faces[g as usize];
+            for k in (0..3).filter(|&k| face[k] != i) {
+                let across = self.partners[g as usize][k];
+                if !fan.contains(&across) {
+                    fan.push(across);
+                }
+            }
+        }
+        self.angle_weighted(i, fan.into_iter(), x)
+    }
+
+    fn angle_weighted<P: Positions + ?Sized>(&self, i: u32, faces: impl Iterator<Item = u32>, x: &P) -> Vector3<f64> {
         let mut sum = Vector3::zeros();
-        for &f in &self.node_faces[range] {
+        for f in faces {
             let face = self.faces[f as usize];
             let k = face.iter().position(|&n| n == i).unwrap_or(0);
             let (p, q, r) = (x.at(face[k]), x.at(face[(k + 1) % 3]), x.at(face[(k + 2) % 3]));
@@ -379,12 +458,11 @@ impl Surface {
         match zero.as_slice() {
             [_, _] => {
                 let k = (0..3).find(|k| !zero.contains(k)).unwrap_or(0);
-                self.node_normal(face[k], x)
+                self.fan_normal(face[k], f, x)
             }
             [k] => {
-                let (i, j) = (face[(k + 1) % 3], face[(k + 2) % 3]);
-                let pair = self.edge_faces.get(&[i.min(j), i.max(j)]).copied().unwrap_or([f, f]);
-                (self.face_normal(pair[0], x) + self.face_normal(pair[1], x))
+                let across = self.partners[f as usize][*k];
+                (self.face_normal(f, x) + self.face_normal(across, x))
                     .try_normalize(0.0)
                     .unwrap_or_else(|| self.face_normal(f, x))
             }
@@ -1153,5 +1231,66 @@ mod tests {
         let lift = radius / theta.cos() - height;
         assert_relative_eq!(force, Vector3::new(0.0, 0.0, -stiffness * lift), epsilon = 1e-9);
         assert_relative_eq!(on_nodes, force, epsilon = 1e-9);
+    }
+
+    /// Two tets glued along the edge (0, 1) only, and a third touching the first at node 3.
+    fn touching() -> defvol_core::mesh::TetMesh {
+        let n = vec![
+            Vector3::zeros(),
+            Vector3::x(),
+            Vector3::y(),
+            Vector3::z(),
+            Vector3::new(0.0, -1.0, 0.0),
+            Vector3::new(0.0, 0.0, -1.0),
+            Vector3::new(0.0, 0.0, 2.0),
+            Vector3::new(1.0, 0.0, 2.0),
+            Vector3::new(0.0, 1.0, 2.0),
+        ];
+        let tets = vec![[0, 1, 2, 3], [0, 1, 4, 5], [3, 6, 7, 8]];
+        defvol_core::mesh::TetMesh::new(n, tets, None, "touching").unwrap()
+    }
+
+    /// The tet whose boundary face `face` is.
+    fn tet_of(mesh: &defvol_core::mesh::TetMesh, face: &[u32; 3]) -> usize {
+        mesh.tets().iter().position(|t| face.iter().all(|n| t.contains(n))).unwrap()
+    }
+
+    /// Around the edge two bodies share, each face is paired with the face of its own body
+    /// (the pair closes one wedge of material), never with the other body's.
+    #[test]
+    fn faces_at_an_edge_two_bodies_share_pair_within_each_body() {
+        let mesh = touching();
+        let surface = Surface::new(mesh.boundary(), mesh.nodes());
+        let mut at_edge = 0;
+        for (f, face) in mesh.boundary().iter().enumerate() {
+            for k in 0..3 {
+                let edge = [face[(k + 1) % 3], face[(k + 2) % 3]];
+                if edge.contains(&0) && edge.contains(&1) {
+                    at_edge += 1;
+                    let partner = mesh.boundary()[surface.partners[f][k] as usize];
+                    assert_ne!(partner, *face, "face {face:?} unpaired");
+                    assert_eq!(tet_of(&mesh, &partner), tet_of(&mesh, face), "face {face:?} paired across bodies");
+                }
+            }
+        }
+        assert_eq!(at_edge, 4);
+    }
+
+    /// At a node two bodies share, each body's faces give that body's own normal there: it
+    /// points out of that body, where the sum over both would not.
+    #[test]
+    fn a_node_two_bodies_share_has_a_normal_for_each() {
+        let mesh = touching();
+        let surface = Surface::new(mesh.boundary(), mesh.nodes());
+        let x = mesh.nodes();
+        let centroid = |t: usize| mesh.tets()[t].iter().map(|&n| x[n as usize]).sum::<Vector3<f64>>() / 4.0;
+        let mut checked = 0;
+        for (f, face) in mesh.boundary().iter().enumerate().filter(|(_, face)| face.contains(&3)) {
+            let normal = surface.fan_normal(3, f as u32, x);
+            let into_body = centroid(tet_of(&mesh, face)) - x[3];
+            assert!(normal.dot(&into_body) < -0.3 * into_body.norm(), "face {face:?}: normal {normal}");
+            checked += 1;
+        }
+        assert_eq!(checked, 6, "three faces of each body at node 3");
     }
 }

@@ -25,8 +25,6 @@ pub enum MeshError {
     Inverted { file: String, tet: usize, volume: f64, positive: usize },
     #[error("{file}: face {face:?} is shared by {count} tets (at most 2 allowed), e.g. tet {tet}")]
     NonManifoldFace { file: String, face: [u32; 3], count: usize, tet: usize },
-    #[error("{file}: boundary edge ({a}, {b}) belongs to {count} boundary triangles (a manifold surface needs 2)")]
-    NonManifoldBoundary { file: String, a: u32, b: u32, count: usize },
     #[error("{file}: {what} has {got} entries, expected {expected} (one per node)")]
     ScalarCount { file: String, what: String, got: usize, expected: usize },
 }
@@ -46,6 +44,15 @@ pub struct TetMesh {
     edges: Vec<[u32; 2]>,
     neighbours: Vec<[i32; 4]>,
     boundary: Vec<[u32; 3]>,
+}
+
+/// Tets turned inside out by a deformation ([`TetMesh::inverted`]).
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct Inversion {
+    /// How many tets have a signed volume of zero or less.
+    pub count: usize,
+    /// The worst: its index and its signed volume over its rest volume.
+    pub worst: Option<(usize, f64)>,
 }
 
 /// Face of a tet opposite vertex k, ordered so that its normal points out of the tet.
@@ -112,7 +119,6 @@ impl TetMesh {
         }
         let edges = unique_edges(&tets);
         let (neighbours, boundary) = face_topology(&tets, source)?;
-        check_boundary_manifold(&boundary, source)?;
         Ok(Self { nodes, tets, scalars, edges, neighbours, boundary })
     }
 
@@ -133,6 +139,81 @@ impl TetMesh {
     /// Boundary triangles, outward-oriented.
     pub fn boundary(&self) -> &[[u32; 3]] {
         &self.boundary
+    }
+
+    /// The tets turned inside out at `positions` (the mesh deformed; one per node): how
+    /// many, and the worst, as its signed volume over its rest volume.
+    pub fn inverted(&self, positions: &[Vector3<f64>]) -> Inversion {
+        let mut inversion = Inversion::default();
+        if positions.len() != self.nodes.len() {
+            return inversion;
+        }
+        for (tet, t) in self.tets.iter().enumerate() {
+            let ratio = signed_volume(positions, t) / signed_volume(&self.nodes, t);
+            if ratio <= 0.0 {
+                inversion.count += 1;
+                if inversion.worst.is_none_or(|(_, worst)| ratio < worst) {
+                    inversion.worst = Some((tet, ratio));
+                }
+            }
+        }
+        inversion
+    }
+
+    /// Boundary edges held by other than two boundary triangles (bodies touching along an
+    /// edge, as meshes cut from segmentations have), sorted.
+    pub fn non_manifold_edges(&self) -> Vec<[u32; 2]> {
+        let mut edges: Vec<[u32; 2]> =
+            boundary_edge_counts(&self.boundary).into_iter().filter(|(_, n)| *n != 2).map(|(e, _)| e).collect();
+        edges.sort_unstable();
+        edges
+    }
+
+    /// Boundary nodes where bodies touch at a point: their boundary triangles fall into more
+    /// than one fan (triangles joined through edges of two triangles), and no non-manifold
+    /// edge ends there. Sorted.
+    pub fn non_manifold_vertices(&self) -> Vec<u32> {
+        let counts = boundary_edge_counts(&self.boundary);
+        let mut around: HashMap<u32, Vec<usize>> = HashMap::new();
+        for (f, tri) in self.boundary.iter().enumerate() {
+            for &n in tri {
+                around.entry(n).or_default().push(f);
+            }
+        }
+        let on_bad_edge: std::collections::HashSet<u32> =
+            counts.iter().filter(|(_, c)| **c != 2).flat_map(|(e, _)| *e).collect();
+        let mut nodes: Vec<u32> = around
+            .into_iter()
+            .filter(|(node, faces)| !on_bad_edge.contains(node) && self.fans(*node, faces, &counts) > 1)
+            .map(|(node, _)| node)
+            .collect();
+        nodes.sort_unstable();
+        nodes
+    }
+
+    /// How many fans the boundary triangles `faces` around `node` form.
+    fn fans(&self, node: u32, faces: &[usize], counts: &HashMap<[u32; 2], usize>) -> usize {
+        let mut fan: Vec<usize> = (0..faces.len()).collect();
+        let root = |fan: &[usize], mut i: usize| {
+            while fan[i] != i {
+                i = fan[i];
+            }
+            i
+        };
+        for a in 0..faces.len() {
+            for b in a + 1..faces.len() {
+                let shared: Vec<u32> =
+                    self.boundary[faces[a]].iter().filter(|n| self.boundary[faces[b]].contains(n)).copied().collect();
+                if let [p, q] = shared[..] {
+                    let other = if p == node { q } else { p };
+                    if counts.get(&[node.min(other), node.max(other)]) == Some(&2) {
+                        let (ra, rb) = (root(&fan, a), root(&fan, b));
+                        fan[ra] = rb;
+                    }
+                }
+            }
+        }
+        (0..faces.len()).filter(|&i| root(&fan, i) == i).count()
     }
     pub fn scalars(&self) -> Option<&[f32]> {
         self.scalars.as_deref()
@@ -280,20 +361,16 @@ fn face_topology(tets: &[[u32; 4]], source: &str) -> Result<FaceTopology, MeshEr
     Ok((neighbours, boundary))
 }
 
-fn check_boundary_manifold(boundary: &[[u32; 3]], source: &str) -> Result<(), MeshError> {
-    let mut count: HashMap<(u32, u32), usize> = HashMap::with_capacity(boundary.len() * 2);
+/// How many boundary triangles hold each boundary edge (`a < b`).
+fn boundary_edge_counts(boundary: &[[u32; 3]]) -> HashMap<[u32; 2], usize> {
+    let mut count: HashMap<[u32; 2], usize> = HashMap::with_capacity(boundary.len() * 2);
     for tri in boundary {
         for e in 0..3 {
             let (a, b) = (tri[e], tri[(e + 1) % 3]);
-            *count.entry((a.min(b), a.max(b))).or_default() += 1;
+            *count.entry([a.min(b), a.max(b)]).or_default() += 1;
         }
     }
-    let mut bad: Vec<_> = count.into_iter().filter(|(_, c)| *c != 2).collect();
-    bad.sort_unstable();
-    match bad.first() {
-        Some(&((a, b), count)) => Err(MeshError::NonManifoldBoundary { file: source.to_owned(), a, b, count }),
-        None => Ok(()),
-    }
+    count
 }
 
 #[cfg(test)]
@@ -360,8 +437,8 @@ mod tests {
     }
 
     #[test]
-    fn tets_sharing_only_an_edge_are_non_manifold() {
-        // Two tets glued along the edge (0,1) only.
+    fn tets_sharing_only_an_edge_or_a_node_load_and_say_where() {
+        // Two tets glued along the edge (0,1) only; two more touching the first at node 3.
         let n = vec![
             Vector3::zeros(),
             Vector3::x(),
@@ -370,7 +447,11 @@ mod tests {
             Vector3::new(0.0, -1.0, 0.0),
             Vector3::new(0.0, 0.0, -1.0),
         ];
-        let e = TetMesh::new(n, vec![[0, 1, 2, 3], [0, 1, 4, 5]], None, "bowtie").unwrap_err();
-        assert!(matches!(e, MeshError::NonManifoldBoundary { a: 0, b: 1, count: 4, .. }), "{e}");
+        let bowtie = TetMesh::new(n.clone(), vec![[0, 1, 2, 3], [0, 1, 4, 5]], None, "bowtie").unwrap();
+        assert_eq!((bowtie.non_manifold_edges(), bowtie.non_manifold_vertices()), (vec![[0, 1]], vec![]));
+        let mut n = n;
+        n.extend([Vector3::new(0.0, 0.0, 2.0), Vector3::new(1.0, 0.0, 2.0), Vector3::new(0.0, 1.0, 2.0)]);
+        let touching = TetMesh::new(n, vec![[0, 1, 2, 3], [3, 6, 7, 8]], None, "touching").unwrap();
+        assert_eq!((touching.non_manifold_edges(), touching.non_manifold_vertices()), (vec![], vec![3]));
     }
 }
