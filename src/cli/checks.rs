@@ -41,6 +41,47 @@ pub(super) fn mesh_over_volume(path: &Path, chosen: Option<f64>) -> Result<(TetM
     Ok((mesh, scale))
 }
 
+/// The node positions of `path`, a deformed copy of `rest` (the same tets), in `rest`'s
+/// units: `--mesh-scale`, else the unit the file records, else `rest`'s own scale (a tool
+/// that rewrote the file may have dropped the unit). Read unchecked: a deformation may turn
+/// tets inside out, and those are counted and drawn as they lie rather than refused.
+pub(super) fn deformed_positions(
+    path: &Path,
+    rest: &TetMesh,
+    chosen: Option<f64>,
+    rest_scale: f64,
+) -> Result<Vec<Vector3<f64>>> {
+    let raw = defvol::io::read_raw_mesh(path)?;
+    let corners = |t: &[u32; 4]| {
+        let mut t = *t;
+        t.sort_unstable();
+        t
+    };
+    let same =
+        raw.tets.len() == rest.tets().len() && raw.tets.iter().zip(rest.tets()).all(|(a, b)| corners(a) == corners(b));
+    if !same || raw.nodes.len() != rest.nodes().len() {
+        bail!(
+            "--deformed {}: its tets are not the rest mesh's ({} against {} tets, {} against {} nodes, or in another order)",
+            path.display(),
+            raw.tets.len(),
+            rest.tets().len(),
+            raw.nodes.len(),
+            rest.nodes().len()
+        );
+    }
+    let scale = chosen.or(raw.metres_per_unit.map(|unit| unit / MILLIMETRE)).unwrap_or(rest_scale);
+    let positions: Vec<Vector3<f64>> = raw.nodes.iter().map(|p| p * scale).collect();
+    let inverted = rest.inverted(&positions);
+    if let Some((tet, ratio)) = inverted.worst {
+        tracing::warn!(
+            "--deformed {}: {} tets turned inside out (the worst, tet {tet}, at {ratio:.3} of its rest volume), drawn as they lie",
+            path.display(),
+            inverted.count
+        );
+    }
+    Ok(positions)
+}
+
 /// A mesh placed over a volume (after `--mesh-scale`) must meet it: a mesh in metres over
 /// a millimetre volume lies in one corner voxel and would give an empty picture or a
 /// one-voxel warp, silently.

@@ -185,16 +185,7 @@ pub fn run(args: RenderArgs) -> Result<()> {
             let (mesh, scale) = super::checks::mesh_over_volume(path, args.mesh_scale)?;
             super::checks::check_mesh_meets_volume(&path.display().to_string(), mesh.nodes(), scale, &volume)?;
             if let Some(deformed_path) = &args.deformed {
-                let (deformed, _) = super::checks::mesh_over_volume(deformed_path, args.mesh_scale)?;
-                if deformed.tets() != mesh.tets() {
-                    bail!(
-                        "--deformed {}: its tets are not --mesh {}'s ({} against {} tets, or in another order)",
-                        deformed_path.display(),
-                        path.display(),
-                        deformed.tets().len(),
-                        mesh.tets().len()
-                    );
-                }
+                let deformed = super::checks::deformed_positions(deformed_path, &mesh, args.mesh_scale, scale)?;
                 let sampling = SourceSampling {
                     sampling: args.sampling.into(),
                     displacements: args
@@ -209,7 +200,7 @@ pub fn run(args: RenderArgs) -> Result<()> {
                 let params = RaycastParams { step: args.step.unwrap_or(finest), ..params.clone() };
                 let mut raycaster =
                     TetRaycaster::with_source(&mesh, std::sync::Arc::new(volume.clone()), &tf, &params, &sampling)?;
-                raycaster.update(deformed.nodes())?;
+                raycaster.update(&deformed)?;
                 let mut renderer = MeshRenderer::new(&backend, raycaster, 1.0)?;
                 let image = renderer.render(&tools, &camera)?;
                 let on =

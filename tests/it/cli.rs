@@ -773,3 +773,43 @@ fn simulate_counts_and_reports_tets_turned_inside_out() {
         "{stderr}"
     );
 }
+
+/// A deformed mesh with tets turned inside out (one node pushed through the opposite face
+/// of its tet) is drawn, never refused, on both backends: the warning names how many and
+/// the worst, and the picture differs from the uninverted one only where those tets lie.
+#[test]
+fn render_draws_a_deformed_mesh_with_inverted_tets_and_says_how_many() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = |args: &[&str]| {
+        let out = defvol().args(args).current_dir(dir.path()).output().unwrap();
+        let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
+        assert!(out.status.success(), "{args:?}: {stderr}");
+        stderr
+    };
+    run(&["simulate", "--steps", "3", "--tets", "300", "--backend", "cpu", "--out", "out"]);
+    let rest = defvol::io::read_mesh(&dir.path().join("out/rest.vtu")).unwrap();
+    let mut moved = defvol::io::read_raw_mesh(&dir.path().join("out/final.vtu")).unwrap().nodes;
+    let [a, b, c, d] = rest.tets()[0].map(|n| n as usize);
+    let normal = (moved[c] - moved[b]).cross(&(moved[d] - moved[b])).normalize();
+    let through = 2.2 * (moved[a] - moved[b]).dot(&normal) * normal;
+    moved[a] -= through;
+    defvol::io::write_mesh(&dir.path().join("out/inverted.vtu"), &rest, Some(&moved), Some(1.0)).unwrap();
+    let inverted = rest.inverted(&moved);
+    assert!(inverted.count >= 1 && inverted.worst.is_some_and(|(t, r)| t == 0 && r < -1.0), "{inverted:?}");
+    for backend in [&["--backend", "cpu"][..], &["--backend", "gpu", "--allow-software-gpu"]] {
+        let render = |deformed: &str, png: &str| {
+            let mut args = vec!["render", "--mesh", "out/rest.vtu", "--deformed", deformed, "--size", "64x48"];
+            args.extend(backend);
+            args.extend(["--out", png]);
+            run(&args)
+        };
+        let stderr = render("out/inverted.vtu", "inverted.png");
+        let said = format!("{} tets turned inside out (the worst, tet 0, at -1.", inverted.count);
+        assert!(stderr.contains(&said) && !stderr.contains("one colour"), "{backend:?}: {stderr}");
+        render("out/final.vtu", "upright.png");
+        let pixels = |png: &str| image_pixels(&dir.path().join(png));
+        let (bent, upright) = (pixels("inverted.png"), pixels("upright.png"));
+        let differ = bent.chunks(4).zip(upright.chunks(4)).filter(|(p, q)| p != q).count();
+        assert!(differ < 64 * 48 / 10, "{backend:?}: {differ} of {} pixels differ", 64 * 48);
+    }
+}

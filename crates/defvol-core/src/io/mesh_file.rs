@@ -98,7 +98,21 @@ impl MeshFile {
         }
     }
 
-    pub(crate) fn into_mesh(mut self, path: &Path) -> Result<MeshRead, IoError> {
+    pub(crate) fn into_mesh(self, path: &Path) -> Result<MeshRead, IoError> {
+        let raw = self.into_raw(path);
+        let mesh = TetMesh::new(raw.nodes, raw.tets, raw.scalars, &path.display().to_string())?;
+        Ok(MeshRead {
+            mesh,
+            skipped: raw.skipped,
+            split: raw.split,
+            metres_per_unit: raw.metres_per_unit,
+            cell_arrays: raw.cell_arrays,
+            unused_nodes: raw.unused_nodes,
+        })
+    }
+
+    /// The file's nodes and tets as read: solids split, unused nodes dropped, nothing refused.
+    pub(crate) fn into_raw(mut self, path: &Path) -> RawMesh {
         if !self.skipped.is_empty() {
             let skipped: Vec<String> = self.skipped.iter().map(|(kind, n)| format!("{n} {kind}")).collect();
             tracing::info!("{}: kept {} tets, skipped {}", path.display(), self.tets.len(), skipped.join(", "));
@@ -113,16 +127,16 @@ impl MeshFile {
         if unused_nodes > 0 {
             tracing::info!("{}: dropped {unused_nodes} nodes that no tet uses (the rest renumbered)", path.display());
         }
-        let scalars = self.scalars();
-        let mesh = TetMesh::new(self.nodes, self.tets, scalars, &path.display().to_string())?;
-        Ok(MeshRead {
-            mesh,
+        RawMesh {
+            scalars: self.scalars(),
+            nodes: self.nodes,
+            tets: self.tets,
             skipped: self.skipped,
             split: self.split,
             metres_per_unit: self.metres_per_unit,
             cell_arrays: self.cell_arrays,
             unused_nodes,
-        })
+        }
     }
 
     /// Drops the nodes no tet uses (a mesher's or a cut's leftovers, which would carry no
@@ -156,6 +170,22 @@ impl MeshFile {
         }
         unused
     }
+}
+
+/// A mesh file's nodes and tets before a [`TetMesh`] checks them (inverted, flat or
+/// repeated-node tets, indices past the nodes are all still there): what `defvol info`
+/// reports on, and the positions of a deformed copy of a mesh already checked.
+#[derive(Debug, Clone)]
+pub struct RawMesh {
+    pub nodes: Vec<Vector3<f64>>,
+    pub tets: Vec<[u32; 4]>,
+    /// The active point scalars, where the file tags some.
+    pub scalars: Option<Vec<f32>>,
+    pub skipped: SkippedCells,
+    pub split: SkippedCells,
+    pub metres_per_unit: Option<f64>,
+    pub cell_arrays: Vec<CellArray>,
+    pub unused_nodes: usize,
 }
 
 /// A mesh and what its file said beside the tets.

@@ -32,7 +32,7 @@ mod vtk_xml;
 
 pub use dicom::{parse_dicom, read_dicom, DicomRead, SeriesInfo};
 pub use error::IoError;
-pub use mesh_file::{CellArray, MeshRead, SkippedCells};
+pub use mesh_file::{CellArray, MeshRead, RawMesh, SkippedCells};
 
 use error::{io_error, malformed};
 use files::{file_name, write_atomically};
@@ -159,6 +159,12 @@ pub fn read_mesh_point_array(path: &Path, name: &str) -> Result<Vec<f32>, IoErro
 /// Reads a tetrahedral mesh (VTK `.vtu`/`.vtk`, Gmsh `.msh` 1, 2.2 or 4.1, TetGen `.node`/`.ele`).
 pub fn read_mesh(path: &Path) -> Result<TetMesh, IoError> {
     Ok(read_mesh_with_metadata(path)?.mesh)
+}
+
+/// A mesh file's nodes and tets as read, unchecked ([`RawMesh`]): only a file that cannot be
+/// parsed is an error.
+pub fn read_raw_mesh(path: &Path) -> Result<RawMesh, IoError> {
+    Ok(read_mesh_file(path)?.into_raw(path))
 }
 
 /// [`read_mesh`], with the cells of other kinds the file held and the unit it records.
