@@ -1,6 +1,6 @@
 //! `defvol info PATH`: what a user needs to see of a file before simulating it. A volume:
 //! dims, spacing, origin, direction, value range and units, and for DICOM its series; a
-//! mesh: node and tet counts, bounds and quality (dihedral angles, inverted tets).
+//! mesh: counts, element quality and boundary topology, never refused once it parses.
 
 use std::path::PathBuf;
 
@@ -24,7 +24,7 @@ pub struct InfoArgs {
 
 pub fn run(args: InfoArgs) -> Result<()> {
     let info = if io::is_mesh(&args.path) {
-        mesh_info(&io::read_mesh_with_metadata(&args.path)?)
+        mesh_info(&io::read_raw_mesh(&args.path)?)
     } else if io::is_dicom(&args.path) {
         let read = io::read_dicom(&args.path, args.series.as_deref())?;
         let mut info = volume_info(&read.volume, read.units.as_deref());
@@ -61,9 +61,10 @@ fn volume_info(v: &Volume, units: Option<&str>) -> Value {
     })
 }
 
-fn mesh_info(read: &io::MeshRead) -> Value {
-    let mesh = &read.mesh;
-    let (lo, hi) = mesh.bounds();
+/// A mesh as read, described whatever it holds: what the solver would refuse (inverted,
+/// flat or broken tets, overlapping faces) is counted, not refused.
+fn mesh_info(raw: &io::RawMesh) -> Value {
+    let quality = defvol::mesh::quality(&raw.nodes, &raw.tets);
     // A cell array's distinct values (Gmsh's regions: a handful each).
     let regions = |values: &[f32]| {
         let mut distinct: Vec<f32> = values.to_vec();
@@ -72,23 +73,18 @@ fn mesh_info(read: &io::MeshRead) -> Value {
         distinct
     };
     let cell_arrays: serde_json::Map<String, Value> =
-        read.cell_arrays.iter().map(|a| (a.name.clone(), json!(regions(&a.values)))).collect();
-    let (min, max) = mesh.dihedral_range();
-    json!({
-        "kind": "mesh",
-        "nodes": mesh.nodes().len(),
-        "tets": mesh.tets().len(),
-        "bounds": [[lo.x, lo.y, lo.z], [hi.x, hi.y, hi.z]],
-        "min_dihedral_deg": min.to_degrees(),
-        "max_dihedral_deg": max.to_degrees(),
-        // A mesh with some tets inverted is refused when read (naming one); all inverted
-        // is the other handedness, flipped whole.
-        "inverted_tets": 0,
-        "unused_nodes_dropped": read.unused_nodes,
-        "cells_split_into_tets": read.split,
-        "other_cells_skipped": read.skipped,
-        "cell_arrays": cell_arrays,
-    })
+        raw.cell_arrays.iter().map(|a| (a.name.clone(), json!(regions(&a.values)))).collect();
+    let mut info = json!({"kind": "mesh"});
+    if let (Value::Object(fields), Ok(Value::Object(measured))) = (&mut info, serde_json::to_value(&quality)) {
+        fields.extend(measured);
+    }
+    info["slivers_under_deg"] = defvol::mesh::SLIVER_DEG.into();
+    info["unused_nodes_dropped"] = raw.unused_nodes.into();
+    info["metres_per_unit"] = json!(raw.metres_per_unit);
+    info["cells_split_into_tets"] = json!(raw.split);
+    info["other_cells_skipped"] = json!(raw.skipped);
+    info["cell_arrays"] = Value::Object(cell_arrays);
+    info
 }
 
 /// The JSON's fields as `key: value` lines.

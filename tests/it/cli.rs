@@ -813,3 +813,79 @@ fn render_draws_a_deformed_mesh_with_inverted_tets_and_says_how_many() {
         assert!(differ < 64 * 48 / 10, "{backend:?}: {differ} of {} pixels differ", 64 * 48);
     }
 }
+
+/// `info` describes a mesh the solver would refuse instead of refusing it: a unit cube in
+/// five tets, a tet touching it along one edge only, a sliver, an inverted tet, a tet that
+/// names a node twice and a node no tet uses, each counted; the quality figures are the
+/// analytic ones (a cube corner tet's smallest dihedral angle is acos(1/√3)).
+#[test]
+fn info_counts_what_a_messy_mesh_holds_and_never_refuses_it() {
+    use nalgebra::Vector3;
+    let cube = defvol::mesh::generate::lattice(
+        Vector3::zeros(),
+        Vector3::repeat(1.0),
+        [1, 1, 1],
+        defvol::mesh::generate::CellSplit::Five,
+    )
+    .unwrap();
+    let mut nodes: Vec<Vector3<f64>> = cube.nodes().to_vec();
+    let mut tets: Vec<[u32; 4]> = cube.tets().to_vec();
+    let add = |points: [[f64; 3]; 4], nodes: &mut Vec<Vector3<f64>>, positive: bool| -> [u32; 4] {
+        let index = points.map(|p| match nodes.iter().position(|q| (q - Vector3::from(p)).norm() < 1e-12) {
+            Some(i) => i as u32,
+            None => {
+                nodes.push(Vector3::from(p));
+                nodes.len() as u32 - 1
+            }
+        });
+        let mut t = index;
+        if (defvol::mesh::signed_volume(nodes, &t) > 0.0) != positive {
+            t.swap(2, 3);
+        }
+        t
+    };
+    tets.push(add([[1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [1.5, 0.5, -1.0], [2.0, 0.5, 0.0]], &mut nodes, true));
+    tets.push(add([[5.0, 0.0, 0.0], [6.0, 0.0, 0.0], [5.0, 1.0, 0.0], [6.0, 1.0, 0.01]], &mut nodes, true));
+    tets.push(add([[10.0, 0.0, 0.0], [11.0, 0.0, 0.0], [10.0, 1.0, 0.0], [10.0, 0.0, 1.0]], &mut nodes, false));
+    tets.push([0, 0, 1, 2]);
+    nodes.push(Vector3::repeat(20.0));
+    let mut text =
+        format!("# vtk DataFile Version 3.0\nmessy\nASCII\nDATASET UNSTRUCTURED_GRID\nPOINTS {} double\n", nodes.len());
+    for p in &nodes {
+        text += &format!("{} {} {}\n", p.x, p.y, p.z);
+    }
+    text += &format!("CELLS {} {}\n", tets.len(), 5 * tets.len());
+    for t in &tets {
+        text += &format!("4 {} {} {} {}\n", t[0], t[1], t[2], t[3]);
+    }
+    text += &format!("CELL_TYPES {}\n{}", tets.len(), "10\n".repeat(tets.len()));
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("messy.vtk"), text).unwrap();
+    let out = defvol().args(["info", "messy.vtk", "--json"]).current_dir(dir.path()).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let got: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let count = |key: &str| got[key].as_u64().unwrap_or_else(|| panic!("{key}: {got}"));
+    let counts = [
+        "nodes",
+        "tets",
+        "unused_nodes_dropped",
+        "broken_tets",
+        "flat_tets",
+        "inverted_tets",
+        "slivers",
+        "boundary_triangles",
+        "boundary_components",
+        "non_manifold_edges",
+        "non_manifold_vertices",
+        "overfull_faces",
+    ]
+    .map(count);
+    assert_eq!(counts, [18, 9, 1, 1, 0, 1, 1, 24, 3, 1, 0, 0], "{got}");
+    let corner = (1.0 / 3f64.sqrt()).acos().to_degrees();
+    let dihedral = &got["min_dihedral_deg"];
+    assert!(dihedral["min"].as_f64().unwrap() < 5.0, "{got}");
+    assert!((dihedral["median"].as_f64().unwrap() - corner).abs() < 1e-9, "{got}");
+    assert_eq!(got["bounds"], serde_json::json!([[0.0, 0.0, -1.0], [11.0, 1.0, 1.0]]), "{got}");
+    let text = defvol().args(["info", "messy.vtk"]).current_dir(dir.path()).output().unwrap();
+    assert!(text.status.success() && String::from_utf8_lossy(&text.stdout).contains("inverted_tets: 1"));
+}

@@ -224,7 +224,7 @@ fn info_describes_a_dicom_folder_as_itk_reads_it_and_a_mesh_by_its_quality() {
         (got["nodes"].as_u64(), got["tets"].as_u64(), got["inverted_tets"].as_u64()),
         (Some(4), Some(1), Some(0))
     );
-    let (min, max) = (got["min_dihedral_deg"].as_f64().unwrap(), got["max_dihedral_deg"].as_f64().unwrap());
+    let (min, max) = (got["min_dihedral_deg"]["min"].as_f64().unwrap(), got["max_dihedral_deg"].as_f64().unwrap());
     assert!((min - 54.735_610_317).abs() < 1e-6 && (max - 90.0).abs() < 1e-9, "{got}");
     assert_eq!(numbers(&got["bounds"][1]), [1.0, 1.0, 1.0]);
 }

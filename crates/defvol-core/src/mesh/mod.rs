@@ -2,6 +2,9 @@
 //! (unique edges for springs, face neighbours for ray walking, the boundary surface).
 
 pub mod generate;
+mod quality;
+
+pub use quality::{quality, Distribution, Quality, SLIVER_DEG};
 
 use std::collections::HashMap;
 
@@ -163,57 +166,12 @@ impl TetMesh {
     /// Boundary edges held by other than two boundary triangles (bodies touching along an
     /// edge, as meshes cut from segmentations have), sorted.
     pub fn non_manifold_edges(&self) -> Vec<[u32; 2]> {
-        let mut edges: Vec<[u32; 2]> =
-            boundary_edge_counts(&self.boundary).into_iter().filter(|(_, n)| *n != 2).map(|(e, _)| e).collect();
-        edges.sort_unstable();
-        edges
+        non_manifold_edges(&self.boundary)
     }
 
-    /// Boundary nodes where bodies touch at a point: their boundary triangles fall into more
-    /// than one fan (triangles joined through edges of two triangles), and no non-manifold
-    /// edge ends there. Sorted.
+    /// Boundary nodes where bodies touch at a point, sorted ([`non_manifold_vertices`]).
     pub fn non_manifold_vertices(&self) -> Vec<u32> {
-        let counts = boundary_edge_counts(&self.boundary);
-        let mut around: HashMap<u32, Vec<usize>> = HashMap::new();
-        for (f, tri) in self.boundary.iter().enumerate() {
-            for &n in tri {
-                around.entry(n).or_default().push(f);
-            }
-        }
-        let on_bad_edge: std::collections::HashSet<u32> =
-            counts.iter().filter(|(_, c)| **c != 2).flat_map(|(e, _)| *e).collect();
-        let mut nodes: Vec<u32> = around
-            .into_iter()
-            .filter(|(node, faces)| !on_bad_edge.contains(node) && self.fans(*node, faces, &counts) > 1)
-            .map(|(node, _)| node)
-            .collect();
-        nodes.sort_unstable();
-        nodes
-    }
-
-    /// How many fans the boundary triangles `faces` around `node` form.
-    fn fans(&self, node: u32, faces: &[usize], counts: &HashMap<[u32; 2], usize>) -> usize {
-        let mut fan: Vec<usize> = (0..faces.len()).collect();
-        let root = |fan: &[usize], mut i: usize| {
-            while fan[i] != i {
-                i = fan[i];
-            }
-            i
-        };
-        for a in 0..faces.len() {
-            for b in a + 1..faces.len() {
-                let shared: Vec<u32> =
-                    self.boundary[faces[a]].iter().filter(|n| self.boundary[faces[b]].contains(n)).copied().collect();
-                if let [p, q] = shared[..] {
-                    let other = if p == node { q } else { p };
-                    if counts.get(&[node.min(other), node.max(other)]) == Some(&2) {
-                        let (ra, rb) = (root(&fan, a), root(&fan, b));
-                        fan[ra] = rb;
-                    }
-                }
-            }
-        }
-        (0..faces.len()).filter(|&i| root(&fan, i) == i).count()
+        non_manifold_vertices(&self.boundary)
     }
     pub fn scalars(&self) -> Option<&[f32]> {
         self.scalars.as_deref()
@@ -361,8 +319,65 @@ fn face_topology(tets: &[[u32; 4]], source: &str) -> Result<FaceTopology, MeshEr
     Ok((neighbours, boundary))
 }
 
+/// The edges of `boundary` (triangles) held by other than two of its triangles, sorted.
+pub fn non_manifold_edges(boundary: &[[u32; 3]]) -> Vec<[u32; 2]> {
+    let mut edges: Vec<[u32; 2]> =
+        boundary_edge_counts(boundary).into_iter().filter(|(_, n)| *n != 2).map(|(e, _)| e).collect();
+    edges.sort_unstable();
+    edges
+}
+
+/// The nodes of `boundary` where bodies touch at a point: their triangles fall into more
+/// than one fan (triangles joined through edges of two triangles), and no non-manifold
+/// edge ends there. Sorted.
+pub fn non_manifold_vertices(boundary: &[[u32; 3]]) -> Vec<u32> {
+    let counts = boundary_edge_counts(boundary);
+    let mut around: HashMap<u32, Vec<usize>> = HashMap::new();
+    for (f, tri) in boundary.iter().enumerate() {
+        for &n in tri {
+            around.entry(n).or_default().push(f);
+        }
+    }
+    let on_bad_edge: std::collections::HashSet<u32> =
+        counts.iter().filter(|(_, c)| **c != 2).flat_map(|(e, _)| *e).collect();
+    let mut nodes: Vec<u32> = around
+        .into_iter()
+        .filter(|(node, faces)| !on_bad_edge.contains(node) && fans(boundary, *node, faces, &counts) > 1)
+        .map(|(node, _)| node)
+        .collect();
+    nodes.sort_unstable();
+    nodes
+}
+
+/// How many fans the triangles `faces` of `boundary` around `node` form.
+fn fans(boundary: &[[u32; 3]], node: u32, faces: &[usize], counts: &HashMap<[u32; 2], usize>) -> usize {
+    let mut fan: Vec<usize> = (0..faces.len()).collect();
+    for a in 0..faces.len() {
+        for b in a + 1..faces.len() {
+            let shared: Vec<u32> =
+                boundary[faces[a]].iter().filter(|n| boundary[faces[b]].contains(n)).copied().collect();
+            if let [p, q] = shared[..] {
+                let other = if p == node { q } else { p };
+                if counts.get(&[node.min(other), node.max(other)]) == Some(&2) {
+                    let (ra, rb) = (root(&fan, a), root(&fan, b));
+                    fan[ra] = rb;
+                }
+            }
+        }
+    }
+    (0..faces.len()).filter(|&i| root(&fan, i) == i).count()
+}
+
+/// The root of `i` in a union-find forest.
+pub(crate) fn root(forest: &[usize], mut i: usize) -> usize {
+    while forest[i] != i {
+        i = forest[i];
+    }
+    i
+}
+
 /// How many boundary triangles hold each boundary edge (`a < b`).
-fn boundary_edge_counts(boundary: &[[u32; 3]]) -> HashMap<[u32; 2], usize> {
+pub(crate) fn boundary_edge_counts(boundary: &[[u32; 3]]) -> HashMap<[u32; 2], usize> {
     let mut count: HashMap<[u32; 2], usize> = HashMap::with_capacity(boundary.len() * 2);
     for tri in boundary {
         for e in 0..3 {
