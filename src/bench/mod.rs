@@ -132,11 +132,11 @@ pub const SEED_SIZES: [usize; 5] = [80, 14_000, 35_000, 112_000, 157_000];
 /// The benchmark cantilever: a 0.3 x 0.06 x 0.06 m beam clamped at x = 0, soft tissue
 /// density, k = 1000 N/m per spring, under gravity. 80 tets gives the seed's Bar.
 pub fn cantilever(target_tets: usize) -> Result<MassSpringModel, SolverError> {
-    Ok(cantilever_with_tets(target_tets)?.0)
+    Ok(cantilever_with_mesh(target_tets)?.0)
 }
 
-/// [`cantilever`] and how many tets its mesh has (the lattice's nearest to the target).
-pub fn cantilever_with_tets(target_tets: usize) -> Result<(MassSpringModel, usize), SolverError> {
+/// [`cantilever`] and its mesh (the lattice's nearest to the target in tets).
+pub fn cantilever_with_mesh(target_tets: usize) -> Result<(MassSpringModel, crate::mesh::TetMesh), SolverError> {
     let mesh = if target_tets <= 80 {
         generate::bar(0.3)
     } else {
@@ -149,7 +149,7 @@ pub fn cantilever_with_tets(target_tets: usize) -> Result<(MassSpringModel, usiz
     })?;
     let fixed = FixedNodes::Plane { normal: [1.0, 0.0, 0.0], offset: 0.0 }.select(mesh.nodes())?;
     let material = Material::Uniform { stiffness: 1000.0, damping: 0.5 };
-    Ok((MassSpringModel::new(&mesh, &material, 1000.0, &fixed, None)?, mesh.tets().len()))
+    Ok((MassSpringModel::new(&mesh, &material, 1000.0, &fixed, None)?, mesh))
 }
 
 pub fn cpu_description() -> String {

@@ -6,8 +6,9 @@ use std::time::Instant;
 use nalgebra::Vector3;
 use serde_json::json;
 
-use super::{cantilever_with_tets, cpu_description, relative_error, time_stats, BenchRow, ErrorMeasure};
+use super::{cantilever_with_mesh, cpu_description, relative_error, time_stats, BenchRow, ErrorMeasure};
 use crate::backend::{Backend, BackendChoice, RunsOn};
+use crate::mesh::TetMesh;
 use crate::solver::{Integrator, MassSpringModel, Preconditioner, SolverEngine, SolverEngineError, SolverParams};
 
 pub struct SolverBenchOptions {
@@ -86,7 +87,8 @@ pub fn solver(opts: &SolverBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Res
     let backends =
         opts.backends.iter().map(|b| Backend::choose(*b, opts.allow_software_gpu)).collect::<Result<Vec<_>, _>>()?;
     for &size in &opts.sizes {
-        let (model, tets) = cantilever_with_tets(size)?;
+        let (model, mesh) = cantilever_with_mesh(size)?;
+        let tets = mesh.tets().len();
         // Named by tets, as the seed's Table 1 and the README count them.
         let case = format!("cantilever_{tets}tets");
         let mut configs: Vec<SolverParams> = Vec::new();
@@ -134,6 +136,7 @@ pub fn solver(opts: &SolverBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Res
                     Err(e) => return Err(e),
                 };
                 let device_name = if result.backend == RunsOn::Gpu { result.device.clone() } else { device.clone() };
+                let work = run_work(&params, &model, &mesh, &result);
                 emit(&BenchRow {
                     stage: "solver",
                     case: case.clone(),
@@ -147,7 +150,7 @@ pub fn solver(opts: &SolverBenchOptions, mut emit: impl FnMut(&BenchRow)) -> Res
                         value: relative_error(&model, &result.positions, reference),
                         reference: "f64",
                     }),
-                    work: run_work(&params, &model, tets, result.cg_iterations),
+                    work,
                     gpu: result.gpu,
                 });
             }
@@ -170,11 +173,17 @@ fn run_params(params: &SolverParams, steps: usize, batch: u32, setup_ms: f64) ->
     out
 }
 
-/// The mesh's size and, for the implicit scheme, the mean CG iterations per step.
-fn run_work(params: &SolverParams, model: &MassSpringModel, tets: usize, cg_iterations: f64) -> serde_json::Value {
-    let mut out = json!({"tets": tets, "nodes": model.node_count(), "springs": model.springs.len()});
+/// The mesh's size, the tets the run left inside out and, for the implicit scheme, the mean
+/// CG iterations per step.
+fn run_work(params: &SolverParams, model: &MassSpringModel, mesh: &TetMesh, result: &Run) -> serde_json::Value {
+    let inverted = mesh.inverted(&result.positions);
+    let mut out = json!({"tets": mesh.tets().len(), "nodes": model.node_count(), "springs": model.springs.len(),
+        "inverted_tets": inverted.count});
+    if let Some((tet, ratio)) = inverted.worst {
+        out["worst_inverted_tet"] = json!({"tet": tet, "volume_over_rest": ratio});
+    }
     if params.integrator == Integrator::ImplicitEuler {
-        out["cg_iterations_mean"] = json!(cg_iterations);
+        out["cg_iterations_mean"] = json!(result.cg_iterations);
     }
     out
 }
