@@ -99,15 +99,24 @@ pub fn run(settings: NodeSettings) -> Result<(), NodeError> {
     node.close()
 }
 
-/// Set by Ctrl-C, or the caller's own flag.
+/// Set by SIGINT, SIGTERM or SIGHUP (what Ctrl-C, docker, systemd and `ros2 launch` send),
+/// or the caller's own flag. The first signal shuts down as Ctrl-C does (the recording
+/// finalised); a second exits at once.
 fn stop_flag(settings: &NodeSettings) -> Arc<AtomicBool> {
     if let Some(stop) = &settings.stop {
         return stop.clone();
     }
     let stop = Arc::new(AtomicBool::new(false));
     let stop_flag = stop.clone();
-    if let Err(e) = ctrlc::set_handler(move || stop_flag.store(true, Ordering::SeqCst)) {
-        tracing::warn!("no Ctrl-C handler ({e}); stop the node with SIGTERM");
+    let handler = move || {
+        if stop_flag.swap(true, Ordering::SeqCst) {
+            tracing::warn!("a second stop signal: exiting now, without closing the recording");
+            std::process::exit(130);
+        }
+        tracing::info!("stop signal (SIGINT, SIGTERM or SIGHUP): shutting down; a second one exits at once");
+    };
+    if let Err(e) = ctrlc::set_handler(handler) {
+        tracing::warn!("no stop-signal handler ({e}): a signal ends the node without closing the recording");
     }
     stop
 }

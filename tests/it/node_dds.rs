@@ -991,3 +991,37 @@ fn a_node_with_a_tiny_dev_shm_names_the_room_and_runs_on_without_shared_volumes(
         assert!(count(topic) > 0, "no {topic} without shared volumes:\n{log}");
     }
 }
+
+/// SIGTERM (what docker, systemd and `ros2 launch` send) shuts a recording node down as
+/// Ctrl-C does: the log says so, the process exits cleanly, and the bag opens in
+/// Foxglove's reader (which refuses an unfinished one) with no `bag recover`.
+#[test]
+fn sigterm_finalises_the_recording_as_ctrl_c_does() {
+    isolated("sigterm_finalises_the_recording_as_ctrl_c_does", || {
+        let dir = tempfile::tempdir().unwrap();
+        let node = start_node(dir.path(), 60, "sigterm");
+        let bag_file = dir.path().join("node.mcap");
+        // Until the recording holds something (or 30 s).
+        let start = Instant::now();
+        while std::fs::metadata(&bag_file).map_or(0, |m| m.len()) < 4096 && start.elapsed() < Duration::from_secs(30) {
+            std::thread::sleep(Duration::from_millis(100));
+        }
+        std::thread::sleep(Duration::from_millis(500));
+        Command::new("kill").args(["-TERM", &node.id().to_string()]).status().unwrap();
+        let exit = node.wait_with_output().unwrap();
+        let log = String::from_utf8_lossy(&exit.stderr);
+        assert!(exit.status.success(), "{log}");
+        assert!(log.contains("stop signal (SIGINT, SIGTERM or SIGHUP): shutting down"), "{log}");
+        let bytes = std::fs::read(&bag_file).unwrap();
+        let messages = mcap::MessageStream::new(&bytes).unwrap().count();
+        assert!(messages > 0, "the bag holds {messages} messages");
+        if python_has("mcap_ros2.decoder") {
+            let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/interop/read_bag.py");
+            let read = Command::new("python3").arg(script).arg(&bag_file).output().unwrap();
+            assert!(read.status.success(), "Foxglove's reader: {}", String::from_utf8_lossy(&read.stderr));
+            let got: serde_json::Value = serde_json::from_str(String::from_utf8_lossy(&read.stdout).trim()).unwrap();
+            let total: u64 = got["topics"].as_object().unwrap().values().map(|c| c.as_u64().unwrap()).sum();
+            assert_eq!(total as usize, messages, "{got}");
+        }
+    });
+}
