@@ -13,6 +13,9 @@ pub enum NodeError {
     Dds(#[from] dds::DdsError),
     #[error("ROS 2: {0}")]
     Ros(String),
+    /// A command-line parameter refused before anything is built, in rclcpp's words.
+    #[error("{0}")]
+    Refused(String),
     /// `--help` or `--version` was asked for: the text to print, not an error.
     #[error("{0}")]
     Help(String),

@@ -453,6 +453,20 @@ pub fn run_from_args(args: &[String]) -> Result<(), NodeError> {
     }
 }
 
+/// Every command-line parameter against its descriptor, then the scene they make together,
+/// before anything is built: a refusal in rclcpp's words (as its `declare_parameter` throws
+/// at start-up), not after the pipeline was made.
+fn refuse_bad_parameters(parameters: &BTreeMap<String, Value>) -> Result<(), NodeError> {
+    for (name, value) in parameters {
+        if let Some(reason) = super::descriptors::describe(name).and_then(|d| d.refuses(name, value, false)) {
+            return Err(NodeError::Refused(format!("parameter '{name}' could not be set: {reason}")));
+        }
+    }
+    args::check_scene(parameters)
+        .map(|_| ())
+        .map_err(|reason| NodeError::Refused(format!("the parameters make no scene: {reason}")))
+}
+
 /// Settings from a command line: the node's options, then `--ros-args …`; node
 /// parameters (`-p record:=…`, `-p backend:=cpu`) fill what the options leave unset.
 pub fn settings_from_args(args: &[String]) -> Result<NodeSettings, NodeError> {
@@ -474,6 +488,7 @@ pub fn settings_from_args(args: &[String]) -> Result<NodeSettings, NodeError> {
         Some(s) => return Err(NodeError::Ros(format!("--seconds {s} must be positive"))),
         None => None,
     };
+    refuse_bad_parameters(&ros.parameters)?;
     let bag = bag_options(&cli, &ros.parameters)?;
     Ok(NodeSettings {
         record: RecordOptions {

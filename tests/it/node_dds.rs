@@ -1025,3 +1025,29 @@ fn sigterm_finalises_the_recording_as_ctrl_c_does() {
         }
     });
 }
+
+/// A `-p` value outside its descriptor's range is refused in rclcpp's words before anything
+/// is built: no recording is started, no participant made, and the error is one line.
+#[test]
+fn a_bad_command_line_parameter_is_refused_before_anything_is_built() {
+    isolated("a_bad_command_line_parameter_is_refused_before_anything_is_built", || {
+        let dir = tempfile::tempdir().unwrap();
+        for (parameter, said) in [
+            ("solver.dt:=10", "parameter 'solver.dt' could not be set: Parameter {solver.dt} doesn't comply with floating point range [0.000001, 0.1]"),
+            ("camera.width:=0", "parameter 'camera.width' could not be set: Parameter {camera.width} doesn't comply with integer range [1, 16384]"),
+        ] {
+            let out = Command::new(env!("CARGO_BIN_EXE_defvol_node"))
+                .args(["--backend", "cpu", "--record"])
+                .arg(dir.path().join("never.mcap"))
+                .args(["--ros-args", "-p", parameter])
+                .env("ROS_DOMAIN_ID", "17")
+                .env("RUST_LOG", "info")
+                .output()
+                .unwrap();
+            let log = String::from_utf8_lossy(&out.stderr);
+            assert!(!out.status.success(), "{parameter}: {log}");
+            assert!(log.trim_end().ends_with(said) && !log.contains("up: tools on"), "{parameter}: {log}");
+            assert!(!dir.path().join("never.mcap").exists(), "{parameter}: a recording was started");
+        }
+    });
+}
