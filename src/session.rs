@@ -218,10 +218,10 @@ impl Session {
             self.bag_write(&topic, Qos::SensorData, m, stamp);
         }
         if let Some(m) = &out.deformed_mesh {
-            self.bag_write(DEFORMED_MESH, Qos::Reliable, m, stamp);
+            self.bag_write(DEFORMED_MESH, Qos::Latched, m, stamp);
         }
         if let Some(m) = &out.surface_marker {
-            self.bag_write(SURFACE_MARKER, Qos::Reliable, m, stamp);
+            self.bag_write(SURFACE_MARKER, Qos::Latched, m, stamp);
         }
         if let Some(m) = &out.raycast {
             self.bag_write(RAYCAST_IMAGE, Qos::SensorData, m, stamp);

@@ -58,8 +58,8 @@ impl Configured {
         active: bool,
     ) -> Result<Self, NodeError> {
         let publishers = Publishers {
-            mesh: topics.publisher(node, topics::DEFORMED_MESH, Qos::Reliable)?,
-            marker: topics.publisher(node, topics::SURFACE_MARKER, Qos::Reliable)?,
+            mesh: topics.publisher(node, topics::DEFORMED_MESH, Qos::Latched)?,
+            marker: topics.publisher(node, topics::SURFACE_MARKER, Qos::Latched)?,
             raycast: topics.publisher(node, topics::RAYCAST_IMAGE, Qos::SensorData)?,
             dpcm_height: topics.publisher(node, topics::DPCM_HEIGHT, Qos::SensorData)?,
             dpcm_image: topics.publisher(node, topics::DPCM_IMAGE, Qos::SensorData)?,

@@ -1051,3 +1051,71 @@ fn a_bad_command_line_parameter_is_refused_before_anything_is_built() {
         }
     });
 }
+
+/// A subscriber that joins `deformed_mesh` and `surface_marker` while the node is paused
+/// (RViz opened after the node, the organ at rest) gets the current state at once from the
+/// publishers' durable history (transient local, depth 1), as `robot_description` and maps
+/// serve late joiners; nothing new is published while paused.
+#[test]
+fn a_late_joiner_gets_the_organ_as_it_rests() {
+    isolated("a_late_joiner_gets_the_organ_as_it_rests", || {
+        let dir = tempfile::tempdir().unwrap();
+        let node_process = start_node(dir.path(), 12, "late_joiner");
+        let context = dds::context(17, Discovery::Localhost).unwrap();
+        let mut peer = context.new_node(NodeName::new("/", "late").unwrap(), NodeOptions::new()).unwrap();
+        let pose_topic = peer
+            .create_topic(&Name::parse("/robot/tool_pose").unwrap(), type_name::<PoseStamped>(), &qos(Qos::Reliable))
+            .unwrap();
+        let poses = peer.create_publisher::<PoseStamped>(&pose_topic, Some(qos(Qos::Reliable))).unwrap();
+        let pause = peer
+            .create_client::<TriggerRequest, TriggerResponse>(
+                ServiceMapping::Enhanced,
+                &Name::parse("/robot/pause").unwrap(),
+                &ServiceTypeName::new("std_srvs", "Trigger"),
+                qos(Qos::Reliable),
+                qos(Qos::Reliable),
+            )
+            .unwrap();
+        // Touch the organ for three seconds, then pause the node.
+        let start = Instant::now();
+        let mut paused = None;
+        let mut sent = 0;
+        while paused.is_none() && start.elapsed() < Duration::from_secs(8) {
+            poses.publish(pose_at(0.08)).unwrap();
+            if start.elapsed() > Duration::from_secs(3) {
+                match pause.receive_response() {
+                    Ok(Some((_, reply))) => paused = Some(reply),
+                    _ if sent % 50 == 0 => drop(pause.send_request(TriggerRequest::default())),
+                    _ => {}
+                }
+            }
+            sent += 1;
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        assert!(paused.is_some_and(|r: TriggerResponse| r.success), "the node did not pause");
+        std::thread::sleep(Duration::from_secs(1));
+        // Now join, as a viewer opened late would (asking for the durable history).
+        let latched =
+            |topic: &str, ty| peer.create_topic(&Name::parse(topic).unwrap(), ty, &qos(Qos::Latched)).unwrap();
+        let mesh_topic = latched("/robot/deformed_mesh", type_name::<DeformedMesh>());
+        let marker_topic = latched("/robot/surface_marker", type_name::<Marker>());
+        let meshes = peer.create_subscription::<DeformedMesh>(&mesh_topic, Some(qos(Qos::Latched))).unwrap();
+        let markers = peer.create_subscription::<Marker>(&marker_topic, Some(qos(Qos::Latched))).unwrap();
+        let (mut got_mesh, mut got_marker) = (0, 0);
+        let joined = Instant::now();
+        while (got_mesh == 0 || got_marker == 0) && joined.elapsed() < Duration::from_secs(3) {
+            while let Ok(Some((m, _))) = meshes.take() {
+                assert!(!m.positions.is_empty());
+                got_mesh += 1;
+            }
+            while let Ok(Some(_)) = markers.take() {
+                got_marker += 1;
+            }
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        let exit = node_process.wait_with_output().unwrap();
+        assert!(exit.status.success(), "{}", String::from_utf8_lossy(&exit.stderr));
+        // (A step already under way when the pause came may publish one more mesh.)
+        assert!(got_mesh >= 1 && got_marker >= 1, "the late joiner got {got_mesh} meshes, {got_marker} markers");
+    });
+}
