@@ -88,6 +88,8 @@ pub struct FeedbackLoop {
     /// Tools whose device's first pose came since the last step: their simulated tools start
     /// there, not where the tool waited.
     to_seat: Vec<bool>,
+    /// Topics whose zero stamps were taken as the time they came (said once each).
+    zero_stamped: std::collections::BTreeSet<String>,
 }
 
 impl FeedbackLoop {
@@ -126,7 +128,20 @@ impl FeedbackLoop {
             solver_ms: 0.0,
             local: Vec::new(),
             to_seat: Vec::new(),
+            zero_stamped: Default::default(),
         }
+    }
+
+    /// `stamp`, or `now` for a zero stamp (what `ros2 topic pub` and unsynced devices send),
+    /// saying so once per topic.
+    fn stamp_or_now(&mut self, topic: &str, stamp: Time, now: Time) -> Time {
+        if stamp != Time::default() {
+            return stamp;
+        }
+        if self.zero_stamped.insert(topic.to_owned()) {
+            tracing::warn!("{topic}: a zero stamp, taken as the time it came (said once for this topic)");
+        }
+        now
     }
 
     /// Hands the solver to a loop of its own; this one keeps the tools and follows it.
@@ -148,6 +163,7 @@ impl FeedbackLoop {
             saturated_steps: self.saturated_steps.clone(),
             local: self.local.clone(),
             to_seat: self.to_seat.clone(),
+            zero_stamped: self.zero_stamped.clone(),
         };
         std::mem::replace(self, follower)
     }
@@ -256,7 +272,9 @@ impl FeedbackLoop {
     /// Applies a tool pose; refused ones are counted and leave the tool where it was.
     /// Returns whether the tool moved.
     pub fn apply_pose(&mut self, topic: &str, msg: &PoseStamped, now: Time) -> Result<bool, Rejection> {
-        let outcome = self.pose_outcome(topic, msg, now);
+        let mut msg = msg.clone();
+        msg.header.stamp = self.stamp_or_now(topic, msg.header.stamp, now);
+        let outcome = self.pose_outcome(topic, &msg, now);
         self.counters.record(&outcome.as_ref().map(drop).map_err(Clone::clone));
         outcome
     }
@@ -285,7 +303,9 @@ impl FeedbackLoop {
 
     /// Applies a commanded tool force.
     pub fn apply_wrench(&mut self, topic: &str, msg: &WrenchStamped, now: Time) -> Result<(), Rejection> {
-        let outcome = self.wrench_outcome(topic, msg, now);
+        let mut msg = msg.clone();
+        msg.header.stamp = self.stamp_or_now(topic, msg.header.stamp, now);
+        let outcome = self.wrench_outcome(topic, &msg, now);
         self.counters.record(&outcome);
         outcome
     }

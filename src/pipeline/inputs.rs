@@ -64,6 +64,20 @@ impl Rejection {
             Rejection::UnknownTopic { .. } => "unknown_topic",
         }
     }
+
+    /// The topic the refused message came on.
+    pub fn topic(&self) -> &str {
+        match self {
+            Rejection::NotFinite { topic, .. }
+            | Rejection::Quaternion { topic, .. }
+            | Rejection::FarAway { topic, .. }
+            | Rejection::Absurd { topic, .. }
+            | Rejection::UnknownFrame { topic, .. }
+            | Rejection::OutOfOrder { topic, .. }
+            | Rejection::Stale { topic, .. }
+            | Rejection::UnknownTopic { topic } => topic,
+        }
+    }
 }
 
 /// Counts of accepted and refused inputs, and the last refusal.
@@ -72,15 +86,26 @@ pub struct InputCounters {
     pub accepted: u64,
     pub rejected: BTreeMap<&'static str, u64>,
     pub last_rejection: Option<String>,
+    /// When each (topic, reason) was last logged.
+    logged: BTreeMap<(String, &'static str), std::time::Instant>,
 }
 
 impl InputCounters {
+    /// Counts `outcome`; a refusal is also logged at WARN, at most once a second per topic
+    /// and reason (as `RCLCPP_WARN_THROTTLE` does), so a flood of bad input cannot drown the
+    /// log while the first of each kind is always seen.
     pub fn record(&mut self, outcome: &Result<(), Rejection>) {
         match outcome {
             Ok(()) => self.accepted += 1,
             Err(rejection) => {
                 *self.rejected.entry(rejection.kind()).or_default() += 1;
                 self.last_rejection = Some(rejection.to_string());
+                let now = std::time::Instant::now();
+                let key = (rejection.topic().to_owned(), rejection.kind());
+                if self.logged.get(&key).is_none_or(|at| now.duration_since(*at).as_secs_f64() >= 1.0) {
+                    tracing::warn!("refused {rejection} (more like it within a second are only counted)");
+                    self.logged.insert(key, now);
+                }
             }
         }
     }

@@ -735,6 +735,26 @@ mod tests {
             .unwrap()
     }
 
+    /// A zero stamp (what `ros2 topic pub` sends) is taken as the time the pose came: the
+    /// staleness limit that refuses a pose stamped 5 s ago lets it through, and it moves the
+    /// tool; later poses are ordered after that time.
+    #[test]
+    fn a_zero_stamped_pose_is_taken_as_the_time_it_came() {
+        let stages = crate::scene::Stages { solver: true, warp: false, dpcm: false, raycast: false };
+        let mut s = scene(stages);
+        s.tools[0].path = None;
+        let now = Time::from_secs(1.0e9);
+        let limits = InputLimits::default();
+        let mut p = Pipeline::new(s.clone(), &Backend::cpu(), limits.clone(), FrameMode::Lockstep).unwrap();
+        let stale = p.apply_pose("tool_pose", &pose(1.0e9 - 5.0, 0.05), now);
+        assert!(matches!(stale, Err(Rejection::Stale { .. })), "{stale:?}");
+        let mut p = Pipeline::new(s, &Backend::cpu(), limits, FrameMode::Lockstep).unwrap();
+        p.apply_pose("tool_pose", &pose(0.0, 0.05), now).unwrap();
+        assert_eq!(p.tool_on("tool_pose").unwrap().1.translation.z, 0.05);
+        let earlier = p.apply_pose("tool_pose", &pose(1.0e9 - 0.1, 0.04), now);
+        assert!(matches!(earlier, Err(Rejection::OutOfOrder { .. })), "{earlier:?}");
+    }
+
     fn pose(t: f64, z: f64) -> PoseStamped {
         let mut msg = PoseStamped {
             header: Header { stamp: Time::from_secs(t), frame_id: "world".into() },
