@@ -32,13 +32,15 @@ pub struct Recovery {
 /// Recovers `path`: one MCAP file, or every split of a bag directory and its metadata.
 pub fn recover(path: &Path) -> Result<Recovery, RecordError> {
     if !path.is_dir() {
-        let outcome = recover_file(path)?;
+        let outcome = recover_file(path, false)?;
         return Ok(Recovery { files: vec![(path.to_owned(), outcome)], metadata: None });
     }
     let splits = splits_of(path)?;
     let mut files = Vec::new();
-    for split in &splits {
-        files.push((split.clone(), recover_file(split)?));
+    for (i, split) in splits.iter().enumerate() {
+        // The last split may be empty: the recorder was killed as it opened it.
+        let open = i + 1 == splits.len();
+        files.push((split.clone(), recover_file(split, open)?));
     }
     let (entries, topics) = describe_splits(&splits)?;
     write_metadata(path, &entries, &topics)?;
@@ -67,15 +69,19 @@ fn intact(bytes: &[u8]) -> bool {
     bytes.ends_with(mcap::MAGIC) && matches!(mcap::Summary::read(bytes), Ok(Some(_)))
 }
 
-/// One file: intact files are counted and left; cut ones rebuilt beside their original.
-fn recover_file(path: &Path) -> Result<FileOutcome, RecordError> {
+/// One file: intact files are counted and left; cut ones rebuilt beside their original. An
+/// empty file is refused, unless it is a bag's `open` split, which becomes an empty bag.
+fn recover_file(path: &Path, open: bool) -> Result<FileOutcome, RecordError> {
     let bytes = std::fs::read(path).map_err(|e| RecordError::Read { path: path.to_owned(), message: e.to_string() })?;
     if intact(&bytes) {
         let messages = walk_records(path, &bytes, |_| Ok(()))?.messages;
         return Ok(FileOutcome::Intact { messages });
     }
     // Everything is read (and every error found) before anything is written.
-    let contents = Contents::read(path, &bytes)?;
+    let contents = match bytes.is_empty() && open {
+        true => Contents { profile: "ros2".into(), ..Default::default() },
+        false => Contents::read(path, &bytes)?,
+    };
     let rebuilding = path.with_extension("mcap.recovering");
     let written = contents.write(&rebuilding);
     let messages = match written {
@@ -302,6 +308,14 @@ mod tests {
         assert_eq!(counts, [50, 50, 50, 0]);
         assert_eq!(info.message_count, 150);
         assert_eq!(info.topics_with_message_count[0].message_count, 150);
+        // Killed just as it opened a fifth split: that one empty, rebuilt as an empty bag.
+        std::fs::write(snapshot.join("run_4.mcap"), b"").unwrap();
+        let recovery = recover(&snapshot).unwrap();
+        assert!(matches!(recovery.files[4].1, FileOutcome::Rebuilt { messages: 0, .. }), "{recovery:?}");
+        assert!(read_messages(&snapshot.join("run_4.mcap"), &[]).unwrap().is_empty());
+        let metadata: Metadata =
+            serde_yaml_ng::from_str(&std::fs::read_to_string(snapshot.join("metadata.yaml")).unwrap()).unwrap();
+        assert_eq!(metadata.rosbag2_bagfile_information.relative_file_paths.len(), 5);
     }
 
     #[test]
