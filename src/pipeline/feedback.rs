@@ -12,7 +12,7 @@ use super::error::PipelineError;
 use super::inputs::{Checker, InputCounters, InputLimits, Rejection};
 use super::outputs;
 use crate::backend::RunsOn;
-use crate::msgs::{PoseStamped, Time, WrenchStamped};
+use crate::msgs::{Header, PoseStamped, Time, WrenchStamped};
 use crate::scene::{Scene, ToolPath};
 use crate::solver::{LocalModel, SolverEngine, StepReport, Tool};
 
@@ -272,9 +272,17 @@ impl FeedbackLoop {
     /// Applies a tool pose; refused ones are counted and leave the tool where it was.
     /// Returns whether the tool moved.
     pub fn apply_pose(&mut self, topic: &str, msg: &PoseStamped, now: Time) -> Result<bool, Rejection> {
-        let mut msg = msg.clone();
-        msg.header.stamp = self.stamp_or_now(topic, msg.header.stamp, now);
-        let outcome = self.pose_outcome(topic, &msg, now);
+        // Copied only to restamp a zero stamp: the force loop's every pose passes here.
+        let stamp = self.stamp_or_now(topic, msg.header.stamp, now);
+        let restamped;
+        let msg = match stamp == msg.header.stamp {
+            true => msg,
+            false => {
+                restamped = PoseStamped { header: Header { stamp, ..msg.header.clone() }, ..msg.clone() };
+                &restamped
+            }
+        };
+        let outcome = self.pose_outcome(topic, msg, now);
         self.counters.record(&outcome.as_ref().map(drop).map_err(Clone::clone));
         outcome
     }
@@ -303,9 +311,17 @@ impl FeedbackLoop {
 
     /// Applies a commanded tool force.
     pub fn apply_wrench(&mut self, topic: &str, msg: &WrenchStamped, now: Time) -> Result<(), Rejection> {
-        let mut msg = msg.clone();
-        msg.header.stamp = self.stamp_or_now(topic, msg.header.stamp, now);
-        let outcome = self.wrench_outcome(topic, &msg, now);
+        // Copied only to restamp a zero stamp: the force loop's every pose passes here.
+        let stamp = self.stamp_or_now(topic, msg.header.stamp, now);
+        let restamped;
+        let msg = match stamp == msg.header.stamp {
+            true => msg,
+            false => {
+                restamped = WrenchStamped { header: Header { stamp, ..msg.header.clone() }, ..msg.clone() };
+                &restamped
+            }
+        };
+        let outcome = self.wrench_outcome(topic, msg, now);
         self.counters.record(&outcome);
         outcome
     }

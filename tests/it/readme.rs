@@ -413,8 +413,7 @@ fn every_relative_link_of_the_pages_and_every_journal_pointer_of_the_code_leads_
 #[test]
 fn the_scene_reference_is_the_parameters_own_table() {
     let page = std::fs::read_to_string(root().join("docs/scenes.md")).unwrap();
-    let (begin, end) = ("<!-- parameters: begin -->\n", "<!-- parameters: end -->");
-    let table = page.split_once(begin).and_then(|(_, rest)| rest.split_once(end)).map(|(table, _)| table);
+    let table = defvol::bench::report::block(&page, "parameters");
     let expected = defvol::ros::descriptors::reference_table();
     assert!(expected.lines().count() > 40, "{expected}");
     assert_eq!(table, Some(expected.as_str()), "docs/scenes.md's parameter table should read:\n{expected}");

@@ -66,8 +66,14 @@ pub fn quality(nodes: &[Vector3<f64>], tets: &[[u32; 4]]) -> Quality {
     let positive = volumes.iter().filter(|v| **v > 0.0).count();
     let negative = volumes.iter().filter(|v| **v < 0.0).count();
     let solid: Vec<&[u32; 4]> = good.iter().zip(&volumes).filter(|(_, v)| **v != 0.0).map(|(t, _)| t).collect();
-    let min_dihedral: Vec<f64> = solid.iter().map(|t| min_of(dihedral_angles(nodes, t)).to_degrees()).collect();
-    let max_dihedral = solid.iter().map(|t| max_of(dihedral_angles(nodes, t)).to_degrees()).reduce(f64::max);
+    let extremes: Vec<(f64, f64)> = (solid.iter())
+        .map(|t| {
+            let angles = dihedral_angles(nodes, t);
+            (min_of(angles).to_degrees(), max_of(angles).to_degrees())
+        })
+        .collect();
+    let min_dihedral: Vec<f64> = extremes.iter().map(|(min, _)| *min).collect();
+    let max_dihedral = extremes.iter().map(|(_, max)| *max).reduce(f64::max);
     let (boundary, overfull_faces) = boundary(&good);
     let (lo, hi) = bounds(nodes);
     Quality {
