@@ -137,8 +137,13 @@ pub fn run(args: RenderArgs) -> Result<()> {
     let tf = match &args.tf_file {
         Some(path) => {
             let text = std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
-            serde_yaml_ng::from_str::<TransferFunction>(&text)
-                .with_context(|| format!("{}: not a transfer function", path.display()))?
+            serde_yaml_ng::from_str::<TransferFunction>(&text).map_err(|e| {
+                anyhow::anyhow!(
+                    "{}: not a transfer function: {}",
+                    path.display(),
+                    defvol::io::withhold_found(&e.to_string())
+                )
+            })?
         }
         None => TransferFunction::preset(&args.tf)?,
     };

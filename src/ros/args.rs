@@ -9,6 +9,7 @@ use std::path::Path;
 
 use serde_yaml_ng::{Mapping, Value};
 
+use crate::io::withhold_found;
 use crate::scene::{Scene, SceneError};
 
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -115,7 +116,7 @@ impl RosArgs {
 pub fn params_file(path: &Path, node_name: &str, namespace: &str) -> Result<BTreeMap<String, Value>, ArgsError> {
     let err = |message: String| ArgsError::ParamsFile { path: path.display().to_string(), message };
     let text = std::fs::read_to_string(path).map_err(|e| err(e.to_string()))?;
-    let root: Value = serde_yaml_ng::from_str(&text).map_err(|e| err(e.to_string()))?;
+    let root: Value = serde_yaml_ng::from_str(&text).map_err(|e| err(withhold_found(&e.to_string())))?;
     let Value::Mapping(sections) = root else {
         return Err(err("expected `node_name: {ros__parameters: …}` at the top".into()));
     };
@@ -195,8 +196,15 @@ pub fn scene_from_parameters(parameters: &BTreeMap<String, Value>) -> Result<Sce
             return Err(ArgsError::Parameter { name: "scene_file".into(), message: format!("{other:?} is not a path") })
         }
     };
-    let mut tree: Value = serde_yaml_ng::from_str(&text)
-        .map_err(|e| ArgsError::Parameter { name: "scene_file".into(), message: format!("{origin}: {e}") })?;
+    let file_error = || {
+        let message =
+            Scene::parse(&text, &origin).err().map_or_else(|| format!("{origin}: not a scene"), |e| e.to_string());
+        ArgsError::Parameter { name: "scene_file".into(), message }
+    };
+    let mut tree: Value = serde_yaml_ng::from_str(&text).map_err(|_| file_error())?;
+    if !tree.is_mapping() {
+        return Err(file_error());
+    }
     let base = tree.clone();
     let scene_parameters = || parameters.iter().filter(|(n, _)| !NODE_PARAMETERS.contains(&n.as_str()));
     for (name, value) in scene_parameters() {
@@ -212,12 +220,15 @@ pub fn scene_from_parameters(parameters: &BTreeMap<String, Value>) -> Result<Sce
             let mut alone = base.clone();
             set_path(&mut alone, name, (*value).clone()).is_ok() && serde_yaml_ng::from_value::<Scene>(alone).is_err()
         });
+        if serde_yaml_ng::from_value::<Scene>(base.clone()).is_err() {
+            return file_error();
+        }
         match culprit {
             Some((name, value)) => {
                 let message = message.strip_prefix(&format!("{name}: ")).map_or(message.clone(), str::to_owned);
                 ArgsError::Value { name: name.clone(), value: inline(value), message }
             }
-            None => ArgsError::Parameter { name: origin, message },
+            None => ArgsError::Parameter { name: origin.clone(), message },
         }
     })
 }
@@ -359,6 +370,28 @@ mod tests {
         params.insert("solver.dt".to_owned(), Value::from(0.005));
         let e = scene_from_parameters(&params).unwrap_err().to_string();
         assert!(e.starts_with("parameter `camera.width` = abc: invalid type"), "{e}");
+    }
+
+    /// The leak `ros2 param set /defvol scene_file /etc/shadow` was: a file that is no scene
+    /// is blamed as the file, with no byte of what it holds, whatever else is set.
+    #[test]
+    fn a_scene_file_that_is_no_scene_is_refused_as_the_file_without_its_text() {
+        let dir = tempfile::tempdir().unwrap();
+        let secret = "s3cr3t";
+        for (name, text) in [
+            ("passwd", format!("root:x:0:0:{secret}:/root:/bin/bash\ndaemon:x:1:1::/usr/sbin:/nologin\n")),
+            ("shadow", format!("root:*:20228:0:99999:7:::\n{secret}:*:20228:0:99999:7:::\n")),
+            ("broken", format!("volume: [{secret}\n")),
+        ] {
+            let path = dir.path().join(name);
+            std::fs::write(&path, text).unwrap();
+            let mut params = BTreeMap::new();
+            params.insert("scene_file".to_owned(), Value::from(path.display().to_string()));
+            params.insert("allow_software_gpu".to_owned(), Value::Bool(false));
+            let e = scene_from_parameters(&params).unwrap_err().to_string();
+            assert!(e.starts_with(&format!("parameter `scene_file`: {}: ", path.display())), "{e}");
+            assert!(!e.contains(secret) && !e.contains("root") && !e.contains("20228"), "{e}");
+        }
     }
 
     #[test]

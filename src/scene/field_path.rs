@@ -8,25 +8,34 @@
 use serde::de::DeserializeOwned;
 use serde_yaml_ng::{Mapping, Value};
 
+use crate::io::withhold_found;
+
 /// The `T` in `text`, or an error that names the path of the field at fault and, for an
 /// unknown field, the nearest expected name. `base`: a whole `T` as YAML (the default scene)
 /// to try entries on. `keep_lines`: whether line numbers are worth keeping (the user's own
 /// text, not one made from parameters).
 pub fn parse<T: DeserializeOwned>(text: &str, base: &str, keep_lines: bool) -> Result<T, String> {
-    let error = match serde_yaml_ng::from_str::<T>(text) {
+    let found = match serde_yaml_ng::from_str::<T>(text) {
         Ok(scene) => return Ok(scene),
         Err(error) => error.to_string(),
     };
+    // The hint compares the name found with the schema's; the message never quotes it.
+    let hint = nearest_expected(&found).map(|name| format!(" (did you mean `{name}`?)"));
+    let error = withhold_found(&found);
     let message =
         match (has_path(&error), serde_yaml_ng::from_str::<Value>(text).ok().and_then(|t| culprit::<T>(&t, base))) {
-            (false, Some(path)) => format!("{path}: {}", without_location(&error)),
+            (false, Some(path)) => {
+                let line = keep_lines.then(|| line_of(text, &path)).flatten();
+                format!(
+                    "{path}: {}{}",
+                    without_location(&error),
+                    line.map(|n| format!(" at line {n}")).unwrap_or_default()
+                )
+            }
             (_, _) if !keep_lines => without_location(&error).to_owned(),
             _ => error,
         };
-    Err(match nearest_expected(&message) {
-        Some(name) => format!("{message} (did you mean `{name}`?)"),
-        None => message,
-    })
+    Err(format!("{message}{}", hint.unwrap_or_default()))
 }
 
 /// Whether the message starts with a field path (`material.kind: …`).
@@ -51,7 +60,8 @@ fn culprit<T: DeserializeOwned>(tree: &Value, base: &str) -> Option<String> {
         serde_yaml_ng::from_value::<T>(Value::Mapping(trial)).is_err()
     };
     let (key, value) = user.iter().find(|(key, value)| breaks(key, value))?;
-    let name = key.as_str().map_or_else(|| format!("{key:?}"), str::to_owned);
+    // Only a name of the schema's: a key the file invented is text found there.
+    let name = key.as_str().filter(|_| base.contains_key(key))?.to_owned();
     let item = match value {
         Value::Sequence(items) => items.iter().position(|item| breaks(key, &Value::Sequence(vec![item.clone()]))),
         _ => None,
@@ -60,6 +70,14 @@ fn culprit<T: DeserializeOwned>(tree: &Value, base: &str) -> Option<String> {
         Some(i) => format!("{name}[{i}]"),
         None => name,
     })
+}
+
+/// The line (from 1) where the top-level entry `path` starts (its name before any index).
+fn line_of(text: &str, path: &str) -> Option<usize> {
+    let key = path.split('[').next()?;
+    text.lines()
+        .position(|line| line.strip_prefix(key).is_some_and(|rest| rest.trim_start().starts_with(':')))
+        .map(|i| i + 1)
 }
 
 /// For "unknown field `stifness`, expected `stiffness` or `damping`": the expected name
@@ -89,7 +107,7 @@ mod tests {
     fn a_typo_inside_a_tagged_enum_is_named_with_its_path_and_the_nearest_field() {
         let text = DEFAULT_SCENE.replace("  stiffness: 1000.0", "  stifness: 1000.0");
         let message = error_of(&text);
-        assert!(message.starts_with("material: unknown field `stifness`"), "{message}");
+        assert!(message.starts_with("material: unknown field, expected") && !message.contains("stifness"), "{message}");
         assert!(message.ends_with("(did you mean `stiffness`?)") && !message.contains("line 3"), "{message}");
     }
 
@@ -97,19 +115,40 @@ mod tests {
     fn a_bad_list_item_is_named_by_its_index() {
         let text = DEFAULT_SCENE.replace("kind: sphere, radius:", "kind: sphere, radus:");
         let message = error_of(&text);
-        assert!(message.starts_with("tools[0]: unknown field `radus`"), "{message}");
+        assert!(message.starts_with("tools[0]: unknown field, expected") && !message.contains("radus"), "{message}");
         assert!(message.ends_with("(did you mean `radius`?)"), "{message}");
         // Where serde_yaml_ng keeps the path itself, it is its own.
         let message = error_of(&DEFAULT_SCENE.replace("kind: sphere", "kind: spere"));
-        assert!(message.starts_with("tools[0].shape.kind: unknown variant `spere`"), "{message}");
+        assert!(message.starts_with("tools[0].shape.kind: unknown variant, expected"), "{message}");
+        assert!(!message.contains("spere") && message.ends_with("(did you mean `sphere`?)"), "{message}");
     }
 
     #[test]
     fn a_path_serde_gives_is_kept_and_far_names_get_no_guess() {
         let message = error_of(&DEFAULT_SCENE.replace("  dt: 0.01", "  dt: fast"));
-        assert!(message.starts_with("solver.dt: invalid type: string \"fast\""), "{message}");
+        assert!(message.starts_with("solver.dt: invalid type: a string, expected f64"), "{message}");
         assert!(message.ends_with("at line 20 column 7"), "the line of the user's text: {message}");
         let message = error_of(&DEFAULT_SCENE.replace("  stiffness: 1000.0", "  zzzzzz: 1000.0"));
-        assert!(message.starts_with("material: unknown field `zzzzzz`") && !message.contains("did you mean"));
+        assert!(message.starts_with("material: unknown field") && !message.contains("did you mean"));
+    }
+
+    /// What an error says of a file that is no scene: where, and what was expected; never
+    /// a byte of what the file holds (the leak of `--scene /etc/shadow`).
+    #[test]
+    fn a_file_that_is_no_scene_is_refused_without_its_text() {
+        let secret = "s3cr3t";
+        let files = [
+            format!("root:x:0:0:{secret}:/root:/bin/bash\ndaemon:x:1:1:{secret}:/usr/sbin\n"),
+            format!("root:*:20228:0:99999:7:::{secret}:\ndaemon:*:20228:0:99999:7:::\n"),
+            format!("[{secret}]\n"),
+            format!("volume: phantom\n{secret}: 1\n"),
+            DEFAULT_SCENE.replace("  dt: 0.01", &format!("  dt: {secret}")),
+            DEFAULT_SCENE.replace("kind: sphere", &format!("kind: {secret}")),
+            DEFAULT_SCENE.replace("  stiffness: 1000.0", &format!("  {secret}: 1000.0")),
+        ];
+        for text in files {
+            let message = error_of(&text);
+            assert!(!message.contains(secret) && !message.contains("root"), "{message}");
+        }
     }
 }

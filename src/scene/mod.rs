@@ -490,11 +490,12 @@ mod tests {
         assert_eq!(s.tools.len(), 1);
         let bad = DEFAULT_SCENE.replace("density: 1000.0", "densty: 1000.0");
         let e = Scene::parse(&bad, "s.yaml").unwrap_err().to_string();
-        assert!(e.contains("s.yaml") && e.contains("densty"), "{e}");
+        assert!(e.contains("s.yaml") && e.contains("unknown field") && e.contains("did you mean `density`"), "{e}");
         // Inside a tagged section too, with the names it takes.
         let bad = DEFAULT_SCENE.replace("  stiffness: 1000.0", "  stifness: 1000.0");
         let e = Scene::parse(&bad, "s.yaml").unwrap_err().to_string();
-        assert!(e.contains("unknown field `stifness`") && e.contains("`stiffness`"), "{e}");
+        assert!(e.contains("material: unknown field") && e.contains("`stiffness`"), "{e}");
+        assert!(e.ends_with("at line 9 (did you mean `stiffness`?)"), "the line of the section: {e}");
     }
 
     #[test]

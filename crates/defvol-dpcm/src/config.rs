@@ -6,6 +6,8 @@ use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 
+use defvol_core::io::withhold_found;
+
 use crate::error::DpcmError;
 use crate::kernels::{self, Coeffs};
 use crate::render;
@@ -204,8 +206,10 @@ impl DpcmConfig {
     }
 
     pub fn from_yaml(text: &str, source_name: &str) -> Result<Self, DpcmError> {
-        serde_yaml_ng::from_str(text)
-            .map_err(|e| DpcmError::Parse { source_name: source_name.to_owned(), message: e.to_string() })
+        serde_yaml_ng::from_str(text).map_err(|e| DpcmError::Parse {
+            source_name: source_name.to_owned(),
+            message: withhold_found(&e.to_string()),
+        })
     }
 
     pub fn load(path: &Path) -> Result<Self, DpcmError> {

@@ -29,10 +29,12 @@ mod tetgen;
 mod vtk;
 mod vtk_legacy;
 mod vtk_xml;
+mod withheld;
 
 pub use dicom::{parse_dicom, read_dicom, DicomRead, SeriesInfo};
 pub use error::IoError;
 pub use mesh_file::{CellArray, MeshRead, RawMesh, SkippedCells};
+pub use withheld::withhold_found;
 
 use error::{io_error, malformed};
 use files::{file_name, write_atomically};
