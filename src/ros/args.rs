@@ -171,8 +171,9 @@ fn flatten(prefix: &str, value: &Value, out: &mut BTreeMap<String, Value>) {
 }
 
 /// Parameters that configure the node itself rather than the scene.
-pub const NODE_PARAMETERS: [&str; 8] = [
+pub const NODE_PARAMETERS: [&str; 9] = [
     "scene_file",
+    crate::scene::ALLOWED_DIRS_PARAMETER,
     "dds.open_discovery",
     "record",
     "record.max_bag_duration",
@@ -187,8 +188,8 @@ pub const NODE_PARAMETERS: [&str; 8] = [
 pub fn scene_from_parameters(parameters: &BTreeMap<String, Value>) -> Result<Scene, ArgsError> {
     let (text, origin) = match parameters.get("scene_file") {
         Some(Value::String(path)) if !path.is_empty() => {
-            let text = std::fs::read_to_string(path)
-                .map_err(|e| ArgsError::Parameter { name: "scene_file".into(), message: format!("{path}: {e}") })?;
+            let text = crate::scene::read_scene_text(Path::new(path))
+                .map_err(|e| ArgsError::Parameter { name: "scene_file".into(), message: e.to_string() })?;
             (text, path.clone())
         }
         Some(Value::String(_)) | None => (crate::scene::DEFAULT_SCENE.to_owned(), "embedded default scene".to_owned()),

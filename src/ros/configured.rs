@@ -16,7 +16,7 @@ use crate::msgs::{
 };
 use crate::pipeline::{Demand, Outputs, Pipeline};
 use crate::record::Qos;
-use crate::scene::Scene;
+use crate::scene::{check_scene_size, named_file, AllowedDirs, Expect, Scene};
 use crate::session::{topics, RecordOptions, Session};
 
 struct Publishers {
@@ -141,8 +141,9 @@ impl Configured {
         inputs
     }
 
-    /// Answers the services; true when one reloaded the scene.
-    pub fn serve(&mut self) -> bool {
+    /// Answers the services (a scene to load confined to `allowed`); true when one
+    /// reloaded the scene.
+    pub fn serve(&mut self, allowed: &AllowedDirs) -> bool {
         let pipeline = &mut self.pipeline;
         let mut was_reset = false;
         answer(&self.services.reset, |_| {
@@ -169,8 +170,8 @@ impl Configured {
         }
         let mut reloaded = false;
         answer(&self.services.load, |request| {
-            let loaded =
-                scene_of(&request.scene).and_then(|scene| pipeline.load_scene(scene).map_err(|e| e.to_string()));
+            let loaded = scene_of(&request.scene, allowed, pipeline.scene())
+                .and_then(|scene| pipeline.load_scene(scene).map_err(|e| e.to_string()));
             reloaded = loaded.is_ok();
             result(loaded.map(|()| "scene loaded".into()).map_err(|e| format!("kept the running scene: {e}")))
         });
@@ -321,11 +322,23 @@ fn publish<T: Message + std::fmt::Debug>(publisher: &(String, Publisher<T>), msg
     }
 }
 
-/// A scene from a `load_scene` request: a file path, or YAML text.
-fn scene_of(text: &str) -> Result<Scene, String> {
-    let path = std::path::Path::new(text.trim());
-    if !text.contains('\n') && path.exists() {
-        return Scene::from_file(path).map_err(|e| e.to_string());
+/// A scene from a `load_scene` request: a file path inside the `allowed` directories, or
+/// YAML text (several lines, or one with `{` or `: `) whose files are either the `running`
+/// scene's or inside them. Which one a request is never depends on what exists.
+fn scene_of(text: &str, allowed: &AllowedDirs, running: &Scene) -> Result<Scene, String> {
+    check_scene_size(text.len()).map_err(|why| format!("load_scene request: {why}"))?;
+    let line = text.trim();
+    if !line.contains('\n') && !line.starts_with('{') && !line.contains(": ") {
+        let path = allowed.admit(std::path::Path::new(text.trim()), Expect::File)?;
+        return Scene::from_file(&path).map_err(|e| e.to_string());
     }
-    Scene::parse(text, "load_scene request").map_err(|e| e.to_string())
+    let scene = Scene::parse(text, "load_scene request").map_err(|e| e.to_string())?;
+    let known = running.named_files();
+    for (parameter, path) in scene.named_files() {
+        if !known.contains(&(parameter, path.clone())) {
+            let expect = named_file(parameter, &path).unwrap_or(Expect::File);
+            allowed.admit(std::path::Path::new(&path), expect).map_err(|why| format!("{parameter}: {why}"))?;
+        }
+    }
+    Ok(scene)
 }

@@ -47,6 +47,12 @@ const fn read_only(descriptor: Descriptor) -> Descriptor {
 /// Parameter names (dotted scene paths; `#` stands for a list index) and their descriptions.
 const TABLE: &[(&str, Descriptor)] = &[
     ("scene_file", text("Scene YAML the other parameters are written into (empty: the embedded default scene)")),
+    (
+        "files.allowed_dirs",
+        read_only(text(
+            "Folders the files named over the wire (scene_file, volume, mesh.path, dpcm.preset, load_scene) must lie in (default: the start scene's and the package's config/)",
+        )),
+    ),
     ("use_sim_time", text("ROS 2's simulated-time switch (defvol stamps its outputs with the system clock)")),
     (
         "record",

@@ -27,8 +27,7 @@ use crate::msgs::{
 use crate::pipeline::inputs::InputLimits;
 use crate::pipeline::{Demand, FrameMode, Pipeline};
 use crate::record::BagOptions;
-use crate::scene::BackendArgs;
-use crate::scene::Scene;
+use crate::scene::{AllowedDirs, BackendArgs, Scene, ALLOWED_DIRS_PARAMETER};
 use crate::session::{RecordOptions, Session, TopicNames};
 
 macro_rules! ros_messages {
@@ -134,7 +133,11 @@ struct RosNode {
 
 impl RosNode {
     /// The participant (loopback-only unless opened) and the node with `declared` parameters.
-    fn open(settings: &NodeSettings, declared: BTreeMap<String, Value>) -> Result<Self, NodeError> {
+    fn open(
+        settings: &NodeSettings,
+        declared: BTreeMap<String, Value>,
+        allowed: AllowedDirs,
+    ) -> Result<Self, NodeError> {
         let (domain, discovery) = dds::settings(|name| std::env::var(name).ok(), settings.open_discovery)?;
         let context = dds::context(domain, discovery)?;
         tracing::info!(
@@ -145,7 +148,7 @@ impl RosNode {
             .map_err(|e| NodeError::Ros(format!("node name: {e:?}")))?;
         // Served by `ParameterServices`, which describe each parameter fully.
         let options = ros2_client::NodeOptions::new().enable_rosout(true).start_parameter_services(false);
-        let (options, parameters) = Parameters::declare(options, declared);
+        let (options, parameters) = Parameters::declare(options, declared, allowed);
         let mut node = context.new_node(node_name, options).map_err(|e| NodeError::Ros(format!("node: {e:?}")))?;
         let parameter_services = ParameterServices::create(&mut node)?;
         let spinner = node.spinner().map_err(ros_err("spinner"))?;
@@ -180,6 +183,8 @@ struct DefvolNode {
     configured: Option<Configured>,
     /// Configures so far: a managed node configured again records to a new file.
     configures: u32,
+    /// Where files named over the wire must lie.
+    allowed: AllowedDirs,
 }
 
 impl DefvolNode {
@@ -188,8 +193,11 @@ impl DefvolNode {
     fn open(settings: &NodeSettings, topics: &Topics<'_>) -> Result<Self, NodeError> {
         let scene = args::scene_from_parameters(&settings.ros.parameters)?;
         let pipeline = if settings.managed { None } else { Some(load(scene.clone(), settings)?) };
-        let declared = declared_parameters(pipeline.as_ref().map_or(&scene, Pipeline::scene), settings);
-        let mut ros = RosNode::open(settings, declared)?;
+        let allowed = allowed_dirs(&settings.ros.parameters)?;
+        let mut declared = declared_parameters(pipeline.as_ref().map_or(&scene, Pipeline::scene), settings);
+        let dirs = allowed.dirs().iter().map(|dir| Value::String(dir.display().to_string())).collect();
+        declared.insert(ALLOWED_DIRS_PARAMETER.into(), Value::Sequence(dirs));
+        let mut ros = RosNode::open(settings, declared, allowed.clone())?;
         let managed = if settings.managed { Some(Managed::create(&mut ros.node)?) } else { None };
         let (record, number) = unused_record(&settings.record, 0);
         let configured = pipeline.map(|p| Configured::wire(p, &mut ros.node, topics, &record, true)).transpose()?;
@@ -204,7 +212,8 @@ impl DefvolNode {
                 ros.node.fully_qualified_name()
             ),
         }
-        Ok(Self { ros, managed, configures: if configured.is_some() { number + 1 } else { 0 }, configured })
+        let configures = if configured.is_some() { number + 1 } else { 0 };
+        Ok(Self { ros, managed, configured, configures, allowed })
     }
 
     fn active(&self) -> bool {
@@ -245,7 +254,7 @@ impl DefvolNode {
         if let Some(state) = c.feedback.latest() {
             c.pipeline.follow(state);
         }
-        let served = c.serve();
+        let served = c.serve(&self.allowed);
         if self.ros.parameters.apply(&mut c.pipeline) || served {
             c.rewire(&mut self.ros.node, topics)?;
         }
@@ -281,6 +290,28 @@ fn unused_record(record: &RecordOptions, n: u32) -> (RecordOptions, u32) {
         }
     }
     (unused, number)
+}
+
+/// The folders files named over the wire must lie in: `files.allowed_dirs` as given (a list
+/// or one path), else the defaults; logged, so that a refusal is no surprise.
+fn allowed_dirs(parameters: &BTreeMap<String, Value>) -> Result<AllowedDirs, NodeError> {
+    let given: Option<Vec<std::path::PathBuf>> = match parameters.get(ALLOWED_DIRS_PARAMETER) {
+        None => None,
+        Some(Value::String(dir)) => Some(vec![dir.into()]),
+        Some(Value::Sequence(dirs)) => Some(
+            dirs.iter()
+                .map(|dir| dir.as_str().map(std::path::PathBuf::from))
+                .collect::<Option<_>>()
+                .ok_or_else(|| NodeError::Refused(format!("`{ALLOWED_DIRS_PARAMETER}`: a list of folders")))?,
+        ),
+        Some(_) => return Err(NodeError::Refused(format!("`{ALLOWED_DIRS_PARAMETER}`: a list of folders"))),
+    };
+    let scene_file = parameters.get("scene_file").and_then(Value::as_str).filter(|s| !s.is_empty());
+    let allowed =
+        AllowedDirs::new(given.unwrap_or_else(|| AllowedDirs::default_dirs(scene_file.map(std::path::Path::new))));
+    let dirs: Vec<String> = allowed.dirs().iter().map(|dir| dir.display().to_string()).collect();
+    tracing::info!("files named over the wire: only inside {}", dirs.join(", "));
+    Ok(allowed)
 }
 
 /// The pipeline of `scene` on the run's backend (the command line's over the scene's).

@@ -5,6 +5,7 @@
 //! only a parameter's type: ours answers with [`descriptors`](super::descriptors).
 
 use std::collections::BTreeMap;
+use std::path::Path;
 use std::sync::{mpsc, Arc, Mutex};
 
 use ros2_client::parameters::raw;
@@ -21,16 +22,23 @@ use super::descriptors::{self, Descriptor, Range};
 use super::error::NodeError;
 use super::wire::{answer, own_server};
 use crate::pipeline::Pipeline;
+use crate::scene::{named_file, AllowedDirs};
 
 /// The values in force and the changes accepted since the last look.
 pub(super) struct Parameters {
     in_force: Arc<Mutex<BTreeMap<String, Value>>>,
     changed: mpsc::Receiver<(String, Value)>,
+    allowed: AllowedDirs,
 }
 
 impl Parameters {
     /// Declares `declared` on `options`, with the validator and the set action.
-    pub(super) fn declare(mut options: NodeOptions, declared: BTreeMap<String, Value>) -> (NodeOptions, Self) {
+    /// `allowed`: where the files a set names must lie.
+    pub(super) fn declare(
+        mut options: NodeOptions,
+        declared: BTreeMap<String, Value>,
+        allowed: AllowedDirs,
+    ) -> (NodeOptions, Self) {
         let (changes, changed) = mpsc::channel::<(String, Value)>();
         for (name, value) in &declared {
             options = options.declare_parameter(name, parameter_of(value));
@@ -38,11 +46,12 @@ impl Parameters {
         // The values in force: a set action repeating one of them (declaring does) changes nothing.
         let in_force = Arc::new(Mutex::new(declared));
         let validator_parameters = in_force.clone();
+        let validator_allowed = allowed.clone();
         options = options.parameter_validator(Box::new(move |name, value| {
             let Ok(in_force) = validator_parameters.lock().map(|p| p.clone()) else {
                 return Err("parameter store poisoned".into());
             };
-            acceptable(in_force, &[(name, value)])
+            acceptable(in_force, &[(name, value)], &validator_allowed)
         }));
         let changes = Mutex::new(changes);
         options = options.parameter_set_action(Box::new(move |name, value| {
@@ -52,7 +61,7 @@ impl Parameters {
                 .send((name.to_owned(), yaml_of(value)));
             sent.map_err(|_| "the node is stopping".to_owned())
         }));
-        (options, Self { in_force, changed })
+        (options, Self { in_force, changed, allowed })
     }
 
     /// Takes the accepted changes into the values in force, with no scene to reload (a
@@ -100,13 +109,23 @@ impl Parameters {
 }
 
 /// Whether `changes` may be set together over the values `in_force`: each within its
-/// descriptor (range, read-only), then the scene they make checked as a whole.
-fn acceptable(mut candidate: BTreeMap<String, Value>, changes: &[(&str, &ParameterValue)]) -> Result<(), String> {
+/// descriptor (range, read-only), a file it names inside the `allowed` directories, then the
+/// scene they make checked as a whole.
+fn acceptable(
+    mut candidate: BTreeMap<String, Value>,
+    changes: &[(&str, &ParameterValue)],
+    allowed: &AllowedDirs,
+) -> Result<(), String> {
     for (name, value) in changes {
         let in_force = candidate.get(*name).map_or(ParameterValue::NotSet, parameter_of);
         let refusal = descriptors::describe(name).and_then(|d| d.refuses(name, &yaml_of(value), in_force != **value));
         if let Some(reason) = refusal {
             return Err(reason);
+        }
+        if let (ParameterValue::String(path), true) = (value, in_force != **value) {
+            if let Some(expect) = named_file(name, path) {
+                allowed.admit(Path::new(path), expect).map_err(|why| format!("parameter `{name}`: {why}"))?;
+            }
         }
         candidate.insert((*name).to_owned(), yaml_of(value));
     }
@@ -198,7 +217,7 @@ fn set_atomically(node: &Node, parameters: &Parameters, request: SetParametersRe
     }
     let in_force = parameters.in_force.lock().map_err(|_| "parameter store poisoned".to_owned())?.clone();
     let borrowed: Vec<(&str, &ParameterValue)> = changes.iter().map(|(n, v)| (n.as_str(), v)).collect();
-    acceptable(in_force, &borrowed)?;
+    acceptable(in_force, &borrowed, &parameters.allowed)?;
     changes.into_iter().try_for_each(|(name, value)| node.set_parameter(&name, value))
 }
 

@@ -1,7 +1,12 @@
 //! Scene descriptions (YAML): what to load or generate, the material, the solver and the
 //! tools. The default scene is `config/default_scene.yaml`, compiled in.
 
+mod confined;
 pub mod field_path;
+
+pub use confined::{
+    check_scene_size, named_file, read_scene_text, AllowedDirs, Expect, ALLOWED_DIRS_PARAMETER, MAX_SCENE_BYTES,
+};
 
 use std::path::{Path, PathBuf};
 
@@ -35,6 +40,8 @@ pub enum SceneError {
     Solver(#[from] SolverError),
     #[error("scene: {0}")]
     Invalid(String),
+    #[error("{path}: {why}")]
+    Refused { path: String, why: String },
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -395,7 +402,7 @@ impl Scene {
     }
 
     pub fn from_file(path: &Path) -> Result<Self, SceneError> {
-        let text = std::fs::read_to_string(path).map_err(|source| IoError::Io { path: path.to_owned(), source })?;
+        let text = read_scene_text(path)?;
         Self::parse(&text, &path.display().to_string())
     }
 

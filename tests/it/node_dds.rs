@@ -1106,3 +1106,133 @@ fn a_late_joiner_gets_the_organ_as_it_rests() {
         assert!(got_mesh >= 1 && got_marker >= 1, "the late joiner got {got_mesh} meshes, {got_marker} markers");
     });
 }
+
+/// What a remote participant names is read only inside the allowed directories (by default
+/// the start scene's folder): rclpy setting `scene_file` as `ros2 param set` does, and a
+/// `load_scene` client, naming a file with a known secret line by its path, by `..` from an
+/// allowed folder, through a symlink, and as a scene's volume; a device and a FIFO. Each
+/// refusal says why, and no answer, log line, `/diagnostics` or `/rosout` message, nor the
+/// recording, holds a byte of the secret; a scene inside the allowed folder still loads.
+#[test]
+fn nothing_outside_the_allowed_directories_reaches_a_caller() {
+    isolated("nothing_outside_the_allowed_directories_reaches_a_caller", || {
+        if !python_has("rclpy") {
+            return;
+        }
+        let dir = tempfile::tempdir().unwrap();
+        let (allowed, outside) = (dir.path().join("allowed"), dir.path().join("outside"));
+        std::fs::create_dir_all(&allowed).unwrap();
+        std::fs::create_dir_all(&outside).unwrap();
+        const SECRET: &str = "k7Qz9-secret";
+        let secret = outside.join("shadow");
+        std::fs::write(&secret, format!("root:{SECRET}:20228:0:99999:7:::\ndaemon:*:20228:0:99999:7:::\n")).unwrap();
+        let scene_text = std::fs::read_to_string(scene()).unwrap();
+        std::fs::write(allowed.join("scene.yaml"), &scene_text).unwrap();
+        std::fs::write(allowed.join("other.yaml"), scene_text.replace("target_tets: 600", "target_tets: 400")).unwrap();
+        std::os::unix::fs::symlink(&secret, allowed.join("link.yaml")).unwrap();
+        let fifo = allowed.join("fifo.yaml");
+        assert!(Command::new("mkfifo").arg(&fifo).status().unwrap().success());
+        let node_process = Command::new(env!("CARGO_BIN_EXE_defvol_node"))
+            .args(["--backend", "cpu", "--seconds", "30", "--record"])
+            .arg(dir.path().join("node.mcap"))
+            .args(["--ros-args", "-r", "__ns:=/robot", "-p"])
+            .arg(format!("scene_file:={}", allowed.join("scene.yaml").display()))
+            .arg("-p")
+            .arg(format!("warp.service:=defvol/files_{}", std::process::id()))
+            .env("ROS_DOMAIN_ID", "17")
+            .env("RUST_LOG", "info")
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        let show = |p: &Path| p.display().to_string();
+        let up = format!("{}/../outside/shadow", allowed.display());
+        let refused = [
+            (show(&secret), "outside the allowed directories"),
+            (up.clone(), "outside the allowed directories"),
+            (show(&allowed.join("link.yaml")), "outside the allowed directories"),
+            ("/dev/zero".to_owned(), "outside the allowed directories"),
+            (show(&fifo), "unsupported: a FIFO, where a regular file is expected"),
+        ];
+        let good = show(&allowed.join("other.yaml"));
+        let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/interop/rclpy_files.py");
+        let out = Command::new("python3")
+            .arg(script)
+            .arg("/robot/defvol")
+            .args(refused.iter().map(|(path, _)| path))
+            .arg(&good)
+            .env("ROS_DOMAIN_ID", "17")
+            .output()
+            .unwrap();
+        let said = String::from_utf8_lossy(&out.stdout).into_owned();
+        assert!(out.status.success(), "{said}{}", String::from_utf8_lossy(&out.stderr));
+        let got: serde_json::Value = serde_json::from_str(said.lines().last().unwrap()).unwrap();
+        for (path, why) in &refused {
+            let answer = &got["answers"][path];
+            assert_eq!(answer["successful"], false, "{path}: {answer}");
+            assert!(answer["reason"].as_str().unwrap().contains(why), "{path}: {answer}");
+        }
+        assert_eq!(got["answers"][&good]["successful"], true, "{got}");
+        assert!(got["heard"].as_array().is_some_and(|heard| !heard.is_empty()), "rclpy heard the node: {got}");
+        // load_scene: by path, and as YAML text naming the secret as its volume.
+        let context = dds::context(17, Discovery::Localhost).unwrap();
+        let mut peer = context.new_node(NodeName::new("/", "files").unwrap(), NodeOptions::new()).unwrap();
+        let name = Name::parse("/robot/load_scene").unwrap();
+        let ty = ServiceTypeName::new("defvol_interfaces", "LoadScene");
+        let client = peer
+            .create_client::<LoadSceneRequest, TriggerResponse>(
+                ServiceMapping::Enhanced,
+                &name,
+                &ty,
+                qos(Qos::Reliable),
+                qos(Qos::Reliable),
+            )
+            .unwrap();
+        let as_volume = scene_text.replace("volume: phantom", &format!("volume: {}", secret.display()));
+        let requests = [
+            (show(&secret), "outside the allowed directories"),
+            (up, "outside the allowed directories"),
+            (as_volume, "volume: "),
+            (show(&allowed.join("scene.yaml")), "scene loaded"),
+        ];
+        let mut answers = String::new();
+        for (scene, why) in &requests {
+            let reply = call(&client, LoadSceneRequest { scene: scene.clone() });
+            assert_eq!(reply.success, *why == "scene loaded", "{scene}: {reply:?}");
+            assert!(reply.message.contains(why), "{scene}: {reply:?}");
+            answers += &reply.message;
+        }
+        let exit = node_process.wait_with_output().unwrap();
+        let log = String::from_utf8_lossy(&exit.stderr);
+        assert!(exit.status.success(), "{log}");
+        let recording = std::fs::read(dir.path().join("node.mcap")).unwrap();
+        let in_recording = recording.windows(SECRET.len()).any(|w| w == SECRET.as_bytes());
+        for (what, text) in [("rclpy", said.as_str()), ("load_scene", &answers), ("the node's log", &log)] {
+            assert!(!text.contains(SECRET) && !text.contains("20228"), "{what} holds the secret: {text}");
+        }
+        assert!(!in_recording, "the recording holds the secret");
+    });
+}
+
+/// The reply to one request, sent again each second until one comes (discovery takes a while).
+fn call<Q: ros2_client::Message + Clone + 'static, A: ros2_client::Message + 'static>(
+    client: &ros2_client::Client<Q, A>,
+    request: Q,
+) -> A {
+    let start = Instant::now();
+    let mut sent_at = None::<Instant>;
+    let mut sent = Vec::new();
+    while start.elapsed() < Duration::from_secs(15) {
+        if sent_at.is_none_or(|t| t.elapsed() > Duration::from_secs(1)) {
+            sent.extend(client.send_request(request.clone()));
+            sent_at = Some(Instant::now());
+        }
+        // Only a reply to this call's requests: an earlier call's late one is not this one's.
+        if let Ok(Some((id, reply))) = client.receive_response() {
+            if sent.contains(&id) {
+                return reply;
+            }
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    panic!("no reply in 15 s");
+}
