@@ -234,9 +234,7 @@ fn parse_v1(c: &mut Cursor) -> Result<MeshFile, Fault> {
 fn expect(c: &mut Cursor, word: &str, place: &str) -> Result<(), Fault> {
     match c.word() {
         Some(found) if found == word => Ok(()),
-        Some(found) => {
-            Err(format!("`{word}` expected {place}, found `{}`", found.chars().take(30).collect::<String>()))
-        }
+        Some(_) => Err(format!("`{word}` expected {place}, found other text")),
         None => Err(format!("the file ends where `{word}` should be, {place}")),
     }
 }

@@ -15,9 +15,11 @@ use crate::volume::Volume;
 
 fn numbers(path: &Path, fields: &Fields, key: &str, n: usize) -> Result<Option<Vec<f64>>, IoError> {
     let Some(text) = fields.get(key) else { return Ok(None) };
-    let v: Vec<f64> = text.split_whitespace().map(str::parse).collect::<Result<_, _>>().map_err(|_| {
-        malformed(path, format!("`{key}`: expected numbers, got `{}`", text.chars().take(60).collect::<String>()))
-    })?;
+    let v: Vec<f64> = text
+        .split_whitespace()
+        .map(str::parse)
+        .collect::<Result<_, _>>()
+        .map_err(|_| malformed(path, format!("`{key}`: expected {n} numbers")))?;
     if v.len() != n {
         return Err(malformed(path, format!("`{key}`: expected {n} values, got {}", v.len())));
     }

@@ -22,15 +22,10 @@ fn parse_vector(path: &Path, field: &str, text: &str) -> Result<Vector3<f64>, Io
         .split(',')
         .map(|c| c.trim().parse::<f64>())
         .collect::<Result<_, _>>()
-        .map_err(|_| {
-            malformed(path, format!("`{field}`: expected (x,y,z), got `{}`", text.chars().take(60).collect::<String>()))
-        })?;
+        .map_err(|_| malformed(path, format!("`{field}`: expected (x,y,z) numbers")))?;
     match v[..] {
         [x, y, z] if v.iter().all(|c| c.is_finite()) => Ok(Vector3::new(x, y, z)),
-        _ => Err(malformed(
-            path,
-            format!("`{field}`: expected 3 finite components, got `{}`", text.chars().take(60).collect::<String>()),
-        )),
+        _ => Err(malformed(path, format!("`{field}`: expected 3 finite components, got {}", v.len()))),
     }
 }
 
@@ -52,7 +47,12 @@ fn sample_type(path: &Path, name: &str) -> Result<SampleType, IoError> {
         | "int64_t" => SampleType::I64,
         "float" => SampleType::F32,
         "double" => SampleType::F64,
-        other => return Err(malformed(path, format!("`type: {other}` is not supported"))),
+        _ => {
+            return Err(malformed(
+                path,
+                "this `type` is not supported (signed and unsigned 8 to 64-bit integers, float, double)",
+            ))
+        }
     })
 }
 
@@ -157,7 +157,7 @@ pub(super) fn parse(path: &Path, bytes: &[u8], sidecar: &dyn Fn(&str) -> Option<
             | "left-posterior-superior-time",
         )
         | None => [1.0; 3],
-        Some(other) => return Err(malformed(path, format!("`space: {other}` is not a space ITK reads"))),
+        Some(_) => return Err(malformed(path, "this `space` is not one ITK reads (a 3D RAS/LAS/LPS name, or none)")),
     };
     for r in 0..3 {
         origin[r] *= flips[r];
@@ -171,7 +171,7 @@ pub(super) fn parse(path: &Path, bytes: &[u8], sidecar: &dyn Fn(&str) -> Option<
         "raw" => Some(Compression::None),
         "gzip" | "gz" => Some(Compression::Gzip),
         "ascii" | "text" | "txt" => None,
-        other => return Err(malformed(path, format!("`encoding: {other}` is not supported (raw, gzip, ascii)"))),
+        _ => return Err(malformed(path, "this `encoding` is not supported (raw, gzip, ascii)")),
     };
     let data_file = fields.get("data file").or(fields.get("datafile"));
     let files: Vec<String> = match data_file {
@@ -222,14 +222,13 @@ pub(super) fn parse(path: &Path, bytes: &[u8], sidecar: &dyn Fn(&str) -> Option<
 /// `line skip` lines, then `byte skip` bytes (-1: the data are the payload's last bytes).
 fn skip(path: &Path, fields: &Fields, mut payload: Vec<u8>, expected: usize, raw: bool) -> Result<Vec<u8>, IoError> {
     if let Some(lines) = fields.get("line skip").or(fields.get("lineskip")) {
-        let lines: usize =
-            lines.parse().map_err(|_| malformed(path, format!("`line skip: {lines}` is not a count")))?;
+        let lines: usize = lines.parse().map_err(|_| malformed(path, "`line skip` is not a count"))?;
         let mut at = 0;
         for _ in 0..lines {
             let next = payload[at..]
                 .iter()
                 .position(|b| *b == b'\n')
-                .ok_or_else(|| malformed(path, format!("`line skip: {lines}` skips past the data")))?;
+                .ok_or_else(|| malformed(path, format!("`line skip` {lines} skips past the data")))?;
             at += next + 1;
         }
         payload.drain(..at);
