@@ -22,6 +22,15 @@ pub struct InputLimits {
     pub max_position: f64,
 }
 
+impl InputLimits {
+    /// These limits with the scene's `inputs` settings; where ages go unchecked (replay,
+    /// whose "now" is the bag's time) they stay unchecked.
+    pub fn with_scene(&self, inputs: &crate::scene::InputsConfig) -> Self {
+        let max_age = self.max_age.and((inputs.max_age > 0.0).then_some(inputs.max_age));
+        Self { max_age, ..self.clone() }
+    }
+}
+
 impl Default for InputLimits {
     fn default() -> Self {
         Self { quaternion_tolerance: 0.01, max_force: 200.0, max_torque: 20.0, max_age: Some(0.5), max_position: 100.0 }

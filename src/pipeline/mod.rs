@@ -173,7 +173,7 @@ impl Pipeline {
             false => None,
         };
         let positions = engine.as_ref().map_or_else(|| mesh.nodes().to_vec(), SolverEngine::positions);
-        let feedback = FeedbackLoop::new(&scene, engine, mesh.nodes().len(), limits.clone());
+        let feedback = FeedbackLoop::new(&scene, engine, mesh.nodes().len(), limits.with_scene(&scene.inputs));
         let volume = Arc::new(volume);
         let mut pipeline = Self {
             scene,
@@ -753,6 +753,29 @@ mod tests {
         assert_eq!(p.tool_on("tool_pose").unwrap().1.translation.z, 0.05);
         let earlier = p.apply_pose("tool_pose", &pose(1.0e9 - 0.1, 0.04), now);
         assert!(matches!(earlier, Err(Rejection::OutOfOrder { .. })), "{earlier:?}");
+    }
+
+    /// `inputs.max_age` sets how old a stamp may be, 0 accepting any (a device whose clock
+    /// is not this host's); replay's unchecked ages stay unchecked whatever the scene says.
+    #[test]
+    fn the_scene_sets_how_old_an_input_may_be() {
+        let stages = crate::scene::Stages { solver: true, warp: false, dpcm: false, raycast: false };
+        let now = Time::from_secs(1.0e9);
+        let age_of = |max_age: f64, limits: InputLimits, age: f64| {
+            let mut s = scene(stages);
+            (s.tools[0].path, s.inputs.max_age) = (None, max_age);
+            let mut p = Pipeline::new(s, &Backend::cpu(), limits, FrameMode::Lockstep).unwrap();
+            p.apply_pose("tool_pose", &pose(1.0e9 - age, 0.05), now)
+        };
+        let live = InputLimits::default();
+        assert!(matches!(age_of(0.5, live.clone(), 1.0), Err(Rejection::Stale { .. })));
+        assert!(age_of(2.0, live.clone(), 1.0).is_ok());
+        assert!(matches!(age_of(2.0, live.clone(), 3.0), Err(Rejection::Stale { .. })));
+        assert!(age_of(0.0, live, 1.0e6).is_ok(), "0: any age");
+        assert!(age_of(0.5, InputLimits { max_age: None, ..Default::default() }, 1.0e6).is_ok());
+        let mut s = scene(stages);
+        s.inputs.max_age = -1.0;
+        assert!(s.load().err().unwrap().to_string().contains("inputs.max_age = -1 must be finite and >= 0"));
     }
 
     fn pose(t: f64, z: f64) -> PoseStamped {

@@ -158,6 +158,10 @@ const TABLE: &[(&str, Descriptor)] = &[
     ("stages.warp", text("Warp the source volume through the deformed mesh")),
     ("stages.dpcm", text("Run the DPCM surface")),
     ("stages.raycast", text("Render raycast images")),
+    (
+        "inputs.max_age",
+        float("Seconds a pose or wrench may be stamped before it arrives (0: any age, for an unsynchronised clock)", 0.0, 3600.0),
+    ),
     ("warp.rate_hz", float("Most warps per simulated second", 0.01, 1e4)),
     ("warp.tolerance", float("Node motion (m) below which a tet is not re-warped", 0.0, 1.0)),
     ("warp.service", text("iceoryx2 service carrying the warped volumes")),

@@ -146,6 +146,21 @@ impl Default for Stages {
     }
 }
 
+/// How tool inputs are checked beyond finiteness, frame and magnitude.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct InputsConfig {
+    /// Seconds a pose or wrench may be stamped before it arrives (0: any age, for a device
+    /// whose clock is not synchronised with this host's).
+    pub max_age: f64,
+}
+
+impl Default for InputsConfig {
+    fn default() -> Self {
+        Self { max_age: 0.5 }
+    }
+}
+
 /// The grid-warp stage: the volume carried through the deformed mesh.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -299,6 +314,8 @@ pub struct Scene {
     #[serde(default)]
     pub stages: Stages,
     #[serde(default)]
+    pub inputs: InputsConfig,
+    #[serde(default)]
     pub warp: WarpStageConfig,
     #[serde(default)]
     pub dpcm: DpcmStageConfig,
@@ -411,6 +428,12 @@ impl Scene {
             return Err(SceneError::Invalid(format!("file_to_world = {} must be positive", self.file_to_world)));
         }
         self.solver.validate()?;
+        if !(self.inputs.max_age.is_finite() && self.inputs.max_age >= 0.0) {
+            return Err(SceneError::Invalid(format!(
+                "inputs.max_age = {} must be finite and >= 0",
+                self.inputs.max_age
+            )));
+        }
         for why in self.tools.iter().filter_map(ToolConfig::too_soft_for_its_coupling) {
             tracing::warn!("{why}");
         }
