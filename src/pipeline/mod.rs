@@ -393,6 +393,21 @@ impl Pipeline {
     pub fn positions(&self) -> &[Vector3<f64>] {
         &self.positions
     }
+    /// The bytes one message of each large output carries (its arrays), by output name:
+    /// what a subscriber's socket must take in one burst.
+    pub fn message_bytes(&self) -> Vec<(&'static str, usize)> {
+        let (nodes, faces) = (self.mesh.nodes().len(), self.mesh.boundary().len());
+        let mut sizes = vec![("deformed_mesh", nodes * 16 + faces * 12)];
+        if self.frames.as_ref().is_some_and(|f| f.raycast_backend.is_some()) {
+            sizes.push(("raycast/image", self.scene.camera.width * self.scene.camera.height * 4));
+        }
+        if let Some(d) = &self.dpcm {
+            let phyxels = d.config.width * d.config.height;
+            sizes.extend([("dpcm/height", phyxels * 4), ("dpcm/image", phyxels * 3)]);
+        }
+        sizes
+    }
+
     pub fn asleep(&self) -> bool {
         self.feedback.asleep()
     }

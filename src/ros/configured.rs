@@ -9,6 +9,7 @@ use ros2_client::{Node, Publisher, Server};
 
 use super::error::NodeError;
 use super::feedback_thread::{Command, Event, FeedbackIo, FeedbackThread, ToolSubscriptions};
+use super::socket_buffers;
 use super::wire::{answer, Topics};
 use crate::msgs::{
     DeformedMesh, DiagnosticArray, Image, LoadSceneRequest, Marker, Message, Time, TriggerRequest, TriggerResponse,
@@ -84,6 +85,7 @@ impl Configured {
         #[cfg(feature = "shm")]
         let shm = shm_publisher(&mut pipeline);
         let session = Session::open(topics.names, record, &pipeline)?;
+        socket_buffers::warn_if_too_small(&pipeline.message_bytes());
         Ok(Self {
             pipeline,
             publishers,
@@ -180,6 +182,7 @@ impl Configured {
 
     /// After a reload: the new scene's tool topics, a new feedback loop, a new volume sink.
     pub fn rewire(&mut self, node: &mut Node, topics: &Topics<'_>) -> Result<(), NodeError> {
+        socket_buffers::warn_if_too_small(&self.pipeline.message_bytes());
         let io = FeedbackIo {
             tools: subscribe_tools(topics, node, &self.pipeline)?,
             feedback: feedback_publishers(topics, node, &self.pipeline)?,

@@ -20,6 +20,8 @@ pub mod node;
 #[cfg(feature = "ros")]
 mod parameters;
 #[cfg(feature = "ros")]
+mod socket_buffers;
+#[cfg(feature = "ros")]
 pub mod wire;
 
 #[cfg(feature = "ros")]
