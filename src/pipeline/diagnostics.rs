@@ -68,6 +68,9 @@ impl Pipeline {
                     _ => (DiagnosticStatus::OK, "running".to_owned()),
                 };
                 let mut values = vec![kv("backend", p.backend_name()), kv("step_ms", format!("{:.3}", times.solver))];
+                if let Some(why) = &p.last_reset {
+                    values.push(kv("last_reset", format!("restarted from rest: {why}")));
+                }
                 // Tets turned inside out: the mesh is past what it can represent there.
                 let inverted = p.mesh().inverted(p.positions());
                 values.push(kv("inverted_tets", inverted.count));

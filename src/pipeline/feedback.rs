@@ -132,6 +132,12 @@ impl FeedbackLoop {
         }
     }
 
+    /// Checks the inputs against `frame_id` and `limits` from now on.
+    pub fn set_checks(&mut self, frame_id: &str, limits: InputLimits) {
+        frame_id.clone_into(&mut self.frame_id);
+        self.limits = limits;
+    }
+
     /// `stamp`, or `now` for a zero stamp (what `ros2 topic pub` and unsynced devices send),
     /// saying so once per topic.
     fn stamp_or_now(&mut self, topic: &str, stamp: Time, now: Time) -> Time {

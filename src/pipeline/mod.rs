@@ -31,7 +31,7 @@ use crate::render::mesh::source::SourceSampling;
 use crate::render::mesh::{TetRaycastParams, TetRaycaster};
 use crate::render::transfer::TransferFunction;
 use crate::render::volume::{RaycastParams, ToolPicture, VolumeRaycaster};
-use crate::scene::{CameraShows, LoadedScene, Scene};
+use crate::scene::{CameraShows, LoadedScene, Scene, SceneChange};
 use crate::solver::{SolverEngine, StepReport};
 use crate::volume::{Grid, Volume};
 use crate::warp::engine::WarpEngine;
@@ -148,6 +148,8 @@ pub struct Pipeline {
     times: StageTimes,
     /// Positions after the last step, world units.
     positions: Vec<Vector3<f64>>,
+    /// Why the simulation last restarted from rest on a change of its scene.
+    last_reset: Option<String>,
 }
 
 impl Pipeline {
@@ -195,6 +197,7 @@ impl Pipeline {
             last_marker: f64::NEG_INFINITY,
             times: StageTimes::default(),
             positions,
+            last_reset: None,
         };
         pipeline.init_stages()?;
         Ok(pipeline)
@@ -518,6 +521,38 @@ impl Pipeline {
         Ok(())
     }
 
+    /// Applies `scene` doing no more than it needs ([`Scene::change_from`]): the stages after
+    /// the solver rebuilt alone and new input checks taken as the simulation runs on; only a
+    /// change of the physics rebuilds the simulation from rest, said in the log and in
+    /// `diagnostics`. On error the running scene is kept.
+    pub fn apply_scene(&mut self, scene: Scene) -> Result<SceneChange, PipelineError> {
+        let change = scene.change_from(&self.scene);
+        if !change.physics.is_empty() {
+            self.load_scene(scene)?;
+            let why = format!("{} changed", change.physics.join(", "));
+            tracing::warn!("the simulation restarted from rest: {why}");
+            self.last_reset = Some(why);
+            return Ok(change);
+        }
+        let running = std::mem::replace(&mut self.scene, scene);
+        if change.outputs {
+            if let Err(e) = self.init_stages() {
+                self.scene = running;
+                self.init_stages()?;
+                return Err(e);
+            }
+        }
+        if change.checks {
+            self.feedback.set_checks(&self.scene.frame_id, self.limits.with_scene(&self.scene.inputs));
+        }
+        Ok(change)
+    }
+
+    /// The input checks the scene asks for (what [`Pipeline::apply_scene`] gave the loop).
+    pub fn input_checks(&self) -> (String, InputLimits) {
+        (self.scene.frame_id.clone(), self.limits.with_scene(&self.scene.inputs))
+    }
+
     /// Replaces the scene; on error the running one is kept. The solver comes back
     /// attached: the node detaches it again.
     pub fn load_scene(&mut self, scene: Scene) -> Result<(), PipelineError> {
@@ -748,6 +783,42 @@ mod tests {
     fn pipeline(scene: Scene) -> Pipeline {
         Pipeline::new(scene, &Backend::cpu(), InputLimits { max_age: None, ..Default::default() }, FrameMode::Lockstep)
             .unwrap()
+    }
+
+    /// A camera change rebuilds the picture alone: the simulation runs on from its step and
+    /// positions, the next image has the new size; a camera that cannot be built is refused
+    /// and the running one kept; a change of the solver's system restarts the simulation from
+    /// rest and `diagnostics` say why.
+    #[test]
+    fn a_parameter_rebuilds_only_what_it_touches() {
+        let stages = crate::scene::Stages { solver: true, warp: false, dpcm: false, raycast: true };
+        let mut p = pipeline(scene(stages));
+        for i in 1..=5 {
+            p.tick(Time::from_secs(0.01 * f64::from(i)), &Demand::ALL).unwrap();
+        }
+        let (step, positions) = (p.last_report().unwrap().step, p.positions().to_vec());
+        let mut wider = p.scene().clone();
+        wider.camera.width = 48;
+        let change = p.apply_scene(wider).unwrap();
+        assert_eq!(change, SceneChange { physics: vec![], checks: false, outputs: true, warp: false });
+        assert_eq!((p.last_report().unwrap().step, p.positions()), (step, &positions[..]));
+        let out = p.tick(Time::from_secs(0.06), &Demand::ALL).unwrap();
+        assert_eq!((out.raycast.unwrap().width, p.last_report().unwrap().step), (48, step + 1));
+        let mut blind = p.scene().clone();
+        blind.camera.target = blind.camera.eye;
+        assert!(p.apply_scene(blind).is_err());
+        assert_eq!(p.scene().camera.width, 48, "the running camera is kept");
+        assert!(p.tick(Time::from_secs(0.07), &Demand::ALL).unwrap().raycast.is_some());
+        let mut stiffer = p.scene().clone();
+        stiffer.solver.dt = 0.005;
+        stiffer.frame_id = "map".into();
+        let change = p.apply_scene(stiffer).unwrap();
+        assert_eq!((change.physics, change.checks), (vec!["solver"], true));
+        assert!(p.last_report().is_none(), "restarted from rest");
+        let diagnostics = p.diagnostics(Time::from_secs(0.0), &[0]);
+        let solver = diagnostics.status.iter().find(|s| s.name == "defvol: solver").unwrap();
+        let reset = solver.values.iter().find(|v| v.key == "last_reset").unwrap();
+        assert_eq!(reset.value, "restarted from rest: solver changed");
     }
 
     /// A zero stamp (what `ros2 topic pub` sends) is taken as the time the pose came: the

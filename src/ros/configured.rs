@@ -17,7 +17,7 @@ use crate::msgs::{
 };
 use crate::pipeline::{Demand, Outputs, Pipeline};
 use crate::record::Qos;
-use crate::scene::{check_scene_size, named_file, AllowedDirs, Expect, Scene};
+use crate::scene::{check_scene_size, named_file, AllowedDirs, Expect, Scene, SceneChange};
 use crate::session::{topics, RecordOptions, Session};
 
 struct Publishers {
@@ -189,13 +189,33 @@ impl Configured {
         };
         self.feedback.send(Command::Replace { feedback: Box::new(self.pipeline.detach_feedback()), io: Some(io) });
         #[cfg(feature = "shm")]
-        {
-            // The old publisher goes first: the service allows one.
-            self.pipeline.set_volume_sink(None);
-            drop(self.shm.take());
-            self.shm = shm_publisher(&mut self.pipeline);
-        }
+        self.reshare();
         Ok(())
+    }
+
+    /// After a change that left the simulation running: the force loop's new input checks,
+    /// and the outputs' buffers and shared volumes when the stages were rebuilt.
+    pub fn take_change(&mut self, change: &SceneChange) {
+        if change.checks {
+            let (frame_id, limits) = self.pipeline.input_checks();
+            self.feedback.send(Command::Checks { frame_id, limits });
+        }
+        if change.outputs {
+            socket_buffers::warn_if_too_small(&self.pipeline.message_bytes());
+        }
+        #[cfg(feature = "shm")]
+        if change.warp {
+            self.reshare();
+        }
+    }
+
+    /// A new shared-volume publisher for the warp as it now is (none without one).
+    #[cfg(feature = "shm")]
+    fn reshare(&mut self) {
+        // The old publisher goes first: the service allows one.
+        self.pipeline.set_volume_sink(None);
+        drop(self.shm.take());
+        self.shm = shm_publisher(&mut self.pipeline);
     }
 
     /// The outputs someone listens to (a subscriber or the recording).

@@ -196,11 +196,33 @@ pub fn reference_table() -> String {
         };
         let values: Vec<&str> =
             [range.as_str(), d.additional_constraints].into_iter().filter(|v| !v.is_empty()).collect();
-        let changed_by = if d.read_only { "a restart" } else { "`ros2 param set` (the scene reloads)" };
+        let changed_by = match (d.read_only, effect(name)) {
+            (true, _) => "a restart",
+            (false, Effect::Stage) => "`ros2 param set` (its stage rebuilt, the simulation running on)",
+            (false, Effect::AtOnce) => "`ros2 param set` (at once)",
+            (false, Effect::Restart) => "`ros2 param set` (the simulation restarts from rest)",
+        };
         let name = name.replace('#', "N");
         out += &format!("| `{name}` | {} | {} | {changed_by} |\n", d.description, values.join("; "));
     }
     out
+}
+
+/// What setting a parameter does to a running node (as `Scene::change_from` sorts it).
+enum Effect {
+    Stage,
+    AtOnce,
+    Restart,
+}
+
+fn effect(name: &str) -> Effect {
+    let stage = ["camera.", "warp.", "dpcm.", "stages.warp", "stages.dpcm", "stages.raycast"];
+    match name {
+        _ if stage.iter().any(|prefix| name.starts_with(prefix)) => Effect::Stage,
+        "frame_id" | "use_sim_time" => Effect::AtOnce,
+        _ if name.starts_with("inputs.") => Effect::AtOnce,
+        _ => Effect::Restart,
+    }
 }
 
 /// A range's end as a reader writes it: plain where that is short, else in powers of ten.

@@ -22,6 +22,7 @@ use ros2_client::{Publisher, Subscription};
 
 use super::error::NodeError;
 use crate::msgs::{PoseStamped, Time, WrenchStamped};
+use crate::pipeline::inputs::InputLimits;
 use crate::pipeline::{priority, run_step, FeedbackLoop, LoopState, StepInput, StepOutput};
 use crate::solver::SolverEngine;
 
@@ -48,6 +49,11 @@ pub(super) enum Command {
     /// A managed node's deactivation: the loop holds its state and publishes nothing (as
     /// an rclcpp `LifecyclePublisher` drops what an inactive node publishes).
     Deactivate,
+    /// New checks of the inputs (`frame_id`, `inputs.*` changed), the simulation running on.
+    Checks {
+        frame_id: String,
+        limits: InputLimits,
+    },
     /// A new loop (after a reset or a new scene), with new topics when they changed.
     Replace {
         feedback: Box<FeedbackLoop>,
@@ -427,6 +433,7 @@ impl Worker {
             any = true;
             match command {
                 Command::Pause => self.feedback.pause(),
+                Command::Checks { frame_id, limits } => self.feedback.set_checks(&frame_id, limits),
                 Command::Resume => self.feedback.resume(),
                 Command::Activate => {
                     self.active = true;

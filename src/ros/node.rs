@@ -255,8 +255,11 @@ impl DefvolNode {
             c.pipeline.follow(state);
         }
         let served = c.serve(&self.allowed);
-        if self.ros.parameters.apply(&mut c.pipeline) || served {
+        let changed = self.ros.parameters.apply(&mut c.pipeline);
+        if !changed.physics.is_empty() || served {
             c.rewire(&mut self.ros.node, topics)?;
+        } else {
+            c.take_change(&changed);
         }
         if active {
             // Who listens decides what runs (checked at 10 Hz: discovery changes slowly).

@@ -22,7 +22,7 @@ use super::descriptors::{self, Descriptor, Range};
 use super::error::NodeError;
 use super::wire::{answer, own_server};
 use crate::pipeline::Pipeline;
-use crate::scene::{named_file, AllowedDirs};
+use crate::scene::{named_file, AllowedDirs, SceneChange};
 
 /// The values in force and the changes accepted since the last look.
 pub(super) struct Parameters {
@@ -81,10 +81,10 @@ impl Parameters {
         args::scene_from_parameters(&store).map_err(|e| e.to_string())
     }
 
-    /// Applies the accepted changes to `pipeline` (a scene reload each); true when one
-    /// reloaded the scene.
-    pub(super) fn apply(&self, pipeline: &mut Pipeline) -> bool {
-        let mut reloaded = false;
+    /// Applies the accepted changes to `pipeline`, each doing no more than it needs
+    /// ([`Pipeline::apply_scene`]); what they changed, together.
+    pub(super) fn apply(&self, pipeline: &mut Pipeline) -> SceneChange {
+        let mut changed = SceneChange::default();
         while let Ok((name, value)) = self.changed.try_recv() {
             let Ok(mut store) = self.in_force.lock() else { break };
             if store.get(&name) == Some(&value)
@@ -95,16 +95,24 @@ impl Parameters {
             store.insert(name.clone(), value);
             match args::scene_from_parameters(&store)
                 .map_err(|e| e.to_string())
-                .and_then(|scene| pipeline.load_scene(scene).map_err(|e| e.to_string()))
+                .and_then(|scene| pipeline.apply_scene(scene).map_err(|e| e.to_string()))
             {
-                Ok(()) => {
-                    tracing::info!("parameter {name} set: scene reloaded");
-                    reloaded = true;
+                Ok(change) => {
+                    let how = match (change.physics.is_empty(), change.outputs) {
+                        (false, _) => "the simulation rebuilt",
+                        (true, true) => "its stages rebuilt, the simulation running on",
+                        (true, false) => "taken as the simulation runs",
+                    };
+                    tracing::info!("parameter {name} set: {how}");
+                    changed.physics.extend(change.physics);
+                    changed.checks |= change.checks;
+                    changed.outputs |= change.outputs;
+                    changed.warp |= change.warp;
                 }
                 Err(e) => tracing::error!("parameter {name}: {e}; kept the running scene"),
             }
         }
-        reloaded
+        changed
     }
 }
 

@@ -397,6 +397,50 @@ impl ToolConfig {
     }
 }
 
+/// What a new scene changes of a running one, by what it takes to apply it.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct SceneChange {
+    /// Fields that change the mesh, the material or the solver's system: the simulation is
+    /// rebuilt and restarts from rest.
+    pub physics: Vec<&'static str>,
+    /// The inputs' checks (`frame_id`, `inputs`): the force loop takes them as it runs.
+    pub checks: bool,
+    /// Stages after the solver (`stages` but the solver's, `warp`, `dpcm`, `camera`):
+    /// rebuilt alone, the simulation running on.
+    pub outputs: bool,
+    /// Among them the warp (`stages.warp`, `warp`): its shared volumes change hands.
+    pub warp: bool,
+}
+
+impl Scene {
+    /// What `self` changes of `running` (`backend` and `allow_software_gpu` are the run's,
+    /// chosen once: a new scene keeps them).
+    pub fn change_from(&self, running: &Scene) -> SceneChange {
+        let (a, b) = (self, running);
+        let physics = [
+            ("volume", a.volume != b.volume || a.volume_series != b.volume_series),
+            ("file_to_world", a.file_to_world != b.file_to_world),
+            ("mesh", a.mesh != b.mesh),
+            ("material", a.material != b.material),
+            ("density", a.density != b.density),
+            ("fixed", a.fixed != b.fixed),
+            ("solver", a.solver != b.solver),
+            ("tools", a.tools != b.tools),
+            ("stages.solver", a.stages.solver != b.stages.solver),
+        ];
+        let outputs = Stages { solver: b.stages.solver, ..a.stages } != b.stages
+            || a.warp != b.warp
+            || a.dpcm != b.dpcm
+            || a.camera != b.camera;
+        SceneChange {
+            physics: physics.into_iter().filter(|(_, changed)| *changed).map(|(name, _)| name).collect(),
+            checks: a.frame_id != b.frame_id || a.inputs != b.inputs,
+            outputs,
+            warp: a.stages.warp != b.stages.warp || a.warp != b.warp,
+        }
+    }
+}
+
 /// Everything a run needs, loaded and validated.
 pub struct LoadedScene {
     pub scene: Scene,
@@ -513,6 +557,29 @@ impl LoadedScene {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_change_is_sorted_by_what_it_takes_to_apply() {
+        let running = Scene::default_scene().unwrap();
+        let change = |edit: fn(&mut Scene)| {
+            let mut scene = running.clone();
+            edit(&mut scene);
+            scene.change_from(&running)
+        };
+        assert_eq!(change(|_| {}), SceneChange::default());
+        let outputs = SceneChange { outputs: true, ..Default::default() };
+        assert_eq!(change(|s| s.camera.width = 640), outputs);
+        assert_eq!(change(|s| s.stages.raycast = !s.stages.raycast), outputs);
+        assert_eq!(change(|s| s.dpcm.rate_hz = 5.0), outputs);
+        assert_eq!(change(|s| s.warp.rate_hz = 5.0), SceneChange { warp: true, ..outputs.clone() });
+        assert_eq!(change(|s| s.inputs.max_age = 0.0), SceneChange { checks: true, ..Default::default() });
+        assert!(change(|s| s.frame_id = "map".into()).checks);
+        assert_eq!(change(|s| s.solver.dt = 0.005).physics, ["solver"]);
+        assert_eq!(change(|s| s.stages.solver = false).physics, ["stages.solver"]);
+        assert_eq!(change(|s| s.density = 900.0).physics, ["density"]);
+        assert_eq!(change(|s| s.tools[0].contact_stiffness *= 2.0).physics, ["tools"]);
+        assert_eq!(change(|s| s.volume = "ct.nii".into()).physics, ["volume"]);
+    }
 
     #[test]
     fn default_scene_parses_and_rejects_unknown_fields() {

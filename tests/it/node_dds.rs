@@ -1308,3 +1308,107 @@ fn image_delivery(profile: Option<&Path>) -> (Vec<(String, usize, usize)>, bool)
     });
     (delivery.collect(), log.contains("exceed what a subscriber's default socket receive buffer takes"))
 }
+
+/// A parameter rebuilds only what it touches while a device drives a coupled tool at about
+/// 500 Hz: `camera.width` set live rebuilds the camera, the next images are wider, the
+/// solver's step counter never goes back and every pose is still answered; `solver.dt`
+/// restarts the simulation from rest, and the log says why. The longest pause in the
+/// feedback around each change is reported (docs/perf/journal.md).
+#[test]
+fn a_live_camera_change_leaves_the_simulation_and_the_force_loop_running() {
+    isolated("a_live_camera_change_leaves_the_simulation_and_the_force_loop_running", || {
+        let dir = tempfile::tempdir().unwrap();
+        let small = std::fs::read_to_string(scene()).unwrap();
+        let (head, tail) = small.split_once("tools:").unwrap();
+        let rest = &tail[tail.find("frame_id:").unwrap()..];
+        let tool = "tools:\n  - name: probe\n    shape: { kind: sphere, radius: 0.002 }\n    contact: surface\n    \
+                    contact_stiffness: 20000.0\n    spread_radius: 0.01\n    \
+                    coupling: { stiffness: 1000.0, damping: 2.0, mass: 0.02, max_force: 10.0 }\n";
+        let coupled = format!("{head}{tool}{rest}").replace(
+            "stages: { solver: true, warp: true, dpcm: true, raycast: true }",
+            "stages: { solver: true, warp: false, dpcm: false, raycast: true }",
+        );
+        let scene = dir.path().join("coupled.yaml");
+        std::fs::write(&scene, coupled).unwrap();
+        let node_process = start_node_on(&scene, dir.path(), 14, "live_camera");
+        let context = dds::context(17, Discovery::Localhost).unwrap();
+        let mut peer = context.new_node(NodeName::new("/", "device").unwrap(), NodeOptions::new()).unwrap();
+        let feedback_name = Name::parse("/robot/tool_feedback").unwrap();
+        let feedback_topic = peer.create_topic(&feedback_name, type_name::<WrenchStamped>(), &qos(Qos::SensorData));
+        let feedback =
+            peer.create_subscription::<WrenchStamped>(&feedback_topic.unwrap(), Some(qos(Qos::SensorData))).unwrap();
+        let poses = pose_publisher(&mut peer);
+        let set_parameters = peer
+            .create_client::<SetParametersRequest, SetParametersResponse>(
+                ServiceMapping::Enhanced,
+                &Name::parse("/robot/defvol/set_parameters").unwrap(),
+                &ServiceTypeName::new("rcl_interfaces", "SetParameters"),
+                qos(Qos::Reliable),
+                qos(Qos::Reliable),
+            )
+            .unwrap();
+        let set =
+            |name: &str, value| SetParametersRequest { parameter: vec![Parameter { name: name.into(), value }.into()] };
+        let changes = [
+            (4.0, set("camera.width", ParameterValue::Integer(96))),
+            (8.0, set("solver.dt", ParameterValue::Double(0.005))),
+        ];
+        let (mut answers, mut replies, mut pending) = (Vec::new(), Vec::new(), None);
+        let start = Instant::now();
+        while start.elapsed() < Duration::from_secs(11) {
+            let s = (start.elapsed().as_secs_f64() / 2.0).min(1.0);
+            poses.publish(pose_at(0.072 - 0.014 * s)).unwrap();
+            while let Ok(Some((_, _))) = feedback.take() {
+                answers.push(start.elapsed().as_secs_f64());
+            }
+            let due = changes.iter().filter(|(at, _)| start.elapsed().as_secs_f64() >= *at).count();
+            if replies.len() < due && pending.is_none() {
+                let asked = start.elapsed().as_secs_f64();
+                pending = set_parameters.send_request(changes[replies.len()].1.clone()).ok().map(|id| (id, asked));
+            }
+            if let (Ok(Some((id, reply))), Some((sent, asked))) = (set_parameters.receive_response(), pending) {
+                if id == sent {
+                    replies.push((asked, start.elapsed().as_secs_f64(), reply));
+                    pending = None;
+                }
+            }
+            std::thread::sleep(Duration::from_millis(2));
+        }
+        let exit = node_process.wait_with_output().unwrap();
+        let log = String::from_utf8_lossy(&exit.stderr);
+        assert!(exit.status.success(), "{log}");
+        assert_eq!(replies.len(), 2, "both sets answered: {replies:?}");
+        for (asked, answered, reply) in &replies {
+            assert!(reply.results.iter().all(|r| r.successful), "{reply:?}");
+            // The longest pause of the feedback from a second before the set to a second after.
+            let around: Vec<f64> =
+                answers.iter().copied().filter(|t| (asked - 1.0..answered + 1.0).contains(t)).collect();
+            let pause = around.windows(2).map(|w| w[1] - w[0]).fold(0.0, f64::max);
+            eprintln!(
+                "set at {asked:.3} s, answered in {:.1} ms; {} answers around it, longest pause {:.1} ms",
+                (answered - asked) * 1e3,
+                around.len(),
+                pause * 1e3
+            );
+            assert!(around.len() > 200, "the force loop answered on: {} answers", around.len());
+        }
+        assert!(log.contains("parameter camera.width set: its stages rebuilt, the simulation running on"), "{log}");
+        assert!(log.contains("the simulation restarted from rest: solver changed"), "{log}");
+        // The step counter goes back once: at the solver's change, not the camera's.
+        let recorded =
+            bag::read_messages(&dir.path().join("node.mcap"), &["/robot/deformed_mesh", "/robot/raycast/image"])
+                .unwrap();
+        let steps: Vec<u64> = recorded
+            .iter()
+            .filter(|m| m.topic.ends_with("deformed_mesh"))
+            .map(|m| msgs::decode::<DeformedMesh>(&m.data, "mesh").unwrap().step)
+            .collect();
+        assert_eq!(steps.windows(2).filter(|w| w[1] < w[0]).count(), 1, "{steps:?}");
+        let widths: Vec<u32> = recorded
+            .iter()
+            .filter(|m| m.topic.ends_with("image"))
+            .map(|m| msgs::decode::<Image>(&m.data, "image").unwrap().width)
+            .collect();
+        assert!(widths.first() == Some(&64) && widths.last() == Some(&96), "{widths:?}");
+    });
+}
