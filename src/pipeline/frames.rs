@@ -323,6 +323,13 @@ impl Frames {
     }
 
     /// The warped volume kept on the host, in lockstep (the worker is not shared then).
+    /// After a reset, whose clock starts again at 0: the next warp and picture are due at
+    /// once, and show the organ at rest.
+    pub fn restart(&mut self) {
+        (self.last_warp, self.last_raycast) = (f64::NEG_INFINITY, f64::NEG_INFINITY);
+        (self.warp_stale, self.raycast_stale) = (true, true);
+    }
+
     pub fn host_warped(&self) -> Option<&[f32]> {
         match &self.runner {
             Runner::Inline(worker) => worker.warp.as_ref()?.host.as_ref().map(|(v, _)| v.data()),

@@ -152,15 +152,41 @@ pub struct Pipeline {
     last_reset: Option<String>,
 }
 
+/// Refuses stage choices that cannot run together.
+fn check_stages(scene: &Scene) -> Result<(), PipelineError> {
+    if !scene.stages.solver && scene.stages.warp {
+        return Err(PipelineError::Invalid(
+            "the warp stage follows the solver's mesh: enable stages.solver too".into(),
+        ));
+    }
+    Ok(())
+}
+
 impl Pipeline {
     /// Loads the scene and initialises the stages it enables (and only those).
     pub fn new(scene: Scene, backend: &Backend, limits: InputLimits, mode: FrameMode) -> Result<Self, PipelineError> {
-        if !scene.stages.solver && scene.stages.warp {
-            return Err(PipelineError::Invalid(
-                "the warp stage follows the solver's mesh: enable stages.solver too".into(),
-            ));
-        }
-        let LoadedScene { scene, volume, mesh, model } = scene.load()?;
+        check_stages(&scene)?;
+        let mut pipeline = Self::build(scene.load()?, backend, limits, mode)?;
+        pipeline.init_stages()?;
+        Ok(pipeline)
+    }
+
+    /// The scene on the volume already read, the rest as [`Pipeline::new`] builds it.
+    fn on_volume(&self, scene: Scene) -> Result<Self, PipelineError> {
+        check_stages(&scene)?;
+        let mut pipeline =
+            Self::build(scene.load_on(self.volume.clone())?, &self.backend, self.limits.clone(), self.mode)?;
+        pipeline.init_stages()?;
+        Ok(pipeline)
+    }
+
+    fn build(
+        loaded: LoadedScene,
+        backend: &Backend,
+        limits: InputLimits,
+        mode: FrameMode,
+    ) -> Result<Self, PipelineError> {
+        let LoadedScene { scene, volume, mesh, model } = loaded;
         let engine = match scene.stages.solver {
             true => {
                 let engine = SolverEngine::new(
@@ -176,8 +202,7 @@ impl Pipeline {
         };
         let positions = engine.as_ref().map_or_else(|| mesh.nodes().to_vec(), SolverEngine::positions);
         let feedback = FeedbackLoop::new(&scene, engine, mesh.nodes().len(), limits.with_scene(&scene.inputs));
-        let volume = Arc::new(volume);
-        let mut pipeline = Self {
+        let pipeline = Self {
             scene,
             volume,
             mesh,
@@ -199,15 +224,19 @@ impl Pipeline {
             positions,
             last_reset: None,
         };
-        pipeline.init_stages()?;
         Ok(pipeline)
     }
 
     fn init_stages(&mut self) -> Result<(), PipelineError> {
+        self.init_frames()?;
+        self.init_dpcm()
+    }
+
+    /// Warp and raycast, as the scene asks.
+    fn init_frames(&mut self) -> Result<(), PipelineError> {
         let stages = self.scene.stages;
         self.frames = None;
         self.warp_grid = None;
-        self.dpcm = None;
         let to_file = 1.0 / self.scene.file_to_world;
         let mut rest = self.mesh.clone();
         rest.map_nodes(|p| p * to_file);
@@ -306,7 +335,13 @@ impl Pipeline {
             }
             self.frames = Some(frames);
         }
-        if stages.dpcm {
+        Ok(())
+    }
+
+    /// The DPCM surface, as the scene asks.
+    fn init_dpcm(&mut self) -> Result<(), PipelineError> {
+        self.dpcm = None;
+        if self.scene.stages.dpcm {
             let c = &self.scene.dpcm;
             let mut config = if c.preset.ends_with(".yaml") || c.preset.ends_with(".yml") {
                 DpcmConfig::load(std::path::Path::new(&c.preset))?
@@ -511,8 +546,16 @@ impl Pipeline {
     /// Back to the rest state: the mesh, the DPCM surface and the tools' input history.
     /// The solver comes back attached: the node detaches it again.
     pub fn reset(&mut self) -> Result<(), PipelineError> {
-        let model_scene = self.scene.clone();
-        let mut replacement = Self::new(model_scene, &self.backend, self.limits.clone(), self.mode)?;
+        // Warp and raycast hold no state of the simulation's: they carry over, and only the
+        // simulation and the DPCM surface start again.
+        check_stages(&self.scene)?;
+        let loaded = self.scene.clone().load_on(self.volume.clone())?;
+        let mut replacement = Self::build(loaded, &self.backend, self.limits.clone(), self.mode)?;
+        replacement.init_dpcm()?;
+        (replacement.frames, replacement.warp_grid) = (self.frames.take(), self.warp_grid.take());
+        if let Some(frames) = &mut replacement.frames {
+            frames.restart();
+        }
         if self.paused() {
             replacement.pause();
         }
@@ -528,7 +571,14 @@ impl Pipeline {
     pub fn apply_scene(&mut self, scene: Scene) -> Result<SceneChange, PipelineError> {
         let change = scene.change_from(&self.scene);
         if !change.physics.is_empty() {
-            self.load_scene(scene)?;
+            // The volume is read again only when it is another (or scaled otherwise).
+            if change.physics.contains(&"volume") || change.physics.contains(&"file_to_world") {
+                self.load_scene(scene)?;
+            } else {
+                let mut replacement = self.on_volume(scene)?;
+                replacement.sink = self.sink.take();
+                *self = replacement;
+            }
             let why = format!("{} changed", change.physics.join(", "));
             tracing::warn!("the simulation restarted from rest: {why}");
             self.last_reset = Some(why);
@@ -788,7 +838,8 @@ mod tests {
     /// A camera change rebuilds the picture alone: the simulation runs on from its step and
     /// positions, the next image has the new size; a camera that cannot be built is refused
     /// and the running one kept; a change of the solver's system restarts the simulation from
-    /// rest and `diagnostics` say why.
+    /// rest and `diagnostics` say why; `reset` brings the organ back to rest under the same
+    /// camera.
     #[test]
     fn a_parameter_rebuilds_only_what_it_touches() {
         let stages = crate::scene::Stages { solver: true, warp: false, dpcm: false, raycast: true };
@@ -819,6 +870,15 @@ mod tests {
         let solver = diagnostics.status.iter().find(|s| s.name == "defvol: solver").unwrap();
         let reset = solver.values.iter().find(|v| v.key == "last_reset").unwrap();
         assert_eq!(reset.value, "restarted from rest: solver changed");
+        // `reset` keeps the frames and the volume: the organ is at rest, the camera as it was.
+        for i in 1..=3 {
+            p.tick(Time::from_secs(0.005 * f64::from(i)), &Demand::ALL).unwrap();
+        }
+        assert_ne!(p.positions(), p.mesh().nodes());
+        p.reset().unwrap();
+        assert_eq!((p.positions(), p.scene().camera.width), (p.mesh().nodes(), 48));
+        let out = p.tick(Time::from_secs(0.02), &Demand::ALL).unwrap();
+        assert_eq!(out.raycast.unwrap().width, 48);
     }
 
     /// A zero stamp (what `ros2 topic pub` sends) is taken as the time the pose came: the

@@ -9,6 +9,7 @@ pub use confined::{
 };
 
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 use nalgebra::{Isometry3, Vector3};
 use serde::{Deserialize, Serialize};
@@ -445,7 +446,7 @@ impl Scene {
 pub struct LoadedScene {
     pub scene: Scene,
     /// The volume, in file units.
-    pub volume: Volume,
+    pub volume: Arc<Volume>,
     /// The mesh, in world units.
     pub mesh: TetMesh,
     pub model: MassSpringModel,
@@ -467,25 +468,20 @@ impl Scene {
         Self::parse(&text, &path.display().to_string())
     }
 
+    /// The scene read and built: its volume, its mesh in world units, its model.
     pub fn load(self) -> Result<LoadedScene, SceneError> {
-        if !(self.file_to_world.is_finite() && self.file_to_world > 0.0) {
-            return Err(SceneError::Invalid(format!("file_to_world = {} must be positive", self.file_to_world)));
-        }
-        self.solver.validate()?;
-        if !(self.inputs.max_age.is_finite() && self.inputs.max_age >= 0.0) {
-            return Err(SceneError::Invalid(format!(
-                "inputs.max_age = {} must be finite and >= 0",
-                self.inputs.max_age
-            )));
-        }
-        for why in self.tools.iter().filter_map(ToolConfig::too_soft_for_its_coupling) {
-            tracing::warn!("{why}");
-        }
+        self.check()?;
         let volume = if self.volume == "phantom" {
             phantom::phantom(phantom::DEFAULT_DIMS, 1.0)?
         } else {
             io::read_volume_series(Path::new(&self.volume), self.volume_series.as_deref())?
         };
+        self.load_on(Arc::new(volume))
+    }
+
+    /// The scene built on `volume`, already read (a reset, or a change that keeps the volume).
+    pub fn load_on(self, volume: Arc<Volume>) -> Result<LoadedScene, SceneError> {
+        self.check()?;
         let scale = self.file_to_world;
         let mesh = match &self.mesh {
             MeshSource::File { path, scale: chosen } => read_world_mesh(path, *chosen, scale)?,
@@ -508,6 +504,24 @@ impl Scene {
         let sample = |p: &Vector3<f64>| volume.sample_world(p / scale);
         let model = MassSpringModel::new(&mesh, &self.material, self.density, &fixed, Some(&sample))?;
         Ok(LoadedScene { scene: self, volume, mesh, model })
+    }
+
+    /// What must hold before anything is read or built.
+    fn check(&self) -> Result<(), SceneError> {
+        if !(self.file_to_world.is_finite() && self.file_to_world > 0.0) {
+            return Err(SceneError::Invalid(format!("file_to_world = {} must be positive", self.file_to_world)));
+        }
+        self.solver.validate()?;
+        if !(self.inputs.max_age.is_finite() && self.inputs.max_age >= 0.0) {
+            return Err(SceneError::Invalid(format!(
+                "inputs.max_age = {} must be finite and >= 0",
+                self.inputs.max_age
+            )));
+        }
+        for why in self.tools.iter().filter_map(ToolConfig::too_soft_for_its_coupling) {
+            tracing::warn!("{why}");
+        }
+        Ok(())
     }
 }
 
