@@ -254,9 +254,19 @@ impl Session {
             if let Some(info) = &info {
                 logged = logged.and_then(|()| log.log_warped_volume(info, pipeline.scene().file_to_world));
             }
-            for (path, image) in
-                [("camera/raycast", &out.raycast), ("dpcm/height", &out.dpcm_height), ("dpcm/image", &out.dpcm_image)]
+            if let (true, Some(samples), Some(grid)) =
+                (out.warped_volume, pipeline.warped_samples(), pipeline.warped_grid())
             {
+                logged = logged.and_then(|()| log.log_slices(samples, grid, slice_point(pipeline, grid)));
+            }
+            if out.raycast.is_some() {
+                logged = logged.and_then(|()| log.log_camera(&pipeline.scene().camera));
+            }
+            for (path, image) in [
+                ("world/camera/image", &out.raycast),
+                ("dpcm/height", &out.dpcm_height),
+                ("dpcm/image", &out.dpcm_image),
+            ] {
                 if let Some(image) = image {
                     logged = logged.and_then(|()| log.log_image(path, image));
                 }
@@ -308,6 +318,17 @@ impl Session {
             }
         }
         Ok(())
+    }
+}
+
+/// Where the slices of the warped volume cross (file units): the first tool's tip, else the
+/// volume's centre.
+#[cfg(feature = "rerun")]
+fn slice_point(pipeline: &Pipeline, grid: &crate::volume::Grid) -> nalgebra::Vector3<f64> {
+    let tip = pipeline.tool_topics().first().and_then(|(pose, _)| pipeline.tool_on(pose)).map(|(_, pose)| pose);
+    match tip {
+        Some(pose) => pose.translation.vector / pipeline.scene().file_to_world,
+        None => grid.world_from_index(grid.dims.map(|n| n.saturating_sub(1) as f64 / 2.0).into()),
     }
 }
 

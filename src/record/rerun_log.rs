@@ -1,12 +1,16 @@
 //! Session logs for the rerun viewer: the deformed surface as a Mesh3D, the tools with
-//! their transforms and shapes, the raycast and DPCM images, and the diagnostics as plots,
-//! on a `sim_time` timeline.
+//! their transforms and shapes, the raycast camera as a pinhole with its image in 3-D, the
+//! warped volume's box and its three orthogonal slices through the tool, the DPCM images,
+//! and the diagnostics as plots, on a `sim_time` timeline.
 
 use std::path::Path;
 
+use nalgebra::Vector3;
+
 use crate::msgs::{DeformedMesh, DiagnosticArray, Image, WarpedVolumeInfo, WrenchStamped};
-use crate::scene::ToolConfig;
+use crate::scene::{CameraConfig, ToolConfig};
 use crate::solver::ToolShape;
+use crate::volume::Grid;
 
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
@@ -143,6 +147,34 @@ impl RerunLog {
         )
     }
 
+    /// The raycast camera where it looks from (world metres), as a pinhole whose image
+    /// (`world/camera/image`) the 3-D view draws in its frustum.
+    pub fn log_camera(&self, camera: &CameraConfig) -> Result<(), RerunError> {
+        let (eye, target, up) = (Vector3::from(camera.eye), Vector3::from(camera.target), Vector3::from(camera.up));
+        let forward = (target - eye).normalize();
+        let right = forward.cross(&up).normalize();
+        // rerun's pinhole looks along +z with x right and y down (RDF).
+        let down = forward.cross(&right);
+        let column = |v: Vector3<f64>| [v.x as f32, v.y as f32, v.z as f32];
+        let transform =
+            rerun::Transform3D::from_translation_mat3x3(column(eye), [column(right), column(down), column(forward)]);
+        self.log("world/camera", &transform)?;
+        let (width, height) = (camera.width as f32, camera.height as f32);
+        let focal = height / 2.0 / (camera.fov_y_deg.to_radians() as f32 / 2.0).tan();
+        self.log("world/camera", &rerun::Pinhole::from_focal_length_and_resolution([focal, focal], [width, height]))
+    }
+
+    /// Three orthogonal slices of the warped volume (`samples` on `grid`, file units) through
+    /// the point `at` (file units): axial, coronal and sagittal, as a medical viewer's slice
+    /// views show them (superior up).
+    pub fn log_slices(&self, samples: &[f32], grid: &Grid, at: Vector3<f64>) -> Result<(), RerunError> {
+        for (view, data, [width, height]) in slices(samples, grid, at)? {
+            let image = rerun::Image::from_elements(&data, [width as u32, height as u32], rerun::ColorModel::L);
+            self.log(&format!("slices/{view}"), &image)?;
+        }
+        Ok(())
+    }
+
     /// An RGB8/RGBA8 image, or a 32FC1 one as a depth image (metres).
     pub fn log_image(&self, path: &str, image: &Image) -> Result<(), RerunError> {
         let size = [image.width, image.height];
@@ -173,5 +205,53 @@ impl RerunLog {
 
     pub fn flush(&self) -> Result<(), RerunError> {
         self.stream.flush_blocking().map_err(|e| RerunError::Stream(e.to_string()))
+    }
+}
+
+/// One slice: its view's name, its samples row by row, its width and height.
+type Slice = (&'static str, Vec<f32>, [usize; 2]);
+
+/// The axial (rows along y), coronal and sagittal (rows from the top slice down) planes of
+/// `samples` on `grid` through the voxel nearest `at` (file units), each with its size.
+fn slices(samples: &[f32], grid: &Grid, at: Vector3<f64>) -> Result<[Slice; 3], RerunError> {
+    let [nx, ny, nz] = grid.dims;
+    if samples.len() != nx * ny * nz || samples.is_empty() {
+        return Err(RerunError::Log(format!("warped volume: {} samples for {nx}x{ny}x{nz}", samples.len())));
+    }
+    let index = grid.index_from_world(at);
+    let clamp = |v: f64, n: usize| (v.round().max(0.0) as usize).min(n - 1);
+    let (i, j, k) = (clamp(index.x, nx), clamp(index.y, ny), clamp(index.z, nz));
+    let at = |x: usize, y: usize, z: usize| samples[x + nx * (y + ny * z)];
+    let axial = (0..ny).flat_map(|y| (0..nx).map(move |x| at(x, y, k))).collect();
+    let coronal = (0..nz).rev().flat_map(|z| (0..nx).map(move |x| at(x, j, z))).collect();
+    let sagittal = (0..nz).rev().flat_map(|z| (0..ny).map(move |y| at(i, y, z))).collect();
+    Ok([("axial", axial, [nx, ny]), ("coronal", coronal, [nx, nz]), ("sagittal", sagittal, [ny, nz])])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// On a volume whose sample encodes its own index, each plane holds exactly the voxels
+    /// through the point's nearest voxel, found through the grid's spacing and origin.
+    #[test]
+    fn the_three_slices_cross_at_the_voxel_nearest_the_point() {
+        let grid = Grid {
+            dims: [4, 3, 5],
+            spacing: [2.0, 1.0, 0.5],
+            origin: [10.0, 0.0, -1.0],
+            direction: nalgebra::Matrix3::identity(),
+        };
+        let code = |x: usize, y: usize, z: usize| (x * 100 + y * 10 + z) as f32;
+        let samples: Vec<f32> =
+            (0..5).flat_map(|z| (0..3).flat_map(move |y| (0..4).map(move |x| code(x, y, z)))).collect();
+        // (14.2, 1.1, 0.4) is voxel (2.1, 1.1, 2.8) -> (2, 1, 3).
+        let [axial, coronal, sagittal] = slices(&samples, &grid, Vector3::new(14.2, 1.1, 0.4)).unwrap();
+        assert_eq!((axial.2, coronal.2, sagittal.2), ([4, 3], [4, 5], [3, 5]));
+        assert!(axial.1.iter().all(|v| *v as usize % 10 == 3) && axial.1[4 + 1] == code(1, 1, 3));
+        assert!(coronal.1.iter().all(|v| (*v as usize / 10) % 10 == 1));
+        assert_eq!((coronal.1[0], coronal.1[4 * 4 + 3]), (code(0, 1, 4), code(3, 1, 0)), "superior up");
+        assert!(sagittal.1.iter().all(|v| *v as usize / 100 == 2) && sagittal.1[2] == code(2, 2, 4));
+        assert!(slices(&samples[1..], &grid, Vector3::zeros()).is_err());
     }
 }

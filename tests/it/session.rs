@@ -172,6 +172,7 @@ fn the_bag_reads_back_with_a_rosbag2_reader() {
     assert_eq!(read["images"]["/dpcm/height"], serde_json::json!([64, 64, "32FC1", 64 * 64 * 4]));
 }
 
+/// The demo's rerun log passes `rerun rrd verify` and holds what a medical viewer shows.
 #[cfg(feature = "rerun")]
 #[test]
 fn the_rerun_log_passes_rerun_verify() {
@@ -184,6 +185,20 @@ fn the_rerun_log_passes_rerun_verify() {
     assert!(std::fs::metadata(&rrd).unwrap().len() > 10_000);
     let text = run(Command::new("rerun").args(["rrd", "verify"]).arg(&rrd));
     assert!(text.contains("1 file verified without error"), "{text}");
+    // The patient as a viewer shows one: the camera as a pinhole placed in the world with its
+    // image in its frustum, and the warped volume's three slices.
+    let printed = run(Command::new("rerun").args(["rrd", "print"]).arg(&rrd));
+    for (entity, columns) in [
+        ("/world/camera", "[Pinhole:image_from_camera Pinhole:resolution]"),
+        ("/world/camera", "[Transform3D:mat3x3 Transform3D:translation]"),
+        ("/world/camera/image", "[Image:buffer Image:format]"),
+        ("/slices/axial", "[Image:buffer Image:format]"),
+        ("/slices/coronal", "[Image:buffer Image:format]"),
+        ("/slices/sagittal", "[Image:buffer Image:format]"),
+    ] {
+        let line = format!(" - {entity} - data columns: {columns}");
+        assert!(printed.lines().any(|l| l.ends_with(&line)), "no {entity} {columns} in:\n{printed}");
+    }
 }
 
 /// `defvol demo` on the GPU backend (the suite's software adapter allowed) runs every stage
