@@ -13,7 +13,7 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import Log
 from rclpy.parameter import Parameter
-from rclpy.parameter_client import AsyncParameterClient
+from parameter_client import connect
 
 
 def main():
@@ -24,15 +24,7 @@ def main():
     heard = []
     node.create_subscription(DiagnosticArray, f"{namespace}/diagnostics", lambda m: heard.append(str(m)), 100)
     node.create_subscription(Log, "/rosout", lambda m: heard.append(m.msg), 1000)
-    client = AsyncParameterClient(node, target)
-    if not client.wait_for_services(timeout_sec=20.0):
-        raise SystemExit(f"{target}: parameter services not found")
-
-    def wait(future):
-        rclpy.spin_until_future_complete(node, future, timeout_sec=10.0)
-        if future.result() is None:
-            raise SystemExit("no reply")
-        return future.result()
+    client, wait = connect(node, target)
 
     answers = {}
     for path in paths:

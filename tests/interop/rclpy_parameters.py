@@ -11,22 +11,14 @@ import sys
 import rclpy
 from rcl_interfaces.msg import ParameterType
 from rclpy.parameter import Parameter
-from rclpy.parameter_client import AsyncParameterClient
+from parameter_client import connect
 
 
 def main():
     target = sys.argv[1]
     rclpy.init()
     node = rclpy.create_node("rclpy_parameters")
-    client = AsyncParameterClient(node, target)
-    if not client.wait_for_services(timeout_sec=20.0):
-        raise SystemExit(f"{target}: parameter services not found")
-
-    def wait(future):
-        rclpy.spin_until_future_complete(node, future, timeout_sec=10.0)
-        if future.result() is None:
-            raise SystemExit("no reply")
-        return future.result()
+    client, wait = connect(node, target)
 
     def set_one(name, value):
         result = wait(client.set_parameters([Parameter(name, value=value)])).results[0]

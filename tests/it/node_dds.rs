@@ -90,6 +90,24 @@ fn pause_client(peer: &mut ros2_client::Node) -> ros2_client::Client<TriggerRequ
     peer.create_client(ServiceMapping::Enhanced, &name, &ty, qos(Qos::Reliable), qos(Qos::Reliable)).unwrap()
 }
 
+/// The small scene in `dir` with one haptically coupled probe (a device's pose answered
+/// from the local model), the solver alone or with the raycast `camera`.
+fn coupled_scene(dir: &Path, camera: bool) -> PathBuf {
+    let small = std::fs::read_to_string(scene()).unwrap();
+    let (head, tail) = small.split_once("tools:").unwrap();
+    let rest = &tail[tail.find("frame_id:").unwrap()..];
+    let tool = "tools:\n  - name: probe\n    shape: { kind: sphere, radius: 0.002 }\n    contact: surface\n    \
+                contact_stiffness: 20000.0\n    spread_radius: 0.01\n    \
+                coupling: { stiffness: 1000.0, damping: 2.0, mass: 0.02, max_force: 10.0 }\n";
+    let coupled = format!("{head}{tool}{rest}").replace(
+        "stages: { solver: true, warp: true, dpcm: true, raycast: true }",
+        &format!("stages: {{ solver: true, warp: false, dpcm: false, raycast: {camera} }}"),
+    );
+    let path = dir.join("coupled.yaml");
+    std::fs::write(&path, coupled).unwrap();
+    path
+}
+
 fn type_name<T: msgs::Message>() -> MessageTypeName {
     let parts: Vec<&str> = T::NAME.split('/').collect();
     MessageTypeName::new(parts[0], parts[2])
@@ -271,18 +289,7 @@ fn a_second_participant_drives_the_node_and_receives_every_output() {
 fn a_coupled_tool_is_answered_at_the_pose_rate_not_the_solver_rate() {
     isolated("a_coupled_tool_is_answered_at_the_pose_rate_not_the_solver_rate", || {
         let dir = tempfile::tempdir().unwrap();
-        let small = std::fs::read_to_string(scene()).unwrap();
-        let (head, tail) = small.split_once("tools:").unwrap();
-        let rest = &tail[tail.find("frame_id:").unwrap()..];
-        let tool = "tools:\n  - name: probe\n    shape: { kind: sphere, radius: 0.002 }\n    contact: surface\n    \
-                    contact_stiffness: 20000.0\n    spread_radius: 0.01\n    \
-                    coupling: { stiffness: 1000.0, damping: 2.0, mass: 0.02, max_force: 10.0 }\n";
-        let coupled = format!("{head}{tool}{rest}").replace(
-            "stages: { solver: true, warp: true, dpcm: true, raycast: true }",
-            "stages: { solver: true, warp: false, dpcm: false, raycast: false }",
-        );
-        let scene = dir.path().join("coupled.yaml");
-        std::fs::write(&scene, coupled).unwrap();
+        let scene = coupled_scene(dir.path(), false);
         let node_process = start_node_on(&scene, dir.path(), 9, "coupled");
         let context = dds::context(17, Discovery::Localhost).unwrap();
         let mut peer = context.new_node(NodeName::new("/", "device").unwrap(), NodeOptions::new()).unwrap();
@@ -1318,18 +1325,7 @@ fn image_delivery(profile: Option<&Path>) -> (Vec<(String, usize, usize)>, bool)
 fn a_live_camera_change_leaves_the_simulation_and_the_force_loop_running() {
     isolated("a_live_camera_change_leaves_the_simulation_and_the_force_loop_running", || {
         let dir = tempfile::tempdir().unwrap();
-        let small = std::fs::read_to_string(scene()).unwrap();
-        let (head, tail) = small.split_once("tools:").unwrap();
-        let rest = &tail[tail.find("frame_id:").unwrap()..];
-        let tool = "tools:\n  - name: probe\n    shape: { kind: sphere, radius: 0.002 }\n    contact: surface\n    \
-                    contact_stiffness: 20000.0\n    spread_radius: 0.01\n    \
-                    coupling: { stiffness: 1000.0, damping: 2.0, mass: 0.02, max_force: 10.0 }\n";
-        let coupled = format!("{head}{tool}{rest}").replace(
-            "stages: { solver: true, warp: true, dpcm: true, raycast: true }",
-            "stages: { solver: true, warp: false, dpcm: false, raycast: true }",
-        );
-        let scene = dir.path().join("coupled.yaml");
-        std::fs::write(&scene, coupled).unwrap();
+        let scene = coupled_scene(dir.path(), true);
         let node_process = start_node_on(&scene, dir.path(), 14, "live_camera");
         let context = dds::context(17, Discovery::Localhost).unwrap();
         let mut peer = context.new_node(NodeName::new("/", "device").unwrap(), NodeOptions::new()).unwrap();
