@@ -85,8 +85,17 @@ fn pose_publisher(peer: &mut ros2_client::Node) -> ros2_client::Publisher<PoseSt
 
 /// A client of the node's `/robot/pause` (std_srvs/Trigger).
 fn pause_client(peer: &mut ros2_client::Node) -> ros2_client::Client<TriggerRequest, TriggerResponse> {
-    let name = Name::parse("/robot/pause").unwrap();
-    let ty = ServiceTypeName::new("std_srvs", "Trigger");
+    service_client(peer, "/robot/pause", "std_srvs", "Trigger")
+}
+
+/// A client of the service `name` of type `package/srv/ty`, as `ros2 service call` makes one.
+fn service_client<Q: ros2_client::Message + Clone + 'static, A: ros2_client::Message + 'static>(
+    peer: &mut ros2_client::Node,
+    name: &str,
+    package: &str,
+    ty: &str,
+) -> ros2_client::Client<Q, A> {
+    let (name, ty) = (Name::parse(name).unwrap(), ServiceTypeName::new(package, ty));
     peer.create_client(ServiceMapping::Enhanced, &name, &ty, qos(Qos::Reliable), qos(Qos::Reliable)).unwrap()
 }
 
@@ -148,24 +157,18 @@ fn a_second_participant_drives_the_node_and_receives_every_output() {
         let poses = pose_publisher(&mut peer);
         let pause = pause_client(&mut peer);
 
-        let set_parameters = peer
-            .create_client::<SetParametersRequest, SetParametersResponse>(
-                ServiceMapping::Enhanced,
-                &Name::parse("/robot/defvol/set_parameters").unwrap(),
-                &ServiceTypeName::new("rcl_interfaces", "SetParameters"),
-                qos(Qos::Reliable),
-                qos(Qos::Reliable),
-            )
-            .unwrap();
-        let load_scene = peer
-            .create_client::<LoadSceneRequest, TriggerResponse>(
-                ServiceMapping::Enhanced,
-                &Name::parse("/robot/load_scene").unwrap(),
-                &ServiceTypeName::new("defvol_interfaces", "LoadScene"),
-                qos(Qos::Reliable),
-                qos(Qos::Reliable),
-            )
-            .unwrap();
+        let set_parameters = service_client::<SetParametersRequest, SetParametersResponse>(
+            &mut peer,
+            "/robot/defvol/set_parameters",
+            "rcl_interfaces",
+            "SetParameters",
+        );
+        let load_scene = service_client::<LoadSceneRequest, TriggerResponse>(
+            &mut peer,
+            "/robot/load_scene",
+            "defvol_interfaces",
+            "LoadScene",
+        );
         let mut load_reply = None;
         let impossible = || SetParametersRequest {
             parameter: vec![
@@ -1183,17 +1186,12 @@ fn nothing_outside_the_allowed_directories_reaches_a_caller() {
         // load_scene: by path, and as YAML text naming the secret as its volume.
         let context = dds::context(17, Discovery::Localhost).unwrap();
         let mut peer = context.new_node(NodeName::new("/", "files").unwrap(), NodeOptions::new()).unwrap();
-        let name = Name::parse("/robot/load_scene").unwrap();
-        let ty = ServiceTypeName::new("defvol_interfaces", "LoadScene");
-        let client = peer
-            .create_client::<LoadSceneRequest, TriggerResponse>(
-                ServiceMapping::Enhanced,
-                &name,
-                &ty,
-                qos(Qos::Reliable),
-                qos(Qos::Reliable),
-            )
-            .unwrap();
+        let client = service_client::<LoadSceneRequest, TriggerResponse>(
+            &mut peer,
+            "/robot/load_scene",
+            "defvol_interfaces",
+            "LoadScene",
+        );
         let as_volume = scene_text.replace("volume: phantom", &format!("volume: {}", secret.display()));
         let requests = [
             (show(&secret), "outside the allowed directories"),
@@ -1334,24 +1332,13 @@ fn a_live_camera_change_leaves_the_simulation_and_the_force_loop_running() {
         let feedback =
             peer.create_subscription::<WrenchStamped>(&feedback_topic.unwrap(), Some(qos(Qos::SensorData))).unwrap();
         let poses = pose_publisher(&mut peer);
-        let reset = peer
-            .create_client::<TriggerRequest, TriggerResponse>(
-                ServiceMapping::Enhanced,
-                &Name::parse("/robot/reset").unwrap(),
-                &ServiceTypeName::new("std_srvs", "Trigger"),
-                qos(Qos::Reliable),
-                qos(Qos::Reliable),
-            )
-            .unwrap();
-        let set_parameters = peer
-            .create_client::<SetParametersRequest, SetParametersResponse>(
-                ServiceMapping::Enhanced,
-                &Name::parse("/robot/defvol/set_parameters").unwrap(),
-                &ServiceTypeName::new("rcl_interfaces", "SetParameters"),
-                qos(Qos::Reliable),
-                qos(Qos::Reliable),
-            )
-            .unwrap();
+        let reset = service_client::<TriggerRequest, TriggerResponse>(&mut peer, "/robot/reset", "std_srvs", "Trigger");
+        let set_parameters = service_client::<SetParametersRequest, SetParametersResponse>(
+            &mut peer,
+            "/robot/defvol/set_parameters",
+            "rcl_interfaces",
+            "SetParameters",
+        );
         let set =
             |name: &str, value| SetParametersRequest { parameter: vec![Parameter { name: name.into(), value }.into()] };
         let changes = [
