@@ -255,7 +255,7 @@ impl DefvolNode {
             c.pipeline.follow(state);
         }
         let served = c.serve(&self.allowed);
-        let changed = self.ros.parameters.apply(&mut c.pipeline);
+        let changed = self.ros.parameters.apply(&mut c.pipeline, &self.ros.node);
         if !changed.physics.is_empty() || served {
             c.rewire(&mut self.ros.node, topics)?;
         } else {

@@ -83,8 +83,11 @@ impl Parameters {
 
     /// Applies the accepted changes to `pipeline`, each doing no more than it needs
     /// ([`Pipeline::apply_scene`]); what they changed, together.
-    pub(super) fn apply(&self, pipeline: &mut Pipeline) -> SceneChange {
+    /// A change the scene cannot take (a file that does not read) is set back on `node`, so
+    /// that `ros2 param get` tells the value in force.
+    pub(super) fn apply(&self, pipeline: &mut Pipeline, node: &Node) -> SceneChange {
         let mut changed = SceneChange::default();
+        let mut set_back = Vec::new();
         while let Ok((name, value)) = self.changed.try_recv() {
             let Ok(mut store) = self.in_force.lock() else { break };
             if store.get(&name) == Some(&value)
@@ -92,7 +95,7 @@ impl Parameters {
             {
                 continue;
             }
-            store.insert(name.clone(), value);
+            let before = store.insert(name.clone(), value);
             match args::scene_from_parameters(&store)
                 .map_err(|e| e.to_string())
                 .and_then(|scene| pipeline.apply_scene(scene).map_err(|e| e.to_string()))
@@ -109,7 +112,22 @@ impl Parameters {
                     changed.outputs |= change.outputs;
                     changed.warp |= change.warp;
                 }
-                Err(e) => tracing::error!("parameter {name}: {e}; kept the running scene"),
+                Err(e) => {
+                    tracing::error!("parameter {name}: {e}; kept the running scene and set the parameter back");
+                    match before {
+                        Some(before) => {
+                            store.insert(name.clone(), before.clone());
+                            set_back.push((name, before));
+                        }
+                        None => drop(store.remove(&name)),
+                    }
+                }
+            }
+        }
+        // With the store unlocked: setting runs the validator, which reads it.
+        for (name, before) in set_back {
+            if let Err(e) = node.set_parameter(&name, parameter_of(&before)) {
+                tracing::error!("parameter {name}: not set back ({e})");
             }
         }
         changed

@@ -15,7 +15,9 @@ use defvol::msgs::{
 use defvol::record::{bag, Qos};
 use defvol::ros::dds::{self, Discovery};
 use defvol::ros::node::qos;
-use ros2_client::rcl_interfaces::{SetParametersRequest, SetParametersResponse};
+use ros2_client::rcl_interfaces::{
+    GetParametersRequest, GetParametersResponse, SetParametersRequest, SetParametersResponse,
+};
 use ros2_client::{
     MessageTypeName, Name, NodeName, NodeOptions, Parameter, ParameterValue, ServiceMapping, ServiceTypeName,
 };
@@ -1339,6 +1341,12 @@ fn a_live_camera_change_leaves_the_simulation_and_the_force_loop_running() {
             "rcl_interfaces",
             "SetParameters",
         );
+        let get_parameters = service_client::<GetParametersRequest, GetParametersResponse>(
+            &mut peer,
+            "/robot/defvol/get_parameters",
+            "rcl_interfaces",
+            "GetParameters",
+        );
         let set =
             |name: &str, value| SetParametersRequest { parameter: vec![Parameter { name: name.into(), value }.into()] };
         let changes = [
@@ -1371,6 +1379,15 @@ fn a_live_camera_change_leaves_the_simulation_and_the_force_loop_running() {
         let reply = call(&reset, TriggerRequest::default());
         eprintln!("reset answered in {:.1} ms", asked.elapsed().as_secs_f64() * 1e3);
         assert!(reply.success, "{reply:?}");
+        // A volume that passes the checks but does not read (the scene file itself) is set
+        // back: the parameter tells the value in force.
+        let not_a_volume = ParameterValue::String(scene.display().to_string());
+        let reply = call(&set_parameters, set("volume", not_a_volume));
+        assert!(reply.results[0].successful, "{reply:?}");
+        std::thread::sleep(Duration::from_millis(500));
+        let request = GetParametersRequest { names: vec!["volume".into()] };
+        let got = call(&get_parameters, request).values.into_iter().map(ParameterValue::from).collect::<Vec<_>>();
+        assert_eq!(got, [ParameterValue::String("phantom".into())]);
         let exit = node_process.wait_with_output().unwrap();
         let log = String::from_utf8_lossy(&exit.stderr);
         assert!(exit.status.success(), "{log}");
@@ -1391,6 +1408,7 @@ fn a_live_camera_change_leaves_the_simulation_and_the_force_loop_running() {
         }
         assert!(log.contains("parameter camera.width set: its stages rebuilt, the simulation running on"), "{log}");
         assert!(log.contains("the simulation restarted from rest: solver changed"), "{log}");
+        assert!(log.contains("kept the running scene and set the parameter back"), "{log}");
         // The step counter goes back twice: at the solver's change and the reset, not the
         // camera's.
         let recorded =
