@@ -12,7 +12,7 @@ use super::error::PipelineError;
 use super::inputs::{Checker, InputCounters, InputLimits, Rejection};
 use super::outputs;
 use crate::backend::RunsOn;
-use crate::msgs::{Header, PoseStamped, Time, WrenchStamped};
+use crate::msgs::{PoseStamped, Time, WrenchStamped};
 use crate::scene::{Scene, ToolPath};
 use crate::solver::{LocalModel, SolverEngine, StepReport, Tool};
 
@@ -278,27 +278,18 @@ impl FeedbackLoop {
     /// Applies a tool pose; refused ones are counted and leave the tool where it was.
     /// Returns whether the tool moved.
     pub fn apply_pose(&mut self, topic: &str, msg: &PoseStamped, now: Time) -> Result<bool, Rejection> {
-        // Copied only to restamp a zero stamp: the force loop's every pose passes here.
         let stamp = self.stamp_or_now(topic, msg.header.stamp, now);
-        let restamped;
-        let msg = match stamp == msg.header.stamp {
-            true => msg,
-            false => {
-                restamped = PoseStamped { header: Header { stamp, ..msg.header.clone() }, ..msg.clone() };
-                &restamped
-            }
-        };
-        let outcome = self.pose_outcome(topic, msg, now);
+        let outcome = self.pose_outcome(topic, msg, stamp, now);
         self.counters.record(&outcome.as_ref().map(drop).map_err(Clone::clone));
         outcome
     }
 
-    fn pose_outcome(&mut self, topic: &str, msg: &PoseStamped, now: Time) -> Result<bool, Rejection> {
+    fn pose_outcome(&mut self, topic: &str, msg: &PoseStamped, stamp: Time, now: Time) -> Result<bool, Rejection> {
         let Some(index) = self.tools.iter().position(|t| t.pose_topic == topic) else {
             return Err(Rejection::UnknownTopic { topic: topic.into() });
         };
         let checker = Checker { limits: &self.limits, world_frame: &self.frame_id, now };
-        let world_from_tool = checker.pose(topic, msg, self.tools[index].last_pose)?;
+        let world_from_tool = checker.pose(topic, msg, stamp, self.tools[index].last_pose)?;
         let state = &mut self.tools[index];
         if state.last_pose.is_none() && state.path.is_none() {
             self.to_seat.resize(self.tools.len(), false);
@@ -306,7 +297,7 @@ impl FeedbackLoop {
             self.local.retain(|(model, _)| model.tool != index);
         }
         let state = &mut self.tools[index];
-        state.last_pose = Some(msg.header.stamp);
+        state.last_pose = Some(stamp);
         let moved = state.tool.world_from_tool != world_from_tool;
         if moved {
             state.tool.world_from_tool = world_from_tool;
@@ -317,29 +308,20 @@ impl FeedbackLoop {
 
     /// Applies a commanded tool force.
     pub fn apply_wrench(&mut self, topic: &str, msg: &WrenchStamped, now: Time) -> Result<(), Rejection> {
-        // Copied only to restamp a zero stamp: the force loop's every pose passes here.
         let stamp = self.stamp_or_now(topic, msg.header.stamp, now);
-        let restamped;
-        let msg = match stamp == msg.header.stamp {
-            true => msg,
-            false => {
-                restamped = WrenchStamped { header: Header { stamp, ..msg.header.clone() }, ..msg.clone() };
-                &restamped
-            }
-        };
-        let outcome = self.wrench_outcome(topic, msg, now);
+        let outcome = self.wrench_outcome(topic, msg, stamp, now);
         self.counters.record(&outcome);
         outcome
     }
 
-    fn wrench_outcome(&mut self, topic: &str, msg: &WrenchStamped, now: Time) -> Result<(), Rejection> {
+    fn wrench_outcome(&mut self, topic: &str, msg: &WrenchStamped, stamp: Time, now: Time) -> Result<(), Rejection> {
         let Some(index) = self.tools.iter().position(|t| t.wrench_topic == topic) else {
             return Err(Rejection::UnknownTopic { topic: topic.into() });
         };
         let checker = Checker { limits: &self.limits, world_frame: &self.frame_id, now };
-        let force = checker.wrench(topic, msg, self.tools[index].last_wrench)?;
+        let force = checker.wrench(topic, msg, stamp, self.tools[index].last_wrench)?;
         let state = &mut self.tools[index];
-        state.last_wrench = Some(msg.header.stamp);
+        state.last_wrench = Some(stamp);
         if state.tool.applied_force != force {
             state.tool.applied_force = force;
             self.wake();

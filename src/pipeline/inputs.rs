@@ -151,8 +151,15 @@ impl Checker<'_> {
         Ok(())
     }
 
-    /// A pose as `world_from_tool`, or why not.
-    pub fn pose(&self, topic: &str, msg: &PoseStamped, last: Option<Time>) -> Result<Isometry3<f64>, Rejection> {
+    /// A pose as `world_from_tool`, or why not; `stamp` is the one its age and order are
+    /// judged by (its own, or the time it came for a zero stamp).
+    pub fn pose(
+        &self,
+        topic: &str,
+        msg: &PoseStamped,
+        stamp: Time,
+        last: Option<Time>,
+    ) -> Result<Isometry3<f64>, Rejection> {
         let (p, q) = (msg.pose.position, msg.pose.orientation);
         if ![p.x, p.y, p.z].iter().all(|v| v.is_finite()) {
             return Err(Rejection::NotFinite { topic: topic.into(), field: "pose.position" });
@@ -177,12 +184,18 @@ impl Checker<'_> {
                 limit: self.limits.max_position,
             });
         }
-        self.frame_and_stamp(topic, &msg.header.frame_id, msg.header.stamp, last)?;
+        self.frame_and_stamp(topic, &msg.header.frame_id, stamp, last)?;
         Ok(Isometry3::from_parts(Translation3::from(position), UnitQuaternion::from_quaternion(quaternion)))
     }
 
-    /// A wrench's force (N, world), or why not.
-    pub fn wrench(&self, topic: &str, msg: &WrenchStamped, last: Option<Time>) -> Result<Vector3<f64>, Rejection> {
+    /// A wrench's force (N, world), or why not; `stamp` as for [`Checker::pose`].
+    pub fn wrench(
+        &self,
+        topic: &str,
+        msg: &WrenchStamped,
+        stamp: Time,
+        last: Option<Time>,
+    ) -> Result<Vector3<f64>, Rejection> {
         let (force, torque): (Vector3<f64>, Vector3<f64>) = (msg.wrench.force.into(), msg.wrench.torque.into());
         if !force.iter().all(|v| v.is_finite()) {
             return Err(Rejection::NotFinite { topic: topic.into(), field: "wrench.force" });
@@ -206,7 +219,7 @@ impl Checker<'_> {
                 limit: self.limits.max_torque,
             });
         }
-        self.frame_and_stamp(topic, &msg.header.frame_id, msg.header.stamp, last)?;
+        self.frame_and_stamp(topic, &msg.header.frame_id, stamp, last)?;
         Ok(force)
     }
 }
@@ -230,11 +243,13 @@ mod tests {
         let limits = InputLimits::default();
         let check = Checker { limits: &limits, world_frame: "world", now: Time::from_secs(10.0) };
         let unit = [0.0, 0.0, 0.0, 1.0];
-        let iso = check.pose("tool_pose", &pose(0.5, [0.0, 0.0, 0.0, 1.004], "world", 10.0), None).unwrap();
+        let iso = check
+            .pose("tool_pose", &pose(0.5, [0.0, 0.0, 0.0, 1.004], "world", 10.0), Time::from_secs(10.0), None)
+            .unwrap();
         assert!((iso.rotation.quaternion().norm() - 1.0).abs() < 1e-12, "near-unit quaternions are normalised");
         assert_eq!(iso.translation.vector.x, 0.5);
         let kind = |msg: PoseStamped, last: Option<f64>| {
-            check.pose("tool_pose", &msg, last.map(Time::from_secs)).unwrap_err().kind()
+            check.pose("tool_pose", &msg, msg.header.stamp, last.map(Time::from_secs)).unwrap_err().kind()
         };
         assert_eq!(kind(pose(f64::NAN, unit, "world", 10.0), None), "not_finite");
         assert_eq!(kind(pose(0.0, [0.0, 0.0, f64::INFINITY, 1.0], "world", 10.0), None), "not_finite");
@@ -244,9 +259,13 @@ mod tests {
         assert_eq!(kind(pose(0.0, unit, "world", 9.0), Some(9.5)), "out_of_order");
         assert_eq!(kind(pose(0.0, unit, "world", 8.0), None), "stale");
         // An empty frame means the world; a stamp equal to the last is in order.
-        assert!(check.pose("tool_pose", &pose(0.0, unit, "", 9.8), Some(Time::from_secs(9.8))).is_ok());
-        let message =
-            check.pose("a/tool_pose", &pose(0.0, [0.0, 0.0, 0.0, 2.0], "world", 10.0), None).unwrap_err().to_string();
+        assert!(check
+            .pose("tool_pose", &pose(0.0, unit, "", 9.8), Time::from_secs(9.8), Some(Time::from_secs(9.8)))
+            .is_ok());
+        let message = check
+            .pose("a/tool_pose", &pose(0.0, [0.0, 0.0, 0.0, 2.0], "world", 10.0), Time::from_secs(10.0), None)
+            .unwrap_err()
+            .to_string();
         assert!(message.contains("a/tool_pose") && message.contains("2.0000"), "{message}");
     }
 
@@ -256,15 +275,15 @@ mod tests {
         let check = Checker { limits: &limits, world_frame: "world", now: Time::default() };
         let mut msg = WrenchStamped::default();
         msg.wrench.force.z = -3.0;
-        assert_eq!(check.wrench("w", &msg, None).unwrap(), Vector3::new(0.0, 0.0, -3.0));
+        assert_eq!(check.wrench("w", &msg, msg.header.stamp, None).unwrap(), Vector3::new(0.0, 0.0, -3.0));
         msg.wrench.force.z = -1e5;
-        assert_eq!(check.wrench("w", &msg, None).unwrap_err().kind(), "absurd_wrench");
+        assert_eq!(check.wrench("w", &msg, msg.header.stamp, None).unwrap_err().kind(), "absurd_wrench");
         msg.wrench.force.z = 0.0;
         msg.wrench.torque.x = f64::NAN;
-        assert_eq!(check.wrench("w", &msg, None).unwrap_err().kind(), "not_finite");
+        assert_eq!(check.wrench("w", &msg, msg.header.stamp, None).unwrap_err().kind(), "not_finite");
         let mut counters = InputCounters::default();
         counters.record(&Ok(()));
-        counters.record(&check.wrench("w", &msg, None).map(drop));
+        counters.record(&check.wrench("w", &msg, msg.header.stamp, None).map(drop));
         assert_eq!((counters.accepted, counters.total_rejected()), (1, 1));
         assert!(counters.last_rejection.unwrap().contains("wrench.torque"));
     }

@@ -96,7 +96,7 @@ impl AllowedDirs {
         let resolved = match std::fs::canonicalize(path) {
             Ok(resolved) => resolved,
             // Where a missing path would lie is where its deepest existing folder lies.
-            Err(_) => match self.deepest_existing(path) {
+            Err(_) => match deepest_existing(path) {
                 Some(folder) if self.contains(&folder) => {
                     return Err(format!("{}: no such file in the allowed directories", path.display()))
                 }
@@ -112,11 +112,12 @@ impl AllowedDirs {
     fn contains(&self, resolved: &Path) -> bool {
         self.dirs.iter().any(|dir| resolved.starts_with(dir))
     }
+}
 
-    fn deepest_existing(&self, path: &Path) -> Option<PathBuf> {
-        let absolute = std::env::current_dir().ok()?.join(path);
-        absolute.ancestors().skip(1).find_map(|folder| std::fs::canonicalize(folder).ok())
-    }
+/// The deepest folder above `path` that exists, resolved.
+fn deepest_existing(path: &Path) -> Option<PathBuf> {
+    let absolute = std::env::current_dir().ok()?.join(path);
+    absolute.ancestors().skip(1).find_map(|folder| std::fs::canonicalize(folder).ok())
 }
 
 /// Why `path` is not what `expect` asks, looked at without opening it (a FIFO would block,
