@@ -248,6 +248,7 @@ impl DefvolNode {
         let active = self.active();
         let Some(c) = self.configured.as_mut() else {
             self.ros.parameters.absorb();
+            self.ros.parameter_services.settle(&BTreeMap::new());
             return Ok(0);
         };
         let inputs = c.record_events(active);
@@ -255,7 +256,8 @@ impl DefvolNode {
             c.pipeline.follow(state);
         }
         let served = c.serve(&self.allowed);
-        let changed = self.ros.parameters.apply(&mut c.pipeline, &self.ros.node);
+        let (changed, refused) = self.ros.parameters.apply(&mut c.pipeline, &self.ros.node);
+        self.ros.parameter_services.settle(&refused);
         if !changed.physics.is_empty() || served {
             c.rewire(&mut self.ros.node, topics)?;
         } else {

@@ -14,7 +14,7 @@ use ros2_client::rcl_interfaces::{
     GetParametersRequest, GetParametersResponse, ListParametersRequest, ListParametersResponse, ListParametersResult,
     SetParametersAtomicallyResponse, SetParametersRequest, SetParametersResponse,
 };
-use ros2_client::{Node, NodeOptions, ParameterValue, Server};
+use ros2_client::{Node, NodeOptions, ParameterValue, RmwRequestId, Server};
 use serde_yaml_ng::Value;
 
 use super::args;
@@ -82,11 +82,12 @@ impl Parameters {
     }
 
     /// Applies the accepted changes to `pipeline`, each doing no more than it needs
-    /// ([`Pipeline::apply_scene`]); what they changed, together.
-    /// A change the scene cannot take (a file that does not read) is set back on `node`, so
-    /// that `ros2 param get` tells the value in force.
-    pub(super) fn apply(&self, pipeline: &mut Pipeline, node: &Node) -> SceneChange {
+    /// ([`Pipeline::apply_scene`]); what they changed, together, and what the scene could
+    /// not take (a file that does not read), by name, with why. Such a change is set back on
+    /// `node`, so that `ros2 param get` tells the value in force.
+    pub(super) fn apply(&self, pipeline: &mut Pipeline, node: &Node) -> (SceneChange, BTreeMap<String, String>) {
         let mut changed = SceneChange::default();
+        let mut refused = BTreeMap::new();
         let mut set_back = Vec::new();
         while let Ok((name, value)) = self.changed.try_recv() {
             let Ok(mut store) = self.in_force.lock() else { break };
@@ -114,6 +115,7 @@ impl Parameters {
                 }
                 Err(e) => {
                     tracing::error!("parameter {name}: {e}; kept the running scene and set the parameter back");
+                    refused.insert(name.clone(), format!("{e}; the running scene is kept"));
                     match before {
                         Some(before) => {
                             store.insert(name.clone(), before.clone());
@@ -130,7 +132,7 @@ impl Parameters {
                 tracing::error!("parameter {name}: not set back ({e})");
             }
         }
-        changed
+        (changed, refused)
     }
 }
 
@@ -167,6 +169,14 @@ pub(super) struct ParameterServices {
     set_atomically: Server<SetParametersRequest, SetParametersAtomicallyResponse>,
     list: Server<ListParametersRequest, ListParametersResponse>,
     describe: Server<DescribeParametersRequest, DescribeParametersResponse>,
+    /// Set requests taken, their answers waiting for the loop to apply them.
+    waiting: Vec<Waiting>,
+}
+
+/// A set request checked and taken: its answer so far, by parameter name.
+enum Waiting {
+    Set(RmwRequestId, Vec<(String, raw::SetParametersResult)>),
+    Atomically(RmwRequestId, Vec<String>, raw::SetParametersResult),
 }
 
 impl ParameterServices {
@@ -178,12 +188,14 @@ impl ParameterServices {
             set_atomically: own_server(node, "set_parameters_atomically", "rcl_interfaces", "SetParametersAtomically")?,
             list: own_server(node, "list_parameters", "rcl_interfaces", "ListParameters")?,
             describe: own_server(node, "describe_parameters", "rcl_interfaces", "DescribeParameters")?,
+            waiting: Vec::new(),
         })
     }
 
-    /// Answers every waiting request; a set goes through the node's store (its validator,
-    /// its set action and the `/parameter_events` it publishes).
-    pub(super) fn serve(&self, node: &Node, parameters: &Parameters) {
+    /// Answers every waiting request but a set, which goes through the node's store (its
+    /// validator, its set action and the `/parameter_events` it publishes) and is answered
+    /// by [`settle`](Self::settle) once applied.
+    pub(super) fn serve(&mut self, node: &Node, parameters: &Parameters) {
         answer(&self.get, |request| GetParametersResponse {
             values: known(node, &request.names)
                 .map(|values| values.into_iter().map(raw::ParameterValue::from).collect())
@@ -194,16 +206,17 @@ impl ParameterServices {
                 .map(|values| values.iter().map(ParameterValue::to_parameter_type_raw).collect())
                 .unwrap_or_default(),
         });
-        answer(&self.set, |request| SetParametersResponse {
-            results: request
-                .parameter
-                .into_iter()
-                .map(|p| outcome(node.set_parameter(&p.name, p.value.into())))
-                .collect(),
-        });
-        answer(&self.set_atomically, |request| SetParametersAtomicallyResponse {
-            result: outcome(set_atomically(node, parameters, request)),
-        });
+        while let Ok(Some((id, request))) = self.set.receive_request() {
+            let results = request.parameter.into_iter().map(|p| {
+                let result = outcome(node.set_parameter(&p.name, p.value.into()));
+                (p.name, result)
+            });
+            self.waiting.push(Waiting::Set(id, results.collect()));
+        }
+        while let Ok(Some((id, request))) = self.set_atomically.receive_request() {
+            let names = request.parameter.iter().map(|p| p.name.clone()).collect();
+            self.waiting.push(Waiting::Atomically(id, names, outcome(set_atomically(node, parameters, request))));
+        }
         answer(&self.list, |request| ListParametersResponse {
             result: list(&node.list_parameters(), &request.prefixes, request.depth),
         });
@@ -212,6 +225,33 @@ impl ParameterServices {
                 .map(|values| request.names.iter().zip(&values).map(|(name, value)| descriptor(name, value)).collect())
                 .unwrap_or_default(),
         });
+    }
+}
+
+impl ParameterServices {
+    /// Answers the set requests taken since the last call, now that the loop has applied
+    /// them: a change the scene could not take (`refused`, by name) is answered unsuccessful
+    /// with why, as rclcpp answers a refusal of its `on_set` callback.
+    pub(super) fn settle(&mut self, refused: &BTreeMap<String, String>) {
+        let applied = |result: raw::SetParametersResult, refusal: Option<&String>| match refusal {
+            Some(reason) if result.successful => raw::SetParametersResult { successful: false, reason: reason.clone() },
+            _ => result,
+        };
+        for waiting in self.waiting.drain(..) {
+            let sent = match waiting {
+                Waiting::Set(id, results) => {
+                    let results = results.into_iter().map(|(name, result)| applied(result, refused.get(&name)));
+                    self.set.send_response(id, SetParametersResponse { results: results.collect() })
+                }
+                Waiting::Atomically(id, names, result) => {
+                    let result = applied(result, names.iter().find_map(|name| refused.get(name)));
+                    self.set_atomically.send_response(id, SetParametersAtomicallyResponse { result })
+                }
+            };
+            if let Err(e) = sent {
+                tracing::warn!("set_parameters reply not sent: {e:?}");
+            }
+        }
     }
 }
 

@@ -1476,12 +1476,12 @@ fn a_live_camera_change_leaves_the_simulation_and_the_force_loop_running() {
         let reply = call(&reset, TriggerRequest::default());
         eprintln!("reset answered in {:.1} ms", asked.elapsed().as_secs_f64() * 1e3);
         assert!(reply.success, "{reply:?}");
-        // A volume that passes the checks but does not read (the scene file itself) is set
-        // back: the parameter tells the value in force.
+        // A volume that passes the checks but does not read (the scene file itself) is
+        // refused once the loop tried it, and set back: the parameter tells the value in force.
         let not_a_volume = ParameterValue::String(scene.display().to_string());
         let reply = call(&set_parameters, set("volume", not_a_volume));
-        assert!(reply.results[0].successful, "{reply:?}");
-        std::thread::sleep(Duration::from_millis(500));
+        assert!(!reply.results[0].successful, "{reply:?}");
+        assert!(reply.results[0].reason.ends_with("the running scene is kept"), "{reply:?}");
         let request = GetParametersRequest { names: vec!["volume".into()] };
         let got = call(&get_parameters, request).values.into_iter().map(ParameterValue::from).collect::<Vec<_>>();
         assert_eq!(got, [ParameterValue::String("phantom".into())]);
