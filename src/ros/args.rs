@@ -10,7 +10,7 @@ use std::path::Path;
 use serde_yaml_ng::{Mapping, Value};
 
 use crate::io::withhold_found;
-use crate::scene::{Scene, SceneError};
+use crate::scene::{descriptors, Scene, SceneError};
 
 #[derive(Debug, thiserror::Error, PartialEq)]
 #[non_exhaustive]
@@ -137,37 +137,12 @@ pub fn params_file(path: &Path, node_name: &str, namespace: &str) -> Result<BTre
         let Some(params) = section.get("ros__parameters") else {
             return Err(err(format!("section `{name}` has no `ros__parameters`")));
         };
-        flatten("", params, &mut out);
+        descriptors::flatten("", params, &mut out);
     }
     if !matched {
         tracing::warn!("{}: no section for node {full} (nor /**)", path.display());
     }
     Ok(out)
-}
-
-/// Nested parameter maps as dotted names, as ROS 2 reads params files.
-fn flatten(prefix: &str, value: &Value, out: &mut BTreeMap<String, Value>) {
-    match value {
-        Value::Mapping(map) => {
-            for (key, value) in map {
-                let key = match key {
-                    Value::String(s) => s.clone(),
-                    other => serde_yaml_ng::to_string(other).unwrap_or_default().trim().to_owned(),
-                };
-                let name = if prefix.is_empty() { key } else { format!("{prefix}.{key}") };
-                flatten(&name, value, out);
-            }
-        }
-        // Lists of maps (the tools) by index; lists of plain values stay array parameters.
-        Value::Sequence(items) if items.iter().any(Value::is_mapping) => {
-            for (index, item) in items.iter().enumerate() {
-                flatten(&format!("{prefix}.{index}"), item, out);
-            }
-        }
-        other => {
-            out.insert(prefix.to_owned(), other.clone());
-        }
-    }
 }
 
 /// Parameters that configure the node itself rather than the scene.
@@ -282,15 +257,6 @@ pub(crate) fn set_path(node: &mut Value, path: &str, value: Value) -> Result<(),
     }
 }
 
-/// The scene as flat parameters (what `ros2 param list` shows).
-pub fn scene_parameters(scene: &Scene) -> BTreeMap<String, Value> {
-    let mut out = BTreeMap::new();
-    if let Ok(tree) = serde_yaml_ng::to_value(scene) {
-        flatten("", &tree, &mut out);
-    }
-    out
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -398,10 +364,55 @@ mod tests {
     #[test]
     fn the_scene_round_trips_through_its_flat_parameters() {
         let scene = Scene::default_scene().unwrap();
-        let flat = scene_parameters(&scene);
+        let flat = descriptors::flat(&scene);
         assert!(
             flat.contains_key("solver.dt") && flat.contains_key("camera.width") && flat.contains_key("stages.dpcm")
         );
         assert_eq!(scene_from_parameters(&flat).unwrap(), scene);
+    }
+
+    /// Scenes between them holding every kind of mesh, material, clamp and tool option.
+    fn scenes() -> Vec<Scene> {
+        let with = |changes: &[(&str, &str)]| {
+            let mut tree: Value = serde_yaml_ng::from_str(crate::scene::DEFAULT_SCENE).unwrap();
+            for (path, yaml) in changes {
+                set_path(&mut tree, path, serde_yaml_ng::from_str(yaml).unwrap()).unwrap();
+            }
+            serde_yaml_ng::from_value::<Scene>(tree).unwrap()
+        };
+        vec![
+            with(&[]),
+            with(&[
+                ("mesh", "{kind: lattice, min: [0, 0, 0], max: [1, 1, 1], target_tets: 100, split: six}"),
+                ("material", "{kind: table, rows: [{intensity: 0, stiffness: 1, damping: 0}]}"),
+                ("fixed", "{kind: box, min: [0, 0, 0], max: [1, 1, 1]}"),
+                ("tools.0.shape", "{kind: capsule, radius: 0.002, length: 0.05}"),
+                ("tools.0.friction", "{static: 0.5, kinetic: 0.3}"),
+                ("tools.0.rotational_coupling", "{stiffness: 2.0, damping: 0.02, inertia: 1.0e-5, max_torque: 1.0}"),
+            ]),
+            with(&[
+                ("mesh", "{kind: ellipsoid, centre: [0, 0, 0], radii: [1, 1, 1], cells_per_axis: 4}"),
+                ("fixed", "{kind: lowest, fraction: 0.1}"),
+            ]),
+            with(&[("mesh", "{kind: bar, length: 0.1}"), ("fixed", "{kind: indices, nodes: [0, 1]}")]),
+            with(&[("mesh", "{kind: file, path: organ.vtk, scale: 0.001}")]),
+            with(&[("volume", "ct_series"), ("volume_series", "1.2.840.10008.99")]),
+        ]
+    }
+
+    #[test]
+    fn every_parameter_of_every_kind_of_scene_is_described() {
+        for scene in scenes() {
+            for (name, value) in descriptors::flat(&scene) {
+                let descriptor = descriptors::describe(&name).unwrap_or_else(|| panic!("`{name}` has no descriptor"));
+                assert_eq!(descriptor.refuses(&name, &value, false), None, "`{name}` = {value:?} in a valid scene");
+            }
+        }
+        for name in NODE_PARAMETERS {
+            assert!(descriptors::describe(name).is_some(), "{name}");
+        }
+        for name in ["record", "rerun", "dds.open_discovery", "backend", "allow_software_gpu"] {
+            assert!(descriptors::describe(name).is_some_and(|d| d.read_only), "{name}");
+        }
     }
 }

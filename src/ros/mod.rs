@@ -7,7 +7,6 @@ pub mod args;
 mod configured;
 #[cfg(feature = "ros")]
 pub mod dds;
-pub mod descriptors;
 #[cfg(feature = "ros")]
 mod error;
 #[cfg(feature = "ros")]

@@ -372,7 +372,7 @@ fn transition(
 
 /// Every scene field of `scene`, the command line's values over them, and the node's own.
 fn declared_parameters(scene: &Scene, settings: &NodeSettings) -> BTreeMap<String, Value> {
-    let mut declared = args::scene_parameters(scene);
+    let mut declared = crate::scene::descriptors::flat(scene);
     for (name, value) in &settings.ros.parameters {
         let value = match (declared.get(name), value) {
             // `-p solver.dt:=1` means 1.0: a real number of the scene stays a double.
@@ -494,7 +494,7 @@ pub fn run_from_args(args: &[String]) -> Result<(), NodeError> {
 /// at start-up), not after the pipeline was made.
 fn refuse_bad_parameters(parameters: &BTreeMap<String, Value>) -> Result<(), NodeError> {
     for (name, value) in parameters {
-        if let Some(reason) = super::descriptors::describe(name).and_then(|d| d.refuses(name, value, false)) {
+        if let Some(reason) = crate::scene::descriptors::describe(name).and_then(|d| d.refuses(name, value, false)) {
             return Err(NodeError::Refused(format!("parameter '{name}' could not be set: {reason}")));
         }
     }

@@ -2,7 +2,7 @@
 //! its descriptor (range, read-only) and then the whole scene before it is accepted, then
 //! handed to the node's loop to reload the scene. The six `rcl_interfaces` parameter
 //! services are served here rather than by ros2-client, whose `describe_parameters` knows
-//! only a parameter's type: ours answers with [`descriptors`](super::descriptors).
+//! only a parameter's type: ours answers with [`descriptors`](crate::scene::descriptors).
 
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -18,10 +18,10 @@ use ros2_client::{Node, NodeOptions, ParameterValue, RmwRequestId, Server};
 use serde_yaml_ng::Value;
 
 use super::args;
-use super::descriptors::{self, Descriptor, Range};
 use super::error::NodeError;
 use super::wire::{answer, own_server};
 use crate::pipeline::Pipeline;
+use crate::scene::descriptors::{self, Descriptor, Range};
 use crate::scene::{named_file, AllowedDirs, SceneChange};
 
 /// The values in force and the changes accepted since the last look.

@@ -2,6 +2,7 @@
 //! tools. The default scene is `config/default_scene.yaml`, compiled in.
 
 mod confined;
+pub mod descriptors;
 pub mod field_path;
 
 pub use confined::{
@@ -506,24 +507,32 @@ impl Scene {
         Ok(LoadedScene { scene: self, volume, mesh, model })
     }
 
-    /// What must hold before anything is read or built.
+    /// What must hold before anything is read or built: every field within the range its
+    /// parameter has (one set of ranges for scene files, `-p` and `ros2 param set`), each
+    /// one outside named by its path.
     fn check(&self) -> Result<(), SceneError> {
-        if !(self.file_to_world.is_finite() && self.file_to_world > 0.0) {
-            return Err(SceneError::Invalid(format!("file_to_world = {} must be positive", self.file_to_world)));
+        let outside = descriptors::out_of_range(self);
+        if !outside.is_empty() {
+            return Err(SceneError::Invalid(outside.join("; ")));
+        }
+        for tool in self.tools.iter().filter(|tool| tool.shape.radius() > PLAUSIBLE_TOOL_RADIUS) {
+            tracing::warn!(
+                "tool {} has a radius of {} m, more than any surgical tool's: is it in metres? (a 2 mm \
+                 probe is radius: 0.002)",
+                tool.name,
+                tool.shape.radius()
+            );
         }
         self.solver.validate()?;
-        if !(self.inputs.max_age.is_finite() && self.inputs.max_age >= 0.0) {
-            return Err(SceneError::Invalid(format!(
-                "inputs.max_age = {} must be finite and >= 0",
-                self.inputs.max_age
-            )));
-        }
         for why in self.tools.iter().filter_map(ToolConfig::too_soft_for_its_coupling) {
             tracing::warn!("{why}");
         }
         Ok(())
     }
 }
+
+/// The largest tool radius (m) taken without a word: an instrument's tip, a finger.
+const PLAUSIBLE_TOOL_RADIUS: f64 = 0.05;
 
 /// A mesh file in world metres: scaled by `chosen`, else by the unit the file records, else
 /// by the scene's `file_to_world`; the log says which, and warns of a size no organ has.
@@ -607,6 +616,25 @@ mod tests {
         let e = Scene::parse(&bad, "s.yaml").unwrap_err().to_string();
         assert!(e.contains("material: unknown field") && e.contains("`stiffness`"), "{e}");
         assert!(e.ends_with("at line 9 (did you mean `stiffness`?)"), "the line of the section: {e}");
+    }
+
+    /// The issue's cases: `dt: 10` ran 2 steps to t = 20 s, a radius typed in mm for m
+    /// "diverged at step 1". Both are refused at once, by their paths and ranges, before
+    /// the volume is read; a large but possible radius is warned of instead.
+    #[test]
+    fn scene_values_outside_their_parameters_ranges_are_refused_by_path() {
+        let mut scene = Scene::default_scene().unwrap();
+        scene.solver.dt = 10.0;
+        scene.tools[0].shape = ToolShape::Sphere { radius: 2.0 };
+        scene.volume = "no/such/ct.nii.gz".into();
+        let e = scene.load().err().unwrap().to_string();
+        assert!(e.contains("solver.dt = 10.0 is outside [1e-6, 0.1] (Solver time step (s)"), "{e}");
+        assert!(e.contains("tools.0.shape.radius = 2.0 is outside [1e-5, 1] (Tool radius (m))"), "{e}");
+        assert!(!e.contains("ct.nii.gz"), "refused before the volume is read: {e}");
+        let mut nan = Scene::default_scene().unwrap();
+        nan.file_to_world = f64::NAN;
+        let e = nan.load().err().unwrap().to_string();
+        assert!(e.contains("file_to_world = .nan is outside [1e-9, 1000]"), "{e}");
     }
 
     #[test]

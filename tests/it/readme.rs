@@ -408,13 +408,13 @@ fn every_relative_link_of_the_pages_and_every_journal_pointer_of_the_code_leads_
 }
 
 /// The parameter reference of `docs/scenes.md` (between its markers) is the node's own table
-/// of parameters (`defvol::ros::descriptors::reference_table`), so the page cannot drift from
+/// of parameters (`defvol::scene::descriptors::reference_table`), so the page cannot drift from
 /// what `ros2 param describe` says.
 #[test]
 fn the_scene_reference_is_the_parameters_own_table() {
     let page = std::fs::read_to_string(root().join("docs/scenes.md")).unwrap();
     let table = defvol::bench::report::block(&page, "parameters");
-    let expected = defvol::ros::descriptors::reference_table();
+    let expected = defvol::scene::descriptors::reference_table();
     assert!(expected.lines().count() > 40, "{expected}");
     assert_eq!(table, Some(expected.as_str()), "docs/scenes.md's parameter table should read:\n{expected}");
 }

@@ -1,9 +1,15 @@
-//! What each parameter is, as ROS 2 describes one (`rcl_interfaces/ParameterDescriptor`):
-//! a description, the numeric range a value must lie in, whether only a restart can change
-//! it, and the constraints no range can say. `ros2 param describe` and rqt_reconfigure show
-//! these; a value outside its range is refused before the scene is even checked.
+//! What each scene field and node parameter is, as ROS 2 describes a parameter
+//! (`rcl_interfaces/ParameterDescriptor`): a description, the numeric range a value must
+//! lie in, whether only a restart can change it, and the constraints no range can say.
+//! `ros2 param describe` and rqt_reconfigure show these; one set of ranges holds for scene
+//! files, `-p` and `ros2 param set`: a value outside its range is refused before the scene
+//! is built.
+
+use std::collections::BTreeMap;
 
 use serde_yaml_ng::Value;
+
+use super::Scene;
 
 /// The numeric range of a parameter, both ends included (as `FloatingPointRange` and
 /// `IntegerRange` are); a step of 0 allows any value between them.
@@ -276,56 +282,61 @@ impl Descriptor {
     }
 }
 
+/// A scene's fields as dotted parameter names (`solver.dt`, `tools.0.shape.radius`), as the
+/// node declares them.
+pub fn flat(scene: &Scene) -> BTreeMap<String, Value> {
+    let mut out = BTreeMap::new();
+    if let Ok(tree) = serde_yaml_ng::to_value(scene) {
+        flatten("", &tree, &mut out);
+    }
+    out
+}
+
+/// Nested maps as dotted names, as ROS 2 reads params files: lists of maps (the tools) by
+/// index, lists of plain values kept whole (array parameters).
+pub fn flatten(prefix: &str, value: &Value, out: &mut BTreeMap<String, Value>) {
+    match value {
+        Value::Mapping(map) => {
+            for (key, value) in map {
+                let key = match key {
+                    Value::String(s) => s.clone(),
+                    other => serde_yaml_ng::to_string(other).unwrap_or_default().trim().to_owned(),
+                };
+                let name = if prefix.is_empty() { key } else { format!("{prefix}.{key}") };
+                flatten(&name, value, out);
+            }
+        }
+        Value::Sequence(items) if items.iter().any(Value::is_mapping) => {
+            for (index, item) in items.iter().enumerate() {
+                flatten(&format!("{prefix}.{index}"), item, out);
+            }
+        }
+        other => {
+            out.insert(prefix.to_owned(), other.clone());
+        }
+    }
+}
+
+/// Every field of `scene` outside its range, by its path, with what the field is; none
+/// when all lie in theirs.
+pub fn out_of_range(scene: &Scene) -> Vec<String> {
+    let outside = flat(scene).into_iter().filter_map(|(name, value)| {
+        let d = describe(&name)?;
+        let range = match d.range {
+            Range::Unbounded => return None,
+            Range::Float { from, to, .. } => format!("[{}, {}]", number(from), number(to)),
+            Range::Integer { from, to, .. } => format!("[{from}, {to}]"),
+        };
+        d.refuses(&name, &value, false)?;
+        let shown = serde_yaml_ng::to_string(&value).unwrap_or_default();
+        Some(format!("{name} = {} is outside {range} ({})", shown.trim(), d.description))
+    });
+    outside.collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::ros::args::{scene_parameters, set_path};
-    use crate::scene::Scene;
-
-    /// Scenes between them holding every kind of mesh, material, clamp and tool option.
-    fn scenes() -> Vec<Scene> {
-        let with = |changes: &[(&str, &str)]| {
-            let mut tree: Value = serde_yaml_ng::from_str(crate::scene::DEFAULT_SCENE).unwrap();
-            for (path, yaml) in changes {
-                set_path(&mut tree, path, serde_yaml_ng::from_str(yaml).unwrap()).unwrap();
-            }
-            serde_yaml_ng::from_value::<Scene>(tree).unwrap()
-        };
-        vec![
-            with(&[]),
-            with(&[
-                ("mesh", "{kind: lattice, min: [0, 0, 0], max: [1, 1, 1], target_tets: 100, split: six}"),
-                ("material", "{kind: table, rows: [{intensity: 0, stiffness: 1, damping: 0}]}"),
-                ("fixed", "{kind: box, min: [0, 0, 0], max: [1, 1, 1]}"),
-                ("tools.0.shape", "{kind: capsule, radius: 0.002, length: 0.05}"),
-                ("tools.0.friction", "{static: 0.5, kinetic: 0.3}"),
-                ("tools.0.rotational_coupling", "{stiffness: 2.0, damping: 0.02, inertia: 1.0e-5, max_torque: 1.0}"),
-            ]),
-            with(&[
-                ("mesh", "{kind: ellipsoid, centre: [0, 0, 0], radii: [1, 1, 1], cells_per_axis: 4}"),
-                ("fixed", "{kind: lowest, fraction: 0.1}"),
-            ]),
-            with(&[("mesh", "{kind: bar, length: 0.1}"), ("fixed", "{kind: indices, nodes: [0, 1]}")]),
-            with(&[("mesh", "{kind: file, path: organ.vtk, scale: 0.001}")]),
-            with(&[("volume", "ct_series"), ("volume_series", "1.2.840.10008.99")]),
-        ]
-    }
-
-    #[test]
-    fn every_parameter_of_every_kind_of_scene_is_described() {
-        for scene in scenes() {
-            for (name, value) in scene_parameters(&scene) {
-                let descriptor = describe(&name).unwrap_or_else(|| panic!("`{name}` has no descriptor"));
-                assert_eq!(descriptor.refuses(&name, &value, false), None, "`{name}` = {value:?} in a valid scene");
-            }
-        }
-        for name in crate::ros::args::NODE_PARAMETERS {
-            assert!(describe(name).is_some(), "{name}");
-        }
-        for name in ["record", "rerun", "dds.open_discovery", "backend", "allow_software_gpu"] {
-            assert!(describe(name).is_some_and(|d| d.read_only), "{name}");
-        }
-    }
 
     #[test]
     fn values_outside_the_declared_range_are_refused_as_rclcpp_words_it() {
