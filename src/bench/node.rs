@@ -563,7 +563,8 @@ fn pose_to_volume(backend: &Backend, device: &str, frames: usize) -> Result<Benc
 
     let mut scene = Scene::default_scene().map_err(|e| NodeBenchError::Setup(e.to_string()))?;
     scene.stages = crate::scene::Stages { solver: true, warp: true, dpcm: false, raycast: false };
-    scene.warp.rate_hz = 1e6;
+    // Its range's top: a warp every solver step.
+    scene.warp.rate_hz = 1e4;
     scene.tools[0].path = None;
     let mut pipeline =
         Pipeline::new(scene, backend, InputLimits { max_age: None, ..Default::default() }, FrameMode::Lockstep)?;

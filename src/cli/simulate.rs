@@ -75,7 +75,7 @@ fn parse_fix(text: &str) -> Result<Fix, String> {
     };
     let rule = match kind {
         "none" => None,
-        "lowest" if values.is_empty() => Some(FixedNodes::Lowest { fraction: 0.02 }),
+        "lowest" if values.is_empty() => Some(FixedNodes::Lowest { fraction: FixedNodes::LOWEST_FRACTION }),
         "lowest" => Some(FixedNodes::Lowest { fraction: count(1, numbers()?)?[0] }),
         "plane" => {
             let v = count(4, numbers()?)?;
@@ -141,7 +141,7 @@ pub fn run(args: SimulateArgs) -> Result<()> {
         scene.mesh = MeshSource::File { path: path.clone(), scale: args.mesh_scale };
         // The default scene's clamp plane fits its own lattice, not a user's mesh.
         if args.scene.is_none() {
-            scene.fixed = Some(FixedNodes::Lowest { fraction: 0.02 });
+            scene.fixed = Some(FixedNodes::Lowest { fraction: FixedNodes::LOWEST_FRACTION });
         }
     }
     if let Some(Fix(rule)) = &args.fix {

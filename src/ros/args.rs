@@ -190,7 +190,7 @@ pub fn scene_from_parameters(parameters: &BTreeMap<String, Value>) -> Result<Sce
     // Through text, where serde_yaml_ng tracks the path of a field.
     let text = serde_yaml_ng::to_string(&tree)
         .map_err(|e| ArgsError::Parameter { name: origin.clone(), message: e.to_string() })?;
-    crate::scene::field_path::parse(&text, crate::scene::DEFAULT_SCENE, false).map_err(|message| {
+    crate::scene::field_path::parse(&text, crate::scene::DEFAULT_SCENE, None).map_err(|message| {
         // The parameter that breaks the scene on its own, named with its value.
         let culprit = scene_parameters().find(|(name, value)| {
             let mut alone = base.clone();

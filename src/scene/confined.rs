@@ -47,6 +47,22 @@ impl Scene {
         named.retain(|(parameter, value)| named_file(parameter, value).is_some());
         named
     }
+
+    /// The files the scene names by relative paths taken as relative to `dir`.
+    pub(super) fn resolve_against(&mut self, dir: &Path) {
+        let beside = |file: &str| dir.join(file).display().to_string();
+        if named_file("volume", &self.volume).is_some() && Path::new(&self.volume).is_relative() {
+            self.volume = beside(&self.volume);
+        }
+        if named_file("dpcm.preset", &self.dpcm.preset).is_some() && Path::new(&self.dpcm.preset).is_relative() {
+            self.dpcm.preset = beside(&self.dpcm.preset);
+        }
+        if let super::MeshSource::File { path, .. } = &mut self.mesh {
+            if path.is_relative() {
+                *path = dir.join(&*path);
+            }
+        }
+    }
 }
 
 /// The directories files named from the wire must lie in, resolved.

@@ -7,9 +7,8 @@
 
 use std::collections::BTreeMap;
 
+use serde::Serialize;
 use serde_yaml_ng::Value;
-
-use super::Scene;
 
 /// The numeric range of a parameter, both ends included (as `FloatingPointRange` and
 /// `IntegerRange` are); a step of 0 allows any value between them.
@@ -284,7 +283,7 @@ impl Descriptor {
 
 /// A scene's fields as dotted parameter names (`solver.dt`, `tools.0.shape.radius`), as the
 /// node declares them.
-pub fn flat(scene: &Scene) -> BTreeMap<String, Value> {
+pub fn flat(scene: &impl Serialize) -> BTreeMap<String, Value> {
     let mut out = BTreeMap::new();
     if let Ok(tree) = serde_yaml_ng::to_value(scene) {
         flatten("", &tree, &mut out);
@@ -319,7 +318,7 @@ pub fn flatten(prefix: &str, value: &Value, out: &mut BTreeMap<String, Value>) {
 
 /// Every field of `scene` outside its range, by its path, with what the field is; none
 /// when all lie in theirs.
-pub fn out_of_range(scene: &Scene) -> Vec<String> {
+pub fn out_of_range(scene: &impl Serialize) -> Vec<String> {
     let outside = flat(scene).into_iter().filter_map(|(name, value)| {
         let d = describe(&name)?;
         let range = match d.range {

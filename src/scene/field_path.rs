@@ -12,9 +12,10 @@ use crate::io::withhold_found;
 
 /// The `T` in `text`, or an error that names the path of the field at fault and, for an
 /// unknown field, the nearest expected name. `base`: a whole `T` as YAML (the default scene)
-/// to try entries on. `keep_lines`: whether line numbers are worth keeping (the user's own
-/// text, not one made from parameters).
-pub fn parse<T: DeserializeOwned>(text: &str, base: &str, keep_lines: bool) -> Result<T, String> {
+/// to try entries on. `lines`: the user's own text, where `text` was made from it (a scene
+/// over the default's), to name the line of the field at fault in; none for text made from
+/// parameters.
+pub fn parse<T: DeserializeOwned>(text: &str, base: &str, lines: Option<&str>) -> Result<T, String> {
     let found = match serde_yaml_ng::from_str::<T>(text) {
         Ok(scene) => return Ok(scene),
         Err(error) => error.to_string(),
@@ -22,20 +23,29 @@ pub fn parse<T: DeserializeOwned>(text: &str, base: &str, keep_lines: bool) -> R
     // The hint compares the name found with the schema's; the message never quotes it.
     let hint = nearest_expected(&found).map(|name| format!(" (did you mean `{name}`?)"));
     let error = withhold_found(&found);
-    let message =
-        match (has_path(&error), serde_yaml_ng::from_str::<Value>(text).ok().and_then(|t| culprit::<T>(&t, base))) {
-            (false, Some(path)) => {
-                let line = keep_lines.then(|| line_of(text, &path)).flatten();
-                format!(
-                    "{path}: {}{}",
-                    without_location(&error),
-                    line.map(|n| format!(" at line {n}")).unwrap_or_default()
-                )
-            }
-            (_, _) if !keep_lines => without_location(&error).to_owned(),
-            _ => error,
-        };
-    Err(format!("{message}{}", hint.unwrap_or_default()))
+    let path = match has_path(&error) {
+        true => error.split_once(": ").map(|(path, _)| path.to_owned()),
+        false => serde_yaml_ng::from_str::<Value>(text).ok().and_then(|t| culprit::<T>(&t, base)),
+    };
+    let what = without_location(&error);
+    let message = match &path {
+        Some(path) if !has_path(&error) => format!("{path}: {what}{}", kinds(path, what)),
+        Some(path) => format!("{what}{}", kinds(path, what)),
+        None => what.to_owned(),
+    };
+    let line = lines.zip(path).and_then(|(user, path)| line_of(user, &path));
+    let at = line.map(|n| format!(" at line {n}")).unwrap_or_default();
+    Err(format!("{message}{at}{}", hint.unwrap_or_default()))
+}
+
+/// For a section given where a tagged one belongs (`mesh: [organ.vtu]`), the kinds it takes.
+fn kinds(path: &str, what: &str) -> String {
+    let kinds = what
+        .contains("expected internally tagged enum")
+        .then(|| super::descriptors::describe(&format!("{}.kind", path.replace('[', ".").replace(']', ""))))
+        .flatten()
+        .filter(|d| !d.additional_constraints.is_empty());
+    kinds.map(|d| format!(" (kind: {})", d.additional_constraints)).unwrap_or_default()
 }
 
 /// Whether the message starts with a field path (`material.kind: …`).
@@ -72,12 +82,31 @@ fn culprit<T: DeserializeOwned>(tree: &Value, base: &str) -> Option<String> {
     })
 }
 
-/// The line (from 1) where the top-level entry `path` starts (its name before any index).
+/// The line (from 1) of the field at `path` (`tools[0].shape.kind`) in YAML `text`: each
+/// name looked up inside its parent's block; where the text stops saying (a flow map, a field
+/// inherited), the deepest one it has.
 fn line_of(text: &str, path: &str) -> Option<usize> {
-    let key = path.split('[').next()?;
-    text.lines()
-        .position(|line| line.strip_prefix(key).is_some_and(|rest| rest.trim_start().starts_with(':')))
-        .map(|i| i + 1)
+    let lines: Vec<&str> = text.lines().collect();
+    let indent = |line: &str| line.len() - line.trim_start().len();
+    let (mut found, mut from, mut parent) = (None, 0, None::<usize>);
+    for key in path.split('.').map(|segment| segment.split('[').next().unwrap_or(segment)) {
+        let names = |line: &&str| {
+            let entry = line.trim_start().trim_start_matches("- ");
+            entry.strip_prefix(key).is_some_and(|rest| rest.trim_start().starts_with(':'))
+        };
+        let block = lines[from..]
+            .iter()
+            .take_while(|line| {
+                let blank = line.trim().is_empty() || line.trim_start().starts_with('#');
+                blank || parent.is_none_or(|p| indent(line) > p)
+            })
+            .position(names);
+        let Some(offset) = block else { break };
+        let at = from + offset;
+        found = Some(at + 1);
+        (from, parent) = (at + 1, Some(indent(lines[at])));
+    }
+    found
 }
 
 /// For "unknown field `stifness`, expected `stiffness` or `damping`": the expected name
@@ -96,18 +125,17 @@ fn nearest_expected(message: &str) -> Option<&str> {
 
 #[cfg(test)]
 mod tests {
-    use super::*;
     use crate::scene::{Scene, DEFAULT_SCENE};
 
     fn error_of(text: &str) -> String {
-        parse::<Scene>(text, DEFAULT_SCENE, true).unwrap_err()
+        Scene::parse(text, "s.yaml").unwrap_err().to_string()
     }
 
     #[test]
     fn a_typo_inside_a_tagged_enum_is_named_with_its_path_and_the_nearest_field() {
         let text = DEFAULT_SCENE.replace("  stiffness: 1000.0", "  stifness: 1000.0");
         let message = error_of(&text);
-        assert!(message.starts_with("material: unknown field, expected") && !message.contains("stifness"), "{message}");
+        assert!(message.contains("material: unknown field, expected") && !message.contains("stifness"), "{message}");
         assert!(message.ends_with("(did you mean `stiffness`?)") && !message.contains("line 3"), "{message}");
     }
 
@@ -115,21 +143,21 @@ mod tests {
     fn a_bad_list_item_is_named_by_its_index() {
         let text = DEFAULT_SCENE.replace("kind: sphere, radius:", "kind: sphere, radus:");
         let message = error_of(&text);
-        assert!(message.starts_with("tools[0]: unknown field, expected") && !message.contains("radus"), "{message}");
+        assert!(message.contains("tools[0]: unknown field, expected") && !message.contains("radus"), "{message}");
         assert!(message.ends_with("(did you mean `radius`?)"), "{message}");
         // Where serde_yaml_ng keeps the path itself, it is its own.
         let message = error_of(&DEFAULT_SCENE.replace("kind: sphere", "kind: spere"));
-        assert!(message.starts_with("tools[0].shape.kind: unknown variant, expected"), "{message}");
+        assert!(message.contains("tools[0].shape.kind: unknown variant, expected"), "{message}");
         assert!(!message.contains("spere") && message.ends_with("(did you mean `sphere`?)"), "{message}");
     }
 
     #[test]
     fn a_path_serde_gives_is_kept_and_far_names_get_no_guess() {
         let message = error_of(&DEFAULT_SCENE.replace("  dt: 0.01", "  dt: fast"));
-        assert!(message.starts_with("solver.dt: invalid type: a string, expected f64"), "{message}");
-        assert!(message.ends_with("at line 20 column 7"), "the line of the user's text: {message}");
+        assert!(message.contains("solver.dt: invalid type: a string, expected f64"), "{message}");
+        assert!(message.ends_with("at line 20"), "the line of the user's text: {message}");
         let message = error_of(&DEFAULT_SCENE.replace("  stiffness: 1000.0", "  zzzzzz: 1000.0"));
-        assert!(message.starts_with("material: unknown field") && !message.contains("did you mean"));
+        assert!(message.contains("material: unknown field") && !message.contains("did you mean"));
     }
 
     /// What an error says of a file that is no scene: where, and what was expected; never

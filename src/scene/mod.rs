@@ -4,6 +4,7 @@
 mod confined;
 pub mod descriptors;
 pub mod field_path;
+mod inherit;
 
 pub use confined::{
     check_scene_size, named_file, read_scene_text, AllowedDirs, Expect, ALLOWED_DIRS_PARAMETER, MAX_SCENE_BYTES,
@@ -458,15 +459,24 @@ impl Scene {
         Self::parse(DEFAULT_SCENE, "embedded default scene")
     }
 
-    /// A scene from YAML text; `origin` names it in errors, which name the field at fault.
+    /// A scene from YAML text, every field it omits the embedded scene's
+    /// ([`inherit`](inherit::inherit)); `origin` names it in errors, which name the field at
+    /// fault and its line.
     pub fn parse(text: &str, origin: &str) -> Result<Self, SceneError> {
-        field_path::parse(text, DEFAULT_SCENE, true)
-            .map_err(|message| SceneError::Parse { path: origin.to_owned(), message })
+        let refused = |message| SceneError::Parse { path: origin.to_owned(), message };
+        let tree: serde_yaml_ng::Value =
+            serde_yaml_ng::from_str(text).map_err(|e| refused(crate::io::withhold_found(&e.to_string())))?;
+        let base = serde_yaml_ng::from_str(DEFAULT_SCENE).map_err(|e| refused(e.to_string()))?;
+        let whole = serde_yaml_ng::to_string(&inherit::inherit(tree, &base)).map_err(|e| refused(e.to_string()))?;
+        field_path::parse(&whole, DEFAULT_SCENE, Some(text)).map_err(refused)
     }
 
+    /// A scene file; the files it names by relative paths lie beside it.
     pub fn from_file(path: &Path) -> Result<Self, SceneError> {
         let text = read_scene_text(path)?;
-        Self::parse(&text, &path.display().to_string())
+        let mut scene = Self::parse(&text, &path.display().to_string())?;
+        scene.resolve_against(path.parent().unwrap_or(Path::new("")));
+        Ok(scene)
     }
 
     /// The scene read and built: its volume, its mesh in world units, its model.
@@ -502,6 +512,14 @@ impl Scene {
             Some(f) => f.select(mesh.nodes())?,
             None => vec![false; mesh.nodes().len()],
         };
+        if !fixed.contains(&true) {
+            let chosen = self.fixed.as_ref().map_or("no `fixed` is given".to_owned(), |f| format!("`fixed` ({f})"));
+            tracing::warn!(
+                "no node is held: {chosen} selects none of the mesh's {} nodes, so gravity will carry the organ \
+                 away (`fixed: {{kind: lowest}}` rests it on its lowest layer)",
+                fixed.len()
+            );
+        }
         let sample = |p: &Vector3<f64>| volume.sample_world(p / scale);
         let model = MassSpringModel::new(&mesh, &self.material, self.density, &fixed, Some(&sample))?;
         Ok(LoadedScene { scene: self, volume, mesh, model })
@@ -635,6 +653,58 @@ mod tests {
         nan.file_to_world = f64::NAN;
         let e = nan.load().err().unwrap().to_string();
         assert!(e.contains("file_to_world = .nan is outside [1e-9, 1000]"), "{e}");
+    }
+
+    /// A scene names what it needs (the issue's newcomer wrote a volume and a mesh): every
+    /// other field is the embedded scene's, `mesh: FILE` is a mesh file, a section of another
+    /// kind replaces the default's whole, a tool inherits the default's first tool.
+    #[test]
+    fn a_scene_names_what_it_needs_and_inherits_the_rest() {
+        let default = Scene::default_scene().unwrap();
+        let scene = Scene::parse("volume: ct.nii.gz\nmesh: organ.vtu\nsolver: {dt: 0.005}\n", "s.yaml").unwrap();
+        assert_eq!(scene.mesh, MeshSource::File { path: "organ.vtu".into(), scale: None });
+        assert_eq!((scene.volume.as_str(), scene.solver.dt), ("ct.nii.gz", 0.005));
+        assert_eq!(
+            Scene { volume: default.volume.clone(), mesh: default.mesh.clone(), ..scene.clone() }.solver.dt,
+            0.005
+        );
+        assert_eq!(
+            (&scene.material, &scene.tools, &scene.camera),
+            (&default.material, &default.tools, &default.camera)
+        );
+        assert_eq!(scene.solver.cg_tolerance, default.solver.cg_tolerance);
+        let needle = "tools: [{name: needle, shape: {kind: capsule, radius: 0.001, length: 0.05}, \
+                      contact_stiffness: 5000, spread_radius: 0.01}]\n";
+        let scene = Scene::parse(needle, "s.yaml").unwrap();
+        assert_eq!(scene.tools[0].shape, ToolShape::Capsule { radius: 0.001, length: 0.05 });
+        assert_eq!((scene.tools[0].name.as_str(), scene.tools[0].coupling), ("needle", None), "a tool as written");
+        let lowest = Scene::parse("fixed: {kind: lowest}\n", "s.yaml").unwrap();
+        assert_eq!(lowest.fixed, Some(FixedNodes::Lowest { fraction: FixedNodes::LOWEST_FRACTION }));
+    }
+
+    /// Relative paths in a scene file are the file's neighbours, not the working folder's.
+    #[test]
+    fn files_a_scene_names_lie_beside_it() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("scene.yaml");
+        std::fs::write(&file, "volume: ct/ct.nii.gz\nmesh: {kind: file, path: organ.vtu, scale: 0.001}\n").unwrap();
+        let scene = Scene::from_file(&file).unwrap();
+        assert_eq!(Path::new(&scene.volume), dir.path().join("ct/ct.nii.gz"));
+        assert_eq!(scene.mesh, MeshSource::File { path: dir.path().join("organ.vtu"), scale: Some(0.001) });
+        std::fs::write(&file, "volume: /data/ct.nii.gz\n").unwrap();
+        let scene = Scene::from_file(&file).unwrap();
+        assert_eq!((scene.volume.as_str(), &scene.mesh), ("/data/ct.nii.gz", &Scene::default_scene().unwrap().mesh));
+    }
+
+    /// A section of the wrong shape is named with the kinds it takes, and its line.
+    #[test]
+    fn a_section_of_the_wrong_shape_lists_its_kinds() {
+        let e = Scene::parse("volume: ct.nii.gz\nmesh: 5\n", "s.yaml").unwrap_err().to_string();
+        assert!(e.contains("mesh: invalid type"), "{e}");
+        assert!(e.contains("(kind: one of file, volume_lattice, lattice, bar, ellipsoid) at line 2"), "{e}");
+        let e = Scene::parse("fixed: {kind: plank}\n", "s.yaml").unwrap_err().to_string();
+        assert!(e.contains("fixed.kind: unknown variant, expected one of `indices`, `box`, `plane`, `lowest`"), "{e}");
+        assert!(e.contains("at line 1 (did you mean `plane`?)"), "{e}");
     }
 
     #[test]

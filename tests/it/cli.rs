@@ -440,7 +440,7 @@ fn negative_numbers_are_values_not_flags() {
     let out = defvol().args(["simulate", "--dt", "-0.01", "--tets", "200", "--out"]).arg(dir.path()).output().unwrap();
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
-    assert!(err.contains("parameter `dt` = -0.01"), "refused by the solver, not by the parser: {err}");
+    assert!(err.contains("solver.dt = -0.01 is outside"), "refused by the scene's range, not by the parser: {err}");
 }
 
 #[test]
@@ -891,4 +891,22 @@ fn info_counts_what_a_messy_mesh_holds_and_never_refuses_it() {
     assert_eq!(got["bounds"], serde_json::json!([[0.0, 0.0, -1.0], [11.0, 1.0, 1.0]]), "{got}");
     let text = defvol().args(["info", "messy.vtk"]).current_dir(dir.path()).output().unwrap();
     assert!(text.status.success() && String::from_utf8_lossy(&text.stdout).contains("inverted_tets: 1"));
+}
+
+/// A scene whose `fixed` holds no node (the phantom's plane under a user's organ) is warned
+/// of at load, naming the fix; the run then says the organ fell, not that it diverged.
+#[test]
+fn a_scene_holding_no_node_is_warned_of_and_its_fall_named() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = dir.path().join("scene.yaml");
+    let text = "mesh: {kind: volume_lattice, target_tets: 200, split: five}\n\
+                fixed: {kind: plane, normal: [0, 0, 1], offset: -5}\nstages: {solver: true}\ntools: []\n";
+    std::fs::write(&scene, text).unwrap();
+    let mut simulate = defvol();
+    simulate.args(["simulate", "--scene"]).arg(&scene).args(["--steps", "100", "--out"]).arg(dir.path());
+    let out = simulate.output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("no node is held: `fixed` (below the plane [0.0, 0.0, 1.0] · x = -5) selects none"), "{err}");
+    assert!(err.contains("`fixed: {kind: lowest}` rests it on its lowest layer"), "{err}");
+    assert!(err.contains("the mesh fell freely") && !err.contains("diverged"), "{err}");
 }

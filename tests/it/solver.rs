@@ -144,6 +144,30 @@ fn explicit_schemes_fail_past_the_seed_limit_and_it_is_detected() {
     ));
 }
 
+/// A mesh nothing holds falls under gravity until it is twice its size away: that is said
+/// as a fall (the newcomer read "diverged … a node moved 0.57 m"), after the time
+/// free fall takes to cover that distance.
+#[test]
+fn a_mesh_nothing_holds_is_said_to_fall_not_to_diverge() {
+    let mesh = generate::bar(0.25).unwrap();
+    let free = vec![false; mesh.nodes().len()];
+    let material = Material::Uniform { stiffness: 3000.0, damping: 0.05 };
+    let model = MassSpringModel::new(&mesh, &material, 1000.0, &free, None).unwrap();
+    let (lo, hi) = defvol::mesh::bounds(mesh.nodes());
+    let limit = 2.0 * (hi - lo).norm();
+    let dt = 0.01;
+    let params = SolverParams { dt, ..Default::default() };
+    match run::<f64>(&model, params, 1000) {
+        Err(SolverError::FellFreely { step, distance, .. }) => {
+            assert!(distance > limit, "{distance} m");
+            // Implicit Euler falls a little behind g t² / 2.
+            let fallen = 0.5 * 9.81 * (step as f64 * dt).powi(2);
+            assert!((fallen - limit).abs() < 0.15 * limit, "step {step}: {fallen} m by g t^2 / 2, limit {limit} m");
+        }
+        other => panic!("expected a free fall, got {:?}", other.map(|sim| sim.step_index())),
+    }
+}
+
 /// A diverged step says where it points: the step's CG outcome, the spring stretched most
 /// (and where), the node that moved farthest, and each tool's contacts; the last stable
 /// state stays.

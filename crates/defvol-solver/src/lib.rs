@@ -34,6 +34,12 @@ pub enum SolverError {
     BadParameter { name: String, value: f64, why: String },
     #[error("simulation diverged at step {step} (t = {time:.4} s): {reason}; the last stable state was kept")]
     Diverged { step: u64, time: f64, reason: String },
+    #[error(
+        "the mesh fell freely, {distance:.3} m by step {step} (t = {time:.4} s): no node is held (the scene's \
+         `fixed` selects none; `fixed: {{kind: lowest}}` rests it on its lowest layer); the last state \
+         before was kept"
+    )]
+    FellFreely { step: u64, time: f64, distance: f64 },
     #[error("tool {index} does not exist ({count} tools)")]
     NoSuchTool { index: usize, count: usize },
     #[error("tool {index}: {what} is not finite")]

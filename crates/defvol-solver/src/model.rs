@@ -106,11 +106,20 @@ pub enum FixedNodes {
     /// The mesh's lowest layer: nodes within `fraction` of its height above its lowest z
     /// (what holds a user's organ on the table when the scene names nothing).
     Lowest {
+        #[serde(default = "FixedNodes::lowest_fraction")]
         fraction: f64,
     },
 }
 
 impl FixedNodes {
+    /// The lowest 2 % of the mesh's height: the layer an organ rests on, on a mesh of
+    /// fifty layers or fewer.
+    pub const LOWEST_FRACTION: f64 = 0.02;
+
+    fn lowest_fraction() -> f64 {
+        Self::LOWEST_FRACTION
+    }
+
     pub fn select(&self, nodes: &[Vector3<f64>]) -> Result<Vec<bool>, SolverError> {
         let mut fixed = vec![false; nodes.len()];
         match self {

@@ -62,9 +62,25 @@ impl<T: Real> Simulation<T> {
             self.proxies = saved.proxies;
             self.surface.moved(moved);
             (self.step, self.time) = (step_before, time_before);
+            if self.fell_freely(&report) {
+                return Err(SolverError::FellFreely {
+                    step: failed.0,
+                    time: failed.1,
+                    distance: report.max_displacement,
+                });
+            }
             return Err(SolverError::Diverged { step: failed.0, time: failed.1, reason });
         }
         Ok(report)
+    }
+
+    /// Whether a state that moved too far is a mesh nothing holds, falling: no node fixed,
+    /// every value finite.
+    fn fell_freely(&self, report: &StepReport) -> bool {
+        !self.fixed.contains(&true)
+            && report.max_displacement > self.divergence_distance
+            && report.max_displacement.is_finite()
+            && report.kinetic_energy.is_finite()
     }
 
     /// Why the state reached is not physical, with where it points ([`Self::diagnosis`]).
