@@ -248,3 +248,52 @@ fn every_file_defvol_writes_opens_in_the_tools() {
     }
     assert!(failures.is_empty(), "{}", failures.join("\n"));
 }
+
+/// The newcomer's path (docs/scenes.md, "Your own CT and organ"): a CT written by SimpleITK
+/// and an organ mesh written by meshio, both in millimetres, and the page's own scene beside
+/// them; `defvol simulate` presses the probe into that organ: it is held (nothing falls), the
+/// probe meets it and pushes back, and no step turns a tet inside out.
+#[test]
+fn the_documented_scene_presses_a_newcomers_ct_and_organ() {
+    if !have_tools() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let page = std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("docs/scenes.md")).unwrap();
+    let section = page.split("## Your own CT and organ").nth(1).unwrap();
+    let yaml = section.split("```yaml\n").nth(1).and_then(|rest| rest.split("```").next()).unwrap();
+    std::fs::write(dir.path().join("scene.yaml"), yaml).unwrap();
+    let organ = defvol::mesh::generate::ellipsoid(Vector3::zeros(), Vector3::new(50.0, 40.0, 60.0), 8).unwrap();
+    let mesh = serde_json::json!({
+        "points": organ.nodes().iter().map(|p| [p.x, p.y, p.z]).collect::<Vec<_>>(),
+        "tets": organ.tets(),
+    });
+    std::fs::write(dir.path().join("organ.json"), mesh.to_string()).unwrap();
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/interop/newcomer.py");
+    let out = Command::new("python3").arg(script).arg(dir.path()).arg(dir.path().join("organ.json")).output().unwrap();
+    assert!(out.status.success(), "newcomer.py: {}", String::from_utf8_lossy(&out.stderr));
+    // From another folder: the scene's paths are its own folder's.
+    let run = tempfile::tempdir().unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_defvol"))
+        .args(["simulate", "--backend", "cpu", "--scene"])
+        .arg(dir.path().join("scene.yaml"))
+        .args(["--steps", "80", "--out", "out"])
+        .current_dir(run.path())
+        .output()
+        .unwrap();
+    let log = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{log}");
+    assert!(!log.contains("WARN"), "a newcomer's run warns of nothing: {log}");
+    let steps = std::fs::read_to_string(run.path().join("out/steps.csv")).unwrap();
+    let mut rows = csv::Reader::from_reader(steps.as_bytes());
+    let headers = rows.headers().unwrap().clone();
+    let column = |name: &str| headers.iter().position(|h| h == name).unwrap();
+    let rows: Vec<csv::StringRecord> = rows.records().map(Result::unwrap).collect();
+    let value = |row: &csv::StringRecord, name: &str| row[column(name)].parse::<f64>().unwrap();
+    let last = rows.last().unwrap();
+    eprintln!("last step: {:?} = {:?}", headers, last);
+    assert_eq!(rows.len(), 80);
+    assert!(value(last, "reaction_fz").abs() > 0.1, "the probe pushes the organ: {:?}", last);
+    assert!(value(last, "max_displacement") < 0.02, "held, it does not fall: {:?}", last);
+    assert!(rows.iter().all(|row| value(row, "inverted_tets") == 0.0), "no tet inside out");
+}
