@@ -459,9 +459,8 @@ impl Scene {
         Self::parse(DEFAULT_SCENE, "embedded default scene")
     }
 
-    /// A scene from YAML text, every field it omits the embedded scene's
-    /// ([`inherit`](inherit::inherit)); `origin` names it in errors, which name the field at
-    /// fault and its line.
+    /// A scene from YAML text, every field it omits the embedded scene's (`mesh: FILE` a mesh
+    /// file); `origin` names it in errors, which name the field at fault and its line.
     pub fn parse(text: &str, origin: &str) -> Result<Self, SceneError> {
         let refused = |message| SceneError::Parse { path: origin.to_owned(), message };
         let tree: serde_yaml_ng::Value =
