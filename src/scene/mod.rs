@@ -486,12 +486,17 @@ impl Scene {
         } else {
             io::read_volume_series(Path::new(&self.volume), self.volume_series.as_deref())?
         };
-        self.load_on(Arc::new(volume))
+        self.build_on(Arc::new(volume))
     }
 
     /// The scene built on `volume`, already read (a reset, or a change that keeps the volume).
     pub fn load_on(self, volume: Arc<Volume>) -> Result<LoadedScene, SceneError> {
         self.check()?;
+        self.build_on(volume)
+    }
+
+    /// The mesh and model of a checked scene on `volume`.
+    fn build_on(self, volume: Arc<Volume>) -> Result<LoadedScene, SceneError> {
         let scale = self.file_to_world;
         let mesh = match &self.mesh {
             MeshSource::File { path, scale: chosen } => read_world_mesh(path, *chosen, scale)?,

@@ -870,13 +870,9 @@ exit $status"#;
 /// there, bound to its end of the link, exchanges poses and feedback with the node.
 #[test]
 fn dds_stays_off_a_second_host_by_default_and_reaches_it_when_opened() {
-    // Always in a namespace of its own: the veth and its routes must not meet other tests.
-    if std::env::var_os("DEFVOL_NETNS_RERUN").is_none() {
-        rerun_in_a_namespace_of_its_own("dds_stays_off_a_second_host_by_default_and_reaches_it_when_opened");
+    let Some(other) = OtherHost::for_test("dds_stays_off_a_second_host_by_default_and_reaches_it_when_opened") else {
         return;
-    }
-    assert!(dds::private_network(), "the first host must be a private network namespace");
-    let other = OtherHost::join();
+    };
     let its = other.ns.clone();
     let capture = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/interop/rtps_capture.py");
     let mut counted = Vec::new();
@@ -957,6 +953,18 @@ struct OtherHost {
 }
 
 impl OtherHost {
+    /// The other host of the test `name`, which always runs in a namespace of its own (the
+    /// veth and its routes must not meet other tests): none where this process only re-ran
+    /// the test there.
+    fn for_test(name: &str) -> Option<OtherHost> {
+        if std::env::var_os("DEFVOL_NETNS_RERUN").is_none() {
+            rerun_in_a_namespace_of_its_own(name);
+            return None;
+        }
+        assert!(dds::private_network(), "the first host must be a private network namespace");
+        Some(OtherHost::join())
+    }
+
     fn join() -> OtherHost {
         let shell = |script: &str| {
             let out = Command::new("sh").args(["-c", script]).output().unwrap();
@@ -1296,12 +1304,9 @@ fn images_reach_fast_dds_and_cyclone_dds_viewers_on_this_host() {
 /// 240 datagrams), the node's discovery opened to the subnet.
 #[test]
 fn images_reach_fast_dds_and_cyclone_dds_viewers_on_another_host() {
-    if std::env::var_os("DEFVOL_NETNS_RERUN").is_none() {
-        rerun_in_a_namespace_of_its_own("images_reach_fast_dds_and_cyclone_dds_viewers_on_another_host");
+    let Some(other) = OtherHost::for_test("images_reach_fast_dds_and_cyclone_dds_viewers_on_another_host") else {
         return;
-    }
-    assert!(dds::private_network(), "the first host must be a private network namespace");
-    let other = OtherHost::join();
+    };
     for viewer in [Viewer::Cyclone, Viewer::Rclpy] {
         if viewer.available() {
             let (delivery, _) = image_delivery(viewer, Some(&other));
